@@ -1,0 +1,377 @@
+"""The YAML grammar language, as pydantic v2 models.
+
+These models check the *shape* of a grammar document (keys, types, finite numbers, one choice
+per union).  Everything that needs the whole document (unknown child types, recursion bounds,
+normalisable probabilities, orthogonal matrices, ...) is checked by `ssgc.compile`.
+
+Unions are written the way people write YAML by hand: a bare word (``same``, ``uniform``) or a
+mapping with exactly one key naming the variant (``{world_normal: {...}}``).  The
+discriminator below turns that into one clear error instead of pydantic's per-variant noise.
+The docs (docs/grammar.md) are the user-facing reference for this file.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, Union
+
+import difflib
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    StringConstraints,
+    Tag,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Positive = Annotated[float, Field(allow_inf_nan=False, gt=0)]
+NonNegative = Annotated[float, Field(allow_inf_nan=False, ge=0)]
+Probability = Annotated[float, Field(allow_inf_nan=False, ge=0, le=1)]
+Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
+Vec4 = Annotated[list[Finite], Field(min_length=4, max_length=4)]
+Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
+Mat4 = Annotated[list[Vec4], Field(min_length=4, max_length=4)]
+Axis = Literal["x", "y", "z"]
+TypeName = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$", max_length=200)]
+
+
+class Strict(BaseModel):
+    """Base: unknown keys are errors and nothing is coerced (``"0.5"`` is not a number)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, populate_by_name=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_keys(cls, data: Any) -> Any:
+        """Name the unknown key and what was expected (pydantic only says 'extra input')."""
+        if isinstance(data, dict):
+            allowed = sorted(f.alias or name for name, f in cls.model_fields.items())
+            for key in data:
+                if key not in allowed:
+                    close = difflib.get_close_matches(str(key), allowed, n=1)
+                    raise PydanticCustomError(
+                        "unknown_key",
+                        "unknown key '{key}'; expected one of: {allowed}{hint}",
+                        {
+                            "key": str(key),
+                            "allowed": ", ".join(allowed),
+                            "hint": f" (did you mean '{close[0]}'?)" if close else "",
+                        },
+                    )
+        return data
+
+
+# --------------------------------------------------------------------------------- poses ---
+
+
+class Orientation(Strict):
+    """A rotation written one of three ways; none given means the identity."""
+
+    rpy: Vec3 | None = Field(None, description="Roll-pitch-yaw in radians, R = Rz(y) Ry(p) Rx(r).")
+    rpy_deg: Vec3 | None = Field(None, description="Roll-pitch-yaw in degrees.")
+    quat_wxyz: Vec4 | None = Field(None, description="Unit quaternion, scalar first.")
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Orientation:
+        given = [k for k in ("rpy", "rpy_deg", "quat_wxyz") if getattr(self, k) is not None]
+        if len(given) > 1:
+            raise ValueError(f"give the rotation one way only, got {' and '.join(given)}")
+        return self
+
+
+class Pose(Orientation):
+    xyz: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0], description="Position in meters.")
+
+
+# ----------------------------------------------------------------------- discriminators ---
+
+
+def _one_key(value: Any) -> str | None:
+    """Tag of a bare-word-or-single-key-mapping union: the word, or the mapping's only key."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, dict) and len(value) == 1:
+        return next(iter(value))
+    if isinstance(value, BaseModel):  # already validated (model construction in code)
+        fields = [k for k, v in value.__dict__.items() if v is not None]
+        return fields[0] if len(fields) == 1 else None
+    return None
+
+
+def _choice(*variants: tuple[Any, str], what: str) -> Any:
+    """Build ``Annotated[Union[...], Discriminator]`` for a one-key union."""
+    names = ", ".join(tag for _, tag in variants)
+    members = tuple(Annotated[tp, Tag(tag)] for tp, tag in variants)
+    return Annotated[
+        members[0] if len(members) == 1 else Union[members],  # noqa: UP007
+        Discriminator(
+            _one_key,
+            custom_error_type="invalid_choice",
+            custom_error_message=f"expected a {what}: one of {names}",
+        ),
+    ]
+
+
+# ------------------------------------------------------------------------ translations ---
+
+
+class NormalParams(Strict):
+    """A Normal law on a 3-D offset; pinned axes are held at the mean (density over the rest)."""
+
+    mean: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    variance: Positive | Vec3 | None = Field(
+        None, description="Per-axis variances (m^2), or one number for all axes."
+    )
+    covariance: Mat3 | None = Field(None, description="Full 3x3 covariance (m^2).")
+    pin: list[Axis] = Field(default_factory=list, description="Axes held exactly at the mean.")
+    fixed: bool = Field(False, description="Keep these parameters when fitting.")
+
+    @model_validator(mode="after")
+    def _one_spread(self) -> NormalParams:
+        if (self.variance is None) == (self.covariance is None):
+            raise ValueError("give exactly one of `variance` or `covariance`")
+        return self
+
+
+class BoxParams(Strict):
+    """Uniform on an axis-aligned box; an axis with min == max is pinned."""
+
+    min: Vec3
+    max: Vec3
+    fixed: bool = False
+
+
+class OffsetT(Strict):
+    offset: Vec3 = Field(description="Fixed offset, in the parent's frame.")
+
+
+class WorldNormalT(Strict):
+    world_normal: NormalParams = Field(description="Child position ~ Normal in the world frame.")
+
+
+class WorldNormalOffsetT(Strict):
+    world_normal_offset: NormalParams = Field(
+        description="Child position = parent position + Normal offset along world axes."
+    )
+
+
+class ParentNormalOffsetT(Strict):
+    parent_normal_offset: NormalParams = Field(
+        description="Child position = parent position + parent rotation * Normal offset."
+    )
+
+
+class WorldBoxT(Strict):
+    world_box: BoxParams = Field(description="Child position uniform in a world-frame box.")
+
+
+class WorldBoxOffsetT(Strict):
+    world_box_offset: BoxParams = Field(
+        description="Child position = parent position + offset uniform in a world-axis box."
+    )
+
+
+Translation = _choice(
+    (Literal["same"], "same"),
+    (OffsetT, "offset"),
+    (WorldNormalT, "world_normal"),
+    (WorldNormalOffsetT, "world_normal_offset"),
+    (ParentNormalOffsetT, "parent_normal_offset"),
+    (WorldBoxT, "world_box"),
+    (WorldBoxOffsetT, "world_box_offset"),
+    what="translation rule",
+)
+
+
+# --------------------------------------------------------------------------- rotations ---
+
+
+class BinghamParams(Strict):
+    """A Bingham law on unit quaternions: a mode and concentrations, or raw (M, Z)."""
+
+    mode: Orientation | None = Field(None, description="Most likely rotation (default identity).")
+    concentration: NonNegative | Annotated[list[NonNegative], Field(min_length=3, max_length=3)] | None = Field(
+        None,
+        description="Concentration about the mode frame's x, y, z axes (angular std ~ sqrt(2/c) rad).",
+    )
+    M: Mat4 | None = Field(None, description="Orthogonal 4x4 matrix, columns are axes (wxyz).")
+    Z: Vec4 | None = Field(None, description="Log-density weights of M's columns (largest = mode).")
+    fixed: bool = False
+
+    @model_validator(mode="after")
+    def _one_form(self) -> BinghamParams:
+        raw = self.M is not None or self.Z is not None
+        moded = self.mode is not None or self.concentration is not None
+        if raw and moded:
+            raise ValueError("give either `mode`/`concentration` or raw `M`/`Z`, not both")
+        if raw and (self.M is None or self.Z is None):
+            raise ValueError("raw Bingham parameters need both `M` and `Z`")
+        if not raw and self.concentration is None:
+            raise ValueError("give `concentration` (with an optional `mode`), or raw `M` and `Z`")
+        return self
+
+
+class RevoluteParams(Strict):
+    """Child rotation = parent rotation * rotation by a uniform angle about `axis`."""
+
+    axis: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 1.0])
+    min: Finite = Field(-3.141592653589793, description="Smallest angle (rad).")
+    max: Finite = Field(3.141592653589793, description="Largest angle (rad).")
+    fixed: bool = False
+
+
+class OffsetR(Strict):
+    offset: Orientation = Field(description="Fixed rotation offset, in the parent's frame.")
+
+
+class WorldBinghamR(Strict):
+    world_bingham: BinghamParams
+
+
+class ParentBinghamR(Strict):
+    parent_bingham: BinghamParams
+
+
+class RevoluteR(Strict):
+    revolute: RevoluteParams
+
+
+Rotation = _choice(
+    (Literal["same"], "same"),
+    (Literal["uniform"], "uniform"),
+    (OffsetR, "offset"),
+    (WorldBinghamR, "world_bingham"),
+    (ParentBinghamR, "parent_bingham"),
+    (RevoluteR, "revolute"),
+    what="rotation rule",
+)
+
+
+# ------------------------------------------------------------------------------ rules ---
+
+
+class Rule(Strict):
+    """Produce one child: its type, and how its pose follows from the parent's."""
+
+    child: TypeName
+    p: Probability | None = Field(
+        None, description="`or`: weight (normalised); `independent`: probability of firing."
+    )
+    translation: Translation = "same"  # type: ignore[valid-type]
+    rotation: Rotation = "same"  # type: ignore[valid-type]
+
+
+class GeometricCount(Strict):
+    p: Annotated[float, Field(allow_inf_nan=False, gt=0, le=1)] = Field(
+        description="Stopping probability: P(n) ~ p (1-p)^(n-start)."
+    )
+    max: Annotated[int, Field(ge=0, le=1000)]
+    start: Annotated[int, Field(ge=0)] = 0
+
+
+class ProbsCount(Strict):
+    probs: Annotated[list[NonNegative], Field(min_length=1, max_length=1001)] = Field(
+        description="P(count = n) for n = 0 .. len-1 (normalised)."
+    )
+
+
+class GeometricCountSpec(Strict):
+    geometric: GeometricCount
+
+
+Count = _choice((ProbsCount, "probs"), (GeometricCountSpec, "geometric"), what="count law")
+
+
+class Repeat(Strict):
+    count: Count  # type: ignore[valid-type]
+    rule: Rule
+
+
+class BoxGeometry(Strict):
+    size: Annotated[list[Positive], Field(min_length=3, max_length=3)]
+
+
+class CylinderGeometry(Strict):
+    radius: Positive
+    length: Positive
+
+
+class SphereGeometry(Strict):
+    radius: Positive
+
+
+class MeshGeometry(Strict):
+    file: Annotated[str, StringConstraints(min_length=1)]
+    scale: Positive | Annotated[list[Positive], Field(min_length=3, max_length=3)] = 1.0
+
+
+class BoxG(Strict):
+    box: BoxGeometry
+
+
+class CylinderG(Strict):
+    cylinder: CylinderGeometry
+
+
+class SphereG(Strict):
+    sphere: SphereGeometry
+
+
+class MeshG(Strict):
+    mesh: MeshGeometry
+
+
+Geometry = _choice(
+    (BoxG, "box"), (CylinderG, "cylinder"), (SphereG, "sphere"), (MeshG, "mesh"), what="geometry"
+)
+
+
+class NodeType(Strict):
+    """One node type; its kind is whichever of and/or/independent/repeat it has (none: terminal)."""
+
+    observed: bool = Field(False, description="Produces an object that appears in scenes.")
+    geometry: Geometry | None = None  # type: ignore[valid-type]
+    model: str | None = Field(None, description="Model file for simulators; also a dataset label.")
+    labels: list[Annotated[str, StringConstraints(min_length=1)]] = Field(
+        default_factory=list, description="Dataset class names that mean this type."
+    )
+    max_nesting: Annotated[int, Field(ge=1, le=100)] | None = Field(
+        None, description="At most this many nodes of this type on any root-to-leaf path."
+    )
+    fixed: bool = Field(False, description="Keep rule probabilities / count law when fitting.")
+    and_: list[Rule] | None = Field(None, alias="and", description="All rules fire.")
+    or_: list[Rule] | None = Field(None, alias="or", description="Exactly one rule fires.")
+    independent: list[Rule] | None = Field(None, description="Each rule fires with its own p.")
+    repeat: Repeat | None = Field(None, description="One rule fires a random number of times.")
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> NodeType:
+        kinds = [k for k in ("and_", "or_", "independent", "repeat") if getattr(self, k) is not None]
+        if len(kinds) > 1:
+            names = " and ".join(k.rstrip("_") for k in kinds)
+            raise ValueError(f"a type has one kind of children, got {names}")
+        return self
+
+
+class Root(Strict):
+    type: TypeName
+    pose: Pose = Field(default_factory=Pose)
+
+
+class GrammarDoc(Strict):
+    """A spatial scene grammar (thesis Ch. 2.3)."""
+
+    grammar: Annotated[str, StringConstraints(min_length=1, max_length=200)] = Field(
+        description="Name of the grammar."
+    )
+    description: str | None = None
+    root: Root | TypeName = Field(description="Root type, or {type, pose}.")
+    types: dict[TypeName, NodeType] = Field(min_length=1)
+
+    @property
+    def root_spec(self) -> Root:
+        return self.root if isinstance(self.root, Root) else Root(type=self.root)

@@ -1,0 +1,62 @@
+"""User-facing errors.
+
+Every mistake a user can make (bad YAML, a semantic error in a grammar, a scene the grammar
+cannot read) ends up as an `SsgError` holding one or more `Diagnostic`s.  The CLI prints them as
+``FILE:LINE:COL: severity: message`` and exits non-zero; nothing else ever reaches the user as a
+traceback.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+Severity = Literal["error", "warning"]
+
+
+@dataclass(frozen=True)
+class Diagnostic:
+    """One located message, formatted like a compiler's (rustc, mypy)."""
+
+    message: str
+    file: str | None = None
+    line: int | None = None
+    column: int | None = None
+    severity: Severity = "error"
+
+    def __str__(self) -> str:
+        where = self.file or "<input>"
+        if self.line is not None:
+            where += f":{self.line}"
+            if self.column is not None:
+                where += f":{self.column}"
+        return f"{where}: {self.severity}: {self.message}"
+
+
+@dataclass
+class SsgError(Exception):
+    """A user mistake: carries diagnostics; never a bug in ssgc."""
+
+    diagnostics: list[Diagnostic] = field(default_factory=list)
+    exit_code: int = 1
+
+    def __post_init__(self) -> None:
+        super().__init__(str(self))
+
+    @classmethod
+    def single(
+        cls, message: str, file: str | None = None, line: int | None = None,
+        column: int | None = None, exit_code: int = 1,
+    ) -> SsgError:
+        return cls([Diagnostic(message, file, line, column)], exit_code)
+
+    def __str__(self) -> str:
+        return "\n".join(str(d) for d in self.diagnostics)
+
+
+class GrammarError(SsgError):
+    """The grammar file is invalid (syntax, schema or semantics)."""
+
+
+class SceneError(SsgError):
+    """A scene file is invalid or cannot be read with the given grammar."""

@@ -1,0 +1,185 @@
+"""Forward sampling (thesis Algorithm 1), vectorised over many scenes at once.
+
+Instead of expanding one node at a time, the sampler expands a whole *level* of every tree in
+the batch together: nodes of the frontier are grouped by type (the discrete choice of rules is
+one vectorised draw per type) and the children are grouped by rule (one vectorised pose draw per
+rule).  The Python loop runs over levels × (types + rules), never over nodes or scenes.
+
+Reproducibility: scenes are drawn in chunks of `CHUNK` with a generator seeded by
+``(seed, chunk index)``, so scene i depends only on the seed and i — asking for more scenes
+extends the list without changing the first ones.
+
+Recursion bounds: a rule whose child would exceed its type's `max_nesting` is *blocked*: it
+never fires; an `or` renormalises over its unblocked rules (and produces nothing if none is
+left), a blocked `repeat` produces no children.  `ssgc.score` applies the same rule, so the
+sampler and the scorer define the same distribution.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.ir import Grammar, Kind
+from ssgc.rules import sample_children
+from ssgc.tree import Trees
+
+CHUNK = 256
+
+
+def sample_trees(grammar: Grammar, n: int, seed: int) -> tuple[Trees, NDArray[np.float64]]:
+    """Draw `n` scene trees; returns them and each tree's log-probability (Eq. 2.1)."""
+    if n < 0:
+        raise ValueError(f"number of scenes must be >= 0, got {n}")
+    batches, logps = [], []
+    for chunk in range((n + CHUNK - 1) // CHUNK):
+        trees, logp = sample_chunk(grammar, chunk_rng(seed, chunk))
+        keep = min(CHUNK, n - chunk * CHUNK)
+        if keep < CHUNK:
+            trees = trees.tree(0) if keep == 1 else _first_trees(trees, keep)
+            logp = logp[:keep]
+        batches.append(trees)
+        logps.append(logp)
+    if not batches:
+        return _empty(), np.zeros(0)
+    return Trees.concatenate(batches), np.concatenate(logps)
+
+
+def chunk_rng(seed: int, chunk: int) -> np.random.Generator:
+    return np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, chunk])
+
+
+def sample_chunk(grammar: Grammar, rng: np.random.Generator, size: int = CHUNK
+                 ) -> tuple[Trees, NDArray[np.float64]]:
+    """Draw `size` trees with one generator: the vectorised level-by-level expansion."""
+    tb = grammar.tables
+    n_bounded = tb.nesting_max.shape[0]
+    # Per node (accumulated level by level): scene, type, parent, rule, pose.
+    scene = [np.arange(size)]
+    ntype = [np.full(size, grammar.root, np.int64)]
+    parent = [np.full(size, -1, np.int64)]
+    rule = [np.full(size, -1, np.int64)]
+    xyz = [np.broadcast_to(grammar.root_xyz, (size, 3)).copy()]
+    quat = [np.broadcast_to(grammar.root_quat, (size, 4)).copy()]
+    lp_scene: list[NDArray[np.int64]] = []
+    lp_value: list[NDArray[np.float64]] = []
+
+    nest = np.zeros((size, n_bounded), np.int64)
+    if tb.nesting_slot[grammar.root] >= 0:
+        nest[:, tb.nesting_slot[grammar.root]] = 1
+    first_id = 0  # global id of the frontier's first node
+    while len(ntype[-1]):
+        f_scene, f_type, f_xyz, f_quat = scene[-1], ntype[-1], xyz[-1], quat[-1]
+        fires, logp_choice = _choose_rules(grammar, f_type, nest, rng)
+        lp_scene.append(f_scene)
+        lp_value.append(logp_choice)
+        next_id = first_id + len(f_type)
+        new = {"scene": [], "type": [], "parent": [], "rule": [], "xyz": [], "quat": [], "nest": []}
+        for rid, where in fires:
+            c_xyz, c_quat, lp = sample_children(grammar, rid, f_xyz[where], f_quat[where], rng)
+            child_type = tb.rule_child[rid]
+            c_nest = nest[where].copy()
+            if tb.nesting_slot[child_type] >= 0:
+                c_nest[:, tb.nesting_slot[child_type]] += 1
+            new["scene"].append(f_scene[where])
+            new["type"].append(np.full(len(where), child_type, np.int64))
+            new["parent"].append(where + first_id)
+            new["rule"].append(np.full(len(where), rid, np.int64))
+            new["xyz"].append(c_xyz)
+            new["quat"].append(c_quat)
+            new["nest"].append(c_nest)
+            lp_scene.append(f_scene[where])
+            lp_value.append(lp)
+        first_id = next_id
+        if not new["type"]:
+            break
+        scene.append(np.concatenate(new["scene"]))
+        ntype.append(np.concatenate(new["type"]))
+        parent.append(np.concatenate(new["parent"]))
+        rule.append(np.concatenate(new["rule"]))
+        xyz.append(np.concatenate(new["xyz"]))
+        quat.append(np.concatenate(new["quat"]))
+        nest = np.concatenate(new["nest"])
+
+    logp = np.bincount(np.concatenate(lp_scene), np.concatenate(lp_value), minlength=size)
+    return _group_by_scene(scene, ntype, parent, rule, xyz, quat, size), logp
+
+
+def _choose_rules(
+    grammar: Grammar, f_type: NDArray[np.int64], nest: NDArray[np.int64], rng: np.random.Generator
+) -> tuple[list[tuple[int, NDArray[np.int64]]], NDArray[np.float64]]:
+    """Which rules fire at each frontier node: [(rule id, frontier positions)], log-probs."""
+    tb = grammar.tables
+    fires: list[tuple[int, NDArray[np.int64]]] = []
+    logp = np.zeros(len(f_type))
+    for t in np.unique(f_type):
+        node = grammar.types[t]
+        if node.kind == Kind.TERMINAL:
+            continue
+        sel = np.flatnonzero(f_type == t)
+        rules = np.asarray(node.rules)
+        blocked = blocked_rules(grammar, rules, nest[sel])
+        if node.kind == Kind.AND:
+            fires += [(int(r), sel[~blocked[:, k]]) for k, r in enumerate(rules)]
+        elif node.kind == Kind.OR:
+            weights = np.where(blocked, 0.0, node.probs)
+            total = weights.sum(axis=1)
+            cum = np.cumsum(weights, axis=1)
+            u = rng.random(len(sel)) * total
+            choice = np.minimum((cum <= u[:, None]).sum(axis=1), len(rules) - 1)
+            live = total > 0
+            with np.errstate(divide="ignore"):
+                logp[sel[live]] = np.log(weights[live, choice[live]] / total[live])
+            fires += [(int(r), sel[live & (choice == k)]) for k, r in enumerate(rules)]
+        elif node.kind == Kind.INDEPENDENT:
+            fire = (rng.random((len(sel), len(rules))) < node.probs) & ~blocked
+            term = np.where(fire, tb.type_logp[t, : len(rules)], tb.type_log1mp[t, : len(rules)])
+            logp[sel] = np.sum(np.where(blocked, 0.0, term), axis=1)
+            fires += [(int(r), sel[fire[:, k]]) for k, r in enumerate(rules)]
+        else:  # REPEAT
+            counts = node.count.sample(rng, len(sel))
+            counts[blocked[:, 0]] = 0
+            logp[sel] = np.where(blocked[:, 0], 0.0, node.count.log_prob(counts))
+            fires.append((int(rules[0]), np.repeat(sel, counts)))
+    return [(r, w) for r, w in fires if len(w)], logp
+
+
+def blocked_rules(grammar: Grammar, rules: NDArray[np.int64], nest: NDArray[np.int64]
+                  ) -> NDArray[np.bool_]:
+    """(nodes, rules) mask of rules whose child would exceed its type's max_nesting."""
+    tb = grammar.tables
+    slot = tb.nesting_slot[tb.rule_child[rules]]
+    bounded = slot >= 0
+    out = np.zeros((nest.shape[0], len(rules)), bool)
+    if np.any(bounded):
+        out[:, bounded] = nest[:, slot[bounded]] >= tb.nesting_max[slot[bounded]]
+    return out
+
+
+def _group_by_scene(scene, ntype, parent, rule, xyz, quat, size):  # type: ignore[no-untyped-def]
+    """Reorder level-major nodes into scene-major order, keeping parents before children."""
+    s = np.concatenate(scene)
+    order = np.argsort(s, kind="stable")
+    new_index = np.empty_like(order)
+    new_index[order] = np.arange(len(order))
+    p = np.concatenate(parent)[order]
+    return Trees(
+        scene=s[order],
+        type=np.concatenate(ntype)[order],
+        parent=np.where(p >= 0, new_index[np.maximum(p, 0)], -1),
+        rule=np.concatenate(rule)[order],
+        xyz=np.concatenate(xyz)[order],
+        quat=np.concatenate(quat)[order],
+        n_scenes=size,
+    )
+
+
+def _first_trees(trees: Trees, keep: int) -> Trees:
+    end = int(trees.offsets[keep])
+    return Trees(trees.scene[:end], trees.type[:end], trees.parent[:end], trees.rule[:end],
+                 trees.xyz[:end], trees.quat[:end], keep)
+
+
+def _empty() -> Trees:
+    z = np.zeros(0, np.int64)
+    return Trees(z, z, z, z, np.zeros((0, 3)), np.zeros((0, 4)), 0)

@@ -1,0 +1,177 @@
+"""Scoring a scene tree: its log-probability under the grammar (thesis Eq. 2.1).
+
+A pure function of (grammar, trees), vectorised over every node of every tree in the batch:
+the discrete term of each parent (which rules fired, Table 2.3.1 node kinds) is computed for
+all nodes at once from a (node × rule slot) child-count matrix, and the continuous term of
+each edge comes from `ssgc.rules`.  A tree the grammar cannot produce scores -inf;
+`explain` says why, for messages.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.ir import Grammar, Kind
+from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
+from ssgc.geometry import quat_angle
+from ssgc.tree import Trees
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class NodeTerms:
+    """Per-node parts of the score; a tree's score is the sum over its nodes."""
+
+    choice: FloatArray  # log P(this node's set of fired rules)
+    edge: FloatArray  # log p(this node's pose | its parent's pose, its rule); 0 for roots
+    valid: NDArray[np.bool_]  # False where the structure is impossible (the term is -inf)
+
+
+def score_trees(grammar: Grammar, trees: Trees) -> FloatArray:
+    """Log-probability of each tree in the batch (-inf for trees the grammar cannot produce)."""
+    terms = node_terms(grammar, trees)
+    total = np.bincount(trees.scene, terms.choice + terms.edge, minlength=trees.n_scenes)
+    invalid = np.bincount(trees.scene, ~terms.valid, minlength=trees.n_scenes) > 0
+    return np.where(invalid, -np.inf, total)
+
+
+def node_terms(grammar: Grammar, trees: Trees) -> NodeTerms:
+    tb = grammar.tables
+    n = len(trees)
+    valid = _structure_valid(grammar, trees)
+    # Only trust the rule/type tables on nodes whose parent link is consistent.
+    rule = np.where(valid & (trees.rule >= 0), trees.rule, -1)
+    child = np.flatnonzero(rule >= 0)
+    r, p = rule[child], trees.parent[child]
+
+    width = tb.type_rules.shape[1]
+    counts = np.bincount(p * width + tb.rule_index[r], minlength=n * width).reshape(n, width)
+    exists = tb.type_rules[trees.type] >= 0
+    blocked = _blocked(grammar, trees) & exists
+    choice, ok = _choice_terms(grammar, trees.type, counts, exists, blocked)
+
+    edge = np.zeros(n)
+    if len(child):
+        edge[child] = translation_log_density(
+            grammar, r, trees.xyz[p], trees.quat[p], trees.xyz[child]
+        ) + rotation_log_density(grammar, r, trees.quat[p], trees.quat[child])
+    valid &= ok & np.isfinite(edge) & np.isfinite(choice)
+    return NodeTerms(choice=np.where(ok, choice, -np.inf), edge=edge, valid=valid)
+
+
+def _structure_valid(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
+    """Each node's rule must belong to its parent's type and produce its type; roots at x_root."""
+    tb = grammar.tables
+    n_rules = len(grammar.rules)
+    is_root = trees.parent < 0
+    r = np.clip(trees.rule, 0, max(n_rules - 1, 0))
+    parent_type = trees.type[np.maximum(trees.parent, 0)]
+    ok_child = (
+        (trees.rule >= 0) & (trees.rule < n_rules)
+        & (tb.rule_parent[r] == parent_type) & (tb.rule_child[r] == trees.type)
+    )
+    ok_root = (
+        (trees.type == grammar.root)
+        & (np.linalg.norm(trees.xyz - grammar.root_xyz, axis=1) <= POS_TOL)
+        & (quat_angle(trees.quat, grammar.root_quat) <= ROT_TOL)
+    )
+    return np.where(is_root, ok_root, ok_child)
+
+
+def nesting_counts(grammar: Grammar, trees: Trees) -> NDArray[np.int64]:
+    """(nodes, bounded types): how many nodes of each bounded type lie on the path to the root."""
+    tb = grammar.tables
+    n_bounded = tb.nesting_max.shape[0]
+    out = np.zeros((len(trees), n_bounded), np.int64)
+    if n_bounded == 0:
+        return out
+    own = np.zeros((len(grammar.types), n_bounded), np.int64)
+    bounded_types = np.flatnonzero(tb.nesting_slot >= 0)
+    own[bounded_types, tb.nesting_slot[bounded_types]] = 1
+    anc = np.arange(len(trees))
+    while np.any(anc >= 0):
+        has = anc >= 0
+        out[has] += own[trees.type[anc[has]]]
+        anc[has] = trees.parent[anc[has]]
+    return out
+
+
+def _blocked(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
+    """(nodes, rule slots): rules that cannot fire at this node because of max_nesting."""
+    tb = grammar.tables
+    nest = nesting_counts(grammar, trees)
+    rules = tb.type_rules[trees.type]  # (N, K), -1 padded
+    slot = np.where(rules >= 0, tb.nesting_slot[tb.rule_child[np.maximum(rules, 0)]], -1)
+    if nest.shape[1] == 0:
+        return np.zeros(rules.shape, bool)
+    depth_here = np.take_along_axis(nest, np.maximum(slot, 0), axis=1)
+    return (slot >= 0) & (depth_here >= tb.nesting_max[np.maximum(slot, 0)])
+
+
+def _choice_terms(
+    grammar: Grammar, ntype: NDArray[np.int64], counts: NDArray[np.int64],
+    exists: NDArray[np.bool_], blocked: NDArray[np.bool_],
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Discrete log-probability of each node's fired rules, and whether that set is possible."""
+    tb = grammar.tables
+    kind = tb.type_kind[ntype]
+    allowed = exists & ~blocked
+    total = counts.sum(axis=1)
+    logp = tb.type_logp[ntype]
+    log1mp = tb.type_log1mp[ntype]
+    out = np.zeros(len(ntype))
+    ok = np.ones(len(ntype), bool)
+
+    ok[kind == Kind.TERMINAL] = total[kind == Kind.TERMINAL] == 0
+
+    is_and = kind == Kind.AND
+    ok[is_and] = np.all(counts[is_and] == allowed[is_and], axis=1)
+
+    is_or = kind == Kind.OR
+    if np.any(is_or):
+        c, a, lp = counts[is_or], allowed[is_or], logp[is_or]
+        any_allowed = a.any(axis=1)
+        chosen = np.argmax(c, axis=1)
+        one_allowed = (c.sum(axis=1) == 1) & a[np.arange(len(c)), chosen]
+        ok[is_or] = np.where(any_allowed, one_allowed, c.sum(axis=1) == 0)
+        with np.errstate(divide="ignore"):
+            log_mass = np.log(np.sum(np.where(a, np.exp(lp), 0.0), axis=1))
+        out[is_or] = np.where(one_allowed, lp[np.arange(len(c)), chosen] - log_mass, 0.0)
+
+    is_ind = kind == Kind.INDEPENDENT
+    if np.any(is_ind):
+        c, a = counts[is_ind], allowed[is_ind]
+        ok[is_ind] = np.all(c <= a, axis=1)  # at most once, never when blocked
+        term = np.where(c >= 1, logp[is_ind], log1mp[is_ind])
+        out[is_ind] = np.sum(np.where(a, term, 0.0), axis=1)
+
+    is_rep = kind == Kind.REPEAT
+    if np.any(is_rep):
+        c, a, t = counts[is_rep, 0], allowed[is_rep, 0], ntype[is_rep]
+        ok[is_rep] = np.where(a, c <= tb.count_max[t], c == 0)
+        clipped = np.minimum(c, tb.count_logp.shape[1] - 1)
+        out[is_rep] = np.where(a, tb.count_logp[t, clipped], 0.0)
+    out = np.where(ok, out, -np.inf)
+    return out, ok & np.isfinite(out)
+
+
+def explain(grammar: Grammar, trees: Trees) -> list[str]:
+    """Human-readable reasons why a single tree scores -inf (empty if it is possible)."""
+    terms = node_terms(grammar, trees)
+    reasons = []
+    for i in np.flatnonzero(~terms.valid):
+        name = grammar.types[trees.type[i]].name
+        if trees.parent[i] < 0:
+            reasons.append(f"node {i} ({name}) is a root but is not the grammar's root at its pose")
+        elif not np.isfinite(terms.edge[i]):
+            rule = grammar.rule_name(int(trees.rule[i])) if trees.rule[i] >= 0 else "?"
+            reasons.append(f"node {i} ({name}): its pose is impossible under rule {rule}")
+        elif not np.isfinite(terms.choice[i]):
+            reasons.append(f"node {i} ({name}): its set of children is impossible")
+        else:
+            reasons.append(f"node {i} ({name}): not produced by a rule of its parent's type")
+    return reasons
