@@ -1,5 +1,250 @@
-"""The `ssg` command line (placeholder until the CLI lands)."""
+"""The `ssg` command line: a thin typer layer over the `ssgc` API.
+
+Every command runs inside `_user_errors`, which turns an `SsgError` (a user's mistake) into its
+located messages on stderr and a non-zero exit code.  Anything else is a bug in ssgc: it is
+reported in one paragraph (set SSG_DEBUG=1 for the traceback), still never a raw traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from ssgc import __version__
+from ssgc.compile import load_grammar
+from ssgc.errors import SsgError
+from ssgc.inspect import grammar_summary
+from ssgc.io.atomic import write_text_atomic
+from ssgc.io.scene import dumps_scene, scene_from_tree
+from ssgc.sample.forward import CHUNK, chunk_rng, sample_chunk
+from ssgc.bench import bench_sample
+
+app = typer.Typer(
+    name="ssg",
+    help="Spatial scene grammars: validate, inspect, sample (and soon parse and fit) them.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+bench_app = typer.Typer(help="Measure speed; prints JSON with --json.", no_args_is_help=True)
+app.add_typer(bench_app, name="bench")
+
+out = Console(soft_wrap=True)
+err = Console(stderr=True, soft_wrap=True)
+MAX_SHOWN_DIAGNOSTICS = 30
+
+
+@contextmanager
+def _user_errors() -> Iterator[None]:
+    try:
+        yield
+    except SsgError as exc:
+        _print_diagnostics(exc)
+        raise typer.Exit(exc.exit_code) from None
+    except KeyboardInterrupt:
+        err.print("ssg: interrupted")
+        raise typer.Exit(130) from None
+    except (typer.Exit, typer.Abort):
+        raise
+    except Exception as exc:  # a bug in ssgc, not the user's mistake
+        if os.environ.get("SSG_DEBUG"):
+            raise
+        err.print(f"ssg: internal error: {type(exc).__name__}: {exc}. This is a bug in ssgc; "
+                  "please report it with the command you ran (SSG_DEBUG=1 shows the traceback).",
+                  markup=False, highlight=False)
+        raise typer.Exit(70) from None
+
+
+def _print_diagnostics(exc: SsgError) -> None:
+    shown = exc.diagnostics[:MAX_SHOWN_DIAGNOSTICS]
+    for d in shown:
+        err.print(str(d), markup=False, highlight=False)
+    hidden = len(exc.diagnostics) - len(shown)
+    if hidden > 0:
+        err.print(f"... and {hidden} more", markup=False, highlight=False)
+
+
+def _command(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Wrap a command body in the user-error handler (keeps typer's signature intact)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        with _user_errors():
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+def _version(value: bool) -> None:
+    if value:
+        out.print(f"ssg {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="Print the version and exit.")] = False,
+) -> None:
+    """Spatial scene grammar compiler."""
+
+
+GrammarArg = Annotated[Path, typer.Argument(help="Grammar YAML file.", show_default=False)]
+
+
+@app.command()
+@_command
+def validate(
+    grammars: Annotated[list[Path], typer.Argument(help="Grammar YAML files.", show_default=False)],
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print errors only.")] = False,
+) -> None:
+    """Check grammars; print FILE:LINE:COL messages; exit 1 if any has an error."""
+    failed = 0
+    for path in grammars:
+        try:
+            g = load_grammar(path)
+        except SsgError as exc:
+            _print_diagnostics(exc)
+            failed += 1
+            continue
+        for w in g.warnings:
+            err.print(str(w), markup=False, highlight=False)
+        if not quiet:
+            out.print(f"{path}: ok ({len(g.types)} types, {len(g.rules)} rules)",
+                      markup=False, highlight=False)
+    if failed:
+        raise typer.Exit(1)
+
+
+@app.command()
+@_command
+def sample(
+    grammar: GrammarArg,
+    n: Annotated[int, typer.Option("-n", "--num", min=0, help="Number of scenes.")] = 10,
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, help="Random seed.")] = 0,
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory.")] = Path(
+        "scenes"),
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")] = False,
+) -> None:
+    """Draw N scenes; write one JSON file per scene (objects, full tree, log-probability).
+
+    Scene i depends only on the seed and i: `-n 100` extends `-n 10` without changing it.
+    """
+    g = load_grammar(grammar)
+    _make_dir(output)
+    written: list[Path] = []
+    width = max(6, len(str(max(n - 1, 0))))
+    with _progress(quiet) as progress:
+        task = progress.add_task("sampling", total=n)
+        for chunk in range((n + CHUNK - 1) // CHUNK):
+            trees, logp = sample_chunk(g, chunk_rng(seed, chunk))
+            for k in range(min(CHUNK, n - chunk * CHUNK)):
+                index = chunk * CHUNK + k
+                name = f"{g.name}_{index:0{width}d}"
+                scene = scene_from_tree(g, trees.tree(k), name, float(logp[k]))
+                path = output / f"{name}.json"
+                write_text_atomic(path, dumps_scene(g, scene, seed=seed, index=index))
+                written.append(path)
+                progress.advance(task)
+    if not quiet:
+        where = f"{written[0]} … {written[-1].name}" if len(written) > 1 else (
+            str(written[0]) if written else str(output))
+        out.print(f"wrote {len(written)} scene(s) of grammar '{g.name}' (seed {seed}) to {where}",
+                  markup=False, highlight=False)
+
+
+@app.command()
+@_command
+def inspect(
+    grammar: GrammarArg,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of tables.")] = False,
+) -> None:
+    """Show the node types and rules of a grammar, and its supertree size."""
+    g = load_grammar(grammar)
+    summary = grammar_summary(g)
+    if as_json:
+        print(json.dumps(summary, indent=1))
+        return
+    types = Table(title=f"grammar '{g.name}': node types")
+    for col in ("type", "kind", "observed", "rules", "choice"):
+        types.add_column(col)
+    for t in summary["types"]:
+        types.add_row(t["name"], t["kind"], "yes" if t["observed"] else "", str(len(t["rules"])),
+                      t["choice"])
+    rules = Table(title="rules")
+    for col in ("id", "parent[i] -> child", "translation", "rotation"):
+        rules.add_column(col)
+    for r in summary["rules"]:
+        rules.add_row(str(r["id"]), r["name"], r["translation"], r["rotation"])
+    out.print(types)
+    out.print(rules)
+    out.print(f"root: {summary['root']}   supertree: {summary['supertree_nodes']} nodes")
+
+
+@bench_app.command("sample")
+@_command
+def bench_sample_cmd(
+    grammar: GrammarArg,
+    n: Annotated[int, typer.Option("-n", "--num", min=1, help="Scenes to sample.")] = 20000,
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0)] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+) -> None:
+    """Sampling and scoring speed: scenes per second, seconds per tree score."""
+    result = bench_sample(load_grammar(grammar), n, seed)
+    if as_json:
+        print(json.dumps(result, indent=1))
+    else:
+        for key, value in result.items():
+            out.print(f"{key:>28}: {value}", markup=False, highlight=False)
+
+
+@app.command("schema", hidden=True)
+@_command
+def schema_cmd(
+    directory: Annotated[Path, typer.Argument(help="Where to write the schemas.")] = Path("schemas"),
+) -> None:
+    """Regenerate the JSON Schemas of grammar and scene files."""
+    from ssgc.schemas import write_schemas
+
+    for path in write_schemas(directory):
+        out.print(f"wrote {path}", markup=False, highlight=False)
+
+
+def _make_dir(path: Path) -> None:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SsgError.single(f"cannot create output directory: {exc.strerror}", str(path)) from None
+    if not os.access(path, os.W_OK):
+        raise SsgError.single("output directory is not writable", str(path))
+
+
+@contextmanager
+def _progress(quiet: bool) -> Iterator[Progress]:
+    progress = Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+        console=err, disable=quiet or not sys.stderr.isatty(), transient=True,
+    )
+    with progress:
+        yield progress
 
 
 def main() -> None:
-    raise SystemExit("ssg: not implemented yet")
+    np.seterr(all="ignore")  # -inf log-probabilities are expected values, not warnings
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -141,10 +141,12 @@ class Categorical:
         if np.any(raw < 0):
             bad = int(np.argmax(raw < 0))
             raise ValueError(f"probs must be non-negative, got {float(raw[bad])!r} at index {bad}")
-        total = float(raw.sum())
-        if not total > 0:
+        peak = float(raw.max())
+        if not peak > 0:
             raise ValueError("probs must have a positive sum, got all zeros")
-        probs = raw / total
+        # Scaling by the peak first keeps huge weights from overflowing the sum.
+        probs = raw / peak
+        probs /= probs.sum()
         with np.errstate(divide="ignore"):
             log_probs = np.log(probs)
         cdf = np.cumsum(probs)

@@ -1,0 +1,395 @@
+"""Scenes on disk: the ssgc JSON scene format, and the sink dataset's YAML format.
+
+A scene is the set of observed objects, each with a grammar type and a pose.  The JSON format
+(docs/scenes.md, schemas/scene.schema.json)::
+
+    {"objects": [{"type": "MugColeHardwareClassicBlue",
+                  "pose": {"xyz": [0.5, 0.1, 0.2], "quat_wxyz": [1, 0, 0, 0]}}],
+     "name": "...", "metadata": {...},          # optional
+     "tree": {"nodes": [...]}, "log_prob": -4.2} # written by `ssg sample`
+
+`rpy` (Drake roll-pitch-yaw, radians) is accepted instead of `quat_wxyz` on input.  A sampled
+scene carries its whole tree, so it can be re-scored; every node names its parent's rule by its
+index in the parent's rule list.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ssgc.dsl import Finite, Strict, Vec3, Vec4
+from ssgc.errors import Diagnostic, SceneError, SsgError
+from ssgc.geometry import quat_canonical, rpy_to_quat
+from ssgc.ir import Grammar
+from ssgc.tree import Trees
+from ssgc.yamlio import SourceMap, load_located, read_text, validation_diagnostics
+
+MAX_SCENE_BYTES = 256 * 1024 * 1024
+QUAT_NORM_TOL = 1e-3
+FORMAT = "ssgc.scene/1"
+
+
+# ------------------------------------------------------------------ file schema ---
+
+
+class ScenePose(Strict):
+    xyz: Vec3
+    quat_wxyz: Vec4 | None = None
+    rpy: Vec3 | None = Field(None, description="Roll-pitch-yaw (rad), R = Rz(y) Ry(p) Rx(r).")
+
+    @model_validator(mode="after")
+    def _one_rotation(self) -> ScenePose:
+        if self.quat_wxyz is not None and self.rpy is not None:
+            raise ValueError("give the rotation one way only, got quat_wxyz and rpy")
+        return self
+
+
+class SceneObject(Strict):
+    type: Annotated[str, Field(min_length=1)]
+    pose: ScenePose
+    metadata: dict[str, Any] = Field(default_factory=dict)
+
+
+class TreeNode(Strict):
+    id: Annotated[int, Field(ge=0)]
+    type: Annotated[str, Field(min_length=1)]
+    parent: Annotated[int, Field(ge=0)] | None = None
+    rule: Annotated[int, Field(ge=0)] | None = Field(
+        None, description="Index of the producing rule in the parent type's rule list."
+    )
+    observed: bool | None = None
+    pose: ScenePose
+
+
+class TreeDoc(Strict):
+    nodes: list[TreeNode]
+
+
+class SceneDoc(Strict):
+    """One scene: observed objects, optionally the tree that produced them."""
+
+    format: str | None = Field(None, description=f"'{FORMAT}'")
+    name: str | None = None
+    grammar: str | None = None
+    seed: int | None = None
+    index: int | None = None
+    log_prob: Finite | None = None
+    objects: list[SceneObject]
+    metadata: dict[str, Any] = Field(default_factory=dict)
+    tree: TreeDoc | None = None
+
+
+# ---------------------------------------------------------------- in memory ---
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Observed objects with grammar type ids and poses, as arrays."""
+
+    name: str
+    types: NDArray[np.int64]
+    xyz: NDArray[np.float64]
+    quat: NDArray[np.float64]
+    metadata: tuple[dict[str, Any], ...] = ()
+    tree: Trees | None = None
+    log_prob: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.types.shape[0])
+
+
+def scene_from_tree(grammar: Grammar, tree: Trees, name: str, log_prob: float | None = None
+                    ) -> Scene:
+    """The observed nodes of a single tree, in node order."""
+    obs = grammar.tables.type_observed[tree.type]
+    return Scene(name, tree.type[obs].copy(), tree.xyz[obs].copy(), tree.quat[obs].copy(),
+                 tree=tree, log_prob=log_prob)
+
+
+def _pose_json(xyz: NDArray[np.float64], quat: NDArray[np.float64]) -> dict[str, list[float]]:
+    return {"xyz": [float(v) for v in xyz], "quat_wxyz": [float(v) for v in quat_canonical(quat)]}
+
+
+def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, Any]:
+    """The JSON document of a scene (and its tree, when it has one)."""
+    out: dict[str, Any] = {"format": FORMAT, "name": scene.name, "grammar": grammar.name}
+    out.update({k: v for k, v in header.items() if v is not None})
+    if scene.log_prob is not None:
+        out["log_prob"] = float(scene.log_prob)
+    out["objects"] = [
+        {"type": grammar.types[t].name, "pose": _pose_json(x, q)}
+        for t, x, q in zip(scene.types, scene.xyz, scene.quat, strict=True)
+    ]
+    if scene.tree is not None:
+        tree = scene.tree
+        tb = grammar.tables
+        out["tree"] = {"nodes": [
+            {
+                "id": i,
+                "type": grammar.types[tree.type[i]].name,
+                "parent": int(tree.parent[i]) if tree.parent[i] >= 0 else None,
+                "rule": int(tb.rule_index[tree.rule[i]]) if tree.rule[i] >= 0 else None,
+                "observed": bool(tb.type_observed[tree.type[i]]),
+                "pose": _pose_json(tree.xyz[i], tree.quat[i]),
+            }
+            for i in range(len(tree))
+        ]}
+    return out
+
+
+_NUMBER_LIST = re.compile(r"\[\s*(-?[0-9][^\[\]{}\"]*?)\s*\]")
+
+
+def dumps_json(doc: Any) -> str:
+    """Indented JSON with number lists (poses) kept on one line, for readable files."""
+    text = json.dumps(doc, indent=1)
+    return _NUMBER_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m[1].split(",")) + "]",
+                            text) + "\n"
+
+
+def dumps_scene(grammar: Grammar, scene: Scene, **header: Any) -> str:
+    return dumps_json(scene_to_json(grammar, scene, **header))
+
+
+# ------------------------------------------------------------------ reading ---
+
+
+def read_scene_file(path: str | Path, grammar: Grammar) -> Scene:
+    """Read one JSON scene; every mistake becomes a located `SceneError`."""
+    path = Path(path)
+    text = read_text(path, MAX_SCENE_BYTES, "scene file")
+    return parse_scene_text(text, str(path), grammar, default_name=path.stem)
+
+
+def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str = "scene") -> Scene:
+    try:
+        data = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        line, col = (exc.lineno, exc.colno) if isinstance(exc, json.JSONDecodeError) else (None, None)
+        message = exc.msg if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
+        raise SceneError.single(f"invalid JSON: {message}", file, line, col) from None
+    try:
+        doc = SceneDoc.model_validate(data)
+    except ValidationError as exc:
+        # Re-read with positions only now: the fast path above keeps large datasets fast.
+        _, source = _located(text, file)
+        raise SceneError(validation_diagnostics(exc, source)) from None
+    source = _LazySource(text, file)
+    return _scene_from_doc(doc, grammar, source, default_name)
+
+
+def _located(text: str, file: str) -> tuple[Any, SourceMap]:
+    try:
+        return load_located(text, file)
+    except SsgError as exc:
+        raise SceneError(exc.diagnostics) from None
+
+
+class _LazySource:
+    """Positions for semantic errors, computed only if there is an error to report."""
+
+    def __init__(self, text: str, file: str) -> None:
+        self.text, self.file = text, file
+        self._map: SourceMap | None = None
+
+    def diagnostic(self, loc: tuple[Any, ...], message: str) -> Diagnostic:
+        if self._map is None:
+            self._map = _located(self.text, self.file)[1]
+        return self._map.diagnostic(loc, message)
+
+
+def _pose_arrays(pose: ScenePose, loc: tuple[Any, ...], source: _LazySource,
+                 errors: list[Diagnostic]) -> tuple[list[float], NDArray[np.float64]]:
+    if pose.rpy is not None:
+        return pose.xyz, rpy_to_quat(np.asarray(pose.rpy, float))
+    if pose.quat_wxyz is None:
+        return pose.xyz, np.array([1.0, 0, 0, 0])
+    q = np.asarray(pose.quat_wxyz, float)
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUAT_NORM_TOL:
+        errors.append(source.diagnostic((*loc, "quat_wxyz"),
+                                        f"quaternion must have unit norm, got norm {norm:.6g}"))
+        return pose.xyz, np.array([1.0, 0, 0, 0])
+    return pose.xyz, q / norm
+
+
+def _observed_type(grammar: Grammar, name: str) -> int | None:
+    tid = grammar.type_ids.get(name)
+    return tid if tid is not None and grammar.types[tid].observed else None
+
+
+def _scene_from_doc(doc: SceneDoc, grammar: Grammar, source: _LazySource, default_name: str
+                    ) -> Scene:
+    errors: list[Diagnostic] = []
+    types, xyz, quat = [], [], []
+    for i, obj in enumerate(doc.objects):
+        tid = _observed_type(grammar, obj.type)
+        if tid is None:
+            what = "is not observed" if obj.type in grammar.type_ids else "is not a type"
+            errors.append(source.diagnostic(
+                ("objects", i, "type"),
+                f"object {i} has type '{obj.type}', which {what} in grammar '{grammar.name}'"))
+            continue
+        p, q = _pose_arrays(obj.pose, ("objects", i, "pose"), source, errors)
+        types.append(tid)
+        xyz.append(p)
+        quat.append(q)
+    tree = _tree_from_doc(doc.tree, grammar, source, errors) if doc.tree else None
+    if errors:
+        raise SceneError(errors)
+    return Scene(
+        name=doc.name or default_name,
+        types=np.asarray(types, np.int64).reshape(-1),
+        xyz=np.asarray(xyz, float).reshape(-1, 3),
+        quat=np.asarray(quat, float).reshape(-1, 4),
+        metadata=tuple(o.metadata for o in doc.objects),
+        tree=tree,
+        log_prob=doc.log_prob,
+        extra=dict(doc.metadata),
+    )
+
+
+def _tree_from_doc(doc: TreeDoc, grammar: Grammar, source: _LazySource,
+                   errors: list[Diagnostic]) -> Trees | None:
+    """Nodes must be listed parents first, with ids 0..n-1; rules index the parent's list."""
+    n = len(doc.nodes)
+    ntype = np.zeros(n, np.int64)
+    parent = np.full(n, -1, np.int64)
+    rule = np.full(n, -1, np.int64)
+    xyz, quat = np.zeros((n, 3)), np.zeros((n, 4))
+    start = len(errors)
+    for i, node in enumerate(doc.nodes):
+        loc = ("tree", "nodes", i)
+        if node.id != i:
+            errors.append(source.diagnostic((*loc, "id"), f"node ids must be 0..{n - 1} in order"))
+            continue
+        tid = grammar.type_ids.get(node.type)
+        if tid is None:
+            errors.append(source.diagnostic((*loc, "type"), f"unknown type '{node.type}'"))
+            continue
+        ntype[i] = tid
+        if (node.parent is None) != (node.rule is None):
+            errors.append(source.diagnostic(loc, "give both `parent` and `rule`, or neither"))
+            continue
+        if node.parent is not None and node.rule is not None:
+            if node.parent >= i:
+                errors.append(source.diagnostic((*loc, "parent"),
+                                                "a node's parent must be listed before it"))
+                continue
+            rules = grammar.types[ntype[node.parent]].rules
+            if node.rule >= len(rules):
+                errors.append(source.diagnostic(
+                    (*loc, "rule"), f"type '{grammar.types[ntype[node.parent]].name}' has "
+                    f"{len(rules)} rule(s), no rule {node.rule}"))
+                continue
+            parent[i], rule[i] = node.parent, rules[node.rule]
+        p, q = _pose_arrays(node.pose, (*loc, "pose"), source, errors)
+        xyz[i], quat[i] = p, q
+    if len(errors) > start:
+        return None
+    return Trees(np.zeros(n, np.int64), ntype, parent, rule, xyz, quat, 1)
+
+
+# ------------------------------------------------------------ sink dataset ---
+
+
+class _SinkPose(Strict):
+    xyz: Vec3
+    rpy: Vec3
+
+
+class _SinkObject(BaseModel):
+    """Dataset objects carry extra keys (root_body_name, ...) that are kept out of the way."""
+
+    model_config = ConfigDict(extra="ignore", strict=True)
+    metadata: dict[str, Any] = Field(default_factory=dict)
+    model_file: str | None = None
+    pose: _SinkPose
+
+
+def read_sink_yaml(path: str | Path, grammar: Grammar) -> list[Scene]:
+    """Read the sink dataset format: scene name → {objects, world_description.models}.
+
+    Each object's type is found by its `model_file` (a type's `model`), else by its
+    `metadata.class` (a type's `labels`).  World-description models (the bin) are scene
+    objects too when the grammar has a type for them.
+    """
+    path = Path(path)
+    text = read_text(path, MAX_SCENE_BYTES, "dataset file")
+    data, source = _located(text, str(path))
+    if not isinstance(data, dict):
+        raise SceneError([source.diagnostic((), "expected a mapping of scene name -> scene")])
+    by_model = {t.model: t.id for t in grammar.types if t.observed and t.model}
+    by_label = {label: t.id for t in grammar.types if t.observed for label in t.labels}
+    scenes, errors = [], []
+    for name, entry in data.items():
+        objects = []
+        if not isinstance(entry, dict) or not isinstance(entry.get("objects", []), list):
+            errors.append(source.diagnostic((name,), "expected a mapping with a list `objects`"))
+            continue
+        world = entry.get("world_description") or {}
+        models = world.get("models", []) if isinstance(world, dict) else []
+        objects += [(("world_description", "models", i), m) for i, m in enumerate(models)]
+        objects += [(("objects", i), o) for i, o in enumerate(entry.get("objects", []))]
+        scene = _sink_scene(str(name), objects, by_model, by_label, source, errors)
+        if scene is not None:
+            scenes.append(scene)
+    if errors:
+        raise SceneError(errors)
+    return scenes
+
+
+def _sink_scene(name: str, objects: list[tuple[tuple[Any, ...], Any]], by_model: dict[str, int],
+                by_label: dict[str, int], source: SourceMap, errors: list[Diagnostic]
+                ) -> Scene | None:
+    start = len(errors)
+    types, xyz, rpy, meta = [], [], [], []
+    for loc, raw in objects:
+        full = (name, *loc)
+        try:
+            obj = _SinkObject.model_validate(raw)
+        except ValidationError as exc:
+            for d in validation_diagnostics(exc, source):
+                line, col = source.locate(full)
+                errors.append(Diagnostic(d.message, source.file, line, col))
+            continue
+        label = obj.metadata.get("class")
+        tid = by_model.get(obj.model_file or "")
+        if tid is None:
+            tid = by_label.get(str(label)) if label is not None else None
+        if tid is None:
+            errors.append(source.diagnostic(
+                full, f"scene '{name}': no observed type has model '{obj.model_file}' "
+                f"or label '{label}'"))
+            continue
+        types.append(tid)
+        xyz.append(obj.pose.xyz)
+        rpy.append(obj.pose.rpy)
+        meta.append({"model_file": obj.model_file, **obj.metadata})
+    if len(errors) > start:
+        return None
+    quat = rpy_to_quat(np.asarray(rpy, float).reshape(-1, 3))
+    return Scene(name, np.asarray(types, np.int64), np.asarray(xyz, float).reshape(-1, 3),
+                 np.asarray(quat).reshape(-1, 4), metadata=tuple(meta))
+
+
+def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
+    """A JSON scene, a directory of them, or a sink-format YAML dataset."""
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(path.glob("*.json"))
+        if not files:
+            raise SceneError.single("no *.json scene files in this directory", str(path))
+        return [read_scene_file(f, grammar) for f in files]
+    if path.suffix.lower() in (".yaml", ".yml"):
+        return read_sink_yaml(path, grammar)
+    return [read_scene_file(path, grammar)]

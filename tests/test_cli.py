@@ -1,0 +1,106 @@
+"""The `ssg` command line as a user runs it: exit codes, messages, files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from ssgc.cli.app import app
+from ssgc.schemas import SCHEMA_FILES, schema_text
+
+from conftest import GRAMMARS, ROOT
+
+runner = CliRunner()
+
+
+def run(*args: str):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def test_validate_every_example_grammar():
+    files = sorted(GRAMMARS.glob("*.yaml"))
+    assert len(files) >= 7
+    result = run("validate", *files)
+    assert result.exit_code == 0, result.output
+    assert result.output.count(": ok (") == len(files)
+
+
+def test_validate_reports_located_errors_and_fails(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("grammar: g\nroot: A\ntypes:\n  A:\n    or:\n      - child: Bee\n  B: {}\n")
+    result = run("validate", bad, GRAMMARS / "gmm.yaml")
+    assert result.exit_code == 1
+    assert f"{bad}:6:16: error: child type 'Bee' is not a type of this grammar" in result.output
+    assert "gmm.yaml: ok" in result.output
+
+
+def test_validate_missing_file_is_a_message_not_a_traceback(tmp_path):
+    result = run("validate", tmp_path / "nope.yaml")
+    assert result.exit_code == 1
+    assert "grammar file not found" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_sample_writes_scene_files_and_is_reproducible(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert run("sample", GRAMMARS / "sink.yaml", "-n", 7, "--seed", 11, "-o", a).exit_code == 0
+    assert run("sample", GRAMMARS / "sink.yaml", "-n", 300, "--seed", 11, "-o", b, "-q").exit_code == 0
+    files = sorted(a.glob("*.json"))
+    assert [f.name for f in files] == [f"sink_{i:06d}.json" for i in range(7)]
+    for f in files:  # same seed → identical files, and -n 300 extends -n 7
+        assert f.read_bytes() == (b / f.name).read_bytes()
+    doc = json.loads(files[0].read_text())
+    assert {"objects", "tree", "log_prob", "seed", "grammar"} <= set(doc)
+    assert doc["objects"][0]["type"] == "DishBin"
+    assert len(list(b.glob("*.json"))) == 300
+    c = tmp_path / "c"
+    run("sample", GRAMMARS / "sink.yaml", "-n", 7, "--seed", 12, "-o", c, "-q")
+    assert (c / files[0].name).read_bytes() != files[0].read_bytes()
+
+
+def test_sample_into_a_file_path_fails_cleanly(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    result = run("sample", GRAMMARS / "gmm.yaml", "-o", blocker / "sub")
+    assert result.exit_code == 1
+    assert "cannot create output directory" in result.output
+
+
+def test_inspect_tables_and_json():
+    result = run("inspect", GRAMMARS / "sink.yaml")
+    assert result.exit_code == 0
+    assert "supertree: 951 nodes" in result.output
+    data = json.loads(run("inspect", GRAMMARS / "sink.yaml", "--json").output)
+    assert data["root"] == "DishBin" and data["supertree_nodes"] == 951
+    assert len(data["types"]) == 19
+
+
+def test_bench_sample_json():
+    result = run("bench", "sample", GRAMMARS / "sink.yaml", "-n", 512, "--json")
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    assert data["scenes_per_second"] > 0 and data["score_seconds_per_tree"] > 0
+    assert data["max_abs_score_minus_sample_logp"] < 1e-9
+
+
+def test_console_script_exit_codes(tmp_path):
+    """The installed `ssg` entry point itself (not the in-process runner)."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("grammar: [unclosed\n")
+    proc = subprocess.run([sys.executable, "-m", "ssgc.cli.app", "validate", str(bad)],
+                          capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 1
+    assert proc.stderr.startswith(f"{bad}:") and "invalid YAML" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("name", sorted(SCHEMA_FILES))
+def test_committed_schemas_are_current(name):
+    committed = (ROOT / "schemas" / name).read_text()
+    assert committed == schema_text(SCHEMA_FILES[name]), (
+        f"schemas/{name} is stale: run `ssg schema schemas`"
+    )
