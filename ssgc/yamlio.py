@@ -21,6 +21,8 @@ from pydantic import ValidationError
 from ruamel.yaml import YAML
 from ruamel.yaml.comments import CommentedMap, CommentedSeq
 from ruamel.yaml.error import MarkedYAMLError, YAMLError
+from ruamel.yaml.nodes import MappingNode, ScalarNode, SequenceNode
+from ruamel.yaml.reader import ReaderError
 from ruamel.yaml.scalarbool import ScalarBoolean
 
 from ssgc.errors import Diagnostic, SsgError
@@ -38,33 +40,47 @@ class SourceMap:
     file: str
     tree: Any
 
+    def walk(
+        self, loc: Iterable[Any]
+    ) -> tuple[list[Any], Any, tuple[int, int], tuple[int, int]]:
+        """Follow `loc` into the document as far as it exists.
+
+        Returns the segments found, the node reached, and the 0-based positions of its value
+        and of its key (the same for a list item or the document itself).  Segments that are not
+        keys of the document (pydantic's union tags, a missing key) are skipped, so a pydantic
+        error location can be passed as it is.
+        """
+        node = self.tree
+        lc = getattr(node, "lc", None)
+        pos = (lc.line, lc.col) if lc is not None and lc.line is not None else (0, 0)
+        key_pos, found = pos, []
+        for seg in loc:
+            if isinstance(node, CommentedMap) and isinstance(seg, str) and seg in node:
+                if node.lc.data and seg in node.lc.data:  # not so for keys merged with `<<`
+                    key_pos, pos = node.lc.key(seg), node.lc.value(seg)
+            elif isinstance(node, CommentedSeq) and isinstance(seg, int) and 0 <= seg < len(node):
+                key_pos = pos = node.lc.item(seg)
+            else:
+                continue
+            node = node[seg]
+            found.append(seg)
+        return found, node, pos, key_pos
+
     def locate(self, loc: Iterable[Any]) -> tuple[int, int]:
         """1-based (line, col) of the deepest value along `loc` that exists in the file.
 
-        Segments that are not keys of the document (pydantic's union tags, for example) are
-        skipped, so a pydantic error location can be passed as it is.
+        A mapping, list or empty value is reported at its key: a block collection starts on
+        the next line (at its first child, which is not what is wrong) and an empty value has no
+        position of its own.
         """
-        node, pos = self.tree, (0, 0)
-        lc = getattr(node, "lc", None)
-        if lc is not None and lc.line is not None:
-            pos = (lc.line, lc.col)
-        for seg in loc:
-            if isinstance(node, CommentedMap) and isinstance(seg, str) and seg in node:
-                pos = node.lc.value(seg) if node.lc.data and seg in node.lc.data else pos
-                node = node[seg]
-            elif isinstance(node, CommentedSeq) and isinstance(seg, int) and 0 <= seg < len(node):
-                pos = node.lc.item(seg)
-                node = node[seg]
+        _, node, pos, key_pos = self.walk(loc)
+        if node is None or isinstance(node, (CommentedMap, CommentedSeq)):
+            pos = key_pos
         return pos[0] + 1, pos[1] + 1
 
-    def locate_key(self, loc: Iterable[Any], key: str) -> tuple[int, int]:
+    def locate_key(self, loc: Iterable[Any], key: Any) -> tuple[int, int]:
         """Position of `key` itself inside the mapping at `loc` (for unknown-key errors)."""
-        node = self.tree
-        for seg in loc:
-            if isinstance(node, CommentedMap) and isinstance(seg, str) and seg in node:
-                node = node[seg]
-            elif isinstance(node, CommentedSeq) and isinstance(seg, int) and 0 <= seg < len(node):
-                node = node[seg]
+        node = self.walk(loc)[1]
         if isinstance(node, CommentedMap) and key in node and node.lc.data and key in node.lc.data:
             line, col = node.lc.key(key)
             return line + 1, col + 1
@@ -95,13 +111,22 @@ def read_text(path: Path, limit: int, what: str) -> str:
     except OSError as exc:
         raise SsgError.single(f"cannot read {what}: {exc.strerror}", name) from None
     if b"\x00" in data:
-        raise SsgError.single(f"{what} is not a text file (it contains NUL bytes)", name)
+        line, col = _byte_position(data, data.index(b"\x00"))
+        raise SsgError.single(f"{what} is not a text file (it contains NUL bytes)", name, line, col)
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
+        start = exc.start + (3 if data.startswith(b"\xef\xbb\xbf") else 0)
+        line, col = _byte_position(data, start)
         raise SsgError.single(
-            f"{what} is not valid UTF-8 (byte {exc.start}: {exc.reason})", name
+            f"{what} is not valid UTF-8 (byte {start}: {exc.reason})", name, line, col
         ) from None
+
+
+def _byte_position(data: bytes, index: int) -> tuple[int, int]:
+    """1-based line and column of byte `index`, so an editor can jump to a bad byte."""
+    line_start = data.rfind(b"\n", 0, index) + 1
+    return data.count(b"\n", 0, index) + 1, index - line_start + 1
 
 
 def load_located(text: str, file: str) -> tuple[Any, SourceMap]:

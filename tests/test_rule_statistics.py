@@ -138,7 +138,7 @@ def _check_logp(d: Draw, seed: int) -> None:
         np.testing.assert_allclose(d.logp, edge, rtol=0, atol=LOGP_ATOL)
     # sample_children directly, on the sampled parents (a second, independent draw).
     rid = int(d.rule[0])
-    k = 2000
+    k = min(2000, len(d.rule))
     xyz, quat, lp = sample_children(g, rid, d.pxyz[:k], d.pquat[:k], np.random.default_rng(seed))
     assert xyz.shape == (k, 3) and quat.shape == (k, 4) and lp.shape == (k,)
     np.testing.assert_allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-12)
@@ -510,7 +510,7 @@ def test_bingham_concentration_is_angular_precision(kind: str) -> None:
     rotvec = 2.0 * np.arctan2(vec, r[:, :1]) * r[:, 1:] / vec
     var = rotvec.var(axis=0)
     np.testing.assert_allclose(var, 2.0 / conc, rtol=0.06)
-    np.testing.assert_allclose(rotvec.mean(axis=0), 0.0, atol=5 * np.sqrt(2.0 / conc / N))
+    assert np.all(np.abs(rotvec.mean(axis=0)) <= 5 * np.sqrt(2.0 / conc / N))
     # Each small angle is close to Normal(0, 2/c).
     for k in range(3):
         assert stats.kstest(rotvec[:, k] / np.sqrt(2.0 / conc[k]), "norm").pvalue > P_MIN, k
