@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -22,13 +23,13 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from ssgc import __version__
+from ssgc.bench import bench_sample
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.inspect import grammar_summary
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.scene import dumps_scene, scene_from_tree
 from ssgc.sample.forward import CHUNK, chunk_rng, sample_chunk
-from ssgc.bench import bench_sample
 
 app = typer.Typer(
     name="ssg",
@@ -60,9 +61,12 @@ def _user_errors() -> Iterator[None]:
     except Exception as exc:  # a bug in ssgc, not the user's mistake
         if os.environ.get("SSG_DEBUG"):
             raise
-        err.print(f"ssg: internal error: {type(exc).__name__}: {exc}. This is a bug in ssgc; "
-                  "please report it with the command you ran (SSG_DEBUG=1 shows the traceback).",
-                  markup=False, highlight=False)
+        err.print(
+            f"ssg: internal error: {type(exc).__name__}: {exc}. This is a bug in ssgc; "
+            "please report it with the command you ran (SSG_DEBUG=1 shows the traceback).",
+            markup=False,
+            highlight=False,
+        )
         raise typer.Exit(70) from None
 
 
@@ -95,8 +99,12 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
-                                          help="Print the version and exit.")] = False,
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_version, is_eager=True, help="Print the version and exit."
+        ),
+    ] = False,
 ) -> None:
     """Spatial scene grammar compiler."""
 
@@ -122,8 +130,11 @@ def validate(
         for w in g.warnings:
             err.print(str(w), markup=False, highlight=False)
         if not quiet:
-            out.print(f"{path}: ok ({len(g.types)} types, {len(g.rules)} rules)",
-                      markup=False, highlight=False)
+            out.print(
+                f"{path}: ok ({len(g.types)} types, {len(g.rules)} rules)",
+                markup=False,
+                highlight=False,
+            )
     if failed:
         raise typer.Exit(1)
 
@@ -133,10 +144,13 @@ def validate(
 def sample(
     grammar: GrammarArg,
     n: Annotated[int, typer.Option("-n", "--num", min=0, help="Number of scenes.")] = 10,
-    seed: Annotated[int, typer.Option("--seed", "-s", min=0, help="Random seed.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1, help="Random seed.")] = 0,
     output: Annotated[Path, typer.Option("-o", "--output", help="Output directory.")] = Path(
-        "scenes"),
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")] = False,
+        "scenes"
+    ),
+    quiet: Annotated[
+        bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")
+    ] = False,
 ) -> None:
     """Draw N scenes; write one JSON file per scene (objects, full tree, log-probability).
 
@@ -152,17 +166,23 @@ def sample(
             trees, logp = sample_chunk(g, chunk_rng(seed, chunk))
             for k in range(min(CHUNK, n - chunk * CHUNK)):
                 index = chunk * CHUNK + k
-                name = f"{g.name}_{index:0{width}d}"
+                name = f"{_safe_stem(g.name)}_{index:0{width}d}"
                 scene = scene_from_tree(g, trees.tree(k), name, float(logp[k]))
                 path = output / f"{name}.json"
                 write_text_atomic(path, dumps_scene(g, scene, seed=seed, index=index))
                 written.append(path)
                 progress.advance(task)
     if not quiet:
-        where = f"{written[0]} … {written[-1].name}" if len(written) > 1 else (
-            str(written[0]) if written else str(output))
-        out.print(f"wrote {len(written)} scene(s) of grammar '{g.name}' (seed {seed}) to {where}",
-                  markup=False, highlight=False)
+        where = (
+            f"{written[0]} … {written[-1].name}"
+            if len(written) > 1
+            else (str(written[0]) if written else str(output))
+        )
+        out.print(
+            f"wrote {len(written)} scene(s) of grammar '{g.name}' (seed {seed}) to {where}",
+            markup=False,
+            highlight=False,
+        )
 
 
 @app.command()
@@ -181,8 +201,9 @@ def inspect(
     for col in ("type", "kind", "observed", "rules", "choice"):
         types.add_column(col)
     for t in summary["types"]:
-        types.add_row(t["name"], t["kind"], "yes" if t["observed"] else "", str(len(t["rules"])),
-                      t["choice"])
+        types.add_row(
+            t["name"], t["kind"], "yes" if t["observed"] else "", str(len(t["rules"])), t["choice"]
+        )
     rules = Table(title="rules")
     for col in ("id", "parent[i] -> child", "translation", "rotation"):
         rules.add_column(col)
@@ -198,7 +219,7 @@ def inspect(
 def bench_sample_cmd(
     grammar: GrammarArg,
     n: Annotated[int, typer.Option("-n", "--num", min=1, help="Scenes to sample.")] = 20000,
-    seed: Annotated[int, typer.Option("--seed", "-s", min=0)] = 0,
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
@@ -213,7 +234,9 @@ def bench_sample_cmd(
 @app.command("schema", hidden=True)
 @_command
 def schema_cmd(
-    directory: Annotated[Path, typer.Argument(help="Where to write the schemas.")] = Path("schemas"),
+    directory: Annotated[Path, typer.Argument(help="Where to write the schemas.")] = Path(
+        "schemas"
+    ),
 ) -> None:
     """Regenerate the JSON Schemas of grammar and scene files."""
     from ssgc.schemas import write_schemas
@@ -222,11 +245,19 @@ def schema_cmd(
         out.print(f"wrote {path}", markup=False, highlight=False)
 
 
+def _safe_stem(name: str) -> str:
+    """A grammar name as a file-name stem: never a path, never hidden."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).lstrip(".")
+    return stem or "scene"
+
+
 def _make_dir(path: Path) -> None:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise SsgError.single(f"cannot create output directory: {exc.strerror}", str(path)) from None
+        raise SsgError.single(
+            f"cannot create output directory: {exc.strerror}", str(path)
+        ) from None
     if not os.access(path, os.W_OK):
         raise SsgError.single("output directory is not writable", str(path))
 
@@ -234,8 +265,13 @@ def _make_dir(path: Path) -> None:
 @contextmanager
 def _progress(quiet: bool) -> Iterator[Progress]:
     progress = Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-        console=err, disable=quiet or not sys.stderr.isatty(), transient=True,
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=err,
+        disable=quiet or not sys.stderr.isatty(),
+        transient=True,
     )
     with progress:
         yield progress

@@ -25,8 +25,9 @@ def bench_sample(grammar: Grammar, n: int, seed: int, repeats: int = 3) -> dict[
     sample_trees(grammar, min(n, 256), seed)  # warm caches (Bingham normalisers, imports)
     sample_s = min(_timed(lambda: sample_trees(grammar, n, seed))[0] for _ in range(repeats))
     trees, logp = sample_trees(grammar, n, seed)
-    score_s, scores = min((_timed(lambda: score_trees(grammar, trees)) for _ in range(repeats)),
-                          key=lambda r: r[0])
+    score_s, scores = min(
+        (_timed(lambda: score_trees(grammar, trees)) for _ in range(repeats)), key=lambda r: r[0]
+    )
     k = min(SINGLE_TREE_SAMPLES, n)
     singles = [trees.tree(i) for i in range(k)]
     single_s = min(

@@ -9,6 +9,7 @@ types, bounds with no effect) travel with the compiled grammar.
 from __future__ import annotations
 
 import difflib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from ssgc.distributions.bingham import Bingham
 from ssgc.distributions.discrete import CountLaw
 from ssgc.distributions.normal import Normal
 from ssgc.distributions.uniform import UniformBox, UniformRevolute
-from ssgc.errors import Diagnostic, GrammarError
+from ssgc.errors import Diagnostic, GrammarError, SsgError
 from ssgc.geometry import IDENTITY_QUAT, quat_canonical, rpy_to_quat
 from ssgc.ir import (
     Grammar,
@@ -34,7 +35,13 @@ from ssgc.ir import (
     TranslationPart,
     build_tables,
 )
-from ssgc.yamlio import MAX_GRAMMAR_BYTES, SourceMap, load_located, read_text, validation_diagnostics
+from ssgc.yamlio import (
+    MAX_GRAMMAR_BYTES,
+    SourceMap,
+    load_located,
+    read_text,
+    validation_diagnostics,
+)
 
 MAX_CONCENTRATION = 1e4
 QUAT_NORM_TOL = 1e-3
@@ -45,7 +52,12 @@ AXES = {"x": 0, "y": 1, "z": 2}
 def load_grammar(path: str | Path) -> Grammar:
     """Read, validate and compile a grammar file; raises `GrammarError` on any mistake."""
     path = Path(path)
-    text = read_text(path, MAX_GRAMMAR_BYTES, "grammar file")
+    try:
+        text = read_text(path, MAX_GRAMMAR_BYTES, "grammar file")
+    except GrammarError:
+        raise
+    except SsgError as exc:  # not found, not UTF-8, NUL bytes: still a grammar error
+        raise GrammarError(exc.diagnostics) from None
     return compile_text(text, str(path), base_dir=path.parent)
 
 
@@ -60,7 +72,9 @@ def compile_text(text: str, file: str = "<grammar>", base_dir: Path | None = Non
             raise
         raise GrammarError(diagnostics) from None
     if not isinstance(data, dict):
-        got = "an empty file" if data is None else f"a {type(data).__name__}"
+        names = {"list": "a list", "str": "a string", "int": "a number", "float": "a number",
+                 "bool": "true or false"}
+        got = "an empty file" if data is None else names.get(type(data).__name__, "a scalar")
         raise GrammarError([source.diagnostic((), f"expected a grammar mapping, got {got}")])
     try:
         doc = dsl.GrammarDoc.model_validate(data)
@@ -132,6 +146,12 @@ class Compiler:
         kind, key, rule_specs = _kind_of(spec)
         if kind in (Kind.AND, Kind.OR, Kind.INDEPENDENT) and not rule_specs:
             self.error((*loc, key), f"an `{key}` needs at least one rule")
+        for field, word in (("and_", "and"), ("or_", "or"), ("independent", "independent"),
+                            ("repeat", "repeat")):
+            # `and:` with nothing after it is null, which would silently make a terminal type
+            if field in spec.model_fields_set and getattr(spec, field) is None:
+                self.error((*loc, word), f"`{word}` is empty: give its rules, or remove the key "
+                           "for a terminal type")
         rule_locs: list[Loc] = (
             [(*loc, "repeat", "rule")]
             if kind == Kind.REPEAT
@@ -145,7 +165,8 @@ class Compiler:
         probs = self.rule_probs(kind, key, rule_specs, rule_locs, loc)
         count = self.count_law(spec.repeat, (*loc, "repeat", "count")) if spec.repeat else None
         if spec.labels and not spec.observed:
-            self.error((*loc, "labels"), "labels name dataset objects, so the type must be observed")
+            self.error((*loc, "labels"),
+                       "labels name dataset objects, so the type must be observed")
         return NodeType(
             id=tid,
             name=name,
@@ -179,7 +200,8 @@ class Compiler:
         if kind == Kind.OR and specs:
             if any(given) and not all(given):
                 missing = locs[given.index(False)]
-                self.error(missing, "give `p` for every rule of an `or`, or for none (equal weights)")
+                self.error(missing,
+                           "give `p` for every rule of an `or`, or for none (equal weights)")
                 return np.full(len(specs), 1.0 / len(specs))
             weights = np.array([r.p for r in specs]) if all(given) else np.ones(len(specs))
             if weights.sum() <= 0:
@@ -251,19 +273,30 @@ class Compiler:
                 self.error((*loc, "covariance"), "covariance must be symmetric")
                 return None
             sub = cov[np.ix_(free, free)]
-            if np.any(np.linalg.eigvalsh(sub) <= 0):
+            try:
+                with np.errstate(all="ignore"):  # huge entries overflow: NaN fails below
+                    eig = np.linalg.eigvalsh(sub)
+            except np.linalg.LinAlgError:
+                eig = np.array([np.nan])
+            if not np.all(eig > 0):
                 self.error((*loc, "covariance"), "covariance must be positive definite")
                 return None
         else:
             var = np.broadcast_to(np.asarray(p.variance, float), (3,))
-            for i in np.flatnonzero(free & (var <= 0)):
+            bad = (var < 0) | (free & (var == 0))  # zero is fine only on a pinned axis
+            for i in np.flatnonzero(bad):
                 where = (*loc, "variance", int(i)) if isinstance(p.variance, list) else (
                     *loc, "variance")
                 self.error(where, f"variance must be positive, got {var[i]:g} ({'xyz'[i]} axis)")
-            if np.any(free & (var <= 0)):
+            if np.any(bad):
                 return None
             sub = np.diag(var[free])
-        normal = Normal(np.asarray(p.mean, float)[free], sub)
+        try:
+            normal = Normal(np.asarray(p.mean, float)[free], sub)
+        except ValueError as exc:  # numerically singular despite the checks above
+            spread = "covariance" if p.covariance is not None else "variance"
+            self.error((*loc, spread), f"invalid {spread} (too large or nearly singular): {exc}")
+            return None
         return TranslationPart(kind, _frozen(p.mean), _frozen(free), normal=normal,
                                fixed=p.fixed, path=loc)
 
@@ -272,6 +305,11 @@ class Compiler:
         if np.any(hi < lo):
             i = int(np.flatnonzero(hi < lo)[0])
             self.error((*loc, "max", i), f"box max must be >= min, got {hi[i]:g} < {lo[i]:g}")
+            return None
+        with np.errstate(over="ignore"):
+            too_wide = not np.all(np.isfinite(hi - lo))
+        if too_wide:  # the density 1/volume would be 0
+            self.error((*loc, "max"), "box is too large (its width overflows)")
             return None
         box = UniformBox(lo, hi)
         return TranslationPart(kind, _frozen(lo), _frozen(box.free_axes), box=box, fixed=p.fixed,
@@ -301,8 +339,9 @@ class Compiler:
     def bingham(self, p: dsl.BinghamParams, loc: Loc) -> Bingham | None:
         if p.M is not None and p.Z is not None:
             m = np.asarray(p.M, float)
-            err = np.abs(m.T @ m - np.eye(4)).max()
-            if err > ORTHOGONALITY_TOL:
+            with np.errstate(all="ignore"):
+                err = np.abs(m.T @ m - np.eye(4)).max()
+            if not err <= ORTHOGONALITY_TOL:  # NaN (overflow) is not orthogonal either
                 self.error((*loc, "M"), f"Bingham M must be orthogonal (max |MᵀM - I| = {err:.2g})")
                 return None
             z = np.asarray(p.Z, float)
@@ -311,21 +350,31 @@ class Compiler:
                 self.error((*loc, "Z"), f"Bingham Z spans {spread:g}, over the supported "
                            f"{MAX_CONCENTRATION:g}")
                 return None
-            return Bingham(m, z)
+            return self.checked_bingham(lambda: Bingham(m, z), (*loc, "M"))
         conc = np.broadcast_to(np.asarray(p.concentration, float), (3,))
         if np.any(conc > MAX_CONCENTRATION):
-            self.error((*loc, "concentration"),
-                       f"concentration must be at most {MAX_CONCENTRATION:g}, got {conc.max():g}")
+            self.error((*loc, "concentration"), f"concentration must be at most "
+                       f"{MAX_CONCENTRATION:g}, got {conc.max():.10g}")
             return None
         mode = self.orientation(p.mode, (*loc, "mode")) if p.mode else IDENTITY_QUAT
-        return Bingham.from_mode(mode, conc)
+        return self.checked_bingham(lambda: Bingham.from_mode(mode, conc), loc)
+
+    def checked_bingham(self, make: Callable[[], Bingham], loc: Loc) -> Bingham | None:
+        """`make()`, with the distribution's own checks reported as located errors."""
+        try:
+            return make()
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self.error(loc, f"invalid Bingham parameters: {exc}")
+            return None
 
     def revolute(self, p: dsl.RevoluteParams, loc: Loc) -> RotationPart | None:
         axis = np.asarray(p.axis, float)
-        norm = np.linalg.norm(axis)
-        if norm == 0:
+        scale = np.abs(axis).max()
+        if scale == 0:
             self.error((*loc, "axis"), "revolute axis must be nonzero")
             return None
+        axis = axis / scale  # so that the norm neither overflows nor underflows
+        norm = np.linalg.norm(axis)
         if not p.max > p.min:
             self.error((*loc, "max"), f"revolute max must be > min, got [{p.min:g}, {p.max:g}]")
             return None
@@ -343,7 +392,7 @@ class Compiler:
             return quat_canonical(rpy_to_quat(np.radians(np.asarray(o.rpy_deg, float))))
         if o.quat_wxyz is not None:
             q = np.asarray(o.quat_wxyz, float)
-            norm = np.linalg.norm(q)
+            norm = float(np.hypot.reduce(q))  # no overflow for huge entries
             if abs(norm - 1) > QUAT_NORM_TOL:
                 self.error((*loc, "quat_wxyz"),
                            f"quaternion must have unit norm (±{QUAT_NORM_TOL:g}), got {norm:.6g}")
@@ -417,7 +466,9 @@ def _kind_of(spec: dsl.NodeType) -> tuple[Kind, str, list[dsl.Rule]]:
     return Kind.TERMINAL, "", []
 
 
-def _find_cycle(start: int, children: dict[int, list[Rule]], blocked: set[int]) -> list[Rule] | None:
+def _find_cycle(
+    start: int, children: dict[int, list[Rule]], blocked: set[int]
+) -> list[Rule] | None:
     """Rules of a path start -> ... -> start avoiding `blocked` types (other than start), if any."""
     if start in blocked:
         return None

@@ -45,8 +45,12 @@ class SsgError(Exception):
 
     @classmethod
     def single(
-        cls, message: str, file: str | None = None, line: int | None = None,
-        column: int | None = None, exit_code: int = 1,
+        cls,
+        message: str,
+        file: str | None = None,
+        line: int | None = None,
+        column: int | None = None,
+        exit_code: int = 1,
     ) -> SsgError:
         return cls([Diagnostic(message, file, line, column)], exit_code)
 

@@ -60,8 +60,10 @@ def _translation(r: Rule) -> str:
     if t.normal is not None:
         pinned = "".join("xyz"[i] for i in range(3) if not t.free[i])
         pin = f", pin {pinned}" if pinned else ""
-        return (f"{name} mean {np.round(t.offset, 4).tolist()} "
-                f"var {np.round(t.normal.variance, 5).tolist()}{pin}")
+        return (
+            f"{name} mean {np.round(t.offset, 4).tolist()} "
+            f"var {np.round(t.normal.variance, 5).tolist()}{pin}"
+        )
     assert t.box is not None
     return f"{name} [{np.round(t.box.lo, 4).tolist()}, {np.round(t.box.hi, 4).tolist()}]"
 
@@ -69,12 +71,16 @@ def _translation(r: Rule) -> str:
 def _rotation(r: Rule) -> str:
     rot = r.rotation
     if rot.kind == RKind.FIXED:
-        return "same" if rot.offset[0] >= 1 - 1e-12 else f"offset {np.round(rot.offset, 4).tolist()}"
+        return (
+            "same" if rot.offset[0] >= 1 - 1e-12 else f"offset {np.round(rot.offset, 4).tolist()}"
+        )
     if rot.kind == RKind.UNIFORM:
         return "uniform"
     if rot.bingham is not None:
         conc = np.round(rot.bingham.concentration, 3).tolist()
         return f"{rot.kind.name.lower()} mode {np.round(rot.bingham.mode, 3).tolist()} conc {conc}"
     assert rot.revolute is not None and rot.axis is not None
-    return (f"revolute axis {np.round(rot.axis, 3).tolist()} "
-            f"[{rot.revolute.lo:.3g}, {rot.revolute.hi:.3g}]")
+    return (
+        f"revolute axis {np.round(rot.axis, 3).tolist()} "
+        f"[{rot.revolute.lo:.3g}, {rot.revolute.hi:.3g}]"
+    )

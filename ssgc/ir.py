@@ -180,7 +180,6 @@ def _frozen(a: Any, dtype: Any = np.float64) -> NDArray[Any]:
 def build_tables(types: tuple[NodeType, ...], rules: tuple[Rule, ...]) -> Tables:
     """Stack per-rule and per-type parameters so the scorer can work on all edges at once."""
     n_rules, n_types = len(rules), len(types)
-    eye = np.eye(3)
     t_kind = np.zeros(n_rules, np.int64)
     t_offset = np.zeros((n_rules, 3))
     t_free = np.zeros((n_rules, 3), bool)
@@ -206,7 +205,8 @@ def build_tables(types: tuple[NodeType, ...], rules: tuple[Rule, ...]) -> Tables
             t_lognorm[r.id] = -t.normal.log_normalizer  # Normal stores the log density at its mean
         if t.box is not None:
             box_lo[r.id], box_hi[r.id] = t.box.lo, t.box.hi
-            t_lognorm[r.id] = float(np.sum(np.log(t.box.hi - t.box.lo)[t.box.free_axes]))
+            free = t.box.free_axes
+            t_lognorm[r.id] = float(np.sum(np.log(t.box.hi[free] - t.box.lo[free])))
         r_kind[r.id], r_offset[r.id] = rot.kind, rot.offset
         if rot.bingham is not None:
             m, z = rot.bingham.M, rot.bingham.Z
@@ -219,7 +219,6 @@ def build_tables(types: tuple[NodeType, ...], rules: tuple[Rule, ...]) -> Tables
             r_axis[r.id] = rot.axis
             r_lo[r.id], r_hi[r.id] = rot.revolute.lo, rot.revolute.hi
             r_lognorm[r.id] = float(np.log(rot.revolute.hi - rot.revolute.lo))
-    del eye
 
     width = max([len(t.rules) for t in types] + [1])
     count_width = max([t.count.max_count + 1 for t in types if t.count is not None] + [1])
@@ -245,13 +244,29 @@ def build_tables(types: tuple[NodeType, ...], rules: tuple[Rule, ...]) -> Tables
         rule_parent=np.array([r.parent for r in rules], np.int64).reshape(n_rules),
         rule_child=np.array([r.child for r in rules], np.int64).reshape(n_rules),
         rule_index=np.array([r.index for r in rules], np.int64).reshape(n_rules),
-        t_kind=t_kind, t_offset=t_offset, t_free=t_free, t_chol=t_chol, t_whiten=t_whiten,
-        t_lognorm=t_lognorm, box_lo=box_lo, box_hi=box_hi, r_kind=r_kind, r_offset=r_offset,
-        r_quadratic=r_quadratic, r_lognorm=r_lognorm, r_axis=r_axis, r_lo=r_lo, r_hi=r_hi,
+        t_kind=t_kind,
+        t_offset=t_offset,
+        t_free=t_free,
+        t_chol=t_chol,
+        t_whiten=t_whiten,
+        t_lognorm=t_lognorm,
+        box_lo=box_lo,
+        box_hi=box_hi,
+        r_kind=r_kind,
+        r_offset=r_offset,
+        r_quadratic=r_quadratic,
+        r_lognorm=r_lognorm,
+        r_axis=r_axis,
+        r_lo=r_lo,
+        r_hi=r_hi,
         type_kind=np.array([t.kind for t in types], np.int64),
         type_observed=np.array([t.observed for t in types], bool),
-        type_rules=type_rules, type_logp=type_logp, type_log1mp=type_log1mp,
-        count_logp=count_logp, count_max=count_max, nesting_slot=nesting_slot,
+        type_rules=type_rules,
+        type_logp=type_logp,
+        type_log1mp=type_log1mp,
+        count_logp=count_logp,
+        count_max=count_max,
+        nesting_slot=nesting_slot,
         nesting_max=np.array([types[i].max_nesting for i in bounded], np.int64).reshape(-1),
     )
     return Tables(**{k: _frozen(v, v.dtype) for k, v in arrays.items()})

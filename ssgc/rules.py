@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from ssgc.distributions.uniform import UNIFORM_SO3_LOG_DENSITY
 from ssgc.geometry import (
     axis_angle_to_quat,
     quat_angle,
@@ -26,8 +27,7 @@ from ssgc.geometry import (
     quat_rotate,
     random_quat,
 )
-from ssgc.ir import LOG_2, Grammar, RKind, TKind
-from ssgc.distributions.uniform import UNIFORM_SO3_LOG_DENSITY
+from ssgc.ir import LOG_2, Grammar, RKind, RotationPart, TKind, TranslationPart
 
 FloatArray = NDArray[np.float64]
 
@@ -36,7 +36,10 @@ ROT_TOL = 1e-6  # radians: same for fixed rotations and revolute axes
 
 
 def translation_log_density(
-    grammar: Grammar, rules: NDArray[np.int64], parent_xyz: FloatArray, parent_quat: FloatArray,
+    grammar: Grammar,
+    rules: NDArray[np.int64],
+    parent_xyz: FloatArray,
+    parent_quat: FloatArray,
     child_xyz: FloatArray,
 ) -> FloatArray:
     """log p(child translation | parent pose) for each edge, under each edge's rule."""
@@ -54,8 +57,11 @@ def translation_log_density(
     out = np.zeros(len(rules))
     pinned_ok = np.all(free | (np.abs(delta) <= POS_TOL), axis=1)
 
-    normal = (kind == TKind.WORLD_NORMAL) | (kind == TKind.WORLD_NORMAL_OFFSET) | (
-        kind == TKind.PARENT_NORMAL_OFFSET)
+    normal = (
+        (kind == TKind.WORLD_NORMAL)
+        | (kind == TKind.WORLD_NORMAL_OFFSET)
+        | (kind == TKind.PARENT_NORMAL_OFFSET)
+    )
     if np.any(normal):
         r = rules[normal]
         white = np.einsum("nij,nj->ni", tb.t_whiten[r], np.where(free[normal], delta[normal], 0))
@@ -69,13 +75,18 @@ def translation_log_density(
 
 
 def rotation_log_density(
-    grammar: Grammar, rules: NDArray[np.int64], parent_quat: FloatArray, child_quat: FloatArray,
+    grammar: Grammar,
+    rules: NDArray[np.int64],
+    parent_quat: FloatArray,
+    child_quat: FloatArray,
 ) -> FloatArray:
     """log p(child rotation | parent rotation) for each edge, under each edge's rule."""
     tb = grammar.tables
     kind = tb.r_kind[rules]
     world = kind == RKind.WORLD_BINGHAM
-    rel = np.where(world[:, None], child_quat, quat_multiply(quat_conjugate(parent_quat), child_quat))
+    rel = np.where(
+        world[:, None], child_quat, quat_multiply(quat_conjugate(parent_quat), child_quat)
+    )
     out = np.zeros(len(rules))
 
     fixed = kind == RKind.FIXED
@@ -92,8 +103,9 @@ def rotation_log_density(
     revolute = kind == RKind.REVOLUTE
     if np.any(revolute):
         r = rules[revolute]
-        out[revolute] = _revolute_log_density(rel[revolute], tb.r_axis[r], tb.r_lo[r], tb.r_hi[r],
-                                              tb.r_lognorm[r])
+        out[revolute] = _revolute_log_density(
+            rel[revolute], tb.r_axis[r], tb.r_lo[r], tb.r_hi[r], tb.r_lognorm[r]
+        )
     return out
 
 
@@ -112,7 +124,10 @@ def _revolute_log_density(
 
 
 def sample_children(
-    grammar: Grammar, rule_id: int, parent_xyz: FloatArray, parent_quat: FloatArray,
+    grammar: Grammar,
+    rule_id: int,
+    parent_xyz: FloatArray,
+    parent_quat: FloatArray,
     rng: np.random.Generator,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Draw one child per parent under rule `rule_id`: (xyz, quat, log-density of the draw)."""
@@ -122,7 +137,12 @@ def sample_children(
     return xyz, quat, lp_t + lp_r
 
 
-def _sample_translation(part, parent_xyz, parent_quat, rng):  # type: ignore[no-untyped-def]
+def _sample_translation(
+    part: TranslationPart,
+    parent_xyz: FloatArray,
+    parent_quat: FloatArray,
+    rng: np.random.Generator,
+) -> tuple[FloatArray, FloatArray]:
     n = parent_xyz.shape[0]
     kind = part.kind
     if kind == TKind.FIXED:
@@ -142,7 +162,9 @@ def _sample_translation(part, parent_xyz, parent_quat, rng):  # type: ignore[no-
     return parent_xyz + local, logp
 
 
-def _sample_rotation(part, parent_quat, rng):  # type: ignore[no-untyped-def]
+def _sample_rotation(
+    part: RotationPart, parent_quat: FloatArray, rng: np.random.Generator
+) -> tuple[FloatArray, FloatArray]:
     n = parent_quat.shape[0]
     kind = part.kind
     if kind == RKind.FIXED:

@@ -17,8 +17,10 @@ SCHEMA_FILES = {"grammar.schema.json": GrammarDoc, "scene.schema.json": SceneDoc
 
 
 def schema_text(model: Any) -> str:
-    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema",
-              **model.model_json_schema(by_alias=True)}
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        **model.model_json_schema(by_alias=True),
+    }
     return json.dumps(schema, indent=2, sort_keys=True) + "\n"
 
 

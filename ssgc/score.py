@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ssgc.geometry import quat_angle
 from ssgc.ir import Grammar, Kind
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
-from ssgc.geometry import quat_angle
 from ssgc.tree import Trees
 
 FloatArray = NDArray[np.float64]
@@ -71,8 +71,10 @@ def _structure_valid(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
     r = np.clip(trees.rule, 0, max(n_rules - 1, 0))
     parent_type = trees.type[np.maximum(trees.parent, 0)]
     ok_child = (
-        (trees.rule >= 0) & (trees.rule < n_rules)
-        & (tb.rule_parent[r] == parent_type) & (tb.rule_child[r] == trees.type)
+        (trees.rule >= 0)
+        & (trees.rule < n_rules)
+        & (tb.rule_parent[r] == parent_type)
+        & (tb.rule_child[r] == trees.type)
     )
     ok_root = (
         (trees.type == grammar.root)
@@ -113,8 +115,11 @@ def _blocked(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
 
 
 def _choice_terms(
-    grammar: Grammar, ntype: NDArray[np.int64], counts: NDArray[np.int64],
-    exists: NDArray[np.bool_], blocked: NDArray[np.bool_],
+    grammar: Grammar,
+    ntype: NDArray[np.int64],
+    counts: NDArray[np.int64],
+    exists: NDArray[np.bool_],
+    blocked: NDArray[np.bool_],
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Discrete log-probability of each node's fired rules, and whether that set is possible."""
     tb = grammar.tables

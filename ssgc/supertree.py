@@ -7,7 +7,7 @@ big a parse problem a grammar makes.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 
 from ssgc.ir import Grammar, Kind
 
@@ -18,7 +18,7 @@ def supertree_size(grammar: Grammar) -> int:
     bounded = [int(t) for t in (tb.nesting_slot >= 0).nonzero()[0]]
     limit = {t: int(tb.nesting_max[tb.nesting_slot[t]]) for t in bounded}
 
-    @lru_cache(maxsize=None)
+    @cache
     def size(type_id: int, nesting: tuple[int, ...]) -> int:
         node = grammar.types[type_id]
         total = 1

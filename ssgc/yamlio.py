@@ -12,6 +12,7 @@ values (which also defuses alias bombs).
 from __future__ import annotations
 
 import datetime
+import difflib
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +20,7 @@ from typing import Any
 
 from pydantic import ValidationError
 from ruamel.yaml import YAML
-from ruamel.yaml.comments import CommentedMap, CommentedSeq
+from ruamel.yaml.comments import CommentedMap, CommentedSeq, TaggedScalar
 from ruamel.yaml.error import MarkedYAMLError, YAMLError
 from ruamel.yaml.nodes import MappingNode, ScalarNode, SequenceNode
 from ruamel.yaml.reader import ReaderError
@@ -29,6 +30,9 @@ from ssgc.errors import Diagnostic, SsgError
 
 MAX_GRAMMAR_BYTES = 4 * 1024 * 1024
 MAX_VALUES = 2_000_000
+_PLAIN_TAGS = {
+    f"tag:yaml.org,2002:{t}" for t in ("map", "seq", "str", "int", "float", "bool", "null")
+}
 
 Loc = tuple[str | int, ...]
 
@@ -136,18 +140,70 @@ def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
     try:
         tree = yaml.load(text)
     except MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        problem = (exc.problem or exc.context or "invalid YAML").strip()
-        if "duplicate key" in problem or "found duplicate key" in str(exc):
-            problem = _duplicate_key_message(exc)
-        line, col = (mark.line + 1, mark.column + 1) if mark else (None, None)
-        raise SsgError.single(f"invalid YAML: {problem}", file, line, col) from None
+        raise SsgError([_syntax_diagnostic(exc, file)]) from None
+    except ReaderError as exc:  # a control character: ruamel gives its offset, not a mark
+        before = text[: exc.position]
+        line, col = before.count("\n") + 1, exc.position - (before.rfind("\n") + 1) + 1
+        char = exc.character
+        shown = f"#x{char:04x}" if isinstance(char, int) else repr(char)
+        raise SsgError.single(
+            f"invalid YAML: unacceptable character {shown} ({exc.reason})", file, line, col
+        ) from None
     except YAMLError as exc:
         raise SsgError.single(f"invalid YAML: {str(exc).splitlines()[0]}", file) from None
     except RecursionError:
         raise SsgError.single("invalid YAML: nested too deeply", file) from None
+    except (ValueError, KeyError, TypeError, OverflowError):
+        # ruamel constructs some scalars without catching their errors (`2024-13-45`,
+        # `!!int abc`, `!!bool maybe`): find the scalar that fails, for its position.
+        raise SsgError([_bad_scalar(text, file)]) from None
     source = SourceMap(file, tree)
     return _Plain(source).convert(tree, ()), source
+
+
+def _syntax_diagnostic(exc: MarkedYAMLError, file: str) -> Diagnostic:
+    """A YAML syntax error, located where it is most useful, with a hint for common causes.
+
+    ruamel reports an unclosed quote or bracket at the end of the file; the place where it was
+    opened (the "context" mark) is where the user has to look.
+    """
+    problem = (exc.problem or exc.context or "invalid YAML").strip()
+    if "duplicate key" in problem or "found duplicate key" in str(exc):
+        problem = _duplicate_key_message(exc)
+    mark, ctx = exc.problem_mark or exc.context_mark, exc.context_mark
+    at_end = "end of stream" in problem or "<stream end>" in problem
+    if ctx is not None and exc.context and (at_end or mark is None):
+        mark, problem = ctx, f"{problem} {exc.context.strip()} that starts here (unclosed?)"
+    elif ctx is not None and exc.context and ctx is not mark:
+        problem += f" ({exc.context.strip()} at line {ctx.line + 1}, column {ctx.column + 1})"
+    if "'\\t'" in problem:
+        problem += "; indent with spaces, YAML does not allow tabs"
+    elif "<block end>" in problem or "mapping values are not allowed" in problem:
+        problem += "; check the indentation (and quote values that contain ': ')"
+    line, col = (mark.line + 1, mark.column + 1) if mark else (None, None)
+    return Diagnostic(f"invalid YAML: {problem}", file, line, col)
+
+
+def _bad_scalar(text: str, file: str) -> Diagnostic:
+    """Locate the first scalar of `text` that ruamel cannot construct."""
+    yaml = YAML(typ="rt", pure=True)
+    stack = [yaml.compose(text)]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, MappingNode):
+            stack += [x for pair in reversed(node.value) for x in reversed(pair)]
+        elif isinstance(node, SequenceNode):
+            stack += reversed(node.value)
+        elif isinstance(node, ScalarNode):
+            try:
+                yaml.constructor.construct_object(node, deep=True)
+            except (ValueError, KeyError, TypeError, OverflowError) as exc:
+                tag = str(node.tag).replace("tag:yaml.org,2002:", "!!")
+                why = f" ({exc})" if isinstance(exc, ValueError) else ""
+                mark = node.start_mark
+                return Diagnostic(f"invalid YAML: cannot read '{node.value}' as {tag}{why}",
+                                  file, mark.line + 1, mark.column + 1)
+    return Diagnostic("invalid YAML: a value cannot be read", file)
 
 
 def _duplicate_key_message(exc: MarkedYAMLError) -> str:
@@ -172,13 +228,20 @@ class _Plain:
         if len(loc) > 200:
             raise self.fail(loc, "document is nested more than 200 levels deep")
         tag = getattr(getattr(node, "tag", None), "value", None)
-        if tag is not None and not str(tag).startswith("tag:yaml.org,2002:"):
-            raise self.fail(loc, f"YAML tags are not allowed here (found {tag})")
+        if isinstance(node, TaggedScalar) and tag == "tag:yaml.org,2002:str":
+            return str(node.value)  # `!!str 2024-01-01`: the way to quote with a tag
+        if tag is not None and tag not in _PLAIN_TAGS:  # `!!python/object:...` keeps its tag
+            shown = str(tag).replace("tag:yaml.org,2002:", "!!")
+            raise self.fail(loc, f"YAML tags are not allowed here (found {shown})")
         if isinstance(node, CommentedMap):
             out = {}
             for key, value in node.items():
                 if not isinstance(key, str):
-                    raise self.fail(loc, f"mapping keys must be strings, got {key!r}")
+                    line, col = self.source.locate_key(loc, key)
+                    raise SsgError.single(
+                        f"mapping keys must be strings, got {key!r}; quote it", self.source.file,
+                        line, col,
+                    )
                 out[str(key)] = self.convert(value, (*loc, key))
             return out
         if isinstance(node, CommentedSeq):
@@ -193,46 +256,138 @@ class _Plain:
             return str(node)
         if isinstance(node, (datetime.date, datetime.datetime)):
             raise self.fail(loc, f"dates are not allowed here (got {node}); quote it if it is text")
-        raise self.fail(loc, f"unsupported YAML value of type {type(node).__name__}")
+        what = {"bytes": "binary data (!!binary)", "CommentedSet": "a set (!!set)"}
+        name = type(node).__name__
+        raise self.fail(loc, f"unsupported YAML value: {what.get(name, name)}")
 
 
 def validation_diagnostics(exc: ValidationError, source: SourceMap) -> list[Diagnostic]:
     """Turn pydantic errors into located diagnostics, one per place, the most useful first.
 
-    When a value fails every member of a union, pydantic reports one error per member; those
-    that only say "wrong type" are dropped when a more specific error exists at the same place.
+    When a value fails every member of a union, pydantic reports one error per member.  One
+    that only says "wrong type" is dropped when another member got further (an error at the
+    same place or inside the value); when all of them say "wrong type", they become a single
+    "expected a number or a list, got '0.5'".
     """
-    by_place: dict[tuple[int, int], list[dict[str, Any]]] = {}
+    entries: list[tuple[tuple[Any, ...], tuple[int, int], dict[str, Any]]] = []
     for err in exc.errors(include_url=False):
-        loc = tuple(err["loc"])
-        if err["type"] == "unknown_key":
+        loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
+        found = source.walk(loc)[0]
+        path = tuple(found) if found or not loc else _tag_free(loc)
+        if kind == "missing" and (not path or path[-1] != loc[-1]):
+            path = (*path, loc[-1])
+        if kind == "unknown_key":
             place = source.locate_key(loc, err["ctx"]["key"])
+        elif kind == "invalid_choice" and isinstance(value, dict) and len(value) == 1:
+            place = source.locate_key(loc, next(iter(value)))  # the unknown variant's name
+        elif len(loc) >= 2 and loc[-1] == "[key]":  # a mapping key is invalid (a type name)
+            place, path = source.locate_key(loc[:-2], loc[-2]), path[:-1]
         else:
             place = source.locate(loc)
-        by_place.setdefault(place, []).append(err)
-    diagnostics = []
-    for (line, col), errs in by_place.items():
-        specific = [e for e in errs if not e["type"].endswith("_type")] or errs
-        seen = set()
-        for err in specific:
-            text = _describe(err)
+        entries.append((path, place, err))
+
+    def wrong_type(err: dict[str, Any]) -> bool:
+        return bool(err["type"].endswith("_type"))
+
+    specific = [(p, e) for p, _, e in entries if not wrong_type(e)]
+    by_place: dict[tuple[tuple[Any, ...], tuple[int, int]], list[dict[str, Any]]] = {}
+    for path, place, err in entries:
+        if wrong_type(err) and any(q[: len(path)] == path for q, _ in specific):
+            continue
+        by_place.setdefault((path, place), []).append(err)
+    diagnostics, seen = [], set()
+    for (path, (line, col)), errs in by_place.items():
+        texts = [_describe(e, path) for e in errs if not wrong_type(e)]
+        if any(wrong_type(e) for e in errs):
+            texts.append(_expected([e for e in errs if wrong_type(e)], path))
+        for text in texts:
             if text not in seen:
                 seen.add(text)
                 diagnostics.append(Diagnostic(text, source.file, line, col))
     return diagnostics
 
 
-def _describe(err: dict[str, Any]) -> str:
-    segments: list[str] = []
-    for seg in err["loc"]:
+_TYPE_WORDS = {
+    "float_type": "a number", "int_type": "an integer", "string_type": "a string",
+    "bool_type": "true or false", "list_type": "a list", "dict_type": "a mapping",
+    "model_type": "a mapping",
+}
+
+
+def _tag_free(loc: tuple[Any, ...]) -> tuple[Any, ...]:
+    """`loc` without pydantic's internal and repeated union-tag segments (no document to ask)."""
+    out: list[Any] = []
+    for seg in loc:
         if isinstance(seg, int):
-            segments.append(f"[{seg}]")
-        elif "[" not in seg and "-" not in seg and (not segments or segments[-1] != seg):
-            segments.append(seg)  # skip pydantic's internal and repeated union-tag segments
-    path = ".".join(segments).replace(".[", "[")
-    msg = err["msg"]
-    if err["type"] == "missing":
+            out.append(seg)
+        elif "[" not in seg and "-" not in seg and (not out or out[-1] != seg):
+            out.append(seg)
+    return tuple(out)
+
+
+def _with_path(path: tuple[Any, ...], msg: str) -> str:
+    where = "".join(f"[{s}]" if isinstance(s, int) else f".{s}" for s in path).lstrip(".")
+    return f"{where}: {msg}" if where else msg
+
+
+def _show(value: Any) -> str:
+    """A user's value as it would be written in YAML, shortened."""
+    if value is None:
+        return "nothing (an empty value)"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _describe(err: dict[str, Any], path: tuple[Any, ...]) -> str:
+    kind, msg, value = err["type"], err["msg"], err.get("input")
+    if kind == "missing":
         msg = "missing required key"
-    elif err["type"].startswith("value_error"):
+    elif kind.startswith("value_error"):
         msg = msg.removeprefix("Value error, ")
-    return f"{path}: {msg}" if path else msg
+    elif kind == "invalid_choice":
+        msg += _choice_hint(value, msg.rpartition("one of ")[2].split(", "))  # see dsl._choice
+    elif kind != "unknown_key":
+        for theirs, ours in (("Input should be", "must be"), ("String should", "must"),
+                             ("List should", "must"), ("Dictionary should", "must"),
+                             (" after validation, not", ", got")):
+            msg = msg.replace(theirs, ours)
+        if value is None or isinstance(value, (str, int, float)):
+            msg += f", got {_show(value)}"
+    return _with_path(path, msg)
+
+
+def _expected(errs: list[dict[str, Any]], path: tuple[Any, ...]) -> str:
+    """One message for a value that has the wrong type for every member of a union."""
+    words = list(dict.fromkeys(_TYPE_WORDS.get(e["type"], e["msg"]) for e in errs))
+    value = errs[0].get("input")
+    msg = f"expected {' or '.join(words)}, got {_show(value)}"
+    if isinstance(value, str) and _is_number(value):
+        msg += " (write numbers without quotes)"
+    return _with_path(path, msg)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _choice_hint(value: Any, choices: list[str]) -> str:
+    """What was given instead of one of `choices`, and the closest choice if any."""
+    if isinstance(value, dict) and len(value) != 1:
+        keys = ", ".join(str(k) for k in value)
+        return f"; got {len(value)} keys ({keys}), give exactly one" if value else (
+            "; got an empty mapping")
+    name = next(iter(value)) if isinstance(value, dict) else value
+    if not isinstance(name, str):
+        return f"; got {_show(value)}"
+    close = difflib.get_close_matches(name, choices, n=1)
+    return f"; got '{name}'" + (f" (did you mean '{close[0]}'?)" if close else "")

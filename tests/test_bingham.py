@@ -90,9 +90,29 @@ def acg_logpdf(x: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return -0.5 * np.linalg.slogdet(cov)[1] - 2.0 * np.log(a) - math.log(TWO_PI2)
 
 
-def proposal_cov(M: np.ndarray, Z: np.ndarray, k: float = 3.0) -> np.ndarray:
+def proposal_cov(M: np.ndarray, Z: np.ndarray, k: float) -> np.ndarray:
+    """ACG covariance Σ = M diag(1 / (1 + k c)) Mᵀ with c = max(Z) - Z."""
     c = np.max(Z) - np.asarray(Z, dtype=float)
     return (M / (1.0 + k * c)) @ M.T
+
+
+def choose_k(Z, rng: np.random.Generator, n_pilot: int = 100_000) -> float:
+    """Pick the ACG scale k with the smallest importance-weight variance on a pilot run.
+
+    Only the proposal is tuned; the pilot draws are discarded, so the estimates
+    made afterwards with fresh draws stay unbiased.
+    """
+    c = np.max(Z) - np.asarray(Z, dtype=float)
+    best_k, best_rv = 1.0, np.inf
+    for k in (0.5, 1.0, 2.0, 3.0):
+        omega = 1.0 + k * c
+        y2 = rng.standard_normal((n_pilot, 4)) ** 2 / omega
+        x2 = y2 / y2.sum(axis=1, keepdims=True)
+        w = np.exp(-(x2 @ c)) * (x2 @ omega) ** 2
+        rv = w.var() / w.mean() ** 2
+        if rv < best_rv:
+            best_k, best_rv = k, rv
+    return best_k
 
 
 def importance_estimate(
@@ -102,7 +122,6 @@ def importance_estimate(
     target_rel_se: float = 2.5e-4,
     chunk: int = 1_000_000,
     max_n: int = 16_000_000,
-    k: float = 3.0,
 ) -> dict:
     """IS estimates of F(Z) and of E[x_i²] (M = I), with standard errors.
 
@@ -111,6 +130,7 @@ def importance_estimate(
     """
     Z = np.asarray(Z, dtype=float)
     rng = np.random.default_rng(seed)
+    k = choose_k(Z, rng)
     c = np.max(Z) - Z
     omega = 1.0 + k * c  # diagonal of Σ⁻¹ (M = I)
     log_det_cov = -float(np.sum(np.log(omega)))
@@ -120,22 +140,22 @@ def importance_estimate(
     s_w2x = np.zeros(4)
     s_w2x2 = np.zeros(4)
     while True:
-        u = rng.standard_normal((chunk, 4))
-        y2 = u * u / omega
+        u2 = rng.standard_normal((chunk, 4)) ** 2
+        y2 = u2 / omega  # y = Σ^(1/2) u componentwise, squared
         r2 = y2.sum(axis=1)
-        x2 = y2 / r2[:, None]  # x_i² of the projected direction
-        quad_prec = x2 @ omega  # xᵀ Σ⁻¹ x
-        # w = f(x) / g(x) = exp(Σ z x²) · 2π² |Σ|^(1/2) (xᵀΣ⁻¹x)².  Shift Z by its max
-        # (exact: multiply back by e^max) so nothing overflows.
+        x2 = y2 / r2[:, None]  # x_i² of the projected direction x = y / |y|
+        quad_prec = u2.sum(axis=1) / r2  # xᵀ Σ⁻¹ x
+        # w = f(x) / g(x) = exp(Σ z x²) · 2π² |Σ|^(1/2) (xᵀΣ⁻¹x)².  Z is shifted by its
+        # max (multiplied back below) so nothing overflows.
         w = np.exp(x2 @ (Z - np.max(Z))) * quad_prec**2
         w *= TWO_PI2 * math.exp(0.5 * log_det_cov)
+        w2 = w * w
         n += chunk
         s_w += float(w.sum())
-        s_w2 += float((w * w).sum())
-        wx = w[:, None] * x2
-        s_wx += wx.sum(axis=0)
-        s_w2x += (w[:, None] * wx).sum(axis=0)
-        s_w2x2 += (wx * wx).sum(axis=0)
+        s_w2 += float(w2.sum())
+        s_wx += w @ x2
+        s_w2x += w2 @ x2
+        s_w2x2 += w2 @ (x2 * x2)
         mean = s_w / n
         var = max(s_w2 / n - mean * mean, 0.0)
         rel_se = math.sqrt(var / n) / mean
@@ -211,7 +231,7 @@ def test_normalizer_properties(z, perm, shift):
     np.testing.assert_allclose(moments(z[list(perm)]), m[list(perm)], rtol=1e-9, atol=1e-15)
 
 
-@pytest.mark.parametrize("c", [0.5, 3.0, 40.0, 700.0, 1e4, 1e5])
+@pytest.mark.parametrize("c", [0.5, 3.0, 40.0, 700.0, 1e4, 1e5, 1e8])
 def test_normalizer_closed_forms(c):
     """Exact special cases, up to the largest concentrations."""
     # Two equal pairs: F = 2π² (e^a - e^b) / (a - b).
@@ -244,11 +264,10 @@ MC_CASES = [
     [-0.5, -200.0, 3.0, -30.0],  # unsorted, non-canonical (max Z = 3)
 ]
 
+
 @pytest.fixture(scope="module")
 def mc_results():
-    return {
-        tuple(z): importance_estimate(z, seed=1000 + i) for i, z in enumerate(MC_CASES)
-    }
+    return {tuple(z): importance_estimate(z, seed=1000 + i) for i, z in enumerate(MC_CASES)}
 
 
 @pytest.mark.parametrize("z", MC_CASES)
@@ -430,8 +449,9 @@ def test_log_prob_integrates_to_one_importance(conc):
     # Proposal built from the construction parameters, not from the object.
     pure = [np.array([0.0, 1.0, 0.0, 0.0]), np.array([0, 0, 1.0, 0]), np.array([0, 0, 0, 1.0])]
     M = np.column_stack([qmul(q_mode, e) for e in pure] + [q_mode])
-    cov = proposal_cov(M, -np.append(conc, 0.0))
-    x = acg_sample(rng, cov, 2_000_000)
+    z = -np.append(conc, 0.0)
+    cov = proposal_cov(M, z, choose_k(z, rng))
+    x = acg_sample(rng, cov, 1_000_000)
     w = np.exp(b.log_prob(x) - acg_logpdf(x, cov))
     est, se = w.mean(), w.std() / math.sqrt(len(w))
     assert se < 1e-3
@@ -526,11 +546,11 @@ def test_sampler_isotropic_exact_distribution(c):
     assert stats.kstest(v, _isotropic_cdf(c)).pvalue > 1e-3
 
 
-def _weighted_reference_cdf(M, Z, seed, n=2_000_000):
+def _weighted_reference_cdf(M, Z, seed, n=1_000_000):
     """Weighted ECDF of s = xᵀAx (A = -M diag(Z) Mᵀ) by importance sampling."""
     rng = np.random.default_rng(seed)
     Z = np.asarray(Z, dtype=float) - np.max(Z)
-    cov = proposal_cov(M, Z)
+    cov = proposal_cov(M, Z, choose_k(Z, rng))
     x = acg_sample(rng, cov, n)
     proj = x @ M
     s = (proj * proj) @ (-Z)
@@ -543,7 +563,9 @@ def _weighted_reference_cdf(M, Z, seed, n=2_000_000):
     return lambda v: np.interp(v, s_sorted, cdf, left=0.0, right=1.0)
 
 
-@pytest.mark.parametrize("name", ["c1-rotated", "from_mode-50", "mixed-rotated", "from_mode-mixed-0"])
+@pytest.mark.parametrize(
+    "name", ["c1-rotated", "from_mode-50", "mixed-rotated", "from_mode-mixed-0"]
+)
 def test_sampler_goodness_of_fit(name):
     """KS test of s = qᵀAq of the sampler against an IS reference of the true density.
 
@@ -580,7 +602,7 @@ def test_fit_recovers_z_from_exact_moments(z_true):
     m = moments(z_true)
     fitted = Bingham.fit(M.T, weights=m)
     order = np.argsort(fitted.Z)
-    np.testing.assert_allclose(np.sort(fitted.Z), np.sort(z_true), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.sort(fitted.Z), np.sort(z_true), rtol=1e-8, atol=1e-9)
     # Axes recovered up to sign (distinct Z only).
     for j, i in zip(order, np.argsort(z_true), strict=True):
         if np.sum(np.isclose(z_true, z_true[i])) == 1:

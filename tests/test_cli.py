@@ -7,12 +7,11 @@ import subprocess
 import sys
 
 import pytest
+from conftest import GRAMMARS, ROOT
+from ssgc.cli.app import app
 from typer.testing import CliRunner
 
-from ssgc.cli.app import app
 from ssgc.schemas import SCHEMA_FILES, schema_text
-
-from conftest import GRAMMARS, ROOT
 
 runner = CliRunner()
 
@@ -48,7 +47,9 @@ def test_validate_missing_file_is_a_message_not_a_traceback(tmp_path):
 def test_sample_writes_scene_files_and_is_reproducible(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     assert run("sample", GRAMMARS / "sink.yaml", "-n", 7, "--seed", 11, "-o", a).exit_code == 0
-    assert run("sample", GRAMMARS / "sink.yaml", "-n", 300, "--seed", 11, "-o", b, "-q").exit_code == 0
+    assert (
+        run("sample", GRAMMARS / "sink.yaml", "-n", 300, "--seed", 11, "-o", b, "-q").exit_code == 0
+    )
     files = sorted(a.glob("*.json"))
     assert [f.name for f in files] == [f"sink_{i:06d}.json" for i in range(7)]
     for f in files:  # same seed → identical files, and -n 300 extends -n 7
@@ -68,6 +69,18 @@ def test_sample_into_a_file_path_fails_cleanly(tmp_path):
     result = run("sample", GRAMMARS / "gmm.yaml", "-o", blocker / "sub")
     assert result.exit_code == 1
     assert "cannot create output directory" in result.output
+
+
+def test_sample_file_names_cannot_escape_the_output_directory(tmp_path):
+    text = (GRAMMARS / "gmm.yaml").read_text()
+    grammar = tmp_path / "g.yaml"
+    grammar.write_text(text.replace("grammar: gmm", 'grammar: "../../evil"'))
+    out = tmp_path / "o" / "sub"
+    assert run("sample", grammar, "-n", 2, "-o", out, "-q").exit_code == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["_.._evil_000000.json", "_.._evil_000001.json"]
+    assert [p.parent for p in tmp_path.rglob("*evil*")] == [out, out]
+    assert (out / names[0]).stat().st_mode & 0o044  # readable by others, not 0600
 
 
 def test_inspect_tables_and_json():
@@ -91,8 +104,12 @@ def test_console_script_exit_codes(tmp_path):
     """The installed `ssg` entry point itself (not the in-process runner)."""
     bad = tmp_path / "bad.yaml"
     bad.write_text("grammar: [unclosed\n")
-    proc = subprocess.run([sys.executable, "-m", "ssgc.cli.app", "validate", str(bad)],
-                          capture_output=True, text=True, cwd=tmp_path)
+    proc = subprocess.run(
+        [sys.executable, "-m", "ssgc.cli.app", "validate", str(bad)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 1
     assert proc.stderr.startswith(f"{bad}:") and "invalid YAML" in proc.stderr
     assert "Traceback" not in proc.stderr

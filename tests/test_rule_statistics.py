@@ -227,7 +227,7 @@ def test_same_translation_and_rotation(chain: bool) -> None:
                                atol=LOGP_ATOL)
     _check_logp(d, 12)
     # Moved or turned by 1e-3: impossible.
-    assert np.all(_rescore(d, xyz=d.xyz + [0.0, 1e-3, 0.0]) == -np.inf)
+    assert np.all(_rescore(d, xyz=d.xyz + np.array([0.0, 1e-3, 0.0])) == -np.inf)
     turned = quat_multiply(d.quat, axis_angle_to_quat([0.0, 0.0, 1.0], 1e-3))
     assert np.all(_rescore(d, quat=turned) == -np.inf)
 
@@ -472,17 +472,33 @@ def _bingham_rel(d: Draw, kind: str) -> np.ndarray:
     return d.quat if kind == "world_bingham" else d.local_quat
 
 
+def _raw_m() -> np.ndarray:
+    """A fixed, generic 4x4 orthogonal matrix."""
+    q, r = np.linalg.qr(np.random.default_rng(7).standard_normal((4, 4)))
+    return q * np.sign(np.diag(r))
+
+
+RAW_Z = [-3.0, -30.0, 2.0, -1.0]  # not shifted: the mode is M's third column
+
+
 @pytest.mark.parametrize("kind", ["world_bingham", "parent_bingham"])
 @pytest.mark.parametrize("chain", [False, True])
-def test_bingham_second_moment(kind: str, chain: bool) -> None:
-    g = _compile("same", f"{{{kind}: {{mode: {{rpy: {BINGHAM_MODE}}}, "
-                         f"concentration: {BINGHAM_CONC}}}}}", chain)
+@pytest.mark.parametrize("form", ["mode", "raw"])
+def test_bingham_second_moment(kind: str, chain: bool, form: str) -> None:
+    if form == "mode":
+        law = f"mode: {{rpy: {BINGHAM_MODE}}}, concentration: {BINGHAM_CONC}"
+    else:
+        law = f"M: {_raw_m().tolist()}, Z: {RAW_Z}"
+    g = _compile("same", f"{{{kind}: {{{law}}}}}", chain)
     rule = next(r for r in g.rules if r.child == g.type_id("C"))
     bingham = rule.rotation.bingham
     # The mode is the stated rotation.
-    mode = Rotation.from_euler("xyz", BINGHAM_MODE).as_quat()[[3, 0, 1, 2]]
+    if form == "mode":
+        mode = Rotation.from_euler("xyz", BINGHAM_MODE).as_quat()[[3, 0, 1, 2]]
+    else:
+        mode = _raw_m()[:, 2]
     assert quat_angle(bingham.mode, mode) < 1e-9
-    d = _draw(g, 111 + chain, chain)
+    d = _draw(g, 111 + chain + 2 * (form == "raw"), chain)
     q = _bingham_rel(d, kind)
     expected = bingham.M @ np.diag(moments(bingham.Z)) @ bingham.M.T
     outer = q[:, :, None] * q[:, None, :]
@@ -518,6 +534,20 @@ def test_bingham_concentration_is_angular_precision(kind: str) -> None:
 
 
 @pytest.mark.parametrize("kind", ["world_bingham", "parent_bingham"])
+def test_bingham_with_zero_concentration_is_uniform(kind: str) -> None:
+    """Z = 0: exactly the uniform density -log π², and Haar-distributed draws."""
+    g = _compile("same", f"{{{kind}: {{mode: {{rpy: {BINGHAM_MODE}}}, concentration: 0}}}}",
+                 chain=True)
+    d = _draw(g, 125, chain=True)
+    edge = rotation_log_density(g, d.rule, d.pquat, d.quat)
+    np.testing.assert_allclose(edge, -LOG_PI2, rtol=0, atol=1e-9)
+    fixed = Rotation.from_euler("xyz", [1.0, -0.5, 2.0]).as_quat()[[3, 0, 1, 2]]
+    theta = quat_angle(np.broadcast_to(fixed, d.quat.shape), d.quat)
+    assert stats.kstest(theta, _haar_angle_cdf).pvalue > P_MIN
+    _check_logp(d, 126)
+
+
+@pytest.mark.parametrize("kind", ["world_bingham", "parent_bingham"])
 @pytest.mark.parametrize("conc", [[5, 20, 80], [0.5, 1, 2]])
 def test_bingham_density_is_normalised_on_so3(kind: str, conc: list[float]) -> None:
     """π² · E_uniform[exp(rotation density)] = 1: the SO(3) density integrates to one."""
@@ -543,8 +573,8 @@ AXIS = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
 
 
 @pytest.mark.parametrize(
-    ("lo", "hi"), [(-0.5, 1.2), (2.5, 4.0), (-np.pi, np.pi), (None, None)],
-    ids=["range", "across-pi", "full-explicit", "full-default"])
+    ("lo", "hi"), [(-0.5, 1.2), (2.5, 4.0), (10.0, 11.0), (-np.pi, np.pi), (None, None)],
+    ids=["range", "across-pi", "beyond-2pi", "full-explicit", "full-default"])
 @pytest.mark.parametrize("chain", [False, True])
 def test_revolute(lo: float | None, hi: float | None, chain: bool) -> None:
     bounds = "" if lo is None else f", min: {lo!r}, max: {hi!r}"
@@ -597,7 +627,7 @@ ROTATIONS = [
     "{offset: {rpy_deg: [10, 20, 30]}}",
     "uniform",
     f"{{world_bingham: {{mode: {{rpy: {BINGHAM_MODE}}}, concentration: {BINGHAM_CONC}}}}}",
-    f"{{parent_bingham: {{mode: {{quat_wxyz: [0.5, 0.5, 0.5, 0.5]}}, concentration: 3.0}}}}",
+    "{parent_bingham: {mode: {quat_wxyz: [0.5, 0.5, 0.5, 0.5]}, concentration: 3.0}}",
     "{revolute: {axis: [0, 2, 1], min: -2.0, max: 0.25}}",
 ]
 
@@ -608,3 +638,20 @@ def test_sampler_logp_equals_scorer_density(translation: str, rotation: str) -> 
     g = _compile(translation, rotation, chain=True)
     d = _draw(g, 151, chain=True, n=600)
     _check_logp(d, 152)
+
+
+def test_support_tolerances() -> None:
+    """A pinned axis / fixed rotation matches within 1e-6 (m / rad), not beyond."""
+    g = _compile(f"{{parent_normal_offset: {{mean: {MEAN}, variance: 0.1, pin: [z]}}}}",
+                 "{offset: {rpy: [0.1, 0.2, 0.3]}}")
+    d = _draw(g, 161, n=50)
+    z_world = d.parent_matrix()[:, :, 2]  # the parent's z axis, in world coordinates
+    spin = axis_angle_to_quat([0.0, 1.0, 0.0], 1.0)
+    for eps, ok in ((0.5e-6, True), (2e-6, False)):
+        assert np.all(np.isfinite(_rescore(d, xyz=d.xyz + eps * z_world)) == ok), eps
+        turned = quat_multiply(d.quat, axis_angle_to_quat([0.0, 1.0, 0.0], eps))
+        assert np.all(np.isfinite(_rescore(d, quat=turned)) == ok), eps
+    assert np.all(_rescore(d, quat=quat_multiply(d.quat, spin)) == -np.inf)
+    # A move within the pinned tolerance does not change the density of the free axes.
+    np.testing.assert_allclose(_rescore(d, xyz=d.xyz + 0.5e-6 * z_world), d.logp[:50],
+                               rtol=0, atol=1e-12)

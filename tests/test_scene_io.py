@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import SINK_DATA
 from scipy.spatial.transform import Rotation
 
 from ssgc.errors import SceneError
@@ -18,8 +19,6 @@ from ssgc.io.scene import (
 )
 from ssgc.sample.forward import sample_trees
 from ssgc.score import score_trees
-
-from conftest import SINK_DATA
 
 
 def test_sink_dataset_reads_all_80_scenes(sink):
@@ -67,10 +66,19 @@ def test_sampled_scene_round_trips_and_rescores(sink):
 
 def test_rpy_input_and_default_name(sink, tmp_path):
     path = tmp_path / "mine.json"
-    path.write_text(json.dumps({"objects": [
-        {"type": "DishBin", "pose": {"xyz": [0.5, 0, 0], "rpy": [0, 0, 0]}},
-        {"type": "MugColeHardwareClassicBlue", "pose": {"xyz": [0.5, 0, 0.1], "rpy": [0, 0, 1.0]}},
-    ]}))
+    path.write_text(
+        json.dumps(
+            {
+                "objects": [
+                    {"type": "DishBin", "pose": {"xyz": [0.5, 0, 0], "rpy": [0, 0, 0]}},
+                    {
+                        "type": "MugColeHardwareClassicBlue",
+                        "pose": {"xyz": [0.5, 0, 0.1], "rpy": [0, 0, 1.0]},
+                    },
+                ]
+            }
+        )
+    )
     [scene] = load_scenes(path, sink)
     assert scene.name == "mine"
     assert np.allclose(scene.quat[1], [np.cos(0.5), 0, 0, np.sin(0.5)])
@@ -79,12 +87,24 @@ def test_rpy_input_and_default_name(sink, tmp_path):
 @pytest.mark.parametrize(
     ("text", "line", "fragment"),
     [
-        ('{"objects": [\n  {"type": "Nope", "pose": {"xyz": [0, 0, 0]}}]}', 2, "'Nope', which is not a type"),
+        (
+            '{"objects": [\n  {"type": "Nope", "pose": {"xyz": [0, 0, 0]}}]}',
+            2,
+            "'Nope', which is not a type",
+        ),
         ('{"objects": [\n  {"type": "Object", "pose": {"xyz": [0, 0, 0]}}]}', 2, "is not observed"),
-        ('{"objects": [{"type": "DishBin",\n "pose": {"xyz": [0, 0, 0], "quat_wxyz": [1, 1, 0, 0]}}]}',
-         2, "unit norm"),
+        (
+            '{"objects": [{"type": "DishBin",\n'
+            ' "pose": {"xyz": [0, 0, 0], "quat_wxyz": [1, 1, 0, 0]}}]}',
+            2,
+            "unit norm",
+        ),
         ('{"objects": [{"type": "DishBin",\n "pose": {"xyz": [0, 0]}}]}', 2, "at least 3"),
-        ('{"objects": [{"type": "DishBin",\n "pose": {"xyz": [0, 0, 0]}, "typo": 1}]}', 2, "unknown key 'typo'"),
+        (
+            '{"objects": [{"type": "DishBin",\n "pose": {"xyz": [0, 0, 0]}, "typo": 1}]}',
+            2,
+            "unknown key 'typo'",
+        ),
         ('{"objects": [\n  {"type": "DishBin",', 2, "invalid JSON"),
         ('{"objects": [{"type": "DishBin",\n "pose": {"xyz": [0, 0, NaN]}}]}', 2, "finite"),
     ],
@@ -97,6 +117,21 @@ def test_bad_scenes_give_located_errors(sink, text, line, fragment):
     assert d.file == "bad.json" and d.line == line
 
 
+def test_duplicate_json_key_is_located(sink):
+    with pytest.raises(SceneError) as exc:
+        parse_scene_text('{"objects": [],\n "objects": []}', "d.json", sink)
+    d = exc.value.diagnostics[0]
+    assert "duplicate key" in d.message and (d.line, d.column) == (2, 2)
+
+
+def test_objects_must_match_the_tree(sink):
+    trees, logp = sample_trees(sink, 1, seed=0)
+    doc = json.loads(dumps_scene(sink, scene_from_tree(sink, trees.tree(0), "t", float(logp[0]))))
+    doc["objects"][-1]["pose"]["xyz"][0] += 0.5
+    with pytest.raises(SceneError, match="observed nodes of `tree`"):
+        parse_scene_text(json.dumps(doc), "t.json", sink)
+
+
 def test_tree_with_wrong_rule_index_is_rejected(sink):
     trees, logp = sample_trees(sink, 1, seed=0)
     doc = json.loads(dumps_scene(sink, scene_from_tree(sink, trees.tree(0), "t", float(logp[0]))))
@@ -106,11 +141,15 @@ def test_tree_with_wrong_rule_index_is_rejected(sink):
 
 
 def test_moved_object_scores_lower_and_impossible_pose_scores_minus_inf(sink):
-    trees, logp = sample_trees(sink, 50, seed=1)
+    trees, _ = sample_trees(sink, 50, seed=1)
     tree = trees.tree(int(np.argmax([len(trees.tree(i)) for i in range(50)])))
     base = score_trees(sink, tree)[0]
-    moved = type(tree)(**{**tree.__dict__, "xyz": tree.xyz + np.where(
-        np.arange(len(tree))[:, None] == 1, 5.0, 0.0)})
+    moved = type(tree)(
+        **{
+            **tree.__dict__,
+            "xyz": tree.xyz + np.where(np.arange(len(tree))[:, None] == 1, 5.0, 0.0),
+        }
+    )
     # Node 1 hangs off the bin by a Normal offset: far away is much less likely, but possible.
     assert score_trees(sink, moved)[0] < base - 10
     # A child of an `or` with `same` translation moved by 1 cm is impossible.

@@ -107,12 +107,19 @@ class Scene:
         return int(self.types.shape[0])
 
 
-def scene_from_tree(grammar: Grammar, tree: Trees, name: str, log_prob: float | None = None
-                    ) -> Scene:
+def scene_from_tree(
+    grammar: Grammar, tree: Trees, name: str, log_prob: float | None = None
+) -> Scene:
     """The observed nodes of a single tree, in node order."""
     obs = grammar.tables.type_observed[tree.type]
-    return Scene(name, tree.type[obs].copy(), tree.xyz[obs].copy(), tree.quat[obs].copy(),
-                 tree=tree, log_prob=log_prob)
+    return Scene(
+        name,
+        tree.type[obs].copy(),
+        tree.xyz[obs].copy(),
+        tree.quat[obs].copy(),
+        tree=tree,
+        log_prob=log_prob,
+    )
 
 
 def _pose_json(xyz: NDArray[np.float64], quat: NDArray[np.float64]) -> dict[str, list[float]]:
@@ -132,17 +139,19 @@ def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, An
     if scene.tree is not None:
         tree = scene.tree
         tb = grammar.tables
-        out["tree"] = {"nodes": [
-            {
-                "id": i,
-                "type": grammar.types[tree.type[i]].name,
-                "parent": int(tree.parent[i]) if tree.parent[i] >= 0 else None,
-                "rule": int(tb.rule_index[tree.rule[i]]) if tree.rule[i] >= 0 else None,
-                "observed": bool(tb.type_observed[tree.type[i]]),
-                "pose": _pose_json(tree.xyz[i], tree.quat[i]),
-            }
-            for i in range(len(tree))
-        ]}
+        out["tree"] = {
+            "nodes": [
+                {
+                    "id": i,
+                    "type": grammar.types[tree.type[i]].name,
+                    "parent": int(tree.parent[i]) if tree.parent[i] >= 0 else None,
+                    "rule": int(tb.rule_index[tree.rule[i]]) if tree.rule[i] >= 0 else None,
+                    "observed": bool(tb.type_observed[tree.type[i]]),
+                    "pose": _pose_json(tree.xyz[i], tree.quat[i]),
+                }
+                for i in range(len(tree))
+            ]
+        }
     return out
 
 
@@ -152,8 +161,10 @@ _NUMBER_LIST = re.compile(r"\[\s*(-?[0-9][^\[\]{}\"]*?)\s*\]")
 def dumps_json(doc: Any) -> str:
     """Indented JSON with number lists (poses) kept on one line, for readable files."""
     text = json.dumps(doc, indent=1)
-    return _NUMBER_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m[1].split(",")) + "]",
-                            text) + "\n"
+    return (
+        _NUMBER_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m[1].split(",")) + "]", text)
+        + "\n"
+    )
 
 
 def dumps_scene(grammar: Grammar, scene: Scene, **header: Any) -> str:
@@ -172,9 +183,14 @@ def read_scene_file(path: str | Path, grammar: Grammar) -> Scene:
 
 def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str = "scene") -> Scene:
     try:
-        data = json.loads(text)
+        data = json.loads(text, object_pairs_hook=_no_duplicate_keys)
+    except _DuplicateKey as exc:
+        _located(text, file)  # raises with the duplicate's line and column
+        raise SceneError.single(f"duplicate key '{exc.key}'", file) from None
     except (json.JSONDecodeError, RecursionError) as exc:
-        line, col = (exc.lineno, exc.colno) if isinstance(exc, json.JSONDecodeError) else (None, None)
+        line, col = (
+            (exc.lineno, exc.colno) if isinstance(exc, json.JSONDecodeError) else (None, None)
+        )
         message = exc.msg if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
         raise SceneError.single(f"invalid JSON: {message}", file, line, col) from None
     try:
@@ -185,6 +201,21 @@ def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str =
         raise SceneError(validation_diagnostics(exc, source)) from None
     source = _LazySource(text, file)
     return _scene_from_doc(doc, grammar, source, default_name)
+
+
+class _DuplicateKey(ValueError):
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.key = key
+
+
+def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
 
 
 def _located(text: str, file: str) -> tuple[Any, SourceMap]:
@@ -207,8 +238,9 @@ class _LazySource:
         return self._map.diagnostic(loc, message)
 
 
-def _pose_arrays(pose: ScenePose, loc: tuple[Any, ...], source: _LazySource,
-                 errors: list[Diagnostic]) -> tuple[list[float], NDArray[np.float64]]:
+def _pose_arrays(
+    pose: ScenePose, loc: tuple[Any, ...], source: _LazySource, errors: list[Diagnostic]
+) -> tuple[list[float], NDArray[np.float64]]:
     if pose.rpy is not None:
         return pose.xyz, rpy_to_quat(np.asarray(pose.rpy, float))
     if pose.quat_wxyz is None:
@@ -216,8 +248,11 @@ def _pose_arrays(pose: ScenePose, loc: tuple[Any, ...], source: _LazySource,
     q = np.asarray(pose.quat_wxyz, float)
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUAT_NORM_TOL:
-        errors.append(source.diagnostic((*loc, "quat_wxyz"),
-                                        f"quaternion must have unit norm, got norm {norm:.6g}"))
+        errors.append(
+            source.diagnostic(
+                (*loc, "quat_wxyz"), f"quaternion must have unit norm, got norm {norm:.6g}"
+            )
+        )
         return pose.xyz, np.array([1.0, 0, 0, 0])
     return pose.xyz, q / norm
 
@@ -227,23 +262,29 @@ def _observed_type(grammar: Grammar, name: str) -> int | None:
     return tid if tid is not None and grammar.types[tid].observed else None
 
 
-def _scene_from_doc(doc: SceneDoc, grammar: Grammar, source: _LazySource, default_name: str
-                    ) -> Scene:
+def _scene_from_doc(
+    doc: SceneDoc, grammar: Grammar, source: _LazySource, default_name: str
+) -> Scene:
     errors: list[Diagnostic] = []
     types, xyz, quat = [], [], []
     for i, obj in enumerate(doc.objects):
         tid = _observed_type(grammar, obj.type)
         if tid is None:
             what = "is not observed" if obj.type in grammar.type_ids else "is not a type"
-            errors.append(source.diagnostic(
-                ("objects", i, "type"),
-                f"object {i} has type '{obj.type}', which {what} in grammar '{grammar.name}'"))
+            errors.append(
+                source.diagnostic(
+                    ("objects", i, "type"),
+                    f"object {i} has type '{obj.type}', which {what} in grammar '{grammar.name}'",
+                )
+            )
             continue
         p, q = _pose_arrays(obj.pose, ("objects", i, "pose"), source, errors)
         types.append(tid)
         xyz.append(p)
         quat.append(q)
     tree = _tree_from_doc(doc.tree, grammar, source, errors) if doc.tree else None
+    if tree is not None and not errors:
+        _check_objects_match_tree(grammar, tree, types, xyz, quat, source, errors)
     if errors:
         raise SceneError(errors)
     return Scene(
@@ -258,8 +299,24 @@ def _scene_from_doc(doc: SceneDoc, grammar: Grammar, source: _LazySource, defaul
     )
 
 
-def _tree_from_doc(doc: TreeDoc, grammar: Grammar, source: _LazySource,
-                   errors: list[Diagnostic]) -> Trees | None:
+def _check_objects_match_tree(grammar: Grammar, tree: Trees, types: list[int], xyz: list[Any],
+                              quat: list[Any], source: _LazySource,
+                              errors: list[Diagnostic]) -> None:
+    """A scene's objects are its tree's observed nodes, in node order: a file must agree."""
+    obs = np.flatnonzero(grammar.tables.type_observed[tree.type])
+    same = len(obs) == len(types) and np.array_equal(tree.type[obs], np.asarray(types, np.int64))
+    if same and len(obs):
+        same = bool(np.allclose(tree.xyz[obs], np.asarray(xyz, float), rtol=0, atol=1e-9)
+                    and np.all(np.abs(np.sum(tree.quat[obs] * np.asarray(quat), axis=1))
+                               >= 1 - 1e-9))
+    if not same:
+        errors.append(source.diagnostic(("objects",), "`objects` must be the observed nodes of "
+                                        "`tree`, in node order, with the same poses"))
+
+
+def _tree_from_doc(
+    doc: TreeDoc, grammar: Grammar, source: _LazySource, errors: list[Diagnostic]
+) -> Trees | None:
     """Nodes must be listed parents first, with ids 0..n-1; rules index the parent's list."""
     n = len(doc.nodes)
     ntype = np.zeros(n, np.int64)
@@ -282,14 +339,19 @@ def _tree_from_doc(doc: TreeDoc, grammar: Grammar, source: _LazySource,
             continue
         if node.parent is not None and node.rule is not None:
             if node.parent >= i:
-                errors.append(source.diagnostic((*loc, "parent"),
-                                                "a node's parent must be listed before it"))
+                errors.append(
+                    source.diagnostic((*loc, "parent"), "a node's parent must be listed before it")
+                )
                 continue
             rules = grammar.types[ntype[node.parent]].rules
             if node.rule >= len(rules):
-                errors.append(source.diagnostic(
-                    (*loc, "rule"), f"type '{grammar.types[ntype[node.parent]].name}' has "
-                    f"{len(rules)} rule(s), no rule {node.rule}"))
+                errors.append(
+                    source.diagnostic(
+                        (*loc, "rule"),
+                        f"type '{grammar.types[ntype[node.parent]].name}' has "
+                        f"{len(rules)} rule(s), no rule {node.rule}",
+                    )
+                )
                 continue
             parent[i], rule[i] = node.parent, rules[node.rule]
         p, q = _pose_arrays(node.pose, (*loc, "pose"), source, errors)
@@ -348,9 +410,14 @@ def read_sink_yaml(path: str | Path, grammar: Grammar) -> list[Scene]:
     return scenes
 
 
-def _sink_scene(name: str, objects: list[tuple[tuple[Any, ...], Any]], by_model: dict[str, int],
-                by_label: dict[str, int], source: SourceMap, errors: list[Diagnostic]
-                ) -> Scene | None:
+def _sink_scene(
+    name: str,
+    objects: list[tuple[tuple[Any, ...], Any]],
+    by_model: dict[str, int],
+    by_label: dict[str, int],
+    source: SourceMap,
+    errors: list[Diagnostic],
+) -> Scene | None:
     start = len(errors)
     types, xyz, rpy, meta = [], [], [], []
     for loc, raw in objects:
@@ -367,9 +434,13 @@ def _sink_scene(name: str, objects: list[tuple[tuple[Any, ...], Any]], by_model:
         if tid is None:
             tid = by_label.get(str(label)) if label is not None else None
         if tid is None:
-            errors.append(source.diagnostic(
-                full, f"scene '{name}': no observed type has model '{obj.model_file}' "
-                f"or label '{label}'"))
+            errors.append(
+                source.diagnostic(
+                    full,
+                    f"scene '{name}': no observed type has model '{obj.model_file}' "
+                    f"or label '{label}'",
+                )
+            )
             continue
         types.append(tid)
         xyz.append(obj.pose.xyz)
@@ -378,8 +449,13 @@ def _sink_scene(name: str, objects: list[tuple[tuple[Any, ...], Any]], by_model:
     if len(errors) > start:
         return None
     quat = rpy_to_quat(np.asarray(rpy, float).reshape(-1, 3))
-    return Scene(name, np.asarray(types, np.int64), np.asarray(xyz, float).reshape(-1, 3),
-                 np.asarray(quat).reshape(-1, 4), metadata=tuple(meta))
+    return Scene(
+        name,
+        np.asarray(types, np.int64),
+        np.asarray(xyz, float).reshape(-1, 3),
+        np.asarray(quat).reshape(-1, 4),
+        metadata=tuple(meta),
+    )
 
 
 def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:

@@ -49,8 +49,9 @@ def chunk_rng(seed: int, chunk: int) -> np.random.Generator:
     return np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, chunk])
 
 
-def sample_chunk(grammar: Grammar, rng: np.random.Generator, size: int = CHUNK
-                 ) -> tuple[Trees, NDArray[np.float64]]:
+def sample_chunk(
+    grammar: Grammar, rng: np.random.Generator, size: int = CHUNK
+) -> tuple[Trees, NDArray[np.float64]]:
     """Draw `size` trees with one generator: the vectorised level-by-level expansion."""
     tb = grammar.tables
     n_bounded = tb.nesting_max.shape[0]
@@ -144,8 +145,9 @@ def _choose_rules(
     return [(r, w) for r, w in fires if len(w)], logp
 
 
-def blocked_rules(grammar: Grammar, rules: NDArray[np.int64], nest: NDArray[np.int64]
-                  ) -> NDArray[np.bool_]:
+def blocked_rules(
+    grammar: Grammar, rules: NDArray[np.int64], nest: NDArray[np.int64]
+) -> NDArray[np.bool_]:
     """(nodes, rules) mask of rules whose child would exceed its type's max_nesting."""
     tb = grammar.tables
     slot = tb.nesting_slot[tb.rule_child[rules]]
@@ -176,8 +178,15 @@ def _group_by_scene(scene, ntype, parent, rule, xyz, quat, size):  # type: ignor
 
 def _first_trees(trees: Trees, keep: int) -> Trees:
     end = int(trees.offsets[keep])
-    return Trees(trees.scene[:end], trees.type[:end], trees.parent[:end], trees.rule[:end],
-                 trees.xyz[:end], trees.quat[:end], keep)
+    return Trees(
+        trees.scene[:end],
+        trees.type[:end],
+        trees.parent[:end],
+        trees.rule[:end],
+        trees.xyz[:end],
+        trees.quat[:end],
+        keep,
+    )
 
 
 def _empty() -> Trees:

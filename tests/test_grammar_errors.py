@@ -1,0 +1,870 @@
+"""Every mistake in a grammar file is a located `GrammarError`, never a traceback.
+
+The table below holds small broken grammars.  Each row names the text its first matching
+diagnostic must point at (`at`: a substring that occurs once in the grammar; the empty string
+means the start of the file) and a fragment of the message that says what was expected.  A
+hypothesis test then mutates `grammars/sink.yaml` at random and checks that the compiler
+either accepts the result or rejects it with located diagnostics.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from textwrap import dedent, indent
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from ssgc.compile import compile_text, load_grammar
+from ssgc.errors import Diagnostic, GrammarError
+
+SINK = Path(__file__).resolve().parent.parent / "grammars" / "sink.yaml"
+FILE = "case.yaml"
+FORMAT = re.compile(r"^case\.yaml:\d+:\d+: (error|warning): \S")
+
+
+def doc(types: str, root: str = "Root") -> str:
+    """A grammar: `grammar: g`, `root: ...` and `types:` on lines 1-3, then `types` below."""
+    return f"grammar: g\nroot: {root}\ntypes:\n" + indent(dedent(types).lstrip("\n"), "  ")
+
+
+def position(text: str, needle: str) -> tuple[int, int]:
+    """1-based line and column of `needle` in `text` (which must hold it exactly once).
+
+    A `|` in the needle marks the point inside it: ``"child: |Root"`` is the value `Root`.
+    """
+    before, after = needle.split("|", 1) if "|" in needle else ("", needle)
+    needle = before + after
+    if needle:
+        assert text.count(needle) == 1, f"ambiguous or missing needle {needle!r}"
+    index = text.index(needle) + len(before)
+    before = text[:index]
+    return before.count("\n") + 1, index - (before.rfind("\n") + 1) + 1
+
+
+def errors_of(text: str) -> list[Diagnostic]:
+    with pytest.raises(GrammarError) as info:
+        compile_text(text, FILE)
+    diagnostics = info.value.diagnostics
+    assert diagnostics, "a GrammarError must carry at least one diagnostic"
+    for d in diagnostics:
+        assert d.file == FILE and d.line is not None and d.column is not None, d
+        assert d.line >= 1 and d.column >= 1, d
+    return diagnostics
+
+
+def assert_reported(diagnostics: list[Diagnostic], line: int, col: int, fragment: str) -> None:
+    hits = [d for d in diagnostics if (d.line, d.column) == (line, col) and fragment in d.message]
+    shown = "\n".join(str(d) for d in diagnostics)
+    assert hits, f"expected {FILE}:{line}:{col} with {fragment!r}, got:\n{shown}"
+
+
+ROOT_PRODUCED = doc("""
+    Root:
+      and:
+        - child: Leaf
+    Leaf:
+      and:
+        - child: Root
+""")
+
+CASES = [
+    # ------------------------------------------------------------------ YAML syntax ---
+    pytest.param(
+        doc("""
+            Root:
+             and:
+                - child: Leaf
+              observed: true
+            Leaf: {}
+        """),
+        "observed", "check the indentation", id="bad-indentation",
+    ),
+    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {and: [{child: Root}\n",
+                 "[{child", "expected ',' or ']'", id="unclosed-bracket-at-end"),
+    pytest.param("grammar: g\nroot: [Root\ntypes: {Root: {}}\n",
+                 ": {Root", "flow sequence at line 2, column 7", id="unclosed-bracket"),
+    pytest.param('grammar: "g\nroot: Root\ntypes: {Root: {}}\n',
+                 '"g', "quoted scalar that starts here", id="unclosed-quote"),
+    pytest.param("grammar: g\nroot: Root\ntypes:\n\tRoot: {}\n",
+                 "\t", "indent with spaces", id="tab"),
+    pytest.param("", "", "got an empty file", id="empty-file"),
+    pytest.param("# only a comment\n", "", "got an empty file", id="only-comments"),
+    pytest.param("- grammar: g\n- root: Root\n", "", "got a list", id="a-list"),
+    pytest.param("just words\n", "", "got a string", id="a-scalar"),
+    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {}}\n---\ngrammar: h\n",
+                 "---", "expected a single document", id="two-documents"),
+    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {}}\ngrammar: h\n",
+                 "grammar: h", 'duplicate key "grammar"', id="duplicate-key"),
+    pytest.param(doc("Root: {observed: true, observed: false}\n"),
+                 "observed: false", 'duplicate key "observed"', id="duplicate-key-flow"),
+    pytest.param("grammar: !!python/object:os.system g\nroot: Root\ntypes: {Root: {}}\n",
+                 "!!python", "YAML tags are not allowed", id="python-tag"),
+    pytest.param("grammar: g\nroot: !custom Root\ntypes: {Root: {}}\n",
+                 "!custom", "YAML tags are not allowed here (found !custom)", id="custom-tag"),
+    pytest.param(doc("Root: {}\n1: {}\n"), "1: {}", "mapping keys must be strings",
+                 id="int-key"),
+    pytest.param("grammar: g\ndescription: 2024-01-01\nroot: Root\ntypes: {Root: {}}\n",
+                 "2024", "quote it if it is text", id="date-value"),
+    pytest.param("grammar: g\ndescription: 2024-13-45\nroot: Root\ntypes: {Root: {}}\n",
+                 "2024", "cannot read '2024-13-45'", id="impossible-date"),
+    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {observed: !!bool maybe}}\n",
+                 "!!bool", "cannot read 'maybe' as !!bool", id="bad-explicit-bool"),
+    pytest.param("grammar: g\nroot: Ro\x07ot\ntypes: {Root: {}}\n",
+                 "\x07", "unacceptable character #x0007", id="control-character"),
+    # ------------------------------------------------------------------- shape (pydantic) ---
+    pytest.param("root: Root\ntypes: {Root: {}}\n", "", "grammar: missing required key",
+                 id="missing-grammar"),
+    pytest.param("grammar: g\ntypes: {Root: {}}\n", "", "root: missing required key",
+                 id="missing-root"),
+    pytest.param("grammar: g\nroot: Root\n", "", "types: missing required key",
+                 id="missing-types"),
+    pytest.param("grammar: g\nroot: {pose: {xyz: [0, 0, 0]}}\ntypes: {Root: {}}\n",
+                 "root", "root.type: missing required key", id="missing-root-type"),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - rotation: uniform
+            Leaf: {}
+        """),
+        "rotation", "types.Root.and[0].child: missing required key", id="missing-child",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal: {mean: [0, 0, 0], varience: 0.1}}
+            Leaf: {}
+        """),
+        "varience", "unknown key 'varience'; expected one of: covariance, fixed, mean, pin, "
+        "variance (did you mean 'variance'?)", id="unknown-key-varience",
+    ),
+    pytest.param(doc("Root: {observd: true}\n"), "observd", "did you mean 'observed'?",
+                 id="unknown-type-key"),
+    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {}}\nversion: 2\n", "version",
+                 "unknown key 'version'; expected one of: description, grammar, root, types",
+                 id="unknown-top-level-key"),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal: {variance: small}}
+            Leaf: {}
+        """),
+        "small", "expected a number or a list, got 'small'", id="string-for-number",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal: {variance: "0.5"}}
+            Leaf: {}
+        """),
+        '"0.5"', "write numbers without quotes", id="quoted-number",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {offset: [1, 2]}
+            Leaf: {}
+        """),
+        "offset", "must have at least 3 items, got 2", id="list-too-short",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {offset: [0, .nan, 0]}
+            Leaf: {}
+        """),
+        ".nan", "must be a finite number", id="nan",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal: {variance: .inf}}
+            Leaf: {}
+        """),
+        ".inf", "must be a finite number, got inf", id="inf",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {offset: [0, 0, 1e400]}
+            Leaf: {}
+        """),
+        "1e400", "must be a finite number", id="overflowing-number",
+    ),
+    pytest.param(doc("Root: {observed: yes}\n"), "yes", "expected true or false, got 'yes'",
+                 id="yes-for-boolean"),
+    pytest.param(doc("Root: {}\nbad-name: {}\n"), "bad-name",
+                 "must match pattern '^[A-Za-z_][A-Za-z0-9_]*$', got 'bad-name'",
+                 id="invalid-type-name"),
+    pytest.param(doc("Root:\n"), "Root:", "types.Root: expected a mapping, got nothing",
+                 id="type-without-body"),
+    pytest.param(doc("Root: {and: {child: Root}}\n"), "and", "types.Root.and: expected a list, got a mapping",
+                 id="rules-not-a-list"),
+    pytest.param(doc("Root: {}\n", root="{type: Root, pose: {xyz: [0, 0, 0], rpy: [0, 0]}}"),
+                 "rpy", "root.pose.rpy: must have at least 3 items", id="root-pose-short-rpy"),
+    # ------------------------------------------------------------ translation / rotation ---
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_gaussian: {variance: 1}}
+            Leaf: {}
+        """),
+        "world_gaussian", "expected a translation rule: one of same, offset, world_normal",
+        id="unknown-translation",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: bingham
+            Leaf: {}
+        """),
+        "bingham", "got 'bingham' (did you mean 'world_bingham'?)", id="unknown-rotation",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation:
+                    offset: [0, 0, 0]
+                    world_normal: {variance: 1}
+            Leaf: {}
+        """),
+        "translation", "got 2 keys (offset, world_normal), give exactly one",
+        id="two-translation-variants",
+    ),
+    # ---------------------------------------------------------------------- type graph ---
+    pytest.param(doc("Root:\n  and:\n    - child: Leef\nLeaf: {}\n"), "Leef",
+                 "child type 'Leef' is not a type of this grammar (did you mean 'Leaf'?)",
+                 id="unknown-child"),
+    pytest.param(doc("Root: {}\n", root="Rot"), "Rot",
+                 "root type 'Rot' is not a type of this grammar (did you mean 'Root'?)",
+                 id="unknown-root"),
+    pytest.param(doc("Root: {}\n", root="{type: Roots}"), "Roots",
+                 "root type 'Roots'", id="unknown-root-long-form"),
+    pytest.param(ROOT_PRODUCED, "child: |Root", "the root type 'Root' cannot be produced by a rule",
+                 id="root-produced"),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+              or:
+                - child: Leaf
+            Leaf: {}
+        """),
+        "\n  |Root:", "types.Root: a type has one kind of children, got and and or",
+        id="two-kinds",
+    ),
+    # ------------------------------------------------------------- rule probabilities ---
+    pytest.param(
+        doc("""
+            Root:
+              or:
+                - child: Leaf
+                  p: 0.5
+                - child: Twig
+            Leaf: {}
+            Twig: {}
+        """),
+        "child: Twig", "give `p` for every rule of an `or`, or for none", id="or-partial-p",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              or:
+                - {child: Leaf, p: 0}
+                - {child: Twig, p: 0.0}
+            Leaf: {}
+            Twig: {}
+        """),
+        "or:", "the weights `p` of an `or` sum to zero", id="or-weights-zero",
+    ),
+    pytest.param(doc("Root:\n  or:\n    - {child: Leaf, p: -0.5}\nLeaf: {}\n"), "-0.5",
+                 "must be greater than or equal to 0, got -0.5", id="negative-p"),
+    pytest.param(doc("Root:\n  independent:\n    - {child: Leaf, p: 1.5}\nLeaf: {}\n"), "1.5",
+                 "must be less than or equal to 1, got 1.5", id="p-above-one"),
+    pytest.param(doc("Root:\n  independent:\n    - child: Leaf\nLeaf: {}\n"), "child",
+                 "every rule of `independent` needs its probability `p`",
+                 id="independent-without-p"),
+    pytest.param(doc("Root:\n  and:\n    - {child: Leaf, p: 0.5}\nLeaf: {}\n"), "0.5",
+                 "`p` has no meaning in `and`", id="p-in-and"),
+    pytest.param(doc("Root: {or: []}\n"), "or", "an `or` needs at least one rule",
+                 id="empty-or"),
+    pytest.param(doc("Root:\n  and:\nLeaf: {}\n"), "and", "`and` is empty: give its rules",
+                 id="null-and"),
+    # ---------------------------------------------------------------------- count laws ---
+    pytest.param(
+        doc("""
+            Root:
+              repeat:
+                count: {geometric: {p: 0.5, max: 2, start: 3}}
+                rule: {child: Leaf}
+            Leaf: {}
+        """),
+        "3}", "start 3 exceeds max 2", id="geometric-start-above-max",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              repeat:
+                count: {geometric: {p: 0, max: 2}}
+                rule: {child: Leaf}
+            Leaf: {}
+        """),
+        "0,", "must be greater than 0, got 0", id="geometric-p-zero",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              repeat:
+                count: {probs: [0, 0, 0]}
+                rule: {child: Leaf}
+            Leaf: {}
+        """),
+        "probs", "count probabilities sum to zero", id="probs-all-zero",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              repeat:
+                count: {probs: [0.5, -0.1]}
+                rule: {child: Leaf}
+            Leaf: {}
+        """),
+        "-0.1", "probs[1]: must be greater than or equal to 0, got -0.1", id="probs-negative",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              repeat:
+                count: {poisson: {rate: 2}}
+                rule: {child: Leaf}
+            Leaf: {}
+        """),
+        "poisson", "expected a count law: one of probs, geometric", id="unknown-count-law",
+    ),
+    # ------------------------------------------------------------- normal and box laws ---
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal: {variance: 0}}
+            Leaf: {}
+        """),
+        "0}", "variance: must be greater than 0, got 0", id="variance-zero",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal_offset: {variance: [0.1, 0, 0.1]}}
+            Leaf: {}
+        """),
+        "0, 0.1]", "variance must be positive, got 0 (y axis)", id="variance-axis-zero",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal: {variance: [0.1, 0.1, -1], pin: [z]}}
+            Leaf: {}
+        """),
+        "-1", "variance must be positive, got -1 (z axis)", id="variance-negative-pinned",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation:
+                    parent_normal_offset:
+                      covariance: [[1, 0.5, 0], [0, 1, 0], [0, 0, 1]]
+            Leaf: {}
+        """),
+        "covariance", "covariance must be symmetric", id="covariance-asymmetric",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation:
+                    world_normal:
+                      covariance: [[1, 2, 0], [2, 1, 0], [0, 0, 1]]
+            Leaf: {}
+        """),
+        "covariance", "covariance must be positive definite", id="covariance-not-pd",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal: {variance: 1, pin: [x, y, z]}}
+            Leaf: {}
+        """),
+        "pin", "all three axes are pinned; use `offset`", id="all-axes-pinned",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_normal: {variance: 1, covariance: [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}}
+            Leaf: {}
+        """),
+        "world_normal", "give exactly one of `variance` or `covariance`",
+        id="variance-and-covariance",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  translation: {world_box: {min: [0, 0, 0], max: [1, -1, 1]}}
+            Leaf: {}
+        """),
+        "-1", "box max must be >= min, got -1 < 0", id="box-max-below-min",
+    ),
+    # ------------------------------------------------------------------------ Bingham ---
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation:
+                    world_bingham:
+                      M: [[1, 1, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+                      Z: [0, -1, -1, -1]
+            Leaf: {}
+        """),
+        "M:", "Bingham M must be orthogonal", id="bingham-m-not-orthogonal",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: {parent_bingham: {concentration: -1}}
+            Leaf: {}
+        """),
+        "-1", "concentration: must be greater than or equal to 0, got -1",
+        id="bingham-negative-concentration",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: {world_bingham: {concentration: [1, 2, -3]}}
+            Leaf: {}
+        """),
+        "-3", "concentration[2]: must be greater than or equal to 0",
+        id="bingham-negative-concentration-axis",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: {world_bingham: {concentration: 1e5}}
+            Leaf: {}
+        """),
+        "1e5", "concentration must be at most 10000, got 100000", id="bingham-too-concentrated",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation:
+                    world_bingham:
+                      M: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+                      Z: [0, -1, -1, -20000]
+            Leaf: {}
+        """),
+        "Z:", "Bingham Z spans 20000, over the supported 10000", id="bingham-raw-too-concentrated",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation:
+                    parent_bingham:
+                      M: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+            Leaf: {}
+        """),
+        "parent_bingham", "raw Bingham parameters need both `M` and `Z`", id="bingham-m-without-z",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation:
+                    world_bingham:
+                      concentration: 1
+                      Z: [0, 0, 0, 0]
+            Leaf: {}
+        """),
+        "world_bingham", "not both", id="bingham-both-forms",
+    ),
+    # -------------------------------------------------------------------- orientations ---
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: {offset: {quat_wxyz: [1, 1, 0, 0]}}
+            Leaf: {}
+        """),
+        "quat_wxyz", "quaternion must have unit norm (±0.001), got 1.41421",
+        id="non-unit-quaternion",
+    ),
+    pytest.param(doc("Root: {}\n", root="{type: Root, pose: {quat_wxyz: [0, 0, 0, 0]}}"),
+                 "quat_wxyz", "quaternion must have unit norm (±0.001), got 0",
+                 id="zero-quaternion"),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: {world_bingham: {concentration: 1, mode: {quat_wxyz: [2, 0, 0, 0]}}}
+            Leaf: {}
+        """),
+        "quat_wxyz", "quaternion must have unit norm", id="non-unit-bingham-mode",
+    ),
+    pytest.param(doc("Root: {}\n", root="{type: Root, pose: {rpy: [0, 0, 0], quat_wxyz: [1, 0, 0, 0]}}"),
+                 "pose", "root.pose: give the rotation one way only, got rpy and quat_wxyz",
+                 id="two-rotation-forms"),
+    # ----------------------------------------------------------------------- revolute ---
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: {revolute: {axis: [0, 0, 0]}}
+            Leaf: {}
+        """),
+        "axis", "revolute axis must be nonzero", id="revolute-zero-axis",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: {revolute: {min: 1, max: 1}}
+            Leaf: {}
+        """),
+        "1}", "revolute max must be > min, got [1, 1]", id="revolute-empty-range",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Leaf
+                  rotation: {revolute: {min: -4, max: 4}}
+            Leaf: {}
+        """),
+        "4}", "revolute range exceeds 2π", id="revolute-range-too-wide",
+    ),
+    # ---------------------------------------------------------------------- recursion ---
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Stack
+            Stack:
+              or:
+                - child: Plate
+                - child: Leaf
+            Plate:
+              or:
+                - child: Stack
+                - child: Leaf
+            Leaf: {}
+        """),
+        "- child: |Stack\n      - child: Leaf\n  Leaf",
+        "unbounded recursion Stack -> Plate -> Stack; "
+        "set `max_nesting`", id="recursion-through-or",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Tower
+            Tower:
+              and:
+                - child: Leaf
+                - child: Tower
+            Leaf: {}
+        """),
+        "- child: |Tower\n  Leaf", "unbounded recursion Tower -> Tower", id="recursion-through-and",
+    ),
+    # ------------------------------------------------------------------- labels, models ---
+    pytest.param(doc("Root:\n  labels: [cup]\n"), "labels",
+                 "labels name dataset objects, so the type must be observed",
+                 id="labels-unobserved"),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Cup
+                - child: Mug
+            Cup: {observed: true, model: cup.sdf}
+            Mug: {observed: true, model: cup.sdf}
+        """),
+        "Mug: {observed: true, model: |cup.sdf}", "model 'cup.sdf' already names type 'Cup'", id="model-claimed-twice",
+    ),
+    pytest.param(
+        doc("""
+            Root:
+              and:
+                - child: Cup
+                - child: Mug
+            Cup: {observed: true, labels: [cup]}
+            Mug: {observed: true, labels: [mug, cup]}
+        """),
+        "labels: [mug", "label 'cup' already names type 'Cup'", id="label-claimed-twice",
+    ),
+]
+
+
+@pytest.mark.parametrize(("text", "at", "fragment"), CASES)
+def test_broken_grammar_is_located(text: str, at: str, fragment: str) -> None:
+    line, col = position(text, at)
+    assert_reported(errors_of(text), line, col, fragment)
+
+
+def test_case_count() -> None:
+    assert len(CASES) >= 40
+
+
+# ------------------------------------------------------------------ valid edge cases ---
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        pytest.param(
+            doc("""
+                Root:
+                  and:
+                    - child: Leaf
+                      translation: {world_normal: {variance: [0.1, 0.1, 0], pin: [z]}}
+                Leaf: {}
+            """),
+            id="zero-variance-on-pinned-axis",
+        ),
+        pytest.param(
+            doc("""
+                Root:
+                  and:
+                    - child: Stack
+                Stack:
+                  max_nesting: 3
+                  or:
+                    - child: Plate
+                    - child: Leaf
+                Plate:
+                  or:
+                    - child: Stack
+                    - child: Leaf
+                Leaf: {}
+            """),
+            id="bounded-recursion-through-or",
+        ),
+        pytest.param(
+            doc("""
+                Root:
+                  and:
+                    - child: Tower
+                Tower:
+                  max_nesting: 4
+                  and:
+                    - child: Leaf
+                    - child: Tower
+                Leaf: {}
+            """),
+            id="bounded-recursion-through-and",
+        ),
+        pytest.param("grammar: !!str g\nroot: Root\ntypes: {Root: {}}\n", id="str-tag"),
+        pytest.param("\ufeffgrammar: g\nroot: Root\ntypes: {Root: {}}\n", id="byte-order-mark"),
+    ],
+)
+def test_valid_edge_cases_compile(text: str) -> None:
+    g = compile_text(text, FILE)
+    assert not g.warnings
+
+
+def test_warnings_are_located_and_do_not_fail() -> None:
+    text = doc("""
+        Root:
+          and:
+            - child: Leaf
+        Leaf:
+          max_nesting: 2
+        Orphan: {}
+    """)
+    g = compile_text(text, FILE)
+    warnings = {d.message: (d.line, d.column) for d in g.warnings}
+    assert all(d.severity == "warning" and d.file == FILE for d in g.warnings)
+    assert warnings == {
+        "type 'Leaf' is not recursive, so `max_nesting` has no effect": position(text, "2\n"),
+        "type 'Orphan' is unreachable from the root": position(text, "Orphan"),
+    }
+    assert all(FORMAT.match(str(d)) for d in g.warnings)
+
+
+def test_all_errors_of_a_file_are_reported_together() -> None:
+    text = doc("""
+        Root:
+          and:
+            - child: Leef
+            - child: Twigg
+            - child: Leaf
+              translation: {world_box: {min: [0, 0, 0], max: [1, -1, 1]}}
+        Leaf: {labels: [x]}
+    """)
+    diagnostics = errors_of(text)
+    assert_reported(diagnostics, *position(text, "Leef"), "child type 'Leef'")
+    assert_reported(diagnostics, *position(text, "Twigg"), "child type 'Twigg'")
+    assert_reported(diagnostics, *position(text, "-1"), "box max must be >= min")
+    assert_reported(diagnostics, *position(text, "labels"), "must be observed")
+    assert len(diagnostics) == 4
+
+
+def test_shape_errors_are_reported_together() -> None:
+    text = doc("""
+        Root:
+          observed: maybe
+          and:
+            - {child: Leaf, p: 2}
+        Leaf: {max_nesting: 0}
+    """)
+    diagnostics = errors_of(text)
+    assert_reported(diagnostics, *position(text, "maybe"), "expected true or false")
+    assert_reported(diagnostics, *position(text, "2}"), "less than or equal to 1")
+    assert_reported(diagnostics, *position(text, "0}"), "greater than or equal to 1")
+
+
+def test_error_text_looks_like_a_compiler_message() -> None:
+    text = doc("Root:\n  and:\n    - child: Leef\n    - child: Twigg\nLeaf: {}\n")
+    with pytest.raises(GrammarError) as info:
+        compile_text(text, FILE)
+    lines = str(info.value).splitlines()
+    assert lines == [
+        "case.yaml:6:16: error: child type 'Leef' is not a type of this grammar "
+        "(did you mean 'Leaf'?)",
+        "case.yaml:7:16: error: child type 'Twigg' is not a type of this grammar",
+    ]
+    assert all(FORMAT.match(line) for line in lines)
+
+
+# ----------------------------------------------------------------- files on disk ---
+
+
+@pytest.mark.parametrize(
+    ("data", "line", "col", "fragment"),
+    [
+        pytest.param(b"grammar: g\nroot: R\x00oot\n", 2, 8, "NUL bytes", id="nul-byte"),
+        pytest.param(bytes(range(256)) * 4, 1, 1, "NUL bytes", id="binary-garbage"),
+        pytest.param(b"grammar: g\nroot: Caf\xe9\n", 2, 10, "not valid UTF-8", id="latin-1"),
+        pytest.param(b"\xef\xbb\xbfgrammar: \xff\n", 1, 13, "not valid UTF-8 (byte 12",
+                     id="bad-utf8-after-bom"),
+        pytest.param(b"", 1, 1, "got an empty file", id="empty-file"),
+    ],
+)
+def test_unreadable_files(tmp_path: Path, data: bytes, line: int, col: int,
+                          fragment: str) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_bytes(data)
+    with pytest.raises(GrammarError) as info:
+        load_grammar(path)
+    (d,) = info.value.diagnostics
+    assert (d.file, d.line, d.column) == (str(path), line, col)
+    assert fragment in d.message
+
+
+def test_missing_file_is_a_grammar_error(tmp_path: Path) -> None:
+    with pytest.raises(GrammarError, match="grammar file not found"):
+        load_grammar(tmp_path / "nope.yaml")
+
+
+def test_sink_grammar_still_compiles() -> None:
+    g = load_grammar(SINK)
+    assert g.name == "sink" and not g.warnings
+
+
+# ------------------------------------------------------------------------- fuzzing ---
+
+SINK_TEXT = SINK.read_text(encoding="utf-8")
+NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:e-?\d+)?")
+REPLACEMENTS = ["nan", ".nan", "-1", "1e400", "-.inf", "0", "-0.0", "abc", '"0.5"', "[]", "{}",
+                "null", "1e-320", "99999999999999999999999", "true", "2024-13-45", "!!int x",
+                "&a", "*a", "[1, 2", "'", "\t"]
+NOISE = st.text(
+    alphabet=st.sampled_from(list(":-[]{},#&*!|>'\"%@`?\t\n a0.\x07\ufeffé")), min_size=1,
+    max_size=6,
+)
+
+
+@st.composite
+def mutated_sink(draw: st.DrawFn) -> str:
+    text = SINK_TEXT
+    for _ in range(draw(st.integers(1, 3))):
+        op = draw(st.sampled_from(["delete", "duplicate", "number", "insert", "truncate"]))
+        lines = text.splitlines(keepends=True)
+        if op in ("delete", "duplicate") and lines:
+            i = draw(st.integers(0, len(lines) - 1))
+            lines[i:i + 1] = [] if op == "delete" else [lines[i], lines[i]]
+            text = "".join(lines)
+        elif op == "number" and (matches := list(NUMBER.finditer(text))):
+            m = draw(st.sampled_from(matches))
+            new = draw(st.one_of(st.sampled_from(REPLACEMENTS), st.text(max_size=6)))
+            text = text[: m.start()] + new + text[m.end():]
+        elif op == "insert":
+            at = draw(st.integers(0, len(text)))
+            text = text[:at] + draw(NOISE) + text[at:]
+        elif op == "truncate":
+            text = text[: draw(st.integers(0, len(text)))]
+    return text
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(mutated_sink())
+def test_mutated_sink_is_accepted_or_located(text: str) -> None:
+    try:
+        compile_text(text, FILE)
+    except GrammarError as exc:
+        assert exc.diagnostics
+        for d in exc.diagnostics:
+            assert d.file == FILE and d.line is not None and d.column is not None, str(d)
+            assert d.line >= 1 and d.column >= 1, str(d)
+            assert FORMAT.match(str(d)), str(d)
