@@ -144,7 +144,9 @@ def validate(
 def sample(
     grammar: GrammarArg,
     n: Annotated[int, typer.Option("-n", "--num", min=0, help="Number of scenes.")] = 10,
-    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1, help="Random seed.")] = 0,
+    seed: Annotated[
+        int, typer.Option("--seed", "-s", min=0, max=2**63 - 1, help="Random seed.")
+    ] = 0,
     output: Annotated[Path, typer.Option("-o", "--output", help="Output directory.")] = Path(
         "scenes"
     ),

@@ -72,23 +72,31 @@ def compile_text(text: str, file: str = "<grammar>", base_dir: Path | None = Non
             raise
         raise GrammarError(diagnostics) from None
     if not isinstance(data, dict):
-        names = {"list": "a list", "str": "a string", "int": "a number", "float": "a number",
-                 "bool": "true or false"}
+        names = {
+            "list": "a list",
+            "str": "a string",
+            "int": "a number",
+            "float": "a number",
+            "bool": "true or false",
+        }
         got = "an empty file" if data is None else names.get(type(data).__name__, "a scalar")
         raise GrammarError([source.diagnostic((), f"expected a grammar mapping, got {got}")])
     try:
         doc = dsl.GrammarDoc.model_validate(data)
     except ValidationError as exc:
         raise GrammarError(validation_diagnostics(exc, source)) from None
-    return Compiler(doc, source).run()
+    return Compiler(doc, source, base_dir).run()
 
 
 class Compiler:
     """Checks one validated document and lowers it; collects every diagnostic it finds."""
 
-    def __init__(self, doc: dsl.GrammarDoc, source: SourceMap) -> None:
+    def __init__(
+        self, doc: dsl.GrammarDoc, source: SourceMap, base_dir: Path | None = None
+    ) -> None:
         self.doc = doc
         self.source = source
+        self.base_dir = base_dir
         self.errors: list[Diagnostic] = []
         self.warnings: list[Diagnostic] = []
         self.names = list(doc.types)
@@ -119,6 +127,7 @@ class Compiler:
         types = [self.node_type(name, spec, rules) for name, spec in self.doc.types.items()]
         self.check_root_not_produced(rules, root_spec.type)
         self.check_labels(types)
+        self.check_mesh_files(types)
         if not self.errors and root_spec.type in self.ids:
             self.check_recursion(types, rules)
             self.check_reachable(types, rules, self.ids[root_spec.type])
@@ -146,12 +155,18 @@ class Compiler:
         kind, key, rule_specs = _kind_of(spec)
         if kind in (Kind.AND, Kind.OR, Kind.INDEPENDENT) and not rule_specs:
             self.error((*loc, key), f"an `{key}` needs at least one rule")
-        for field, word in (("and_", "and"), ("or_", "or"), ("independent", "independent"),
-                            ("repeat", "repeat")):
+        for field, word in (
+            ("and_", "and"),
+            ("or_", "or"),
+            ("independent", "independent"),
+            ("repeat", "repeat"),
+        ):
             # `and:` with nothing after it is null, which would silently make a terminal type
             if field in spec.model_fields_set and getattr(spec, field) is None:
-                self.error((*loc, word), f"`{word}` is empty: give its rules, or remove the key "
-                           "for a terminal type")
+                self.error(
+                    (*loc, word),
+                    f"`{word}` is empty: give its rules, or remove the key for a terminal type",
+                )
         rule_locs: list[Loc] = (
             [(*loc, "repeat", "rule")]
             if kind == Kind.REPEAT
@@ -165,8 +180,9 @@ class Compiler:
         probs = self.rule_probs(kind, key, rule_specs, rule_locs, loc)
         count = self.count_law(spec.repeat, (*loc, "repeat", "count")) if spec.repeat else None
         if spec.labels and not spec.observed:
-            self.error((*loc, "labels"),
-                       "labels name dataset objects, so the type must be observed")
+            self.error(
+                (*loc, "labels"), "labels name dataset objects, so the type must be observed"
+            )
         return NodeType(
             id=tid,
             name=name,
@@ -196,12 +212,18 @@ class Compiler:
             for spec, rloc in zip(specs, locs, strict=True):
                 if spec.p is None:
                     self.error(rloc, "every rule of `independent` needs its probability `p`")
+                elif spec.p > 1:
+                    self.error(
+                        (*rloc, "p"),
+                        f"`p` of an `independent` rule is a probability in [0, 1], got {spec.p:g}",
+                    )
             return np.array([r.p if r.p is not None else 0.0 for r in specs])
         if kind == Kind.OR and specs:
             if any(given) and not all(given):
                 missing = locs[given.index(False)]
-                self.error(missing,
-                           "give `p` for every rule of an `or`, or for none (equal weights)")
+                self.error(
+                    missing, "give `p` for every rule of an `or`, or for none (equal weights)"
+                )
                 return np.full(len(specs), 1.0 / len(specs))
             weights = np.array([r.p for r in specs]) if all(given) else np.ones(len(specs))
             if weights.sum() <= 0:
@@ -285,8 +307,11 @@ class Compiler:
             var = np.broadcast_to(np.asarray(p.variance, float), (3,))
             bad = (var < 0) | (free & (var == 0))  # zero is fine only on a pinned axis
             for i in np.flatnonzero(bad):
-                where = (*loc, "variance", int(i)) if isinstance(p.variance, list) else (
-                    *loc, "variance")
+                where = (
+                    (*loc, "variance", int(i))
+                    if isinstance(p.variance, list)
+                    else (*loc, "variance")
+                )
                 self.error(where, f"variance must be positive, got {var[i]:g} ({'xyz'[i]} axis)")
             if np.any(bad):
                 return None
@@ -297,8 +322,9 @@ class Compiler:
             spread = "covariance" if p.covariance is not None else "variance"
             self.error((*loc, spread), f"invalid {spread} (too large or nearly singular): {exc}")
             return None
-        return TranslationPart(kind, _frozen(p.mean), _frozen(free), normal=normal,
-                               fixed=p.fixed, path=loc)
+        return TranslationPart(
+            kind, _frozen(p.mean), _frozen(free), normal=normal, fixed=p.fixed, path=loc
+        )
 
     def box_part(self, kind: TKind, p: dsl.BoxParams, loc: Loc) -> TranslationPart | None:
         lo, hi = np.asarray(p.min, float), np.asarray(p.max, float)
@@ -312,8 +338,9 @@ class Compiler:
             self.error((*loc, "max"), "box is too large (its width overflows)")
             return None
         box = UniformBox(lo, hi)
-        return TranslationPart(kind, _frozen(lo), _frozen(box.free_axes), box=box, fixed=p.fixed,
-                               path=loc)
+        return TranslationPart(
+            kind, _frozen(lo), _frozen(box.free_axes), box=box, fixed=p.fixed, path=loc
+        )
 
     def rotation(self, spec: object, loc: Loc) -> RotationPart | None:
         if spec == "same":
@@ -330,8 +357,13 @@ class Compiler:
             if bingham is None:
                 return None
             kind = RKind.WORLD_BINGHAM if world else RKind.PARENT_BINGHAM
-            return RotationPart(kind, _frozen(IDENTITY_QUAT), bingham=bingham,
-                                fixed=getattr(spec, key).fixed, path=loc)
+            return RotationPart(
+                kind,
+                _frozen(IDENTITY_QUAT),
+                bingham=bingham,
+                fixed=getattr(spec, key).fixed,
+                path=loc,
+            )
         if isinstance(spec, dsl.RevoluteR):
             return self.revolute(spec.revolute, (*loc, "revolute"))
         raise AssertionError(f"unhandled rotation {spec!r}")
@@ -347,14 +379,18 @@ class Compiler:
             z = np.asarray(p.Z, float)
             spread = z.max() - z.min()
             if spread > MAX_CONCENTRATION:
-                self.error((*loc, "Z"), f"Bingham Z spans {spread:g}, over the supported "
-                           f"{MAX_CONCENTRATION:g}")
+                self.error(
+                    (*loc, "Z"),
+                    f"Bingham Z spans {spread:g}, over the supported {MAX_CONCENTRATION:g}",
+                )
                 return None
             return self.checked_bingham(lambda: Bingham(m, z), (*loc, "M"))
         conc = np.broadcast_to(np.asarray(p.concentration, float), (3,))
         if np.any(conc > MAX_CONCENTRATION):
-            self.error((*loc, "concentration"), f"concentration must be at most "
-                       f"{MAX_CONCENTRATION:g}, got {conc.max():.10g}")
+            self.error(
+                (*loc, "concentration"),
+                f"concentration must be at most {MAX_CONCENTRATION:g}, got {conc.max():.10g}",
+            )
             return None
         mode = self.orientation(p.mode, (*loc, "mode")) if p.mode else IDENTITY_QUAT
         return self.checked_bingham(lambda: Bingham.from_mode(mode, conc), loc)
@@ -382,8 +418,14 @@ class Compiler:
             self.error((*loc, "max"), f"revolute range exceeds 2π ({p.max - p.min:g} rad)")
             return None
         revolute = UniformRevolute(p.min, min(p.max, p.min + 2 * np.pi))
-        return RotationPart(RKind.REVOLUTE, _frozen(IDENTITY_QUAT), axis=_frozen(axis / norm),
-                            revolute=revolute, fixed=p.fixed, path=loc)
+        return RotationPart(
+            RKind.REVOLUTE,
+            _frozen(IDENTITY_QUAT),
+            axis=_frozen(axis / norm),
+            revolute=revolute,
+            fixed=p.fixed,
+            path=loc,
+        )
 
     def orientation(self, o: dsl.Orientation, loc: Loc) -> NDArray[np.float64]:
         if o.rpy is not None:
@@ -394,8 +436,10 @@ class Compiler:
             q = np.asarray(o.quat_wxyz, float)
             norm = float(np.hypot.reduce(q))  # no overflow for huge entries
             if abs(norm - 1) > QUAT_NORM_TOL:
-                self.error((*loc, "quat_wxyz"),
-                           f"quaternion must have unit norm (±{QUAT_NORM_TOL:g}), got {norm:.6g}")
+                self.error(
+                    (*loc, "quat_wxyz"),
+                    f"quaternion must have unit norm (±{QUAT_NORM_TOL:g}), got {norm:.6g}",
+                )
                 return IDENTITY_QUAT.copy()
             return quat_canonical(q / norm)
         return IDENTITY_QUAT.copy()
@@ -406,19 +450,42 @@ class Compiler:
         root = self.ids.get(root_name)
         for r in rules:
             if r.child == root:
-                self.error((*r.path, "child"),
-                           f"the root type '{root_name}' cannot be produced by a rule")
+                self.error(
+                    (*r.path, "child"), f"the root type '{root_name}' cannot be produced by a rule"
+                )
 
     def check_labels(self, types: list[NodeType]) -> None:
+        """Dataset objects are matched to types by model file and label: both must be unique."""
         owners: dict[tuple[str, str], str] = {}
         for t in types:
+            if t.model and not t.observed:
+                self.warn(
+                    (*t.path, "model"),
+                    f"type '{t.name}' is not observed, so its `model` is never exported or matched",
+                )
             keys = [("model", t.model)] if t.model and t.observed else []
-            keys += [("label", label) for label in t.labels]
+            keys += [("label", label) for label in dict.fromkeys(t.labels)]
+            if len(set(t.labels)) < len(t.labels):
+                self.warn((*t.path, "labels"), f"type '{t.name}' lists a label twice")
             for key in keys:
                 if key in owners:
                     loc = (*t.path, "model" if key[0] == "model" else "labels")
                     self.error(loc, f"{key[0]} '{key[1]}' already names type '{owners[key]}'")
                 owners[key] = t.name
+
+    def check_mesh_files(self, types: list[NodeType]) -> None:
+        """Mesh files are relative to the grammar file; a missing one is worth a warning."""
+        if self.base_dir is None:
+            return
+        for t in types:
+            if isinstance(t.geometry, dsl.MeshG):
+                mesh = self.base_dir / t.geometry.mesh.file
+                if not mesh.is_file():
+                    self.warn(
+                        (*t.path, "geometry", "mesh", "file"),
+                        f"mesh file '{t.geometry.mesh.file}' not found next to the grammar "
+                        f"(looked for {mesh})",
+                    )
 
     def check_recursion(self, types: list[NodeType], rules: list[Rule]) -> None:
         """Every cycle of the type graph must pass through a type with `max_nesting`."""
@@ -432,12 +499,16 @@ class Compiler:
             if cycle is not None and t.id not in on_cycle:
                 on_cycle.update(r.parent for r in cycle)
                 names = " -> ".join([self.names[r.parent] for r in cycle] + [self.names[t.id]])
-                self.error((*cycle[-1].path, "child"),
-                           f"unbounded recursion {names}; set `max_nesting` on one of these types")
+                self.error(
+                    (*cycle[-1].path, "child"),
+                    f"unbounded recursion {names}; set `max_nesting` on one of these types",
+                )
         for t in types:
             if t.id in bounded and _find_cycle(t.id, children, blocked=set()) is None:
-                self.warn((*t.path, "max_nesting"), f"type '{t.name}' is not recursive, "
-                          "so `max_nesting` has no effect")
+                self.warn(
+                    (*t.path, "max_nesting"),
+                    f"type '{t.name}' is not recursive, so `max_nesting` has no effect",
+                )
 
     def check_reachable(self, types: list[NodeType], rules: list[Rule], root: int) -> None:
         seen, stack = {root}, [root]

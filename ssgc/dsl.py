@@ -12,9 +12,8 @@ The docs (docs/grammar.md) are the user-facing reference for this file.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Union
-
 import difflib
+from typing import Annotated, Any, Literal, Union
 
 from pydantic import (
     BaseModel,
@@ -190,13 +189,17 @@ Translation = _choice(
 # --------------------------------------------------------------------------- rotations ---
 
 
+Concentrations = Annotated[list[NonNegative], Field(min_length=3, max_length=3)]
+
+
 class BinghamParams(Strict):
     """A Bingham law on unit quaternions: a mode and concentrations, or raw (M, Z)."""
 
     mode: Orientation | None = Field(None, description="Most likely rotation (default identity).")
-    concentration: NonNegative | Annotated[list[NonNegative], Field(min_length=3, max_length=3)] | None = Field(
+    concentration: NonNegative | Concentrations | None = Field(
         None,
-        description="Concentration about the mode frame's x, y, z axes (angular std ~ sqrt(2/c) rad).",
+        description="Concentration about the mode frame's x, y, z axes "
+        "(angular std ~ sqrt(2/c) rad).",
     )
     M: Mat4 | None = Field(None, description="Orthogonal 4x4 matrix, columns are axes (wxyz).")
     Z: Vec4 | None = Field(None, description="Log-density weights of M's columns (largest = mode).")
@@ -258,8 +261,9 @@ class Rule(Strict):
     """Produce one child: its type, and how its pose follows from the parent's."""
 
     child: TypeName
-    p: Probability | None = Field(
-        None, description="`or`: weight (normalised); `independent`: probability of firing."
+    p: NonNegative | None = Field(
+        None,
+        description="`or`: weight (weights are normalised); `independent`: probability of firing.",
     )
     translation: Translation = "same"  # type: ignore[valid-type]
     rotation: Rotation = "same"  # type: ignore[valid-type]
@@ -350,7 +354,8 @@ class NodeType(Strict):
 
     @model_validator(mode="after")
     def _one_kind(self) -> NodeType:
-        kinds = [k for k in ("and_", "or_", "independent", "repeat") if getattr(self, k) is not None]
+        keys = ("and_", "or_", "independent", "repeat")
+        kinds = [k for k in keys if getattr(self, k) is not None]
         if len(kinds) > 1:
             names = " and ".join(k.rstrip("_") for k in kinds)
             raise ValueError(f"a type has one kind of children, got {names}")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import datetime
 import difflib
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,9 +45,7 @@ class SourceMap:
     file: str
     tree: Any
 
-    def walk(
-        self, loc: Iterable[Any]
-    ) -> tuple[list[Any], Any, tuple[int, int], tuple[int, int]]:
+    def walk(self, loc: Iterable[Any]) -> tuple[list[Any], Any, tuple[int, int], tuple[int, int]]:
         """Follow `loc` into the document as far as it exists.
 
         Returns the segments found, the node reached, and the 0-based positions of its value
@@ -154,9 +153,10 @@ def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
     except RecursionError:
         raise SsgError.single("invalid YAML: nested too deeply", file) from None
     except (ValueError, KeyError, TypeError, OverflowError):
-        # ruamel constructs some scalars without catching their errors (`2024-13-45`,
-        # `!!int abc`, `!!bool maybe`): find the scalar that fails, for its position.
-        raise SsgError([_bad_scalar(text, file)]) from None
+        # ruamel constructs some values without catching their errors (`2024-13-45`,
+        # `!!int abc`, `!!bool maybe`, a key that is a mapping holding a list): find the node
+        # that fails, for its position.
+        raise SsgError([_unreadable_value(text, file)]) from None
     source = SourceMap(file, tree)
     return _Plain(source).convert(tree, ()), source
 
@@ -178,19 +178,33 @@ def _syntax_diagnostic(exc: MarkedYAMLError, file: str) -> Diagnostic:
         problem += f" ({exc.context.strip()} at line {ctx.line + 1}, column {ctx.column + 1})"
     if "'\\t'" in problem:
         problem += "; indent with spaces, YAML does not allow tabs"
+    elif "cannot start any token" in problem:
+        problem += "; quote the value if it is text"
     elif "<block end>" in problem or "mapping values are not allowed" in problem:
         problem += "; check the indentation (and quote values that contain ': ')"
     line, col = (mark.line + 1, mark.column + 1) if mark else (None, None)
     return Diagnostic(f"invalid YAML: {problem}", file, line, col)
 
 
-def _bad_scalar(text: str, file: str) -> Diagnostic:
-    """Locate the first scalar of `text` that ruamel cannot construct."""
+def _unreadable_value(text: str, file: str) -> Diagnostic:
+    """Locate the first collection key or scalar of `text` that ruamel cannot construct."""
     yaml = YAML(typ="rt", pure=True)
-    stack = [yaml.compose(text)]
+    try:
+        stack = [yaml.compose(text)]
+    except (YAMLError, ValueError, KeyError, TypeError, OverflowError, RecursionError):
+        stack = []  # the failure was not in construction after all
     while stack:
         node = stack.pop()
         if isinstance(node, MappingNode):
+            for key, _ in node.value:
+                if not isinstance(key, ScalarNode):  # may be unhashable: never constructed
+                    mark = key.start_mark
+                    return Diagnostic(
+                        "mapping keys must be strings, got a collection",
+                        file,
+                        mark.line + 1,
+                        mark.column + 1,
+                    )
             stack += [x for pair in reversed(node.value) for x in reversed(pair)]
         elif isinstance(node, SequenceNode):
             stack += reversed(node.value)
@@ -201,14 +215,19 @@ def _bad_scalar(text: str, file: str) -> Diagnostic:
                 tag = str(node.tag).replace("tag:yaml.org,2002:", "!!")
                 why = f" ({exc})" if isinstance(exc, ValueError) else ""
                 mark = node.start_mark
-                return Diagnostic(f"invalid YAML: cannot read '{node.value}' as {tag}{why}",
-                                  file, mark.line + 1, mark.column + 1)
+                return Diagnostic(
+                    f"invalid YAML: cannot read '{node.value}' as {tag}{why}",
+                    file,
+                    mark.line + 1,
+                    mark.column + 1,
+                )
     return Diagnostic("invalid YAML: a value cannot be read", file)
 
 
 def _duplicate_key_message(exc: MarkedYAMLError) -> str:
+    """ruamel's first line without the values it quotes, which can be whole mappings."""
     text = str(exc.problem or "")
-    return text.split("\n")[0] if text else "duplicate key"
+    return text.split("\n")[0].split(" with value ")[0] if text else "duplicate key"
 
 
 class _Plain:
@@ -239,8 +258,10 @@ class _Plain:
                 if not isinstance(key, str):
                     line, col = self.source.locate_key(loc, key)
                     raise SsgError.single(
-                        f"mapping keys must be strings, got {key!r}; quote it", self.source.file,
-                        line, col,
+                        f"mapping keys must be strings, got {key!r}; quote it",
+                        self.source.file,
+                        line,
+                        col,
                     )
                 out[str(key)] = self.convert(value, (*loc, key))
             return out
@@ -308,8 +329,12 @@ def validation_diagnostics(exc: ValidationError, source: SourceMap) -> list[Diag
 
 
 _TYPE_WORDS = {
-    "float_type": "a number", "int_type": "an integer", "string_type": "a string",
-    "bool_type": "true or false", "list_type": "a list", "dict_type": "a mapping",
+    "float_type": "a number",
+    "int_type": "an integer",
+    "string_type": "a string",
+    "bool_type": "true or false",
+    "list_type": "a list",
+    "dict_type": "a mapping",
     "model_type": "a mapping",
 }
 
@@ -353,9 +378,13 @@ def _describe(err: dict[str, Any], path: tuple[Any, ...]) -> str:
     elif kind == "invalid_choice":
         msg += _choice_hint(value, msg.rpartition("one of ")[2].split(", "))  # see dsl._choice
     elif kind != "unknown_key":
-        for theirs, ours in (("Input should be", "must be"), ("String should", "must"),
-                             ("List should", "must"), ("Dictionary should", "must"),
-                             (" after validation, not", ", got")):
+        for theirs, ours in (
+            ("Input should be", "must be"),
+            ("String should", "must"),
+            ("List should", "must"),
+            ("Dictionary should", "must"),
+            (" after validation, not", ", got"),
+        ):
             msg = msg.replace(theirs, ours)
         if value is None or isinstance(value, (str, int, float)):
             msg += f", got {_show(value)}"
@@ -374,18 +403,20 @@ def _expected(errs: list[dict[str, Any]], path: tuple[Any, ...]) -> str:
 
 def _is_number(text: str) -> bool:
     try:
-        float(text)
+        return math.isfinite(float(text))
     except ValueError:
         return False
-    return True
 
 
 def _choice_hint(value: Any, choices: list[str]) -> str:
     """What was given instead of one of `choices`, and the closest choice if any."""
     if isinstance(value, dict) and len(value) != 1:
         keys = ", ".join(str(k) for k in value)
-        return f"; got {len(value)} keys ({keys}), give exactly one" if value else (
-            "; got an empty mapping")
+        return (
+            f"; got {len(value)} keys ({keys}), give exactly one"
+            if value
+            else ("; got an empty mapping")
+        )
     name = next(iter(value)) if isinstance(value, dict) else value
     if not isinstance(name, str):
         return f"; got {_show(value)}"

@@ -8,9 +8,9 @@ import sys
 
 import pytest
 from conftest import GRAMMARS, ROOT
-from ssgc.cli.app import app
 from typer.testing import CliRunner
 
+from ssgc.cli.app import app
 from ssgc.schemas import SCHEMA_FILES, schema_text
 
 runner = CliRunner()

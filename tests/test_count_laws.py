@@ -72,7 +72,7 @@ def _chisquare_p(observed: np.ndarray, probs: np.ndarray) -> float:
     observed = np.asarray(observed, float)
     probs = np.asarray(probs, float)
     if len(observed) > len(probs):  # outcomes beyond the law's support
-        assert observed[len(probs):].sum() == 0
+        assert observed[len(probs) :].sum() == 0
         observed = observed[: len(probs)]
     possible = probs > 0
     assert observed[~possible].sum() == 0, "an impossible outcome was sampled"
@@ -90,6 +90,37 @@ def _rejects(observed: np.ndarray, probs: np.ndarray) -> bool:
         return True
 
 
+def _dup_last(t: Trees, parent: int | None = None) -> Trees:
+    """One tree with a copy of its last node appended (as a child of `parent`, by default
+    the same parent as the copied node)."""
+    p = t.parent[-1] if parent is None else parent
+    return Trees(
+        np.zeros(len(t) + 1, np.int64),
+        np.r_[t.type, t.type[-1]],
+        np.r_[t.parent, p],
+        np.r_[t.rule, t.rule[-1]],
+        np.vstack([t.xyz, t.xyz[-1]]),
+        np.vstack([t.quat, t.quat[-1]]),
+        1,
+    )
+
+
+def _drop(t: Trees, node: int) -> Trees:
+    """One tree without leaf `node` (parent indices renumbered)."""
+    keep = np.arange(len(t)) != node
+    assert not np.any(t.parent == node), "only leaves can be dropped"
+    parent = np.where(t.parent > node, t.parent - 1, t.parent)[keep]
+    return Trees(
+        np.zeros(keep.sum(), np.int64),
+        t.type[keep],
+        parent,
+        t.rule[keep],
+        t.xyz[keep],
+        t.quat[keep],
+        1,
+    )
+
+
 def _geometric(p: float, top: int, start: int) -> np.ndarray:
     """P(n) ∝ p (1-p)^(n-start) on start..top, renormalised; zero below start."""
     probs = np.zeros(top + 1)
@@ -104,23 +135,43 @@ def _geometric(p: float, top: int, start: int) -> np.ndarray:
 @pytest.mark.parametrize(
     ("count", "law", "wrong"),
     [
-        ("{probs: [0.1, 0.3, 0.0, 0.4, 0.2]}", np.array([0.1, 0.3, 0.0, 0.4, 0.2]),
-         np.array([0.11, 0.3, 0.0, 0.39, 0.2])),
+        (
+            "{probs: [0.1, 0.3, 0.0, 0.4, 0.2]}",
+            np.array([0.1, 0.3, 0.0, 0.4, 0.2]),
+            np.array([0.11, 0.3, 0.0, 0.39, 0.2]),
+        ),
         # Unnormalised weights are normalised.
-        ("{probs: [2, 6, 0, 8, 4]}", np.array([0.1, 0.3, 0.0, 0.4, 0.2]),
-         np.array([0.1, 0.32, 0.0, 0.38, 0.2])),
-        ("{geometric: {p: 0.3, max: 8, start: 0}}", _geometric(0.3, 8, 0),
-         # the untruncated geometric: tail mass missing from the other counts
-         np.r_[0.3 * 0.7 ** np.arange(8), 0.7**8]),
-        ("{geometric: {p: 0.45, max: 5, start: 1}}", _geometric(0.45, 5, 1),
-         _geometric(0.45, 5, 0)),
-        ("{geometric: {p: 0.2, max: 4, start: 1}}", _geometric(0.2, 4, 1),
-         _geometric(0.25, 4, 1)),
-        ("{geometric: {p: 1.0, max: 3, start: 2}}", np.array([0, 0, 1.0, 0]),
-         np.array([0, 0, 0.9, 0.1])),
+        (
+            "{probs: [2, 6, 0, 8, 4]}",
+            np.array([0.1, 0.3, 0.0, 0.4, 0.2]),
+            np.array([0.1, 0.32, 0.0, 0.38, 0.2]),
+        ),
+        (
+            "{geometric: {p: 0.3, max: 8, start: 0}}",
+            _geometric(0.3, 8, 0),
+            # the untruncated geometric: tail mass missing from the other counts
+            np.r_[0.3 * 0.7 ** np.arange(8), 0.7**8],
+        ),
+        (
+            "{geometric: {p: 0.45, max: 5, start: 1}}",
+            _geometric(0.45, 5, 1),
+            _geometric(0.45, 5, 0),
+        ),
+        ("{geometric: {p: 0.2, max: 4, start: 1}}", _geometric(0.2, 4, 1), _geometric(0.25, 4, 1)),
+        (
+            "{geometric: {p: 1.0, max: 3, start: 2}}",
+            np.array([0, 0, 1.0, 0]),
+            np.array([0, 0, 0.9, 0.1]),
+        ),
     ],
-    ids=["probs", "probs-unnormalised", "geometric-start0", "geometric-start1",
-         "geometric-flat", "geometric-point"],
+    ids=[
+        "probs",
+        "probs-unnormalised",
+        "geometric-start0",
+        "geometric-start1",
+        "geometric-flat",
+        "geometric-point",
+    ],
 )
 def test_repeat_counts_follow_the_law(count: str, law: np.ndarray, wrong: np.ndarray) -> None:
     g = _repeat_grammar(count)
@@ -134,6 +185,19 @@ def test_repeat_counts_follow_the_law(count: str, law: np.ndarray, wrong: np.nda
     with np.errstate(divide="ignore"):
         np.testing.assert_allclose(choice, np.log(law)[counts], rtol=0, atol=LOGP_ATOL)
     assert np.all(np.isfinite(logp))
+    # Hand-edited counts: one child more or fewer scores log P(count ± 1), -inf if impossible.
+    with np.errstate(divide="ignore"):
+        log_law = np.log(np.r_[law, 0.0])
+    for i in np.flatnonzero(counts >= 1)[:20]:
+        t, c = trees.tree(int(i)), int(counts[i])
+        edited = {c + 1: _dup_last(t), c - 1: _drop(t, len(t) - 1)}
+        for k, tree in edited.items():
+            delta = score_trees(g, tree)[0] - score_trees(g, t)[0]
+            if log_law[k] == -np.inf:
+                assert score_trees(g, tree)[0] == -np.inf, (c, k)
+            else:  # the dropped / copied child's own edge density changes the score too
+                edge = node_terms(g, tree).edge.sum() - node_terms(g, t).edge.sum()
+                np.testing.assert_allclose(delta - edge, log_law[k] - log_law[c], atol=1e-9)
 
 
 # ------------------------------------------------------------------------------------ or ---
@@ -177,6 +241,21 @@ def test_or_picks_one_rule_by_normalised_weight(weights, law, wrong) -> None:  #
     # which is 0 for the fixed rules and -log π² for the uniform rotation).
     edge = np.where(which == 2, -np.log(np.pi**2), 0.0)
     np.testing.assert_allclose(logp, np.log(law[which]) + edge, rtol=0, atol=LOGP_ATOL)
+    # Hand edits: two children, no child, or a child of a zero-weight rule are impossible.
+    t = trees.tree(0)
+    assert score_trees(g, _dup_last(t))[0] == -np.inf
+    assert score_trees(g, _drop(t, 1))[0] == -np.inf
+    b_rule = next(r.id for r in g.rules if r.child == g.type_id("B"))
+    as_b = dataclasses.replace(
+        t,
+        type=np.array([t.type[0], g.type_id("B")]),
+        rule=np.array([-1, b_rule]),
+        xyz=np.vstack([t.xyz[0], t.xyz[0] + quat_rotate(t.quat[0], [0.0, 0.0, 1.0])]),
+        quat=np.vstack([t.quat[0], t.quat[0]]),
+    )
+    assert (score_trees(g, as_b)[0] == -np.inf) == (law[1] == 0)
+    if law[1] > 0:
+        np.testing.assert_allclose(score_trees(g, as_b), np.log(law[1]), atol=LOGP_ATOL)
 
 
 # --------------------------------------------------------------------------- independent ---
@@ -213,8 +292,42 @@ def test_independent_rules_fire_independently() -> None:
     correlated = product + np.array([0.01, -0.01, -0.01, 0.01])
     assert _rejects(table, correlated)
     # log P = Σ log p (fired) + log (1 - p) (not fired), plus the box edge -log 1 = 0.
-    expected = (np.where(a, np.log(0.3), np.log(0.7)) + np.where(b, np.log(0.8), np.log(0.2)))
+    expected = np.where(a, np.log(0.3), np.log(0.7)) + np.where(b, np.log(0.8), np.log(0.2))
     np.testing.assert_allclose(logp, expected, rtol=0, atol=LOGP_ATOL)
+    # Hand edits: dropping the p = 1 child, adding the p = 0 child, or firing a rule twice is
+    # impossible; dropping the A child changes the score by log(0.7 / 0.3).
+    t = trees.tree(int(np.flatnonzero((a == 1) & (b == 1))[0]))
+    kinds = list(t.type)
+    node_d = kinds.index(g.type_id("D"))
+    node_a = kinds.index(g.type_id("A"))
+    assert score_trees(g, _drop(t, node_d))[0] == -np.inf
+    e_rule = next(r.id for r in g.rules if r.child == g.type_id("E"))
+    with_e = Trees(
+        np.zeros(len(t) + 1, np.int64),
+        np.r_[t.type, g.type_id("E")],
+        np.r_[t.parent, 0],
+        np.r_[t.rule, e_rule],
+        np.vstack([t.xyz, t.xyz[0]]),
+        np.vstack([t.quat, t.quat[0]]),
+        1,
+    )
+    assert score_trees(g, with_e)[0] == -np.inf
+    twice = Trees(
+        np.zeros(len(t) + 1, np.int64),
+        np.r_[t.type, t.type[node_a]],
+        np.r_[t.parent, 0],
+        np.r_[t.rule, t.rule[node_a]],
+        np.vstack([t.xyz, t.xyz[node_a]]),
+        np.vstack([t.quat, t.quat[node_a]]),
+        1,
+    )
+    assert score_trees(g, twice)[0] == -np.inf
+    np.testing.assert_allclose(
+        score_trees(g, _drop(t, node_a))[0] - score_trees(g, t)[0],
+        np.log(0.7 / 0.3),
+        rtol=0,
+        atol=LOGP_ATOL,
+    )
 
 
 # --------------------------------------------------------------------------- recursion ---
@@ -297,9 +410,14 @@ def test_recursion_bound_renormalises_the_or(
     # never renormalises at the bound (the untruncated chain conditioned on length <= 3).
     deeper = _chain_law(weights, 4)
     assert _rejects(observed, np.array([deeper.get(c, 0.0) for c in cells]))
-    untruncated = np.array([
-        (weights["Stack"] / sum(weights.values())) ** (lv - 1) * weights[k] / sum(weights.values())
-        for lv, k in cells])
+    untruncated = np.array(
+        [
+            (weights["Stack"] / sum(weights.values())) ** (lv - 1)
+            * weights[k]
+            / sum(weights.values())
+            for lv, k in cells
+        ]
+    )
     assert _rejects(observed, untruncated / untruncated.sum())
     # The sampler's log-probability is the product of the chosen weights along the chain.
     choice = np.log([law[(lv, terminals[e])] for lv, e in zip(length, end, strict=True)])
@@ -321,8 +439,15 @@ def _chain_tree(g: Grammar, n_stack: int, end: str = "Stop") -> Trees:
         recursive = types[i] == stack and types[i - 1] == stack
         step = quat_rotate(quat[i - 1], [0.0, 0.0, 0.1]) if recursive else 0.0
         xyz[i] = xyz[i - 1] + step
-    return Trees(np.zeros(n, np.int64), np.array(types, np.int64), parent.astype(np.int64),
-                 np.array(rules, np.int64), xyz, quat, 1)
+    return Trees(
+        np.zeros(n, np.int64),
+        np.array(types, np.int64),
+        parent.astype(np.int64),
+        np.array(rules, np.int64),
+        xyz,
+        quat,
+        1,
+    )
 
 
 def test_recursion_bound_in_the_scorer() -> None:
@@ -359,10 +484,7 @@ def test_or_with_every_rule_blocked_produces_nothing() -> None:
     np.testing.assert_allclose(logp, -np.log(np.pi**2), rtol=0, atol=LOGP_ATOL)
     # A third Loop is impossible.
     t = trees.tree(0)
-    deeper = Trees(np.zeros(4, np.int64), np.r_[t.type, t.type[-1]], np.r_[t.parent, 2],
-                   np.r_[t.rule, t.rule[-1]], np.vstack([t.xyz, t.xyz[-1]]),
-                   np.vstack([t.quat, t.quat[-1]]), 1)
-    assert score_trees(g, deeper)[0] == -np.inf
+    assert score_trees(g, _dup_last(t, parent=2))[0] == -np.inf
 
 
 def test_blocked_repeat_produces_nothing() -> None:
@@ -386,12 +508,8 @@ def test_blocked_repeat_produces_nothing() -> None:
     assert _rejects(observed, np.array([0.45, 0.3, 0.25]))
     # Hand-made: a third level of Branch is impossible.
     t = trees.tree(int(np.flatnonzero(counts == 1)[0]))
-    deeper = Trees(
-        np.zeros(len(t) + 1, np.int64), np.r_[t.type, t.type[-1]], np.r_[t.parent, len(t) - 1],
-        np.r_[t.rule, t.rule[-1]], np.vstack([t.xyz, t.xyz[-1]]),
-        np.vstack([t.quat, t.quat[-1]]), 1)
     assert np.isfinite(score_trees(g, t)[0])
-    assert score_trees(g, deeper)[0] == -np.inf
+    assert score_trees(g, _dup_last(t, parent=len(t) - 1))[0] == -np.inf
 
 
 # ------------------------------------------------------------ reproducibility and chunks ---
@@ -446,8 +564,15 @@ def test_fewer_scenes_are_a_prefix(n: int) -> None:
     part, lp_part = sample_trees(g, n, 77)
     assert part.n_scenes == n and lp_part.shape == (n,)
     end = int(full.offsets[n])
-    prefix = Trees(full.scene[:end], full.type[:end], full.parent[:end], full.rule[:end],
-                   full.xyz[:end], full.quat[:end], n)
+    prefix = Trees(
+        full.scene[:end],
+        full.type[:end],
+        full.parent[:end],
+        full.rule[:end],
+        full.xyz[:end],
+        full.quat[:end],
+        n,
+    )
     _assert_same_trees(part, prefix)
     assert np.array_equal(lp_part, lp_full[:n])
     if n:
@@ -470,8 +595,11 @@ def test_tree_invariants() -> None:
 @st.composite
 def count_laws(draw: st.DrawFn) -> str:
     if draw(st.booleans()):
-        probs = draw(st.lists(st.sampled_from([0.0, 0.05, 0.5, 1.0, 3.0]), min_size=1,
-                              max_size=6).filter(lambda ps: sum(ps) > 0))
+        probs = draw(
+            st.lists(st.sampled_from([0.0, 0.05, 0.5, 1.0, 3.0]), min_size=1, max_size=6).filter(
+                lambda ps: sum(ps) > 0
+            )
+        )
         return f"{{probs: {probs}}}"
     top = draw(st.integers(0, 6))
     start = draw(st.integers(0, top))

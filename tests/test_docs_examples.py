@@ -143,8 +143,9 @@ def test_every_yaml_block_of_grammar_doc_is_a_grammar() -> None:
 def test_overview_example_counts_and_error() -> None:
     block = block_compiling("kitchen_shelf")
     g = compile_text(block.text, "kitchen_shelf.yaml")
-    assert shown(f"kitchen_shelf.yaml: ok ({len(g.types)} types, {len(g.rules)} rules)",
-                 "grammar.md")
+    assert shown(
+        f"kitchen_shelf.yaml: ok ({len(g.types)} types, {len(g.rules)} rules)", "grammar.md"
+    )
     broken = block.text.replace("        p: 0.3\n", "", 1)
     assert broken != block.text
     with pytest.raises(SsgError) as exc:
@@ -209,8 +210,12 @@ def test_geometric_count_numbers() -> None:
 
 def test_concentration_table() -> None:
     text = doc("grammar.md")
-    for c, rad, deg in ((20, "0.32", "18"), (100, "0.14", "8.1"), (1000, "0.045", "2.6"),
-                        (10000, "0.014", "0.81")):
+    for c, rad, deg in (
+        (20, "0.32", "18"),
+        (100, "0.14", "8.1"),
+        (1000, "0.045", "2.6"),
+        (10000, "0.014", "0.81"),
+    ):
         std = np.sqrt(2 / c)
         assert f"{std:.2g}" == rad and f"{np.degrees(std):.2g}" == deg
         assert re.search(rf"\| {c}[^|]*\| {rad} rad ≈ {deg}° \|", text), c
@@ -223,8 +228,9 @@ def test_grammar_doc_names_every_key_and_variant() -> None:
         if isinstance(model, type) and issubclass(model, dsl.Strict) and model is not dsl.Strict:
             keys |= {f.alias or name for name, f in model.model_fields.items()}
     keys |= {"same", "uniform"}
-    missing = sorted(k for k in keys if f"`{k}`" not in text and f"`{k}:" not in text
-                     and f"{{{k}:" not in text)
+    missing = sorted(
+        k for k in keys if f"`{k}`" not in text and f"`{k}:" not in text and f"{{{k}:" not in text
+    )
     assert not missing
 
 
@@ -279,7 +285,8 @@ def test_sampled_scene_is_what_ssg_sample_writes() -> None:
 def test_scene_error_messages() -> None:
     block = scene_blocks()[0]
     broken = block.text.replace('"PlateEcoformsAvocado"', '"Plate"', 1).replace(
-        "[0.0, 1.0, 0.0, 0.0]", "[0.0, 1.0, 0.0, 0.1]", 1)
+        "[0.0, 1.0, 0.0, 0.0]", "[0.0, 1.0, 0.0, 0.1]", 1
+    )
     assert broken.count('"Plate"') == 1 and "0.1]" in broken
     with pytest.raises(SsgError) as exc:
         parse_scene_text(broken, "my_sink.json", grammar_for(block))
@@ -324,7 +331,9 @@ def test_dataset_examples_match_as_documented(tmp_path: Path) -> None:
 
     broken = by_model.text.replace(
         "plates_cups_and_bowls/plates/Ecoforms_Plate_S20Avocado/model_simplified.sdf",
-        "plates/Mystery_Plate.sdf", 1)
+        "plates/Mystery_Plate.sdf",
+        1,
+    )
     path = tmp_path / "saved_scenes.yaml"
     path.write_text(broken, encoding="utf-8")
     with pytest.raises(SsgError) as exc:

@@ -1,10 +1,10 @@
 """Every mistake in a grammar file is a located `GrammarError`, never a traceback.
 
-The table below holds small broken grammars.  Each row names the text its first matching
-diagnostic must point at (`at`: a substring that occurs once in the grammar; the empty string
-means the start of the file) and a fragment of the message that says what was expected.  A
-hypothesis test then mutates `grammars/sink.yaml` at random and checks that the compiler
-either accepts the result or rejects it with located diagnostics.
+The table below holds small broken grammars.  Each row gives the place a diagnostic must point
+at (`at`: a substring that occurs once in the grammar, the empty string for the start of the
+file) and a fragment of that diagnostic's message saying what was expected.  A hypothesis test
+then mutates `grammars/sink.yaml` at random and checks that the compiler either accepts the
+result or rejects it with located diagnostics.
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ def assert_reported(diagnostics: list[Diagnostic], line: int, col: int, fragment
     assert hits, f"expected {FILE}:{line}:{col} with {fragment!r}, got:\n{shown}"
 
 
+TWO_ROTATION_FORMS = "{type: Root, pose: {rpy: [0, 0, 0], quat_wxyz: [1, 0, 0, 0]}}"
 ROOT_PRODUCED = doc("""
     Root:
       and:
@@ -80,49 +81,125 @@ CASES = [
               observed: true
             Leaf: {}
         """),
-        "observed", "check the indentation", id="bad-indentation",
+        "observed",
+        "check the indentation",
+        id="bad-indentation",
     ),
-    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {and: [{child: Root}\n",
-                 "[{child", "expected ',' or ']'", id="unclosed-bracket-at-end"),
-    pytest.param("grammar: g\nroot: [Root\ntypes: {Root: {}}\n",
-                 ": {Root", "flow sequence at line 2, column 7", id="unclosed-bracket"),
-    pytest.param('grammar: "g\nroot: Root\ntypes: {Root: {}}\n',
-                 '"g', "quoted scalar that starts here", id="unclosed-quote"),
-    pytest.param("grammar: g\nroot: Root\ntypes:\n\tRoot: {}\n",
-                 "\t", "indent with spaces", id="tab"),
+    pytest.param(
+        "grammar: g\nroot: Root\ntypes: {Root: {and: [{child: Root}\n",
+        "[{child",
+        "expected ',' or ']'",
+        id="unclosed-bracket-at-end",
+    ),
+    pytest.param(
+        "grammar: g\nroot: [Root\ntypes: {Root: {}}\n",
+        ": {Root",
+        "flow sequence at line 2, column 7",
+        id="unclosed-bracket",
+    ),
+    pytest.param(
+        'grammar: "g\nroot: Root\ntypes: {Root: {}}\n',
+        '"g',
+        "quoted scalar that starts here",
+        id="unclosed-quote",
+    ),
+    pytest.param(
+        "grammar: g\nroot: Root\ntypes:\n\tRoot: {}\n", "\t", "indent with spaces", id="tab"
+    ),
     pytest.param("", "", "got an empty file", id="empty-file"),
     pytest.param("# only a comment\n", "", "got an empty file", id="only-comments"),
     pytest.param("- grammar: g\n- root: Root\n", "", "got a list", id="a-list"),
     pytest.param("just words\n", "", "got a string", id="a-scalar"),
-    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {}}\n---\ngrammar: h\n",
-                 "---", "expected a single document", id="two-documents"),
-    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {}}\ngrammar: h\n",
-                 "grammar: h", 'duplicate key "grammar"', id="duplicate-key"),
-    pytest.param(doc("Root: {observed: true, observed: false}\n"),
-                 "observed: false", 'duplicate key "observed"', id="duplicate-key-flow"),
-    pytest.param("grammar: !!python/object:os.system g\nroot: Root\ntypes: {Root: {}}\n",
-                 "!!python", "YAML tags are not allowed", id="python-tag"),
-    pytest.param("grammar: g\nroot: !custom Root\ntypes: {Root: {}}\n",
-                 "!custom", "YAML tags are not allowed here (found !custom)", id="custom-tag"),
-    pytest.param(doc("Root: {}\n1: {}\n"), "1: {}", "mapping keys must be strings",
-                 id="int-key"),
-    pytest.param("grammar: g\ndescription: 2024-01-01\nroot: Root\ntypes: {Root: {}}\n",
-                 "2024", "quote it if it is text", id="date-value"),
-    pytest.param("grammar: g\ndescription: 2024-13-45\nroot: Root\ntypes: {Root: {}}\n",
-                 "2024", "cannot read '2024-13-45'", id="impossible-date"),
-    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {observed: !!bool maybe}}\n",
-                 "!!bool", "cannot read 'maybe' as !!bool", id="bad-explicit-bool"),
-    pytest.param("grammar: g\nroot: Ro\x07ot\ntypes: {Root: {}}\n",
-                 "\x07", "unacceptable character #x0007", id="control-character"),
+    pytest.param(
+        "grammar: g\nroot: Root\ntypes: {Root: {}}\n---\ngrammar: h\n",
+        "---",
+        "expected a single document",
+        id="two-documents",
+    ),
+    pytest.param(
+        "grammar: g\nroot: Root\ntypes: {Root: {}}\ngrammar: h\n",
+        "grammar: h",
+        'found duplicate key "grammar" (while constructing a mapping at line 1, column 1)',
+        id="duplicate-key",
+    ),
+    pytest.param(
+        doc("Root: {observed: true, observed: false}\n"),
+        "observed: false",
+        'duplicate key "observed"',
+        id="duplicate-key-flow",
+    ),
+    pytest.param(
+        "grammar: !!python/object:os.system g\nroot: Root\ntypes: {Root: {}}\n",
+        "!!python",
+        "YAML tags are not allowed",
+        id="python-tag",
+    ),
+    pytest.param(
+        "grammar: g\nroot: !custom Root\ntypes: {Root: {}}\n",
+        "!custom",
+        "YAML tags are not allowed here (found !custom)",
+        id="custom-tag",
+    ),
+    pytest.param(doc("Root: {}\n1: {}\n"), "1: {}", "mapping keys must be strings", id="int-key"),
+    pytest.param(
+        doc("Root: {}\nnull: {}\n"), "null", "mapping keys must be strings, got None", id="null-key"
+    ),
+    pytest.param(
+        doc("Root: {}\n? {a: [1]}\n: {}\n"),
+        "{a: [1]}",
+        "mapping keys must be strings, got a collection",
+        id="unhashable-key",
+    ),
+    pytest.param(
+        doc("Root: {model: !!binary aGVsbG8=}\n"),
+        "!!binary",
+        "unsupported YAML value: binary data",
+        id="binary-value",
+    ),
+    pytest.param(
+        "grammar: g\nroot: *r\ntypes: {Root: {}}\n",
+        "*r",
+        "found undefined alias 'r'",
+        id="undefined-alias",
+    ),
+    pytest.param(
+        "grammar: g\ndescription: 2024-01-01\nroot: Root\ntypes: {Root: {}}\n",
+        "2024",
+        "quote it if it is text",
+        id="date-value",
+    ),
+    pytest.param(
+        "grammar: g\ndescription: 2024-13-45\nroot: Root\ntypes: {Root: {}}\n",
+        "2024",
+        "cannot read '2024-13-45'",
+        id="impossible-date",
+    ),
+    pytest.param(
+        "grammar: g\nroot: Root\ntypes: {Root: {observed: !!bool maybe}}\n",
+        "!!bool",
+        "cannot read 'maybe' as !!bool",
+        id="bad-explicit-bool",
+    ),
+    pytest.param(
+        "grammar: g\nroot: Ro\x07ot\ntypes: {Root: {}}\n",
+        "\x07",
+        "unacceptable character #x0007",
+        id="control-character",
+    ),
     # ------------------------------------------------------------------- shape (pydantic) ---
-    pytest.param("root: Root\ntypes: {Root: {}}\n", "", "grammar: missing required key",
-                 id="missing-grammar"),
-    pytest.param("grammar: g\ntypes: {Root: {}}\n", "", "root: missing required key",
-                 id="missing-root"),
-    pytest.param("grammar: g\nroot: Root\n", "", "types: missing required key",
-                 id="missing-types"),
-    pytest.param("grammar: g\nroot: {pose: {xyz: [0, 0, 0]}}\ntypes: {Root: {}}\n",
-                 "root", "root.type: missing required key", id="missing-root-type"),
+    pytest.param(
+        "root: Root\ntypes: {Root: {}}\n", "", "grammar: missing required key", id="missing-grammar"
+    ),
+    pytest.param(
+        "grammar: g\ntypes: {Root: {}}\n", "", "root: missing required key", id="missing-root"
+    ),
+    pytest.param("grammar: g\nroot: Root\n", "", "types: missing required key", id="missing-types"),
+    pytest.param(
+        "grammar: g\nroot: {pose: {xyz: [0, 0, 0]}}\ntypes: {Root: {}}\n",
+        "root",
+        "root.type: missing required key",
+        id="missing-root-type",
+    ),
     pytest.param(
         doc("""
             Root:
@@ -130,7 +207,9 @@ CASES = [
                 - rotation: uniform
             Leaf: {}
         """),
-        "rotation", "types.Root.and[0].child: missing required key", id="missing-child",
+        "rotation",
+        "types.Root.and[0].child: missing required key",
+        id="missing-child",
     ),
     pytest.param(
         doc("""
@@ -140,14 +219,20 @@ CASES = [
                   translation: {world_normal: {mean: [0, 0, 0], varience: 0.1}}
             Leaf: {}
         """),
-        "varience", "unknown key 'varience'; expected one of: covariance, fixed, mean, pin, "
-        "variance (did you mean 'variance'?)", id="unknown-key-varience",
+        "varience",
+        "unknown key 'varience'; expected one of: covariance, fixed, mean, pin, "
+        "variance (did you mean 'variance'?)",
+        id="unknown-key-varience",
     ),
-    pytest.param(doc("Root: {observd: true}\n"), "observd", "did you mean 'observed'?",
-                 id="unknown-type-key"),
-    pytest.param("grammar: g\nroot: Root\ntypes: {Root: {}}\nversion: 2\n", "version",
-                 "unknown key 'version'; expected one of: description, grammar, root, types",
-                 id="unknown-top-level-key"),
+    pytest.param(
+        doc("Root: {observd: true}\n"), "observd", "did you mean 'observed'?", id="unknown-type-key"
+    ),
+    pytest.param(
+        "grammar: g\nroot: Root\ntypes: {Root: {}}\nversion: 2\n",
+        "version",
+        "unknown key 'version'; expected one of: description, grammar, root, types",
+        id="unknown-top-level-key",
+    ),
     pytest.param(
         doc("""
             Root:
@@ -156,7 +241,9 @@ CASES = [
                   translation: {world_normal: {variance: small}}
             Leaf: {}
         """),
-        "small", "expected a number or a list, got 'small'", id="string-for-number",
+        "small",
+        "expected a number or a list, got 'small'",
+        id="string-for-number",
     ),
     pytest.param(
         doc("""
@@ -166,7 +253,9 @@ CASES = [
                   translation: {world_normal: {variance: "0.5"}}
             Leaf: {}
         """),
-        '"0.5"', "write numbers without quotes", id="quoted-number",
+        '"0.5"',
+        "write numbers without quotes",
+        id="quoted-number",
     ),
     pytest.param(
         doc("""
@@ -176,7 +265,9 @@ CASES = [
                   translation: {offset: [1, 2]}
             Leaf: {}
         """),
-        "offset", "must have at least 3 items, got 2", id="list-too-short",
+        "offset",
+        "must have at least 3 items, got 2",
+        id="list-too-short",
     ),
     pytest.param(
         doc("""
@@ -186,7 +277,9 @@ CASES = [
                   translation: {offset: [0, .nan, 0]}
             Leaf: {}
         """),
-        ".nan", "must be a finite number", id="nan",
+        ".nan",
+        "must be a finite number",
+        id="nan",
     ),
     pytest.param(
         doc("""
@@ -196,7 +289,9 @@ CASES = [
                   translation: {world_normal: {variance: .inf}}
             Leaf: {}
         """),
-        ".inf", "must be a finite number, got inf", id="inf",
+        ".inf",
+        "must be a finite number, got inf",
+        id="inf",
     ),
     pytest.param(
         doc("""
@@ -206,19 +301,40 @@ CASES = [
                   translation: {offset: [0, 0, 1e400]}
             Leaf: {}
         """),
-        "1e400", "must be a finite number", id="overflowing-number",
+        "1e400",
+        "must be a finite number",
+        id="overflowing-number",
     ),
-    pytest.param(doc("Root: {observed: yes}\n"), "yes", "expected true or false, got 'yes'",
-                 id="yes-for-boolean"),
-    pytest.param(doc("Root: {}\nbad-name: {}\n"), "bad-name",
-                 "must match pattern '^[A-Za-z_][A-Za-z0-9_]*$', got 'bad-name'",
-                 id="invalid-type-name"),
-    pytest.param(doc("Root:\n"), "Root:", "types.Root: expected a mapping, got nothing",
-                 id="type-without-body"),
-    pytest.param(doc("Root: {and: {child: Root}}\n"), "and", "types.Root.and: expected a list, got a mapping",
-                 id="rules-not-a-list"),
-    pytest.param(doc("Root: {}\n", root="{type: Root, pose: {xyz: [0, 0, 0], rpy: [0, 0]}}"),
-                 "rpy", "root.pose.rpy: must have at least 3 items", id="root-pose-short-rpy"),
+    pytest.param(
+        doc("Root: {observed: yes}\n"),
+        "yes",
+        "expected true or false, got 'yes'",
+        id="yes-for-boolean",
+    ),
+    pytest.param(
+        doc("Root: {}\nbad-name: {}\n"),
+        "bad-name",
+        "must match pattern '^[A-Za-z_][A-Za-z0-9_]*$', got 'bad-name'",
+        id="invalid-type-name",
+    ),
+    pytest.param(
+        doc("Root:\n"),
+        "Root:",
+        "types.Root: expected a mapping, got nothing",
+        id="type-without-body",
+    ),
+    pytest.param(
+        doc("Root: {and: {child: Root}}\n"),
+        "and",
+        "types.Root.and: expected a list, got a mapping",
+        id="rules-not-a-list",
+    ),
+    pytest.param(
+        doc("Root: {}\n", root="{type: Root, pose: {xyz: [0, 0, 0], rpy: [0, 0]}}"),
+        "rpy",
+        "root.pose.rpy: must have at least 3 items",
+        id="root-pose-short-rpy",
+    ),
     # ------------------------------------------------------------ translation / rotation ---
     pytest.param(
         doc("""
@@ -228,7 +344,8 @@ CASES = [
                   translation: {world_gaussian: {variance: 1}}
             Leaf: {}
         """),
-        "world_gaussian", "expected a translation rule: one of same, offset, world_normal",
+        "world_gaussian",
+        "expected a translation rule: one of same, offset, world_normal",
         id="unknown-translation",
     ),
     pytest.param(
@@ -239,7 +356,9 @@ CASES = [
                   rotation: bingham
             Leaf: {}
         """),
-        "bingham", "got 'bingham' (did you mean 'world_bingham'?)", id="unknown-rotation",
+        "bingham",
+        "got 'bingham' (did you mean 'world_bingham'?)",
+        id="unknown-rotation",
     ),
     pytest.param(
         doc("""
@@ -251,20 +370,35 @@ CASES = [
                     world_normal: {variance: 1}
             Leaf: {}
         """),
-        "translation", "got 2 keys (offset, world_normal), give exactly one",
+        "translation",
+        "got 2 keys (offset, world_normal), give exactly one",
         id="two-translation-variants",
     ),
     # ---------------------------------------------------------------------- type graph ---
-    pytest.param(doc("Root:\n  and:\n    - child: Leef\nLeaf: {}\n"), "Leef",
-                 "child type 'Leef' is not a type of this grammar (did you mean 'Leaf'?)",
-                 id="unknown-child"),
-    pytest.param(doc("Root: {}\n", root="Rot"), "Rot",
-                 "root type 'Rot' is not a type of this grammar (did you mean 'Root'?)",
-                 id="unknown-root"),
-    pytest.param(doc("Root: {}\n", root="{type: Roots}"), "Roots",
-                 "root type 'Roots'", id="unknown-root-long-form"),
-    pytest.param(ROOT_PRODUCED, "child: |Root", "the root type 'Root' cannot be produced by a rule",
-                 id="root-produced"),
+    pytest.param(
+        doc("Root:\n  and:\n    - child: Leef\nLeaf: {}\n"),
+        "Leef",
+        "child type 'Leef' is not a type of this grammar (did you mean 'Leaf'?)",
+        id="unknown-child",
+    ),
+    pytest.param(
+        doc("Root: {}\n", root="Rot"),
+        "Rot",
+        "root type 'Rot' is not a type of this grammar (did you mean 'Root'?)",
+        id="unknown-root",
+    ),
+    pytest.param(
+        doc("Root: {}\n", root="{type: Roots}"),
+        "Roots",
+        "root type 'Roots'",
+        id="unknown-root-long-form",
+    ),
+    pytest.param(
+        ROOT_PRODUCED,
+        "child: |Root",
+        "the root type 'Root' cannot be produced by a rule",
+        id="root-produced",
+    ),
     pytest.param(
         doc("""
             Root:
@@ -274,7 +408,8 @@ CASES = [
                 - child: Leaf
             Leaf: {}
         """),
-        "\n  |Root:", "types.Root: a type has one kind of children, got and and or",
+        "\n  |Root:",
+        "types.Root: a type has one kind of children, got and and or",
         id="two-kinds",
     ),
     # ------------------------------------------------------------- rule probabilities ---
@@ -288,7 +423,9 @@ CASES = [
             Leaf: {}
             Twig: {}
         """),
-        "child: Twig", "give `p` for every rule of an `or`, or for none", id="or-partial-p",
+        "child: Twig",
+        "give `p` for every rule of an `or`, or for none",
+        id="or-partial-p",
     ),
     pytest.param(
         doc("""
@@ -299,21 +436,38 @@ CASES = [
             Leaf: {}
             Twig: {}
         """),
-        "or:", "the weights `p` of an `or` sum to zero", id="or-weights-zero",
+        "or:",
+        "the weights `p` of an `or` sum to zero",
+        id="or-weights-zero",
     ),
-    pytest.param(doc("Root:\n  or:\n    - {child: Leaf, p: -0.5}\nLeaf: {}\n"), "-0.5",
-                 "must be greater than or equal to 0, got -0.5", id="negative-p"),
-    pytest.param(doc("Root:\n  independent:\n    - {child: Leaf, p: 1.5}\nLeaf: {}\n"), "1.5",
-                 "must be less than or equal to 1, got 1.5", id="p-above-one"),
-    pytest.param(doc("Root:\n  independent:\n    - child: Leaf\nLeaf: {}\n"), "child",
-                 "every rule of `independent` needs its probability `p`",
-                 id="independent-without-p"),
-    pytest.param(doc("Root:\n  and:\n    - {child: Leaf, p: 0.5}\nLeaf: {}\n"), "0.5",
-                 "`p` has no meaning in `and`", id="p-in-and"),
-    pytest.param(doc("Root: {or: []}\n"), "or", "an `or` needs at least one rule",
-                 id="empty-or"),
-    pytest.param(doc("Root:\n  and:\nLeaf: {}\n"), "and", "`and` is empty: give its rules",
-                 id="null-and"),
+    pytest.param(
+        doc("Root:\n  or:\n    - {child: Leaf, p: -0.5}\nLeaf: {}\n"),
+        "-0.5",
+        "must be greater than or equal to 0, got -0.5",
+        id="negative-p",
+    ),
+    pytest.param(
+        doc("Root:\n  independent:\n    - {child: Leaf, p: 1.5}\nLeaf: {}\n"),
+        "1.5",
+        "is a probability in [0, 1], got 1.5",
+        id="p-above-one",
+    ),
+    pytest.param(
+        doc("Root:\n  independent:\n    - child: Leaf\nLeaf: {}\n"),
+        "child",
+        "every rule of `independent` needs its probability `p`",
+        id="independent-without-p",
+    ),
+    pytest.param(
+        doc("Root:\n  and:\n    - {child: Leaf, p: 0.5}\nLeaf: {}\n"),
+        "0.5",
+        "`p` has no meaning in `and`",
+        id="p-in-and",
+    ),
+    pytest.param(doc("Root: {or: []}\n"), "or", "an `or` needs at least one rule", id="empty-or"),
+    pytest.param(
+        doc("Root:\n  and:\nLeaf: {}\n"), "and", "`and` is empty: give its rules", id="null-and"
+    ),
     # ---------------------------------------------------------------------- count laws ---
     pytest.param(
         doc("""
@@ -323,7 +477,9 @@ CASES = [
                 rule: {child: Leaf}
             Leaf: {}
         """),
-        "3}", "start 3 exceeds max 2", id="geometric-start-above-max",
+        "3}",
+        "start 3 exceeds max 2",
+        id="geometric-start-above-max",
     ),
     pytest.param(
         doc("""
@@ -333,7 +489,9 @@ CASES = [
                 rule: {child: Leaf}
             Leaf: {}
         """),
-        "0,", "must be greater than 0, got 0", id="geometric-p-zero",
+        "0,",
+        "must be greater than 0, got 0",
+        id="geometric-p-zero",
     ),
     pytest.param(
         doc("""
@@ -343,7 +501,9 @@ CASES = [
                 rule: {child: Leaf}
             Leaf: {}
         """),
-        "probs", "count probabilities sum to zero", id="probs-all-zero",
+        "probs",
+        "count probabilities sum to zero",
+        id="probs-all-zero",
     ),
     pytest.param(
         doc("""
@@ -353,7 +513,9 @@ CASES = [
                 rule: {child: Leaf}
             Leaf: {}
         """),
-        "-0.1", "probs[1]: must be greater than or equal to 0, got -0.1", id="probs-negative",
+        "-0.1",
+        "probs[1]: must be greater than or equal to 0, got -0.1",
+        id="probs-negative",
     ),
     pytest.param(
         doc("""
@@ -363,7 +525,9 @@ CASES = [
                 rule: {child: Leaf}
             Leaf: {}
         """),
-        "poisson", "expected a count law: one of probs, geometric", id="unknown-count-law",
+        "poisson",
+        "expected a count law: one of probs, geometric",
+        id="unknown-count-law",
     ),
     # ------------------------------------------------------------- normal and box laws ---
     pytest.param(
@@ -374,7 +538,9 @@ CASES = [
                   translation: {world_normal: {variance: 0}}
             Leaf: {}
         """),
-        "0}", "variance: must be greater than 0, got 0", id="variance-zero",
+        "0}",
+        "variance: must be greater than 0, got 0",
+        id="variance-zero",
     ),
     pytest.param(
         doc("""
@@ -384,7 +550,9 @@ CASES = [
                   translation: {world_normal_offset: {variance: [0.1, 0, 0.1]}}
             Leaf: {}
         """),
-        "0, 0.1]", "variance must be positive, got 0 (y axis)", id="variance-axis-zero",
+        "0, 0.1]",
+        "variance must be positive, got 0 (y axis)",
+        id="variance-axis-zero",
     ),
     pytest.param(
         doc("""
@@ -394,7 +562,9 @@ CASES = [
                   translation: {world_normal: {variance: [0.1, 0.1, -1], pin: [z]}}
             Leaf: {}
         """),
-        "-1", "variance must be positive, got -1 (z axis)", id="variance-negative-pinned",
+        "-1",
+        "variance must be positive, got -1 (z axis)",
+        id="variance-negative-pinned",
     ),
     pytest.param(
         doc("""
@@ -406,7 +576,9 @@ CASES = [
                       covariance: [[1, 0.5, 0], [0, 1, 0], [0, 0, 1]]
             Leaf: {}
         """),
-        "covariance", "covariance must be symmetric", id="covariance-asymmetric",
+        "covariance",
+        "covariance must be symmetric",
+        id="covariance-asymmetric",
     ),
     pytest.param(
         doc("""
@@ -418,7 +590,9 @@ CASES = [
                       covariance: [[1, 2, 0], [2, 1, 0], [0, 0, 1]]
             Leaf: {}
         """),
-        "covariance", "covariance must be positive definite", id="covariance-not-pd",
+        "covariance",
+        "covariance must be positive definite",
+        id="covariance-not-pd",
     ),
     pytest.param(
         doc("""
@@ -428,17 +602,23 @@ CASES = [
                   translation: {world_normal: {variance: 1, pin: [x, y, z]}}
             Leaf: {}
         """),
-        "pin", "all three axes are pinned; use `offset`", id="all-axes-pinned",
+        "pin",
+        "all three axes are pinned; use `offset`",
+        id="all-axes-pinned",
     ),
     pytest.param(
         doc("""
             Root:
               and:
                 - child: Leaf
-                  translation: {world_normal: {variance: 1, covariance: [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}}
+                  translation:
+                    world_normal:
+                      variance: 1
+                      covariance: [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
             Leaf: {}
         """),
-        "world_normal", "give exactly one of `variance` or `covariance`",
+        "world_normal",
+        "give exactly one of `variance` or `covariance`",
         id="variance-and-covariance",
     ),
     pytest.param(
@@ -449,7 +629,9 @@ CASES = [
                   translation: {world_box: {min: [0, 0, 0], max: [1, -1, 1]}}
             Leaf: {}
         """),
-        "-1", "box max must be >= min, got -1 < 0", id="box-max-below-min",
+        "-1",
+        "box max must be >= min, got -1 < 0",
+        id="box-max-below-min",
     ),
     # ------------------------------------------------------------------------ Bingham ---
     pytest.param(
@@ -463,7 +645,9 @@ CASES = [
                       Z: [0, -1, -1, -1]
             Leaf: {}
         """),
-        "M:", "Bingham M must be orthogonal", id="bingham-m-not-orthogonal",
+        "M:",
+        "Bingham M must be orthogonal",
+        id="bingham-m-not-orthogonal",
     ),
     pytest.param(
         doc("""
@@ -473,7 +657,8 @@ CASES = [
                   rotation: {parent_bingham: {concentration: -1}}
             Leaf: {}
         """),
-        "-1", "concentration: must be greater than or equal to 0, got -1",
+        "-1",
+        "concentration: must be greater than or equal to 0, got -1",
         id="bingham-negative-concentration",
     ),
     pytest.param(
@@ -484,7 +669,8 @@ CASES = [
                   rotation: {world_bingham: {concentration: [1, 2, -3]}}
             Leaf: {}
         """),
-        "-3", "concentration[2]: must be greater than or equal to 0",
+        "-3",
+        "concentration[2]: must be greater than or equal to 0",
         id="bingham-negative-concentration-axis",
     ),
     pytest.param(
@@ -495,7 +681,9 @@ CASES = [
                   rotation: {world_bingham: {concentration: 1e5}}
             Leaf: {}
         """),
-        "1e5", "concentration must be at most 10000, got 100000", id="bingham-too-concentrated",
+        "1e5",
+        "concentration must be at most 10000, got 100000",
+        id="bingham-too-concentrated",
     ),
     pytest.param(
         doc("""
@@ -508,7 +696,9 @@ CASES = [
                       Z: [0, -1, -1, -20000]
             Leaf: {}
         """),
-        "Z:", "Bingham Z spans 20000, over the supported 10000", id="bingham-raw-too-concentrated",
+        "Z:",
+        "Bingham Z spans 20000, over the supported 10000",
+        id="bingham-raw-too-concentrated",
     ),
     pytest.param(
         doc("""
@@ -520,7 +710,9 @@ CASES = [
                       M: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
             Leaf: {}
         """),
-        "parent_bingham", "raw Bingham parameters need both `M` and `Z`", id="bingham-m-without-z",
+        "parent_bingham",
+        "raw Bingham parameters need both `M` and `Z`",
+        id="bingham-m-without-z",
     ),
     pytest.param(
         doc("""
@@ -533,7 +725,9 @@ CASES = [
                       Z: [0, 0, 0, 0]
             Leaf: {}
         """),
-        "world_bingham", "not both", id="bingham-both-forms",
+        "world_bingham",
+        "not both",
+        id="bingham-both-forms",
     ),
     # -------------------------------------------------------------------- orientations ---
     pytest.param(
@@ -544,12 +738,16 @@ CASES = [
                   rotation: {offset: {quat_wxyz: [1, 1, 0, 0]}}
             Leaf: {}
         """),
-        "quat_wxyz", "quaternion must have unit norm (±0.001), got 1.41421",
+        "quat_wxyz",
+        "quaternion must have unit norm (±0.001), got 1.41421",
         id="non-unit-quaternion",
     ),
-    pytest.param(doc("Root: {}\n", root="{type: Root, pose: {quat_wxyz: [0, 0, 0, 0]}}"),
-                 "quat_wxyz", "quaternion must have unit norm (±0.001), got 0",
-                 id="zero-quaternion"),
+    pytest.param(
+        doc("Root: {}\n", root="{type: Root, pose: {quat_wxyz: [0, 0, 0, 0]}}"),
+        "quat_wxyz",
+        "quaternion must have unit norm (±0.001), got 0",
+        id="zero-quaternion",
+    ),
     pytest.param(
         doc("""
             Root:
@@ -558,11 +756,16 @@ CASES = [
                   rotation: {world_bingham: {concentration: 1, mode: {quat_wxyz: [2, 0, 0, 0]}}}
             Leaf: {}
         """),
-        "quat_wxyz", "quaternion must have unit norm", id="non-unit-bingham-mode",
+        "quat_wxyz",
+        "quaternion must have unit norm",
+        id="non-unit-bingham-mode",
     ),
-    pytest.param(doc("Root: {}\n", root="{type: Root, pose: {rpy: [0, 0, 0], quat_wxyz: [1, 0, 0, 0]}}"),
-                 "pose", "root.pose: give the rotation one way only, got rpy and quat_wxyz",
-                 id="two-rotation-forms"),
+    pytest.param(
+        doc("Root: {}\n", root=TWO_ROTATION_FORMS),
+        "pose",
+        "root.pose: give the rotation one way only, got rpy and quat_wxyz",
+        id="two-rotation-forms",
+    ),
     # ----------------------------------------------------------------------- revolute ---
     pytest.param(
         doc("""
@@ -572,7 +775,9 @@ CASES = [
                   rotation: {revolute: {axis: [0, 0, 0]}}
             Leaf: {}
         """),
-        "axis", "revolute axis must be nonzero", id="revolute-zero-axis",
+        "axis",
+        "revolute axis must be nonzero",
+        id="revolute-zero-axis",
     ),
     pytest.param(
         doc("""
@@ -582,7 +787,9 @@ CASES = [
                   rotation: {revolute: {min: 1, max: 1}}
             Leaf: {}
         """),
-        "1}", "revolute max must be > min, got [1, 1]", id="revolute-empty-range",
+        "1}",
+        "revolute max must be > min, got [1, 1]",
+        id="revolute-empty-range",
     ),
     pytest.param(
         doc("""
@@ -592,7 +799,9 @@ CASES = [
                   rotation: {revolute: {min: -4, max: 4}}
             Leaf: {}
         """),
-        "4}", "revolute range exceeds 2π", id="revolute-range-too-wide",
+        "4}",
+        "revolute range exceeds 2π",
+        id="revolute-range-too-wide",
     ),
     # ---------------------------------------------------------------------- recursion ---
     pytest.param(
@@ -611,8 +820,8 @@ CASES = [
             Leaf: {}
         """),
         "- child: |Stack\n      - child: Leaf\n  Leaf",
-        "unbounded recursion Stack -> Plate -> Stack; "
-        "set `max_nesting`", id="recursion-through-or",
+        "unbounded recursion Stack -> Plate -> Stack; set `max_nesting`",
+        id="recursion-through-or",
     ),
     pytest.param(
         doc("""
@@ -625,12 +834,17 @@ CASES = [
                 - child: Tower
             Leaf: {}
         """),
-        "- child: |Tower\n  Leaf", "unbounded recursion Tower -> Tower", id="recursion-through-and",
+        "- child: |Tower\n  Leaf",
+        "unbounded recursion Tower -> Tower",
+        id="recursion-through-and",
     ),
     # ------------------------------------------------------------------- labels, models ---
-    pytest.param(doc("Root:\n  labels: [cup]\n"), "labels",
-                 "labels name dataset objects, so the type must be observed",
-                 id="labels-unobserved"),
+    pytest.param(
+        doc("Root:\n  labels: [cup]\n"),
+        "labels",
+        "labels name dataset objects, so the type must be observed",
+        id="labels-unobserved",
+    ),
     pytest.param(
         doc("""
             Root:
@@ -640,7 +854,9 @@ CASES = [
             Cup: {observed: true, model: cup.sdf}
             Mug: {observed: true, model: cup.sdf}
         """),
-        "Mug: {observed: true, model: |cup.sdf}", "model 'cup.sdf' already names type 'Cup'", id="model-claimed-twice",
+        "Mug: {observed: true, model: |cup.sdf}",
+        "model 'cup.sdf' already names type 'Cup'",
+        id="model-claimed-twice",
     ),
     pytest.param(
         doc("""
@@ -651,7 +867,9 @@ CASES = [
             Cup: {observed: true, labels: [cup]}
             Mug: {observed: true, labels: [mug, cup]}
         """),
-        "labels: [mug", "label 'cup' already names type 'Cup'", id="label-claimed-twice",
+        "labels: [mug",
+        "label 'cup' already names type 'Cup'",
+        id="label-claimed-twice",
     ),
 ]
 
@@ -716,6 +934,10 @@ def test_case_count() -> None:
         ),
         pytest.param("grammar: !!str g\nroot: Root\ntypes: {Root: {}}\n", id="str-tag"),
         pytest.param("\ufeffgrammar: g\nroot: Root\ntypes: {Root: {}}\n", id="byte-order-mark"),
+        pytest.param(
+            doc("Root:\n  or:\n    - {child: A, p: 3}\n    - {child: B, p: 1}\nA: {}\nB: {}\n"),
+            id="or-weights-above-one",
+        ),
     ],
 )
 def test_valid_edge_cases_compile(text: str) -> None:
@@ -742,6 +964,53 @@ def test_warnings_are_located_and_do_not_fail() -> None:
     assert all(FORMAT.match(str(d)) for d in g.warnings)
 
 
+def test_or_weights_are_normalised() -> None:
+    g = compile_text(
+        doc("Root:\n  or:\n    - {child: A, p: 3}\n    - {child: B, p: 1}\nA: {}\nB: {}\n"), FILE
+    )
+    assert g.types[g.type_id("Root")].probs.tolist() == [0.75, 0.25]
+
+
+def test_latent_model_duplicate_label_and_missing_mesh_warn(tmp_path: Path) -> None:
+    text = doc("""
+        Root:
+          and:
+            - child: Hidden
+            - child: Cup
+        Hidden: {model: hidden.sdf}
+        Cup: {observed: true, labels: [cup, cup], geometry: {mesh: {file: meshes/cup.obj}}}
+    """)
+    path = tmp_path / "g.yaml"
+    path.write_text(text)
+    g = load_grammar(path)
+    messages = sorted(d.message.split(" (")[0] for d in g.warnings)
+    assert messages == [
+        "mesh file 'meshes/cup.obj' not found next to the grammar",
+        "type 'Cup' lists a label twice",
+        "type 'Hidden' is not observed, so its `model` is never exported or matched",
+    ]
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "cup.obj").write_text("")
+    assert len(load_grammar(path).warnings) == 2
+
+
+@pytest.mark.parametrize(("text", "at", "fragment"), CASES[::3])
+def test_cli_validate_exits_nonzero_with_the_located_message(
+    tmp_path: Path, text: str, at: str, fragment: str
+) -> None:
+    from typer.testing import CliRunner
+
+    from ssgc.cli.app import app
+
+    path = tmp_path / "case.yaml"
+    path.write_text(text)
+    result = CliRunner().invoke(app, ["validate", str(path)])
+    line, col = position(text, at)
+    assert result.exit_code == 1
+    assert f"{path}:{line}:{col}: error: " in result.output and fragment in result.output
+    assert "Traceback" not in result.output
+
+
 def test_all_errors_of_a_file_are_reported_together() -> None:
     text = doc("""
         Root:
@@ -765,12 +1034,12 @@ def test_shape_errors_are_reported_together() -> None:
         Root:
           observed: maybe
           and:
-            - {child: Leaf, p: 2}
+            - {child: Leaf, p: -2}
         Leaf: {max_nesting: 0}
     """)
     diagnostics = errors_of(text)
     assert_reported(diagnostics, *position(text, "maybe"), "expected true or false")
-    assert_reported(diagnostics, *position(text, "2}"), "less than or equal to 1")
+    assert_reported(diagnostics, *position(text, "-2}"), "greater than or equal to 0")
     assert_reported(diagnostics, *position(text, "0}"), "greater than or equal to 1")
 
 
@@ -796,13 +1065,17 @@ def test_error_text_looks_like_a_compiler_message() -> None:
         pytest.param(b"grammar: g\nroot: R\x00oot\n", 2, 8, "NUL bytes", id="nul-byte"),
         pytest.param(bytes(range(256)) * 4, 1, 1, "NUL bytes", id="binary-garbage"),
         pytest.param(b"grammar: g\nroot: Caf\xe9\n", 2, 10, "not valid UTF-8", id="latin-1"),
-        pytest.param(b"\xef\xbb\xbfgrammar: \xff\n", 1, 13, "not valid UTF-8 (byte 12",
-                     id="bad-utf8-after-bom"),
+        pytest.param(
+            b"\xef\xbb\xbfgrammar: \xff\n",
+            1,
+            13,
+            "not valid UTF-8 (byte 12",
+            id="bad-utf8-after-bom",
+        ),
         pytest.param(b"", 1, 1, "got an empty file", id="empty-file"),
     ],
 )
-def test_unreadable_files(tmp_path: Path, data: bytes, line: int, col: int,
-                          fragment: str) -> None:
+def test_unreadable_files(tmp_path: Path, data: bytes, line: int, col: int, fragment: str) -> None:
     path = tmp_path / "bad.yaml"
     path.write_bytes(data)
     with pytest.raises(GrammarError) as info:
@@ -826,11 +1099,33 @@ def test_sink_grammar_still_compiles() -> None:
 
 SINK_TEXT = SINK.read_text(encoding="utf-8")
 NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:e-?\d+)?")
-REPLACEMENTS = ["nan", ".nan", "-1", "1e400", "-.inf", "0", "-0.0", "abc", '"0.5"', "[]", "{}",
-                "null", "1e-320", "99999999999999999999999", "true", "2024-13-45", "!!int x",
-                "&a", "*a", "[1, 2", "'", "\t"]
+REPLACEMENTS = [
+    "nan",
+    ".nan",
+    "-1",
+    "1e400",
+    "-.inf",
+    "0",
+    "-0.0",
+    "abc",
+    '"0.5"',
+    "[]",
+    "{}",
+    "null",
+    "1e-320",
+    "99999999999999999999999",
+    "true",
+    "2024-13-45",
+    "!!int x",
+    "&a",
+    "*a",
+    "[1, 2",
+    "'",
+    "\t",
+]
 NOISE = st.text(
-    alphabet=st.sampled_from(list(":-[]{},#&*!|>'\"%@`?\t\n a0.\x07\ufeffé")), min_size=1,
+    alphabet=st.sampled_from(list(":-[]{},#&*!|>'\"%@`?\t\n a0.\x07\ufeffé")),
+    min_size=1,
     max_size=6,
 )
 
@@ -843,12 +1138,12 @@ def mutated_sink(draw: st.DrawFn) -> str:
         lines = text.splitlines(keepends=True)
         if op in ("delete", "duplicate") and lines:
             i = draw(st.integers(0, len(lines) - 1))
-            lines[i:i + 1] = [] if op == "delete" else [lines[i], lines[i]]
+            lines[i : i + 1] = [] if op == "delete" else [lines[i], lines[i]]
             text = "".join(lines)
         elif op == "number" and (matches := list(NUMBER.finditer(text))):
             m = draw(st.sampled_from(matches))
             new = draw(st.one_of(st.sampled_from(REPLACEMENTS), st.text(max_size=6)))
-            text = text[: m.start()] + new + text[m.end():]
+            text = text[: m.start()] + new + text[m.end() :]
         elif op == "insert":
             at = draw(st.integers(0, len(text)))
             text = text[:at] + draw(NOISE) + text[at:]

@@ -116,14 +116,25 @@ def _draw(g: Grammar, seed: int, chain: bool = False, n: int = N) -> Draw:
     assert len(node) == n  # one C per tree
     assert np.array_equal(trees.scene[node], np.arange(n))
     parent = trees.parent[node]
-    return Draw(g, trees, logp, node, trees.rule[node], trees.xyz[parent], trees.quat[parent],
-                trees.xyz[node], trees.quat[node], chain)
+    return Draw(
+        g,
+        trees,
+        logp,
+        node,
+        trees.rule[node],
+        trees.xyz[parent],
+        trees.quat[parent],
+        trees.xyz[node],
+        trees.quat[node],
+        chain,
+    )
 
 
 def _edge_density(g: Grammar, rule, pxyz, pquat, xyz, quat) -> np.ndarray:  # type: ignore[no-untyped-def]
     rule = np.broadcast_to(np.asarray(rule, np.int64), (len(xyz),)).copy()
     return translation_log_density(g, rule, pxyz, pquat, xyz) + rotation_log_density(
-        g, rule, pquat, quat)
+        g, rule, pquat, quat
+    )
 
 
 def _check_logp(d: Draw, seed: int) -> None:
@@ -142,12 +153,14 @@ def _check_logp(d: Draw, seed: int) -> None:
     xyz, quat, lp = sample_children(g, rid, d.pxyz[:k], d.pquat[:k], np.random.default_rng(seed))
     assert xyz.shape == (k, 3) and quat.shape == (k, 4) and lp.shape == (k,)
     np.testing.assert_allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-12)
-    np.testing.assert_allclose(lp, _edge_density(g, rid, d.pxyz[:k], d.pquat[:k], xyz, quat),
-                               rtol=0, atol=LOGP_ATOL)
+    np.testing.assert_allclose(
+        lp, _edge_density(g, rid, d.pxyz[:k], d.pquat[:k], xyz, quat), rtol=0, atol=LOGP_ATOL
+    )
 
 
-def _rescore(d: Draw, xyz: np.ndarray | None = None, quat: np.ndarray | None = None,
-             count: int = 50) -> np.ndarray:
+def _rescore(
+    d: Draw, xyz: np.ndarray | None = None, quat: np.ndarray | None = None, count: int = 50
+) -> np.ndarray:
     """Scores of the first `count` trees after replacing their C poses."""
     new_xyz, new_quat = d.trees.xyz.copy(), d.trees.quat.copy()
     sel = d.node[:count]
@@ -223,8 +236,9 @@ def test_same_translation_and_rotation(chain: bool) -> None:
     _same_rotation(d.quat, d.pquat)
     if not chain:
         assert np.all(d.logp == 0.0)
-    np.testing.assert_allclose(_edge_density(g, d.rule, d.pxyz, d.pquat, d.xyz, d.quat), 0.0,
-                               atol=LOGP_ATOL)
+    np.testing.assert_allclose(
+        _edge_density(g, d.rule, d.pxyz, d.pquat, d.xyz, d.quat), 0.0, atol=LOGP_ATOL
+    )
     _check_logp(d, 12)
     # Moved or turned by 1e-3: impossible.
     assert np.all(_rescore(d, xyz=d.xyz + np.array([0.0, 1e-3, 0.0])) == -np.inf)
@@ -301,8 +315,9 @@ def test_world_normal_ignores_the_parent(chain: bool) -> None:
 
 @pytest.mark.parametrize("chain", [False, True])
 def test_world_normal_offset(chain: bool) -> None:
-    g = _compile(f"{{world_normal_offset: {{mean: {MEAN}, covariance: {FULL_COV}}}}}", "same",
-                 chain)
+    g = _compile(
+        f"{{world_normal_offset: {{mean: {MEAN}, covariance: {FULL_COV}}}}}", "same", chain
+    )
     d = _draw(g, 51, chain)
     _assert_normal(d.xyz - d.pxyz, MEAN, FULL_COV)
     # Power: in the parent's frame the offset is not this law.
@@ -351,19 +366,24 @@ def _law_coordinates(d: Draw, kind: str) -> np.ndarray:
 
 @pytest.mark.parametrize(("kind", "pin"), PIN_CASES)
 def test_pinned_axes(kind: str, pin: list[str]) -> None:
-    g = _compile(f"{{{kind}: {{mean: {MEAN}, variance: {DIAG_VAR}, pin: [{', '.join(pin)}]}}}}",
-                 "same", chain=True)
+    g = _compile(
+        f"{{{kind}: {{mean: {MEAN}, variance: {DIAG_VAR}, pin: [{', '.join(pin)}]}}}}",
+        "same",
+        chain=True,
+    )
     d = _draw(g, 71, chain=True)
     u = _law_coordinates(d, kind)
     pinned = np.isin(["x", "y", "z"], pin)
-    np.testing.assert_allclose(u[:, pinned], np.broadcast_to(np.asarray(MEAN)[pinned],
-                                                             (N, pinned.sum())), atol=1e-12)
+    np.testing.assert_allclose(
+        u[:, pinned], np.broadcast_to(np.asarray(MEAN)[pinned], (N, pinned.sum())), atol=1e-12
+    )
     free = ~pinned
     _assert_normal(u[:, free], np.asarray(MEAN)[free], np.diag(np.asarray(DIAG_VAR)[free]))
     _check_logp(d, 72)
     # The density is over the free axes only: compare with scipy's Normal on those.
-    expected = stats.multivariate_normal(np.asarray(MEAN)[free],
-                                         np.diag(np.asarray(DIAG_VAR)[free])).logpdf(u[:, free])
+    expected = stats.multivariate_normal(
+        np.asarray(MEAN)[free], np.diag(np.asarray(DIAG_VAR)[free])
+    ).logpdf(u[:, free])
     edge = _edge_density(g, d.rule, d.pxyz, d.pquat, d.xyz, d.quat)
     np.testing.assert_allclose(edge, np.atleast_1d(expected), rtol=0, atol=1e-9)
     # Off the pinned axis (in the law's coordinates) by 1e-3: impossible.
@@ -387,9 +407,9 @@ def test_normal_density_is_normalised() -> None:
     rng = np.random.default_rng(81)
     n = 100_000
     root = np.asarray(ROOT_XYZ)
-    proposal = stats.multivariate_normal(root + _root_matrix() @ MEAN,
-                                         4.0 * _root_matrix() @ np.asarray(FULL_COV)
-                                         @ _root_matrix().T)
+    proposal = stats.multivariate_normal(
+        root + _root_matrix() @ MEAN, 4.0 * _root_matrix() @ np.asarray(FULL_COV) @ _root_matrix().T
+    )
     x = proposal.rvs(size=n, random_state=rng)
     px = np.broadcast_to(g.root_xyz, (n, 3))
     pq = np.broadcast_to(g.root_quat, (n, 4))
@@ -516,8 +536,11 @@ def test_bingham_second_moment(kind: str, chain: bool, form: str) -> None:
 def test_bingham_concentration_is_angular_precision(kind: str) -> None:
     """Concentration c about a body axis: the small rotation about it has variance ≈ 2/c."""
     conc = np.array([400.0, 200.0, 1000.0])
-    g = _compile("same", f"{{{kind}: {{mode: {{rpy: {BINGHAM_MODE}}}, "
-                         f"concentration: {conc.tolist()}}}}}", chain=True)
+    g = _compile(
+        "same",
+        f"{{{kind}: {{mode: {{rpy: {BINGHAM_MODE}}}, concentration: {conc.tolist()}}}}}",
+        chain=True,
+    )
     d = _draw(g, 121, chain=True)
     mode = Rotation.from_euler("xyz", BINGHAM_MODE).as_quat()[[3, 0, 1, 2]]
     r = quat_multiply(quat_conjugate(mode), _bingham_rel(d, kind))  # in the mode's body frame
@@ -536,8 +559,9 @@ def test_bingham_concentration_is_angular_precision(kind: str) -> None:
 @pytest.mark.parametrize("kind", ["world_bingham", "parent_bingham"])
 def test_bingham_with_zero_concentration_is_uniform(kind: str) -> None:
     """Z = 0: exactly the uniform density -log π², and Haar-distributed draws."""
-    g = _compile("same", f"{{{kind}: {{mode: {{rpy: {BINGHAM_MODE}}}, concentration: 0}}}}",
-                 chain=True)
+    g = _compile(
+        "same", f"{{{kind}: {{mode: {{rpy: {BINGHAM_MODE}}}, concentration: 0}}}}", chain=True
+    )
     d = _draw(g, 125, chain=True)
     edge = rotation_log_density(g, d.rule, d.pquat, d.quat)
     np.testing.assert_allclose(edge, -LOG_PI2, rtol=0, atol=1e-9)
@@ -563,7 +587,8 @@ def test_bingham_density_is_normalised_on_so3(kind: str, conc: list[float]) -> N
     # The density does not depend on the quaternion's sign.
     np.testing.assert_array_equal(
         rotation_log_density(g, np.zeros(100, np.int64), parent[:100], child[:100]),
-        rotation_log_density(g, np.zeros(100, np.int64), parent[:100], -child[:100]))
+        rotation_log_density(g, np.zeros(100, np.int64), parent[:100], -child[:100]),
+    )
 
 
 # ------------------------------------------------------------------------------- revolute ---
@@ -573,8 +598,10 @@ AXIS = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
 
 
 @pytest.mark.parametrize(
-    ("lo", "hi"), [(-0.5, 1.2), (2.5, 4.0), (10.0, 11.0), (-np.pi, np.pi), (None, None)],
-    ids=["range", "across-pi", "beyond-2pi", "full-explicit", "full-default"])
+    ("lo", "hi"),
+    [(-0.5, 1.2), (2.5, 4.0), (10.0, 11.0), (-np.pi, np.pi), (None, None)],
+    ids=["range", "across-pi", "beyond-2pi", "full-explicit", "full-default"],
+)
 @pytest.mark.parametrize("chain", [False, True])
 def test_revolute(lo: float | None, hi: float | None, chain: bool) -> None:
     bounds = "" if lo is None else f", min: {lo!r}, max: {hi!r}"
@@ -642,8 +669,10 @@ def test_sampler_logp_equals_scorer_density(translation: str, rotation: str) -> 
 
 def test_support_tolerances() -> None:
     """A pinned axis / fixed rotation matches within 1e-6 (m / rad), not beyond."""
-    g = _compile(f"{{parent_normal_offset: {{mean: {MEAN}, variance: 0.1, pin: [z]}}}}",
-                 "{offset: {rpy: [0.1, 0.2, 0.3]}}")
+    g = _compile(
+        f"{{parent_normal_offset: {{mean: {MEAN}, variance: 0.1, pin: [z]}}}}",
+        "{offset: {rpy: [0.1, 0.2, 0.3]}}",
+    )
     d = _draw(g, 161, n=50)
     z_world = d.parent_matrix()[:, :, 2]  # the parent's z axis, in world coordinates
     spin = axis_angle_to_quat([0.0, 1.0, 0.0], 1.0)
@@ -653,5 +682,6 @@ def test_support_tolerances() -> None:
         assert np.all(np.isfinite(_rescore(d, quat=turned)) == ok), eps
     assert np.all(_rescore(d, quat=quat_multiply(d.quat, spin)) == -np.inf)
     # A move within the pinned tolerance does not change the density of the free axes.
-    np.testing.assert_allclose(_rescore(d, xyz=d.xyz + 0.5e-6 * z_world), d.logp[:50],
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        _rescore(d, xyz=d.xyz + 0.5e-6 * z_world), d.logp[:50], rtol=0, atol=1e-12
+    )

@@ -299,19 +299,31 @@ def _scene_from_doc(
     )
 
 
-def _check_objects_match_tree(grammar: Grammar, tree: Trees, types: list[int], xyz: list[Any],
-                              quat: list[Any], source: _LazySource,
-                              errors: list[Diagnostic]) -> None:
+def _check_objects_match_tree(
+    grammar: Grammar,
+    tree: Trees,
+    types: list[int],
+    xyz: list[Any],
+    quat: list[Any],
+    source: _LazySource,
+    errors: list[Diagnostic],
+) -> None:
     """A scene's objects are its tree's observed nodes, in node order: a file must agree."""
     obs = np.flatnonzero(grammar.tables.type_observed[tree.type])
     same = len(obs) == len(types) and np.array_equal(tree.type[obs], np.asarray(types, np.int64))
     if same and len(obs):
-        same = bool(np.allclose(tree.xyz[obs], np.asarray(xyz, float), rtol=0, atol=1e-9)
-                    and np.all(np.abs(np.sum(tree.quat[obs] * np.asarray(quat), axis=1))
-                               >= 1 - 1e-9))
+        same = bool(
+            np.allclose(tree.xyz[obs], np.asarray(xyz, float), rtol=0, atol=1e-9)
+            and np.all(np.abs(np.sum(tree.quat[obs] * np.asarray(quat), axis=1)) >= 1 - 1e-9)
+        )
     if not same:
-        errors.append(source.diagnostic(("objects",), "`objects` must be the observed nodes of "
-                                        "`tree`, in node order, with the same poses"))
+        errors.append(
+            source.diagnostic(
+                ("objects",),
+                "`objects` must be the observed nodes of "
+                "`tree`, in node order, with the same poses",
+            )
+        )
 
 
 def _tree_from_doc(

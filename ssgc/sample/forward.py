@@ -25,6 +25,7 @@ from ssgc.rules import sample_children
 from ssgc.tree import Trees
 
 CHUNK = 256
+MAX_LEVELS = 10_000  # the compiler bounds every recursion; this only guards against a bug
 
 
 def sample_trees(grammar: Grammar, n: int, seed: int) -> tuple[Trees, NDArray[np.float64]]:
@@ -70,6 +71,10 @@ def sample_chunk(
         nest[:, tb.nesting_slot[grammar.root]] = 1
     first_id = 0  # global id of the frontier's first node
     while len(ntype[-1]):
+        if len(ntype) > MAX_LEVELS:
+            raise RuntimeError(
+                f"sampled trees deeper than {MAX_LEVELS} levels: unbounded recursion"
+            )
         f_scene, f_type, f_xyz, f_quat = scene[-1], ntype[-1], xyz[-1], quat[-1]
         fires, logp_choice = _choose_rules(grammar, f_type, nest, rng)
         lp_scene.append(f_scene)
