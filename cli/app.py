@@ -28,7 +28,7 @@ from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.inspect import grammar_summary
 from ssgc.io.atomic import write_text_atomic
-from ssgc.io.scene import dumps_scene, scene_from_tree
+from ssgc.io.scene import dumps_json, dumps_scene, scene_from_tree
 from ssgc.sample.forward import CHUNK, chunk_rng, sample_chunk
 
 app = typer.Typer(
@@ -231,6 +231,94 @@ def bench_sample_cmd(
     else:
         for key, value in result.items():
             out.print(f"{key:>28}: {value}", markup=False, highlight=False)
+
+
+@app.command()
+@_command
+def parse(
+    scenes: Annotated[
+        Path,
+        typer.Argument(
+            help="A scene JSON, a directory of them, or a sink-format YAML dataset.",
+            show_default=False,
+        ),
+    ],
+    grammar: Annotated[Path, typer.Option("-g", "--grammar", help="Grammar YAML file.")],
+    method: Annotated[str, typer.Option(help="auto | ip | micp")] = "auto",
+    top: Annotated[int, typer.Option("--top", min=1, help="Distinct parse trees per scene.")] = 1,
+    time_limit: Annotated[
+        float | None, typer.Option("--time-limit", min=0.001, help="Seconds per scene.")
+    ] = None,
+    solver: Annotated[str, typer.Option(help="highs | scip")] = "highs",
+    output: Annotated[
+        Path | None, typer.Option("-o", "--output", help="Write JSON here (default: stdout).")
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+) -> None:
+    """Most probable parse trees of observed scenes (MAP parsing by MILP on HiGHS).
+
+    Exit code 2 when some scene cannot be produced by the grammar.
+    """
+    from ssgc.io.scene import load_scenes
+    from ssgc.parse.parser import Parser, result_to_json
+
+    if method not in ("auto", "ip", "micp"):
+        raise SsgError.single(f"--method must be auto, ip or micp, got '{method}'")
+    if method == "micp" or solver != "highs":
+        raise SsgError.single(
+            "the pose-optimising MICP parser and --solver scip are not "
+            "available yet; use --method auto (exact for grammars whose poses "
+            "are all observed)"
+        )
+    g = load_grammar(grammar)
+    items = load_scenes(scenes, g)
+    parser = Parser(g)
+    results = []
+    with _progress(quiet) as progress:
+        task = progress.add_task("parsing", total=len(items))
+        for scene in items:
+            results.append(result_to_json(g, parser.parse(scene, top=top, time_limit=time_limit)))
+            progress.advance(task)
+    text = dumps_json({"grammar": g.name, "scenes": results})
+    if output is None:
+        sys.stdout.write(text)
+    else:
+        write_text_atomic(output, text)
+    failed = [r for r in results if r["status"] in ("infeasible", "error")]
+    for r in failed:
+        err.print(
+            f"{r['name']}: {r['status']}: {r.get('message', '')}", markup=False, highlight=False
+        )
+    if not quiet and output is not None:
+        out.print(f"parsed {len(results)} scene(s) -> {output}", markup=False, highlight=False)
+    if any(r["status"] == "error" for r in failed):
+        raise typer.Exit(1)
+    if failed:
+        raise typer.Exit(2)
+
+
+@bench_app.command("parse")
+@_command
+def bench_parse_cmd(
+    grammar: GrammarArg,
+    scenes: Annotated[int, typer.Option("--scenes", min=1, help="Scenes to sample.")] = 100,
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
+    method: Annotated[str, typer.Option(help="auto | ip")] = "auto",
+    top: Annotated[int, typer.Option("--top", min=1)] = 1,
+    time_limit: Annotated[float | None, typer.Option("--time-limit", min=0.001)] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+) -> None:
+    """Sample scenes, parse them, compare with the sampled trees; timings per scene."""
+    from ssgc.bench import bench_parse
+
+    if method not in ("auto", "ip"):
+        raise SsgError.single("bench parse supports --method auto or ip for now")
+    result = bench_parse(load_grammar(grammar), scenes, seed, top, time_limit)
+    if as_json:
+        print(json.dumps(result, indent=1))
+    else:
+        for key, value in result["summary"].items():
+            out.print(f"{key:>22}: {value}", markup=False, highlight=False)
 
 
 @app.command("schema", hidden=True)

@@ -55,3 +55,63 @@ def _timed(fn: Any) -> tuple[float, Any]:
     t0 = time.perf_counter()
     result = fn()
     return time.perf_counter() - t0, result
+
+
+def bench_parse(
+    grammar: Grammar, n: int, seed: int, top: int = 1, time_limit: float | None = None
+) -> dict[str, Any]:
+    """Sample n scenes, parse each, and compare the best parse with the sampled tree."""
+    from ssgc.io.scene import scene_from_tree
+    from ssgc.parse.parser import Parser
+
+    parser = Parser(grammar)
+    trees, logp = sample_trees(grammar, n, seed)
+    rows = []
+    for i in range(n):
+        scene = scene_from_tree(grammar, trees.tree(i), f"{grammar.name}_{i:06d}", float(logp[i]))
+        result = parser.parse(scene, top=top, time_limit=time_limit)
+        best = result.parses[0].score if result.parses else float("-inf")
+        rows.append(
+            {
+                "scene": scene.name,
+                "objects": len(scene),
+                "status": result.status,
+                **result.model,
+                **{k: round(v, 6) for k, v in result.timing.items()},
+                "parses": len(result.parses),
+                "ground_truth_score": float(logp[i]),
+                "parse_score": best,
+                "match_or_beat": bool(best >= logp[i] - 1e-6),
+            }
+        )
+    total = np.array([r["total_s"] for r in rows])
+    build = np.array([r["build_s"] for r in rows])
+    size = np.array([r["nonzeros"] for r in rows], float)
+    return {
+        "grammar": grammar.name,
+        "scenes": n,
+        "seed": seed,
+        "top": top,
+        "rows": rows,
+        "summary": {
+            "match_or_beat_rate": float(np.mean([r["match_or_beat"] for r in rows])),
+            "median_total_s": float(np.median(total)),
+            "max_total_s": float(np.max(total)),
+            "build_linearity": _linearity(size, build),
+        },
+    }
+
+
+def _linearity(size: np.ndarray, seconds: np.ndarray) -> dict[str, float]:
+    """Build time against model size: seconds per 1k nonzeros, and how well a line fits."""
+    if len(size) < 3 or np.ptp(size) == 0:
+        return {}
+    slope, intercept = np.polyfit(size, seconds, 1)
+    r = float(np.corrcoef(size, seconds)[0, 1])
+    return {
+        "seconds_per_1k_nonzeros": float(slope * 1e3),
+        "intercept_s": float(intercept),
+        "pearson_r": r,
+        "smallest_nonzeros": float(size.min()),
+        "largest_nonzeros": float(size.max()),
+    }

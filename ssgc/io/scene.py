@@ -137,25 +137,30 @@ def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, An
         for t, x, q in zip(scene.types, scene.xyz, scene.quat, strict=True)
     ]
     if scene.tree is not None:
-        tree = scene.tree
-        tb = grammar.tables
-        out["tree"] = {
-            "nodes": [
-                {
-                    "id": i,
-                    "type": grammar.types[tree.type[i]].name,
-                    "parent": int(tree.parent[i]) if tree.parent[i] >= 0 else None,
-                    "rule": int(tb.rule_index[tree.rule[i]]) if tree.rule[i] >= 0 else None,
-                    "observed": bool(tb.type_observed[tree.type[i]]),
-                    "pose": _pose_json(tree.xyz[i], tree.quat[i]),
-                }
-                for i in range(len(tree))
-            ]
-        }
+        out["tree"] = tree_to_json(grammar, scene.tree)
     return out
 
 
 _NUMBER_LIST = re.compile(r"\[\s*(-?[0-9][^\[\]{}\"]*?)\s*\]")
+
+
+def tree_to_json(grammar: Grammar, tree: Trees) -> dict[str, Any]:
+    """A single tree as {"nodes": [...]}: parents first, rules named by their index in the
+    parent type's rule list."""
+    tb = grammar.tables
+    return {
+        "nodes": [
+            {
+                "id": i,
+                "type": grammar.types[tree.type[i]].name,
+                "parent": int(tree.parent[i]) if tree.parent[i] >= 0 else None,
+                "rule": int(tb.rule_index[tree.rule[i]]) if tree.rule[i] >= 0 else None,
+                "observed": bool(tb.type_observed[tree.type[i]]),
+                "pose": _pose_json(tree.xyz[i], tree.quat[i]),
+            }
+            for i in range(len(tree))
+        ]
+    }
 
 
 def dumps_json(doc: Any) -> str:

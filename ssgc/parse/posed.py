@@ -1,0 +1,446 @@
+"""The pose-instantiated integer program: the supertree unrolled over candidate poses.
+
+For grammars whose every pose is tied to an observation (dependency grammars such as the sink),
+a node entered by a non-fixed rule can only sit at one of finitely many candidate poses (those
+implied by the scene's objects).  Instead of a supertree node plus a choice of pose (thesis 3.5,
+`ssgc.parse.ip`), this formulation gives every (node, candidate pose) its own binary: poses are
+constants, every rule's log-density is a constant on one binary, and the copies of a `repeat`
+are no longer exchangeable variables but distinct candidate children — so there is no
+symmetry to break and each tree has exactly one encoding (top-N cuts give distinct trees).
+The model is an assignment problem whose LP relaxation is tight in practice.
+
+Its size is the number of (node, pose) instances, which can grow like K^depth for deep chains
+of pose-changing rules (a stack of K steamer trays); `count_instances` measures it first and
+the caller falls back to the set formulation when it is too large.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.errors import Diagnostic
+from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
+from ssgc.io.scene import Scene
+from ssgc.ir import Grammar, Kind
+from ssgc.parse.ip import UnparseableScene
+from ssgc.parse.milp import ColumnBuilder, Milp, RowBuilder
+from ssgc.parse.supertree import Supertree
+from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
+from ssgc.tree import Trees
+
+IntArray = NDArray[np.int64]
+FloatArray = NDArray[np.float64]
+MAX_INSTANCES = 60_000
+
+
+class TooLarge(Exception):
+    """The unrolled model would exceed MAX_INSTANCES nodes."""
+
+
+@dataclass(frozen=True)
+class PosedProblem:
+    milp: Milp
+    st_node: IntArray  # (I,) supertree node of each instance
+    parent: IntArray  # (I,) parent instance
+    xyz: FloatArray
+    quat: FloatArray
+    col: IntArray  # (I,) column of a[instance], -1 if pruned
+    structural: IntArray
+    build_s: float
+    supertree: Supertree
+
+    def invert(self, x: FloatArray) -> Trees:
+        st = self.supertree
+        on = np.flatnonzero((self.col >= 0) & (x[np.maximum(self.col, 0)] > 0.5))
+        new_index = np.full(len(self.col), -1, np.int64)
+        new_index[on] = np.arange(len(on))
+        parent = self.parent[on]
+        return Trees(
+            scene=np.zeros(len(on), np.int64),
+            type=st.type[self.st_node[on]].copy(),
+            parent=np.where(parent >= 0, new_index[np.maximum(parent, 0)], -1),
+            rule=st.rule[self.st_node[on]].copy(),
+            xyz=self.xyz[on].copy(),
+            quat=self.quat[on].copy(),
+            n_scenes=1,
+        )
+
+
+def candidate_poses(
+    grammar: Grammar, st: Supertree, scene: Scene
+) -> tuple[list[FloatArray], list[FloatArray]]:
+    """Per equivalent set, the distinct poses of its top node that put one of its observed
+    nodes exactly on an object of the scene."""
+    xyz: list[list[FloatArray]] = [[] for _ in range(st.n_sets)]
+    quat: list[list[FloatArray]] = [[] for _ in range(st.n_sets)]
+    observed = grammar.tables.type_observed[st.type]
+    for n in np.flatnonzero(observed):
+        objs = np.flatnonzero(scene.types == st.type[n])
+        if len(objs) == 0:
+            continue
+        e = int(st.set_of[n])
+        q = quat_multiply(scene.quat[objs], quat_conjugate(st.offset_quat[n]))
+        t = scene.xyz[objs] - quat_rotate(q, st.offset_xyz[n])
+        for ti, qi in zip(t, q, strict=True):
+            if not any(
+                np.linalg.norm(ti - tj) <= POS_TOL and quat_angle(qi, qj) <= ROT_TOL
+                for tj, qj in zip(xyz[e], quat[e], strict=True)
+            ):
+                xyz[e].append(ti)
+                quat[e].append(qi)
+    return (
+        [np.asarray(v).reshape(-1, 3) for v in xyz],
+        [np.asarray(v).reshape(-1, 4) for v in quat],
+    )
+
+
+class _Unroll:
+    """Builds the instances (supertree node, pose) top-down, then the MILP over them."""
+
+    def __init__(self, grammar: Grammar, st: Supertree, scene: Scene) -> None:
+        self.g, self.st, self.scene = grammar, st, scene
+        self.cand_xyz, self.cand_quat = candidate_poses(grammar, st, scene)
+        self.node: list[int] = []
+        self.parent: list[int] = []
+        self.slot: list[int] = []  # index of the producing rule slot in the parent's children
+        self.xyz: list[FloatArray] = []
+        self.quat: list[FloatArray] = []
+
+    def unroll(self) -> None:
+        st, g = self.st, self.g
+        self._add(0, -1, -1, g.root_xyz, g.root_quat)
+        i = 0
+        while i < len(self.node):
+            n = self.node[i]
+            for slot, c in enumerate(self._slots(n)):
+                if st.set_of[c] == st.set_of[n]:  # fixed rule: one child, pose composed
+                    copies = [c2 for c2 in st.children[n] if st.rule[c2] == st.rule[c]]
+                    for c2 in copies:
+                        self._add(
+                            c2,
+                            i,
+                            slot,
+                            self.xyz[i] + quat_rotate(self.quat[i], st.offset_xyz[c2]),
+                            quat_multiply(self.quat[i], st.offset_quat[c2]),
+                        )
+                else:  # one child per candidate pose of the child's set
+                    e = st.set_of[c]
+                    for t, q in zip(self.cand_xyz[e], self.cand_quat[e], strict=True):
+                        self._add(c, i, slot, t, q)
+            if len(self.node) > MAX_INSTANCES:
+                raise TooLarge
+            i += 1
+
+    def _slots(self, n: int) -> list[int]:
+        """One representative supertree child per rule (the first copy of a `repeat`)."""
+        seen, out = set(), []
+        for c in self.st.children[n]:
+            r = int(self.st.rule[c])
+            if r not in seen:
+                seen.add(r)
+                out.append(c)
+        return out
+
+    def _add(self, n: int, parent: int, slot: int, xyz: FloatArray, quat: FloatArray) -> None:
+        self.node.append(n)
+        self.parent.append(parent)
+        self.slot.append(slot)
+        self.xyz.append(np.asarray(xyz, float))
+        self.quat.append(np.asarray(quat, float))
+
+
+def reduce_posed(grammar: Grammar, st: Supertree, scene: Scene) -> PosedProblem:
+    t0 = time.perf_counter()
+    u = _Unroll(grammar, st, scene)
+    u.unroll()
+    node = np.asarray(u.node, np.int64)
+    parent = np.asarray(u.parent, np.int64)
+    slot = np.asarray(u.slot, np.int64)
+    xyz, quat = np.asarray(u.xyz).reshape(-1, 3), np.asarray(u.quat).reshape(-1, 4)
+    model = _Model(grammar, st, scene, node, parent, slot, xyz, quat)
+    milp = model.build()
+    return PosedProblem(
+        milp,
+        node,
+        parent,
+        xyz,
+        quat,
+        model.col,
+        np.concatenate(model.structural).astype(np.int64),
+        time.perf_counter() - t0,
+        st,
+    )
+
+
+class _Model:
+    """The MILP over instances: activations, correspondences, node logic, costs."""
+
+    def __init__(
+        self,
+        g: Grammar,
+        st: Supertree,
+        scene: Scene,
+        node: IntArray,
+        parent: IntArray,
+        slot: IntArray,
+        xyz: FloatArray,
+        quat: FloatArray,
+    ) -> None:
+        self.g, self.st, self.scene = g, st, scene
+        self.node, self.parent, self.slot, self.xyz, self.quat = node, parent, slot, xyz, quat
+        self.type = st.type[node]
+        self.rule = st.rule[node]
+        self.cols, self.rows = ColumnBuilder(), RowBuilder()
+        self.structural: list[IntArray] = []
+        n = len(node)
+        self.children: list[list[int]] = [[] for _ in range(n)]
+        for i in range(1, n):
+            self.children[parent[i]].append(i)
+
+    def build(self) -> Milp:
+        self.edge_scores()
+        self.matches()
+        self.prune()
+        self.columns()
+        self.correspondence_rows()
+        self.logic_rows()
+        return Milp.build(self.cols, self.rows)
+
+    def edge_scores(self) -> None:
+        """log p(pose | parent pose) of every instance; 0 for the root."""
+        p = np.maximum(self.parent, 0)
+        score = np.zeros(len(self.node))
+        child = np.flatnonzero(self.parent >= 0)
+        if len(child):
+            r, pp = self.rule[child], p[child]
+            score[child] = translation_log_density(
+                self.g, r, self.xyz[pp], self.quat[pp], self.xyz[child]
+            ) + rotation_log_density(self.g, r, self.quat[pp], self.quat[child])
+        self.score = score
+
+    def matches(self) -> None:
+        """(instance, object) pairs: an observed instance exactly on an object of its type."""
+        observed = self.g.tables.type_observed[self.type]
+        inst, obj = [], []
+        scene = self.scene
+        for t in np.unique(self.type[observed]):
+            ii = np.flatnonzero(observed & (self.type == t))
+            oo = np.flatnonzero(scene.types == t)
+            if len(oo) == 0:
+                continue
+            d = np.linalg.norm(self.xyz[ii][:, None, :] - scene.xyz[oo][None, :, :], axis=2)
+            a = quat_angle(self.quat[ii][:, None, :], scene.quat[oo][None, :, :])
+            hit_i, hit_o = np.nonzero((d <= POS_TOL) & (a <= ROT_TOL))
+            inst.append(ii[hit_i])
+            obj.append(oo[hit_o])
+        self.match_inst = np.concatenate(inst) if inst else np.zeros(0, np.int64)
+        self.match_obj = np.concatenate(obj) if obj else np.zeros(0, np.int64)
+        self.observed = observed
+        self.implicit_root = bool(observed[0] and not np.any(scene.types == self.type[0]))
+
+    def prune(self) -> None:
+        g = self.g
+        n = len(self.node)
+        can = np.isfinite(self.score)
+        explains = np.zeros(n, bool)
+        explains[self.match_inst] = True
+        explains[0] |= self.implicit_root
+        can &= ~self.observed | explains
+        for i in range(1, n):  # rules that can never fire
+            kind = g.types[self.type[self.parent[i]]].kind
+            if kind in (Kind.OR, Kind.INDEPENDENT) and self._prob(i) <= 0:
+                can[i] = False
+        for i in range(n - 1, -1, -1):
+            if not can[i]:
+                continue
+            node = g.types[self.type[i]]
+            slots = self._slot_groups(i, can)
+            n_slots = len(self._slot_rules(i))
+            if node.kind == Kind.AND:
+                can[i] = len(slots) == n_slots and all(slots.values())
+            elif node.kind == Kind.OR and n_slots:
+                can[i] = any(slots.values())
+            elif node.kind == Kind.INDEPENDENT:
+                can[i] = all(slots.get(k) for k, p in self._slot_probs(i).items() if p >= 1)
+            elif node.kind == Kind.REPEAT and node.count is not None:
+                live = sum(len(v) for v in slots.values())
+                can[i] = bool(np.any(node.count.probs[: live + 1] > 0))
+        for i in range(1, n):
+            can[i] &= can[self.parent[i]]
+        if not can[0]:
+            raise UnparseableScene([self._unexplained()], exit_code=2)
+        self.can = can
+
+    def _unexplained(self) -> Diagnostic:
+        used = set(self.match_obj.tolist())
+        names = [self.g.types[t].name for t in self.scene.types]
+        lost = [f"{o} ({names[o]})" for o in range(len(self.scene)) if o not in used]
+        text = (
+            ("objects the grammar cannot place: " + ", ".join(lost))
+            if lost
+            else ("no tree of the grammar contains this scene's objects")
+        )
+        return Diagnostic(f"scene '{self.scene.name}': {text}")
+
+    def _slot_rules(self, i: int) -> list[int]:
+        return sorted({int(self.st.rule[c]) for c in self.st.children[self.node[i]]})
+
+    def _slot_groups(self, i: int, can: NDArray[np.bool_]) -> dict[int, list[int]]:
+        """Live children of instance i grouped by producing rule."""
+        out: dict[int, list[int]] = {}
+        for c in self.children[i]:
+            if can[c]:
+                out.setdefault(int(self.rule[c]), []).append(c)
+        return out
+
+    def _slot_probs(self, i: int) -> dict[int, float]:
+        node = self.g.types[self.type[i]]
+        return {r: float(node.probs[self.g.tables.rule_index[r]]) for r in self._slot_rules(i)}
+
+    def _prob(self, c: int) -> float:
+        """`or`: weight renormalised over the rules present; `independent`: p."""
+        p = self.parent[c]
+        probs = self._slot_probs(p)
+        node = self.g.types[self.type[p]]
+        w = probs[int(self.rule[c])]
+        return w / sum(probs.values()) if node.kind == Kind.OR else w
+
+    def columns(self) -> None:
+        live = np.flatnonzero(self.can)
+        self.col = np.full(len(self.node), -1, np.int64)
+        self.col[live] = self.cols.add(len(live), integer=True, cost=self.score[live])
+        self.cols.lo[-1] = np.where(live == 0, 1.0, 0.0)
+        self.structural.append(self.col[live[live != 0]])
+        ch = live[live != 0]
+        k = len(ch)
+        self.rows.add(
+            np.r_[np.arange(k), np.arange(k)],
+            np.r_[self.col[ch], self.col[self.parent[ch]]],
+            np.r_[np.ones(k), -np.ones(k)],
+            k,
+            -np.inf,
+            0.0,
+        )
+
+    def correspondence_rows(self) -> None:
+        keep = self.can[self.match_inst]
+        inst, obj = self.match_inst[keep], self.match_obj[keep]
+        n_obj = len(self.scene)
+        if np.any(np.bincount(obj, minlength=n_obj) == 0):
+            raise UnparseableScene([self._unexplained()], exit_code=2)
+        b = self.cols.add(len(inst), integer=True)
+        self.structural.append(b)
+        self.rows.add(obj, b, 1.0, n_obj, 1.0, 1.0)  # every object explained once
+        obs = np.flatnonzero(self.can & self.observed)
+        if self.implicit_root:
+            obs = obs[obs != 0]
+        local = np.full(len(self.node), -1, np.int64)
+        local[obs] = np.arange(len(obs))
+        self.rows.add(
+            np.r_[local[inst], local[obs]],
+            np.r_[b, self.col[obs]],
+            np.r_[np.ones(len(b)), -np.ones(len(obs))],
+            len(obs),
+            0.0,
+            0.0,
+        )
+
+    def logic_rows(self) -> None:
+        g = self.g
+        eq_r: list[int] = []
+        eq_c: list[int] = []
+        eq_v: list[float] = []
+        n_eq = 0
+        cost_c: list[int] = []
+        cost_v: list[float] = []
+        for i in np.flatnonzero(self.can):
+            node = g.types[self.type[i]]
+            if node.kind == Kind.TERMINAL:
+                continue
+            groups = self._slot_groups(i, self.can)
+            a = int(self.col[i])
+            if node.kind == Kind.AND:
+                for kids in groups.values():  # each rule fires once: sum over its poses = a
+                    eq_r += [n_eq] * (len(kids) + 1)
+                    eq_c += [int(self.col[c]) for c in kids] + [a]
+                    eq_v += [1.0] * len(kids) + [-1.0]
+                    n_eq += 1
+            elif node.kind == Kind.OR and groups:
+                kids = [c for v in groups.values() for c in v]
+                eq_r += [n_eq] * (len(kids) + 1)
+                eq_c += [int(self.col[c]) for c in kids] + [a]
+                eq_v += [1.0] * len(kids) + [-1.0]
+                n_eq += 1
+                cost_c += [int(self.col[c]) for c in kids]
+                cost_v += [float(np.log(self._prob(c))) for c in kids]
+            elif node.kind == Kind.INDEPENDENT:
+                for r, p in self._slot_probs(i).items():
+                    kids = groups.get(r, [])
+                    if p >= 1:
+                        eq_r += [n_eq] * (len(kids) + 1)
+                        eq_c += [int(self.col[c]) for c in kids] + [a]
+                        eq_v += [1.0] * len(kids) + [-1.0]
+                        n_eq += 1
+                    elif p > 0:
+                        cost_c.append(a)
+                        cost_v.append(float(np.log1p(-p)))
+                        cost_c += [int(self.col[c]) for c in kids]
+                        cost_v += [float(np.log(p) - np.log1p(-p))] * len(kids)
+                        if len(kids) > 1:  # at most one pose for the one child
+                            self.rows.add(
+                                np.zeros(len(kids) + 1, np.int64),
+                                np.r_[self.col[kids], a],
+                                np.r_[np.ones(len(kids)), -1.0],
+                                1,
+                                -np.inf,
+                                0.0,
+                            )
+            elif node.kind == Kind.REPEAT and node.count is not None:
+                kids = [c for v in groups.values() for c in v]
+                self._repeat(a, kids, node.count.probs)
+        self.rows.add(
+            np.asarray(eq_r, np.int64),
+            np.asarray(eq_c, np.int64),
+            np.asarray(eq_v, float),
+            n_eq,
+            0.0,
+            0.0,
+        )
+        self.cols.add_cost(np.asarray(cost_c, np.int64), np.asarray(cost_v, float))
+
+    def _repeat(self, a: int, kids: list[int], probs: FloatArray) -> None:
+        counts = np.flatnonzero(probs[: len(kids) + 1] > 0)
+        z = self.cols.add(len(counts), integer=True, cost=np.log(probs[counts]))
+        self.rows.add(
+            np.zeros(len(z) + 1, np.int64), np.r_[z, a], np.r_[np.ones(len(z)), -1.0], 1, 0.0, 0.0
+        )
+        cols = self.col[kids]
+        self.rows.add(
+            np.zeros(len(z) + len(cols), np.int64),
+            np.r_[z, cols],
+            np.r_[-counts.astype(float), np.ones(len(cols))],
+            1,
+            0.0,
+            0.0,
+        )
+        # copies at one pose (a fixed `repeat` rule) fill up in order
+        same = [
+            c
+            for c in kids
+            if self.st.set_of[self.node[c]] == self.st.set_of[self.node[self.parent[c]]]
+        ]
+        if len(same) > 1:
+            k = len(same) - 1
+            s = self.col[same]
+            self.rows.add(
+                np.r_[np.arange(k), np.arange(k)],
+                np.r_[s[1:], s[:-1]],
+                np.r_[np.ones(k), -np.ones(k)],
+                k,
+                -np.inf,
+                0.0,
+            )

@@ -1,0 +1,157 @@
+"""The supertree and its equivalent sets (thesis 3.3).
+
+The supertree holds every node any tree of the grammar could contain: each node expands all of
+its rules (a `repeat` into as many copies as its largest count), down to the `max_nesting`
+bounds — rules blocked by a bound are simply absent, exactly as in the sampler and the scorer.
+Any parse tree is a subtree of it.
+
+Equivalent sets are the connected groups of supertree nodes joined by rules whose translation
+and rotation are both fixed: their poses follow from one pose (the set's top node) and a fixed
+offset per node.  `always_observed` marks the sets that cannot be active without an observed
+node — their poses can only come from observations (thesis 3.4.3 / 3.5, "observability").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.geometry import quat_multiply, quat_rotate
+from ssgc.ir import Grammar, Kind, RKind, TKind
+
+IntArray = NDArray[np.int64]
+MAX_SUPERTREE_NODES = 200_000
+
+
+@dataclass(frozen=True)
+class Supertree:
+    type: IntArray  # (S,) node type
+    parent: IntArray  # (S,) parent node, -1 for the root; parents come before children
+    rule: IntArray  # (S,) producing rule id, -1 for the root
+    copy: IntArray  # (S,) index among the copies of a `repeat` rule (0 otherwise)
+    children: tuple[tuple[int, ...], ...]  # per node, its children in rule order
+    set_of: IntArray  # (S,) equivalent set of each node
+    set_top: IntArray  # (E,) top node of each set (the only node entered from outside)
+    offset_xyz: NDArray[np.float64]  # (S, 3) node position in its set top's frame
+    offset_quat: NDArray[np.float64]  # (S, 4) node rotation relative to its set top
+    always_observed: NDArray[np.bool_]  # (E,)
+
+    def __len__(self) -> int:
+        return int(self.type.shape[0])
+
+    @property
+    def n_sets(self) -> int:
+        return int(self.set_top.shape[0])
+
+
+def build_supertree(grammar: Grammar) -> Supertree:
+    tb = grammar.tables
+    types, parents, rules, copies = [grammar.root], [-1], [-1], [0]
+    n_bounded = tb.nesting_max.shape[0]
+    nest = [np.zeros(n_bounded, np.int64)]
+    if tb.nesting_slot[grammar.root] >= 0:
+        nest[0][tb.nesting_slot[grammar.root]] = 1
+    children: list[list[int]] = [[]]
+    i = 0
+    while i < len(types):  # breadth first, so parents precede children
+        node = grammar.types[types[i]]
+        for rid in node.rules:
+            child = int(tb.rule_child[rid])
+            slot = tb.nesting_slot[child]
+            if slot >= 0 and nest[i][slot] >= tb.nesting_max[slot]:
+                continue  # blocked by max_nesting
+            copies_n = node.count.max_count if node.kind == Kind.REPEAT and node.count else 1
+            for k in range(copies_n):
+                child_nest = nest[i].copy()
+                if slot >= 0:
+                    child_nest[slot] += 1
+                children[i].append(len(types))
+                types.append(child)
+                parents.append(i)
+                rules.append(rid)
+                copies.append(k)
+                nest.append(child_nest)
+                children.append([])
+        if len(types) > MAX_SUPERTREE_NODES:
+            raise ValueError(f"the supertree has more than {MAX_SUPERTREE_NODES} nodes")
+        i += 1
+    type_a = np.asarray(types, np.int64)
+    parent_a = np.asarray(parents, np.int64)
+    rule_a = np.asarray(rules, np.int64)
+    set_of, set_top, off_xyz, off_quat = _equivalent_sets(grammar, parent_a, rule_a)
+    observed = _always_observed(grammar, type_a, rule_a, children, set_of, set_top)
+    return Supertree(
+        type=type_a,
+        parent=parent_a,
+        rule=rule_a,
+        copy=np.asarray(copies, np.int64),
+        children=tuple(tuple(c) for c in children),
+        set_of=set_of,
+        set_top=set_top,
+        offset_xyz=off_xyz,
+        offset_quat=off_quat,
+        always_observed=observed,
+    )
+
+
+def is_fixed_rule(grammar: Grammar, rule_id: int) -> bool:
+    """A rule that places its child at a fixed offset from the parent (pose fully determined)."""
+    tb = grammar.tables
+    return bool(tb.t_kind[rule_id] == TKind.FIXED and tb.r_kind[rule_id] == RKind.FIXED)
+
+
+def _equivalent_sets(grammar: Grammar, parent: IntArray, rule: IntArray):  # type: ignore[no-untyped-def]
+    """Sets joined by fixed rules, and each node's pose offset from its set's top node."""
+    n = len(parent)
+    set_of = np.full(n, -1, np.int64)
+    off_xyz = np.zeros((n, 3))
+    off_quat = np.tile([1.0, 0, 0, 0], (n, 1))
+    tops: list[int] = []
+    tb = grammar.tables
+    for i in range(n):  # parents first: a fixed child joins its parent's set
+        p = parent[i]
+        if p >= 0 and is_fixed_rule(grammar, int(rule[i])):
+            set_of[i] = set_of[p]
+            off_xyz[i] = off_xyz[p] + quat_rotate(off_quat[p], tb.t_offset[rule[i]])
+            off_quat[i] = quat_multiply(off_quat[p], tb.r_offset[rule[i]])
+        else:
+            set_of[i] = len(tops)
+            tops.append(i)
+    return set_of, np.asarray(tops, np.int64), off_xyz, off_quat
+
+
+def _always_observed(
+    grammar: Grammar,
+    types: IntArray,
+    rule: IntArray,
+    children: list[list[int]],
+    set_of: IntArray,
+    set_top: IntArray,
+) -> NDArray[np.bool_]:
+    """Whether every way of activating a set includes one of its observed nodes.
+
+    must(n): an active n forces an observed node of n's set to be active.  Observed: yes.  AND:
+    some in-set child must.  OR: every child is in the set and must.  A `repeat` whose count
+    cannot be 0, or an `independent` rule with p = 1, behaves like an AND child.  Anything else
+    may stop without an observed node.
+    """
+    must = np.zeros(len(types), bool)
+    for i in range(len(types) - 1, -1, -1):  # children before parents
+        node = grammar.types[types[i]]
+        if node.observed:
+            must[i] = True
+            continue
+        kids = children[i]
+        in_set = [c for c in kids if set_of[c] == set_of[i]]
+        if node.kind == Kind.AND:
+            must[i] = any(must[c] for c in in_set)
+        elif node.kind == Kind.OR:
+            must[i] = bool(kids) and len(in_set) == len(kids) and all(must[c] for c in in_set)
+        elif node.kind == Kind.INDEPENDENT:
+            sure = [c for c in in_set if node.probs[grammar.rules[rule[c]].index] >= 1.0]
+            must[i] = any(must[c] for c in sure)
+        elif node.kind == Kind.REPEAT and node.count is not None and kids:
+            must[i] = bool(node.count.probs[0] == 0 and in_set and must[in_set[0]])
+    return must[set_top]

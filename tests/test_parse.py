@@ -1,0 +1,143 @@
+"""MAP parsing: the MILP against brute-force enumeration, top-N, real and sampled scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from bruteforce import enumerate_parses
+from conftest import GRAMMARS, SINK_DATA
+from test_bruteforce import REPEAT, ROUTES, SINGLES_PAIRS, trays
+
+from ssgc.compile import compile_text, load_grammar
+from ssgc.io.scene import Scene, read_sink_yaml, scene_from_tree
+from ssgc.parse.ip import reduce_scene
+from ssgc.parse.milp import HighsSession
+from ssgc.parse.parser import Parser
+from ssgc.sample.forward import sample_trees
+from ssgc.score import score_trees
+
+TINY = {"repeat": REPEAT, "routes": ROUTES, "singles_pairs": SINGLES_PAIRS}
+
+
+def sampled_scenes(grammar, n, seed, max_objects):
+    trees, logp = sample_trees(grammar, n, seed)
+    out = []
+    for i in range(n):
+        scene = scene_from_tree(grammar, trees.tree(i), f"s{i}", float(logp[i]))
+        if len(scene) <= max_objects:
+            out.append(scene)
+    return out
+
+
+def tiny_grammars():
+    yield from ((name, compile_text(text)) for name, text in TINY.items())
+    yield "trays", trays(3)
+
+
+@pytest.mark.parametrize(("name", "grammar"), list(tiny_grammars()))
+def test_top_n_equals_brute_force_enumeration(name, grammar):
+    parser = Parser(grammar)
+    checked = 0
+    for scene in sampled_scenes(grammar, 40, seed=3, max_objects=5):
+        truth = enumerate_parses(grammar, scene)
+        result = parser.parse(scene, top=len(truth) + 2)
+        got = [p.score for p in result.parses]
+        want = [s for s, _ in truth]
+        assert len(got) == len(want), (name, scene.name)
+        np.testing.assert_allclose(got, want, atol=1e-7)
+        assert result.status == "optimal"
+        checked += 1
+    assert checked >= 10
+
+
+def test_set_formulation_agrees_with_brute_force():
+    """The equivalent-set MILP (thesis 3.5) finds the same optimum as enumeration."""
+    grammar = compile_text(SINGLES_PAIRS)
+    parser = Parser(grammar)
+    for scene in sampled_scenes(grammar, 30, seed=5, max_objects=5):
+        best = enumerate_parses(grammar, scene)[0][0]
+        problem = reduce_scene(grammar, parser.supertree, scene)
+        solution = HighsSession(problem.milp).solve()
+        assert solution.status == "optimal"
+        tree = problem.invert(solution.x)
+        assert score_trees(grammar, tree)[0] == pytest.approx(solution.objective, abs=1e-7)
+        assert solution.objective == pytest.approx(best, abs=1e-7)
+
+
+def test_top_n_trees_are_distinct_and_ranked():
+    grammar = load_grammar(GRAMMARS / "sink.yaml")
+    parser = Parser(grammar)
+    scene = max(read_sink_yaml(SINK_DATA, grammar)[:10], key=len)
+    result = parser.parse(scene, top=10)
+    assert len(result.parses) == 10
+    keys = set()
+    for p in result.parses:
+        assert score_trees(grammar, p.tree)[0] == pytest.approx(p.score, abs=1e-9)
+        assert sum(p.rule_log_probs) == pytest.approx(p.score, abs=1e-9)
+        keys.add(tuple(map(tuple, np.round(np.c_[p.tree.type, p.tree.parent, p.tree.xyz], 9))))
+    assert len(keys) == 10
+    scores = [p.score for p in result.parses]
+    assert scores == sorted(scores, reverse=True)
+
+
+def test_every_real_sink_scene_parses_optimally():
+    grammar = load_grammar(GRAMMARS / "sink.yaml")
+    parser = Parser(grammar)
+    scenes = read_sink_yaml(SINK_DATA, grammar)
+    results = [parser.parse(s) for s in scenes]
+    assert len(results) == 80
+    assert all(r.status == "optimal" and r.parses[0].gap <= 1e-9 for r in results)
+    assert max(len(s) for s in scenes) == 11  # the 10-object scenes (plus the bin) included
+
+
+@pytest.mark.parametrize("grammar_file", ["singles_pairs_dependency.yaml", "sink.yaml"])
+def test_sampled_scenes_match_or_beat_ground_truth(grammar_file):
+    grammar = load_grammar(GRAMMARS / grammar_file)
+    parser = Parser(grammar)
+    scenes = sampled_scenes(grammar, 100, seed=11, max_objects=1000)
+    for scene in scenes:
+        best = parser.parse(scene).parses[0].score
+        assert best >= scene.log_prob - 1e-6, scene.name
+
+
+def test_scene_the_grammar_cannot_produce_names_the_objects():
+    grammar = load_grammar(GRAMMARS / "sink.yaml")
+    bowl = grammar.type_id("BowlBradshaw7Qt")
+    scene = Scene(
+        "odd",
+        np.array([grammar.root, bowl, bowl]),
+        np.array([[0.5, 0, 0], [0.5, 0, 0.1], [0.5, 0, 0.1]]),
+        np.tile([1.0, 0, 0, 0], (3, 1)),
+    )
+    parser = Parser(grammar)
+    assert parser.parse(scene).status == "optimal"  # a bowl in a bowl is fine
+    gmm = load_grammar(GRAMMARS / "gmm.yaml")
+    point = gmm.type_id("Point")
+    two_points = Scene(
+        "two", np.array([point, point]), np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1))
+    )
+    result = Parser(gmm).parse(two_points)
+    assert result.status == "infeasible" and not result.parses
+    assert "scene 'two': no tree of the grammar explains all 2 objects" in result.message
+    cup = grammar.type_id("MugColeHardwareClassicBlue")
+    no_bin = Scene(
+        "floating",
+        np.array([grammar.root, cup]),
+        np.array([[0.5, 0, 0], [9, 9, 9]]),
+        np.tile([1.0, 0, 0, 0], (2, 1)),
+    )
+    result = parser.parse(no_bin)
+    assert result.status == "optimal"  # far away is unlikely, not impossible
+    root_elsewhere = Scene(
+        "moved", np.array([grammar.root]), np.array([[0.0, 0, 0]]), np.tile([1.0, 0, 0, 0], (1, 1))
+    )
+    result = parser.parse(root_elsewhere)
+    assert result.status == "infeasible"
+    assert "objects the grammar cannot place: 0 (DishBin)" in result.message
+
+
+def test_latent_pose_grammar_is_refused_clearly():
+    grammar = load_grammar(GRAMMARS / "singles_pairs_constituency.yaml")
+    scene = sampled_scenes(grammar, 5, seed=0, max_objects=100)[0]
+    with pytest.raises(Exception, match="latent poses"):
+        Parser(grammar).parse(scene)
