@@ -327,9 +327,13 @@ def quat_to_axis_angle(q: ArrayLike) -> tuple[FloatArray, FloatArray]:
     vec = q[..., 1:]
     vec_norm = np.linalg.norm(vec, axis=-1)
     angle = 2.0 * np.arctan2(vec_norm, q[..., 0])
-    zero = vec_norm == 0.0
-    safe_norm = np.where(zero, 1.0, vec_norm)[..., None]
-    axis = np.where(zero[..., None], np.array([1.0, 0.0, 0.0]), vec / safe_norm)
+    # Scale by the largest component before normalising: for angles near 1e-160 the squares
+    # in the norm underflow and the axis would come out visibly non-unit.
+    peak = np.max(np.abs(vec), axis=-1)
+    zero = peak == 0.0
+    scaled = vec / np.where(zero, 1.0, peak)[..., None]
+    axis = scaled / np.linalg.norm(scaled, axis=-1, keepdims=True).clip(min=1.0)
+    axis = np.where(zero[..., None], np.array([1.0, 0.0, 0.0]), axis)
     return axis, angle
 
 
