@@ -141,3 +141,50 @@ def test_latent_pose_grammar_is_refused_clearly():
     scene = sampled_scenes(grammar, 5, seed=0, max_objects=100)[0]
     with pytest.raises(Exception, match="latent poses"):
         Parser(grammar).parse(scene)
+
+
+CHAIN = """
+grammar: chain
+root: {type: Table, pose: {xyz: [0, 0, 0.4], rpy_deg: [0, 0, 30]}}
+types:
+  Table:
+    observed: true
+    and:
+      - child: Edge
+        translation: {offset: [0.5, 0.0, 0.3]}
+        rotation: {offset: {rpy_deg: [0, 0, 90]}}
+  Edge:
+    and:
+      - child: Seat
+        translation: {offset: [0.2, 0.1, 0.0]}
+        rotation: {offset: {rpy_deg: [0, 0, 180]}}
+  Seat:
+    repeat:
+      count: {probs: [0.2, 0.5, 0.3]}
+      rule:
+        child: Cup
+        translation: {parent_normal_offset: {mean: [0.1, 0.0, 0.0], variance: 0.01, pin: [z]}}
+        rotation: {revolute: {axis: [0, 0, 1], min: -1.0, max: 1.0}}
+  Cup: {observed: true}
+"""
+
+
+def test_chained_fixed_offsets_match_brute_force():
+    """Poses through two fixed, rotated offsets (the dimsum place settings' shape)."""
+    grammar = compile_text(CHAIN)
+    parser = Parser(grammar)
+    scenes = sampled_scenes(grammar, 30, seed=2, max_objects=10)
+    for scene in scenes:
+        truth = [s for s, _ in enumerate_parses(grammar, scene)]
+        got = [p.score for p in parser.parse(scene, top=5).parses]
+        np.testing.assert_allclose(got, truth[:5], atol=1e-7)
+        assert got[0] >= scene.log_prob - 1e-6
+
+
+def test_dimsum_sampled_scenes_match_or_beat_ground_truth():
+    grammar = load_grammar(GRAMMARS / "dimsum_table.yaml")
+    parser = Parser(grammar)
+    for scene in sampled_scenes(grammar, 60, seed=4, max_objects=12):
+        result = parser.parse(scene)
+        assert result.status == "optimal", (scene.name, result.message)
+        assert result.parses[0].score >= scene.log_prob - 1e-6, scene.name

@@ -112,21 +112,18 @@ class _Unroll:
 
     def unroll(self) -> None:
         st, g = self.st, self.g
+        tb = g.tables
         self._add(0, -1, -1, g.root_xyz, g.root_quat)
         i = 0
         while i < len(self.node):
             n = self.node[i]
             for slot, c in enumerate(self._slots(n)):
-                if st.set_of[c] == st.set_of[n]:  # fixed rule: one child, pose composed
-                    copies = [c2 for c2 in st.children[n] if st.rule[c2] == st.rule[c]]
-                    for c2 in copies:
-                        self._add(
-                            c2,
-                            i,
-                            slot,
-                            self.xyz[i] + quat_rotate(self.quat[i], st.offset_xyz[c2]),
-                            quat_multiply(self.quat[i], st.offset_quat[c2]),
-                        )
+                if st.set_of[c] == st.set_of[n]:  # fixed rule: the rule's offset from i
+                    r = st.rule[c]
+                    xyz = self.xyz[i] + quat_rotate(self.quat[i], tb.t_offset[r])
+                    quat = quat_multiply(self.quat[i], tb.r_offset[r])
+                    for c2 in (c2 for c2 in st.children[n] if st.rule[c2] == r):
+                        self._add(c2, i, slot, xyz, quat)
                 else:  # one child per candidate pose of the child's set
                     e = st.set_of[c]
                     for t, q in zip(self.cand_xyz[e], self.cand_quat[e], strict=True):
