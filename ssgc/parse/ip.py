@@ -32,7 +32,14 @@ from ssgc.errors import SsgError
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.parse.milp import ColumnBuilder, Milp, RowBuilder
+from ssgc.parse.milp import (
+    ColumnBuilder,
+    Milp,
+    RowBuilder,
+    add_correspondences,
+    add_count_law,
+    add_leq,
+)
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
@@ -236,15 +243,7 @@ class _Reduction:
         self.structural.append(cols[live != 0])
         parents = self.st.parent[live[1:]]
         child_cols, parent_cols = cols[1:], self.node_col[parents]
-        k = len(child_cols)
-        self.rows.add(
-            np.r_[np.arange(k), np.arange(k)],
-            np.r_[child_cols, parent_cols],
-            np.r_[np.ones(k), -np.ones(k)],
-            k,
-            -np.inf,
-            0.0,
-        )  # child <= parent
+        add_leq(self.rows, child_cols, parent_cols)  # child <= parent
 
     def set_columns(self) -> None:
         st = self.st
@@ -277,33 +276,13 @@ class _Reduction:
         np.add.at(by_obj, obj, 1)
         if np.any(by_obj == 0):
             raise UnparseableScene([self._explain_infeasible()], exit_code=2)
-        # each object explained exactly once
-        self.rows.add(obj, cols, 1.0, n_obj, 1.0, 1.0)
-        # an observed node is active iff it explains one object
         obs_nodes = np.flatnonzero(self.can & self.observed_node)
         if self.implicit_root:
             obs_nodes = obs_nodes[obs_nodes != 0]
-        local = np.full(len(self.st), -1, np.int64)
-        local[obs_nodes] = np.arange(len(obs_nodes))
-        self.rows.add(
-            np.r_[local[node], local[obs_nodes]],
-            np.r_[cols, self.node_col[obs_nodes]],
-            np.r_[np.ones(len(cols)), -np.ones(len(obs_nodes))],
-            len(obs_nodes),
-            0.0,
-            0.0,
-        )
+        add_correspondences(self.rows, cols, node, obj, n_obj, self.node_col, obs_nodes)
         # ... at its set's chosen pose
         set_pose = np.array([self.set_cols[self.st.set_of[n]][k] for n, _, k in live], np.int64)
-        m = len(cols)
-        self.rows.add(
-            np.r_[np.arange(m), np.arange(m)],
-            np.r_[cols, set_pose],
-            np.r_[np.ones(m), -np.ones(m)],
-            m,
-            -np.inf,
-            0.0,
-        )
+        add_leq(self.rows, cols, set_pose)
 
     def node_logic(self) -> None:
         """Which rules fire, and their discrete log-probabilities (thesis 3.4.3)."""
@@ -356,35 +335,9 @@ class _Reduction:
 
     def _repeat(self, p: int, live: list[int], probs: FloatArray) -> None:
         col = self.node_col
-        counts = np.flatnonzero(probs[: len(live) + 1] > 0)
-        z = self.cols.add(len(counts), integer=True, cost=np.log(probs[counts]))
-        # one count iff the node is active; the count is the number of active copies
-        self.rows.add(
-            np.zeros(len(z) + 1, np.int64),
-            np.r_[z, col[p]],
-            np.r_[np.ones(len(z)), -1.0],
-            1,
-            0.0,
-            0.0,
-        )
-        self.rows.add(
-            np.zeros(len(z) + len(live), np.int64),
-            np.r_[z, col[live]],
-            np.r_[-counts.astype(float), np.ones(len(live))],
-            1,
-            0.0,
-            0.0,
-        )
+        add_count_law(self.cols, self.rows, int(col[p]), col[live], probs)
         if len(live) > 1:  # copies fill up in order: a[c_k+1] <= a[c_k]
-            k = len(live) - 1
-            self.rows.add(
-                np.r_[np.arange(k), np.arange(k)],
-                np.r_[col[live[1:]], col[live[:-1]]],
-                np.r_[np.ones(k), -np.ones(k)],
-                k,
-                -np.inf,
-                0.0,
-            )
+            add_leq(self.rows, col[live[1:]], col[live[:-1]])
 
     def edges(self) -> None:
         """Every rule log-density between candidate poses of a parent set and a child set."""

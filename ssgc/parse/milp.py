@@ -88,6 +88,67 @@ class RowBuilder:
         self.m += n_rows
 
 
+def add_leq(rows: RowBuilder, lhs: NDArray[np.int64], rhs: NDArray[np.int64]) -> None:
+    """x[lhs[i]] <= x[rhs[i]] for every i (child <= parent, choice <= selection, ...)."""
+    k = len(lhs)
+    rows.add(
+        np.r_[np.arange(k), np.arange(k)],
+        np.r_[lhs, rhs],
+        np.r_[np.ones(k), -np.ones(k)],
+        k,
+        -np.inf,
+        0.0,
+    )
+
+
+def add_count_law(
+    cols: ColumnBuilder,
+    rows: RowBuilder,
+    parent: int,
+    children: NDArray[np.int64],
+    probs: FloatArray,
+) -> None:
+    """A `repeat` node: one count indicator z[c] per possible count c, costing log P(c);
+    exactly one is on iff the parent is, and it equals the number of active children."""
+    counts = np.flatnonzero(probs[: len(children) + 1] > 0)
+    z = cols.add(len(counts), integer=True, cost=np.log(probs[counts]))
+    rows.add(
+        np.zeros(len(z) + 1, np.int64), np.r_[z, parent], np.r_[np.ones(len(z)), -1.0], 1, 0.0, 0.0
+    )
+    rows.add(
+        np.zeros(len(z) + len(children), np.int64),
+        np.r_[z, children],
+        np.r_[-counts.astype(float), np.ones(len(children))],
+        1,
+        0.0,
+        0.0,
+    )
+
+
+def add_correspondences(
+    rows: RowBuilder,
+    b: NDArray[np.int64],
+    node: NDArray[np.int64],
+    obj: NDArray[np.int64],
+    n_obj: int,
+    node_cols: NDArray[np.int64],
+    observed_nodes: NDArray[np.int64],
+) -> None:
+    """b[i] = node[i] explains object obj[i]: each object exactly once; an observed node is
+    active iff it explains one object."""
+    rows.add(obj, b, 1.0, n_obj, 1.0, 1.0)
+    local = np.full(int(max(node.max(initial=0), observed_nodes.max(initial=0))) + 1, -1, np.int64)
+    local[observed_nodes] = np.arange(len(observed_nodes))
+    rows.add(
+        np.r_[local[node], local[observed_nodes]],
+        np.r_[b, node_cols[observed_nodes]],
+        np.r_[np.ones(len(b)), -np.ones(len(observed_nodes))],
+        len(observed_nodes),
+        0.0,
+        0.0,
+    )
+
+
 @dataclass(frozen=True)
 class Milp:
     """maximise cost·x subject to row_lo <= A x <= row_hi, col_lo <= x <= col_hi."""

@@ -27,7 +27,14 @@ from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
 from ssgc.parse.ip import UnparseableScene
-from ssgc.parse.milp import ColumnBuilder, Milp, RowBuilder
+from ssgc.parse.milp import (
+    ColumnBuilder,
+    Milp,
+    RowBuilder,
+    add_correspondences,
+    add_count_law,
+    add_leq,
+)
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
@@ -313,15 +320,7 @@ class _Model:
         self.cols.lo[-1] = np.where(live == 0, 1.0, 0.0)
         self.structural.append(self.col[live[live != 0]])
         ch = live[live != 0]
-        k = len(ch)
-        self.rows.add(
-            np.r_[np.arange(k), np.arange(k)],
-            np.r_[self.col[ch], self.col[self.parent[ch]]],
-            np.r_[np.ones(k), -np.ones(k)],
-            k,
-            -np.inf,
-            0.0,
-        )
+        add_leq(self.rows, self.col[ch], self.col[self.parent[ch]])  # child <= parent
 
     def correspondence_rows(self) -> None:
         keep = self.can[self.match_inst]
@@ -331,20 +330,10 @@ class _Model:
             raise UnparseableScene([self._unexplained()], exit_code=2)
         b = self.cols.add(len(inst), integer=True)
         self.structural.append(b)
-        self.rows.add(obj, b, 1.0, n_obj, 1.0, 1.0)  # every object explained once
         obs = np.flatnonzero(self.can & self.observed)
         if self.implicit_root:
             obs = obs[obs != 0]
-        local = np.full(len(self.node), -1, np.int64)
-        local[obs] = np.arange(len(obs))
-        self.rows.add(
-            np.r_[local[inst], local[obs]],
-            np.r_[b, self.col[obs]],
-            np.r_[np.ones(len(b)), -np.ones(len(obs))],
-            len(obs),
-            0.0,
-            0.0,
-        )
+        add_correspondences(self.rows, b, inst, obj, n_obj, self.col, obs)
 
     def logic_rows(self) -> None:
         g = self.g
@@ -410,34 +399,9 @@ class _Model:
         self.cols.add_cost(np.asarray(cost_c, np.int64), np.asarray(cost_v, float))
 
     def _repeat(self, a: int, kids: list[int], probs: FloatArray) -> None:
-        counts = np.flatnonzero(probs[: len(kids) + 1] > 0)
-        z = self.cols.add(len(counts), integer=True, cost=np.log(probs[counts]))
-        self.rows.add(
-            np.zeros(len(z) + 1, np.int64), np.r_[z, a], np.r_[np.ones(len(z)), -1.0], 1, 0.0, 0.0
-        )
-        cols = self.col[kids]
-        self.rows.add(
-            np.zeros(len(z) + len(cols), np.int64),
-            np.r_[z, cols],
-            np.r_[-counts.astype(float), np.ones(len(cols))],
-            1,
-            0.0,
-            0.0,
-        )
+        add_count_law(self.cols, self.rows, a, self.col[kids], probs)
         # copies at one pose (a fixed `repeat` rule) fill up in order
-        same = [
-            c
-            for c in kids
-            if self.st.set_of[self.node[c]] == self.st.set_of[self.node[self.parent[c]]]
-        ]
+        st = self.st
+        same = [c for c in kids if st.set_of[self.node[c]] == st.set_of[self.node[self.parent[c]]]]
         if len(same) > 1:
-            k = len(same) - 1
-            s = self.col[same]
-            self.rows.add(
-                np.r_[np.arange(k), np.arange(k)],
-                np.r_[s[1:], s[:-1]],
-                np.r_[np.ones(k), -np.ones(k)],
-                k,
-                -np.inf,
-                0.0,
-            )
+            add_leq(self.rows, self.col[same[1:]], self.col[same[:-1]])
