@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ssgc.errors import SsgError
+from ssgc.errors import Diagnostic, SsgError
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
@@ -50,6 +50,21 @@ FloatArray = NDArray[np.float64]
 
 class UnparseableScene(SsgError):
     """The grammar cannot produce this scene (exit code 2)."""
+
+
+def unplaceable(grammar: Grammar, scene: Scene, placeable: set[int]) -> Diagnostic:
+    """The message for a scene no tree can explain, naming the objects no node can take."""
+    lost = [
+        f"{o} ({grammar.types[scene.types[o]].name})"
+        for o in range(len(scene))
+        if o not in placeable
+    ]
+    text = (
+        ("objects the grammar cannot place: " + ", ".join(lost))
+        if lost
+        else ("no tree of the grammar contains this scene's objects")
+    )
+    return Diagnostic(f"scene '{scene.name}': {text}")
 
 
 @dataclass(frozen=True)
@@ -209,17 +224,8 @@ class _Reduction:
             raise UnparseableScene([self._explain_infeasible()], exit_code=2)
         self.can = can
 
-    def _explain_infeasible(self):  # type: ignore[no-untyped-def]
-        from ssgc.errors import Diagnostic
-
-        used = {o for _, o, _ in self.pairs}
-        names = [self.g.types[self.scene.types[o]].name for o in range(len(self.scene))]
-        lost = [f"{o} ({names[o]})" for o in range(len(self.scene)) if o not in used]
-        if lost:
-            text = "objects the grammar cannot place: " + ", ".join(lost)
-        else:
-            text = "no tree of the grammar contains this scene's objects"
-        return Diagnostic(f"scene '{self.scene.name}': {text}")
+    def _explain_infeasible(self) -> Diagnostic:
+        return unplaceable(self.g, self.scene, {o for _, o, _ in self.pairs})
 
     def _p(self, c: int) -> float:
         parent = self.st.parent[c]

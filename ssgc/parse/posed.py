@@ -26,7 +26,7 @@ from ssgc.errors import Diagnostic
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.parse.ip import UnparseableScene
+from ssgc.parse.ip import UnparseableScene, unplaceable
 from ssgc.parse.milp import (
     ColumnBuilder,
     Milp,
@@ -280,15 +280,7 @@ class _Model:
         self.can = can
 
     def _unexplained(self) -> Diagnostic:
-        used = set(self.match_obj.tolist())
-        names = [self.g.types[t].name for t in self.scene.types]
-        lost = [f"{o} ({names[o]})" for o in range(len(self.scene)) if o not in used]
-        text = (
-            ("objects the grammar cannot place: " + ", ".join(lost))
-            if lost
-            else ("no tree of the grammar contains this scene's objects")
-        )
-        return Diagnostic(f"scene '{self.scene.name}': {text}")
+        return unplaceable(self.g, self.scene, set(self.match_obj.tolist()))
 
     def _slot_rules(self, i: int) -> list[int]:
         return sorted({int(self.st.rule[c]) for c in self.st.children[self.node[i]]})
