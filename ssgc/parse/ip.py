@@ -52,6 +52,16 @@ class UnparseableScene(SsgError):
     """The grammar cannot produce this scene (exit code 2)."""
 
 
+def implied_set_poses(grammar: Grammar, st: Supertree, scene: Scene):  # type: ignore[no-untyped-def]
+    """For each observed supertree node n with objects of its type: (n, objects, t, q), the
+    poses of n's set top that put n exactly on each of those objects."""
+    for n in np.flatnonzero(grammar.tables.type_observed[st.type]):
+        objs = np.flatnonzero(scene.types == st.type[n])
+        if len(objs):
+            q = quat_multiply(scene.quat[objs], quat_conjugate(st.offset_quat[n]))
+            yield int(n), objs, scene.xyz[objs] - quat_rotate(q, st.offset_xyz[n]), q
+
+
 def unplaceable(grammar: Grammar, scene: Scene, placeable: set[int]) -> Diagnostic:
     """The message for a scene no tree can explain, naming the objects no node can take."""
     lost = [
@@ -157,18 +167,12 @@ class _Reduction:
         self.cand_xyz[self.root_set] = self.g.root_xyz.reshape(1, 3).copy()
         self.cand_quat[self.root_set] = self.g.root_quat.reshape(1, 4).copy()
         self.latent_sets = np.flatnonzero(latent)
-        for n in np.flatnonzero(self.observed_node):
-            objs = np.flatnonzero(scene.types == st.type[n])
-            if len(objs) == 0:
-                continue
+        for n, objs, t, q in implied_set_poses(self.g, st, scene):
             e = int(st.set_of[n])
-            # The set pose that puts node n exactly on each object.
-            q = quat_multiply(scene.quat[objs], quat_conjugate(st.offset_quat[n]))
-            t = scene.xyz[objs] - quat_rotate(q, st.offset_xyz[n])
             for o, ti, qi in zip(objs, t, q, strict=True):
                 k = self._candidate_index(e, ti, qi, add=(e != self.root_set))
                 if k >= 0:
-                    self.pairs.append((int(n), int(o), k))
+                    self.pairs.append((n, int(o), k))
 
     def _candidate_index(self, e: int, t: FloatArray, q: FloatArray, add: bool) -> int:
         xyz, quat = self.cand_xyz[e], self.cand_quat[e]

@@ -23,10 +23,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.errors import Diagnostic
-from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
+from ssgc.geometry import quat_angle, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.parse.ip import UnparseableScene, unplaceable
+from ssgc.parse.ip import UnparseableScene, implied_set_poses, unplaceable
 from ssgc.parse.milp import (
     ColumnBuilder,
     Milp,
@@ -84,14 +84,8 @@ def candidate_poses(
     nodes exactly on an object of the scene."""
     xyz: list[list[FloatArray]] = [[] for _ in range(st.n_sets)]
     quat: list[list[FloatArray]] = [[] for _ in range(st.n_sets)]
-    observed = grammar.tables.type_observed[st.type]
-    for n in np.flatnonzero(observed):
-        objs = np.flatnonzero(scene.types == st.type[n])
-        if len(objs) == 0:
-            continue
+    for n, _, t, q in implied_set_poses(grammar, st, scene):
         e = int(st.set_of[n])
-        q = quat_multiply(scene.quat[objs], quat_conjugate(st.offset_quat[n]))
-        t = scene.xyz[objs] - quat_rotate(q, st.offset_xyz[n])
         for ti, qi in zip(t, q, strict=True):
             if not any(
                 np.linalg.norm(ti - tj) <= POS_TOL and quat_angle(qi, qj) <= ROT_TOL
