@@ -58,19 +58,25 @@ def _timed(fn: Any) -> tuple[float, Any]:
 
 
 def bench_parse(
-    grammar: Grammar, n: int, seed: int, top: int = 1, time_limit: float | None = None
+    grammar: Grammar,
+    n: int,
+    seed: int,
+    top: int = 1,
+    time_limit: float | None = None,
+    method: str = "auto",
 ) -> dict[str, Any]:
     """Sample n scenes, parse each, and compare the best parse with the sampled tree."""
     from ssgc.io.scene import scene_from_tree
     from ssgc.parse.parser import Parser
 
-    parser = Parser(grammar)
+    parser = Parser(grammar, method=method)
     trees, logp = sample_trees(grammar, n, seed)
     rows = []
     for i in range(n):
         scene = scene_from_tree(grammar, trees.tree(i), f"{grammar.name}_{i:06d}", float(logp[i]))
         result = parser.parse(scene, top=top, time_limit=time_limit)
         best = result.parses[0].score if result.parses else float("-inf")
+        raw = float(result.extra.get("raw_score", best))
         rows.append(
             {
                 "scene": scene.name,
@@ -82,6 +88,10 @@ def bench_parse(
                 "ground_truth_score": float(logp[i]),
                 "parse_score": best,
                 "match_or_beat": bool(best >= logp[i] - 1e-6),
+                "raw_parse_score": raw,
+                "raw_match_or_beat": bool(raw >= logp[i] - 1e-6),
+                "gap": _finite_or_none(result.parses[0].gap if result.parses else None),
+                "bound": _finite_or_none(result.extra.get("bound")),
             }
         )
     total = np.array([r["total_s"] for r in rows])
@@ -92,14 +102,22 @@ def bench_parse(
         "scenes": n,
         "seed": seed,
         "top": top,
+        "method": method,
         "rows": rows,
         "summary": {
             "match_or_beat_rate": float(np.mean([r["match_or_beat"] for r in rows])),
+            "raw_match_or_beat_rate": float(np.mean([r["raw_match_or_beat"] for r in rows])),
+            "max_gap": max((r["gap"] for r in rows if r["gap"] is not None), default=None),
+            "gap_known_rate": float(np.mean([r["gap"] is not None for r in rows])),
             "median_total_s": float(np.median(total)),
             "max_total_s": float(np.max(total)),
             "build_linearity": _linearity(size, build),
         },
     }
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
 
 
 def _linearity(size: np.ndarray, seconds: np.ndarray) -> dict[str, float]:

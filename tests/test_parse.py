@@ -136,13 +136,6 @@ def test_scene_the_grammar_cannot_produce_names_the_objects():
     assert "objects the grammar cannot place: 0 (DishBin)" in result.message
 
 
-def test_latent_pose_grammar_is_refused_clearly():
-    grammar = load_grammar(GRAMMARS / "singles_pairs_constituency.yaml")
-    scene = sampled_scenes(grammar, 5, seed=0, max_objects=100)[0]
-    with pytest.raises(Exception, match="latent poses"):
-        Parser(grammar).parse(scene)
-
-
 CHAIN = """
 grammar: chain
 root: {type: Table, pose: {xyz: [0, 0, 0.4], rpy_deg: [0, 0, 30]}}

@@ -17,14 +17,27 @@ import numpy as np
 from ssgc.errors import SsgError
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar
+from ssgc.parse.bound import SetBound, assignment_problem, set_bounds
 from ssgc.parse.ip import ParseProblem, UnparseableScene, reduce_scene
 from ssgc.parse.milp import HighsSession
-from ssgc.parse.posed import PosedProblem, TooLarge, reduce_posed
+from ssgc.parse.posed import (
+    MAX_INSTANCES,
+    OutOfTime,
+    PosedProblem,
+    TooLarge,
+    candidate_poses,
+    reduce_posed,
+)
+from ssgc.parse.poses import free_blocks, refine_tree
+from ssgc.parse.proposals import Candidates, add_proposals, latent_sets
 from ssgc.parse.supertree import Supertree, build_supertree
 from ssgc.score import node_terms, score_trees
 from ssgc.tree import Trees
 
 SCORE_TOL = 1e-6
+METHODS = ("auto", "ip", "micp")
+PROPOSAL_SHARE = 0.3  # of a time limit, for making and optimising pose proposals
+DEADLINE_SHARE = 0.95  # of a time limit, when every step must have stopped
 
 
 @dataclass
@@ -49,84 +62,118 @@ class SceneParses:
 
 
 class Parser:
-    """Parses scenes with one grammar; the supertree is built once and reused."""
+    """Parses scenes with one grammar; the supertree is built once and reused.
 
-    def __init__(self, grammar: Grammar) -> None:
+    For grammars with latent poses, the MILP chooses among proposed poses
+    (`ssgc.parse.proposals`); each tree it returns is then refined with its structure fixed
+    (`ssgc.parse.poses`), and the refined poses are fed back as proposals until the MILP finds
+    nothing better than the refined tree (at most MAX_ROUNDS times).
+    """
+
+    MAX_ROUNDS = 4
+
+    def __init__(self, grammar: Grammar, method: str = "auto", seed: int = 0) -> None:
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.grammar = grammar
+        self.method = method
+        self.seed = seed
         self.supertree: Supertree = build_supertree(grammar)
+        self.latent = latent_sets(self.supertree)
+
+    @property
+    def has_latent(self) -> bool:
+        return bool(np.any(self.latent))
 
     def parse(self, scene: Scene, top: int = 1, time_limit: float | None = None) -> SceneParses:
         t0 = time.perf_counter()
+        # the last steps after a deadline check (a vectorised pass, HiGHS's exit) take a moment
+        deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
         try:
-            problem = self.reduce(scene)
-        except UnparseableScene as exc:
-            return SceneParses(
-                name=scene.name,
-                parses=[],
-                status="infeasible",
-                message="; ".join(d.message for d in exc.diagnostics),
-                timing={
-                    "build_s": time.perf_counter() - t0,
-                    "solve_s": 0.0,
-                    "total_s": time.perf_counter() - t0,
-                },
-                model={"variables": 0, "binaries": 0, "rows": 0, "nonzeros": 0},
+            # proposals get part of a time limit; the MILP needs the rest
+            cand, bounds = self.candidates(
+                scene, None if time_limit is None else t0 + PROPOSAL_SHARE * time_limit
             )
-        session = HighsSession(problem.milp, time_limit)
-        build_s = time.perf_counter() - t0
-        parses: list[Parse] = []
-        solve_s = 0.0
-        status, message = "optimal", ""
-        while len(parses) < top:
-            if time_limit is not None:
-                left = time_limit - (time.perf_counter() - t0)
-                if left <= 0:
-                    status = "time_limit"
-                    break
-                session.set_time_limit(left)
-            sol = session.solve()
-            solve_s += sol.solve_s
-            if sol.x is None:
-                if not parses or sol.status != "infeasible":
-                    status, message = sol.status, _why(scene, sol.status, sol.message)
-                break  # infeasible after at least one parse: no more trees
-            parses.append(self._read(problem, sol.x, sol.objective, sol.status, sol.gap))
-            if sol.status != "optimal":
-                status = sol.status
-                break
-            _exclude(session, problem, sol.x)
+            propose_s = time.perf_counter() - t0
+            problem = self.reduce(scene, cand, bounds, deadline)
+        except UnparseableScene as exc:
+            return _failed(scene, "infeasible", exc, t0)
+        except OutOfTime:
+            message = f"scene '{scene.name}': time limit reached while building the parse model"
+            return _failed(scene, "time_limit", SsgError.single(message), t0)
+        except ModelTooLarge as exc:
+            return _failed(scene, "error", exc, t0)
+        run = _Run(self, scene, problem, cand, bounds, deadline)
+        run.solve(top)
+        if bounds is not None and run.parses:
+            run.certify()
+        elif self.has_latent and self.method == "micp":
+            run.message = "no upper bound for this grammar's shape: the gap is unknown"
+        if deadline is not None and time.perf_counter() >= deadline and run.status == "optimal":
+            run.status = "time_limit"  # some step was cut short: nothing is certain
+            for p in run.parses:
+                p.status = "time_limit"
         total_s = time.perf_counter() - t0
         return SceneParses(
             name=scene.name,
-            parses=parses,
-            status=status,
-            message=message,
-            timing={"build_s": build_s, "solve_s": solve_s, "total_s": total_s},
-            model=problem.milp.shape,
+            parses=sorted(run.parses, key=lambda p: -p.score),
+            status=run.status,
+            message=run.message,
+            timing={
+                "build_s": run.build_s,
+                "solve_s": run.solve_s,
+                "total_s": total_s,
+                "propose_s": propose_s,
+                "refine_s": run.refine_s,
+                "bound_s": run.bound_s,
+            },
+            model=run.problem.milp.shape,
+            extra={"raw_score": run.raw_score, "bound": run.bound},
         )
 
-    def reduce(self, scene: Scene) -> ParseProblem | PosedProblem:
-        """The pose-instantiated model when every pose is observed and it is small enough,
-        else the equivalent-set model (which also reports grammars with latent poses)."""
-        st = self.supertree
-        latent = ~st.always_observed
-        latent[st.set_of[0]] = False
-        if np.any(latent):
-            names = sorted(
-                {self.grammar.types[st.type[st.set_top[e]]].name for e in np.flatnonzero(latent)}
-            )
-            raise SsgError.single(
-                "this grammar has latent poses (types " + ", ".join(names) + " are never "
-                "observed nor tied to an observed node by fixed rules); the IP parser does not "
-                "yet propose poses for them",
-                self.grammar.file,
-            )
-        try:
-            return reduce_posed(self.grammar, st, scene)
-        except TooLarge:
-            return reduce_scene(self.grammar, st, scene)
+    def candidates(
+        self, scene: Scene, deadline: float | None = None
+    ) -> tuple[Candidates, dict[int, SetBound] | None]:
+        """Candidate poses per set: implied by the objects; for latent sets, the best pose of
+        every assignment of children (`micp`, when the grammar's shape allows the bound) or
+        proposals (`ip`, and any other shape)."""
+        g, st = self.grammar, self.supertree
+        cand = candidate_poses(g, st, scene)
+        if not self.has_latent:
+            return cand, None
+        if self.method != "ip":
+            bounds = set_bounds(g, st, cand, deadline)
+            if bounds is not None:
+                return cand, bounds
+        add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
+        return cand, None
 
-    def _read(
+    def reduce(
+        self,
+        scene: Scene,
+        cand: Candidates | None = None,
+        bounds: dict[int, SetBound] | None = None,
+        deadline: float | None = None,
+    ) -> ParseProblem | PosedProblem:
+        """The pose-instantiated model when it is small enough, else (for grammars without
+        latent poses) the equivalent-set model."""
+        if cand is None:
+            cand, bounds = self.candidates(scene)
+        try:
+            g, st = self.grammar, self.supertree
+            if bounds is not None:
+                return assignment_problem(g, st, scene, cand, bounds, deadline=deadline)
+            return reduce_posed(g, st, scene, cand, deadline=deadline)
+        except TooLarge:
+            if self.has_latent:
+                raise ModelTooLarge.single(
+                    f"scene '{scene.name}': the parse model would have more than "
+                    f"{MAX_INSTANCES} node instances ({len(scene)} objects); parse fewer "
+                    "objects at a time"
+                ) from None
+            return reduce_scene(self.grammar, self.supertree, scene)
+
+    def read(
         self,
         problem: ParseProblem | PosedProblem,
         x: np.ndarray,
@@ -134,10 +181,17 @@ class Parser:
         status: str,
         gap: float,
     ) -> Parse:
+        """The tree a solution encodes, re-scored; it must score the MILP objective."""
         tree = problem.invert(x)
+        parse = self.scored(tree, status, gap, objective)
+        if not abs(parse.score - objective) <= SCORE_TOL * max(1.0, abs(objective)):
+            raise RuntimeError(
+                f"parse score {parse.score} differs from the MILP objective {objective}"
+            )
+        return parse
+
+    def scored(self, tree: Trees, status: str, gap: float, objective: float) -> Parse:
         score = float(score_trees(self.grammar, tree)[0])
-        if not abs(score - objective) <= SCORE_TOL * max(1.0, abs(objective)):
-            raise RuntimeError(f"parse score {score} differs from the MILP objective {objective}")
         terms = node_terms(self.grammar, tree)
         return Parse(
             tree=tree,
@@ -147,6 +201,177 @@ class Parser:
             objective=objective,
             rule_log_probs=(terms.edge + terms.choice).tolist(),
         )
+
+
+class ModelTooLarge(SsgError):
+    """The parse model of a scene would not fit the stated limits."""
+
+
+class _Run:
+    """One scene's solve loop: the refinement rounds (latent grammars), then top-N by cuts."""
+
+    def __init__(
+        self,
+        parser: Parser,
+        scene: Scene,
+        problem: ParseProblem | PosedProblem,
+        cand: Candidates,
+        bounds: dict[int, SetBound] | None,
+        deadline: float | None,
+    ) -> None:
+        self.p, self.scene, self.problem, self.cand = parser, scene, problem, cand
+        self.bounds = bounds
+        self.deadline = deadline
+        self.parses: list[Parse] = []
+        self.seen: set[tuple] = set()
+        self.status, self.message = "optimal", ""
+        self.build_s = problem.build_s
+        self.solve_s = 0.0
+        self.rounds = 0
+        self.refine_s = 0.0
+        self.raw_score = float("nan")  # the first MILP tree's score, before any refinement
+        self.bound = float("nan")  # an upper bound on the MAP score, when one is known
+        self.bound_s = 0.0
+        self.session = HighsSession(problem.milp)
+
+    def _solve_once(self):  # type: ignore[no-untyped-def]
+        if self.deadline is not None:
+            left = self.deadline - time.perf_counter()
+            if left <= 0:
+                return None
+            self.session.set_time_limit(left)
+        sol = self.session.solve()
+        self.solve_s += sol.solve_s
+        return sol
+
+    def solve(self, top: int) -> None:
+        tries = 0
+        while len(self.parses) < top and tries < 20 * top:
+            tries += 1
+            sol = self._solve_once()
+            if sol is None:
+                self.status = "time_limit"
+                return
+            if sol.x is None:
+                if not self.parses or sol.status != "infeasible":
+                    self.status = sol.status
+                    self.message = _why(self.scene, sol.status, sol.message)
+                return  # infeasible after at least one parse: no more trees
+            parse = self.p.read(self.problem, sol.x, sol.objective, sol.status, sol.gap)
+            if not self.parses and np.isnan(self.raw_score):
+                self.raw_score = parse.score
+            if self.p.has_latent and self.bounds is None:
+                parse = self._refined(parse, sol)
+                if parse is None:
+                    continue  # the MILP was rebuilt with better proposals: solve again
+            key = tree_signature(self.p.grammar, parse.tree)
+            if key not in self.seen:
+                self.seen.add(key)
+                self.parses.append(parse)
+            if sol.status != "optimal":
+                self.status = sol.status
+                return
+            _exclude(self.session, self.problem, sol.x)
+
+    def certify(self) -> None:
+        """Bound the MAP score from above (`ssgc.parse.bound`) and give the best parse its gap.
+
+        A time limit during the bound's MILP still leaves a valid bound (HiGHS's dual bound).
+        """
+        g, st = self.p.grammar, self.p.supertree
+        t0 = time.perf_counter()
+        assert self.bounds is not None
+        if self.deadline is not None and self.deadline - t0 < self.build_s:
+            self.message = "time limit reached before the bound: the gap is unknown"
+            return
+        try:
+            problem = assignment_problem(
+                g, st, self.scene, self.cand, self.bounds, upper=True, deadline=self.deadline
+            )
+        except OutOfTime:
+            self.message = "time limit reached before the bound: the gap is unknown"
+            return
+        session = HighsSession(problem.milp)
+        if self.deadline is not None:
+            session.set_time_limit(max(self.deadline - time.perf_counter(), 1e-3))
+        sol = session.solve()
+        self.bound_s = time.perf_counter() - t0
+        self.solve_s += sol.solve_s
+        upper = sol.objective if sol.status == "optimal" else sol.bound
+        if not np.isfinite(upper):
+            return
+        best = max(self.parses, key=lambda p: p.score)
+        self.bound = max(float(upper), best.score)
+        best.gap = (self.bound - best.score) / max(1.0, abs(best.score))
+
+    def _refined(self, parse: Parse, sol) -> Parse | None:  # type: ignore[no-untyped-def]
+        """The parse with its latent poses refined; None when the refined poses were added as
+        proposals and the MILP rebuilt (only while looking for the first tree)."""
+        g = self.p.grammar
+        t0 = time.perf_counter()
+        tree = refine_tree(g, parse.tree, deadline=self.deadline)
+        self.refine_s += time.perf_counter() - t0
+        refined = self.p.scored(tree, parse.status, float("nan"), parse.objective)
+        if refined.score < parse.score:
+            refined = self.p.scored(parse.tree, parse.status, float("nan"), parse.objective)
+        improved = refined.score > parse.score + SCORE_TOL * max(1.0, abs(parse.score))
+        if self.parses or not improved or self.rounds >= Parser.MAX_ROUNDS:
+            return refined
+        self.rounds += 1
+        self._add_refined_poses(sol.x, tree)
+        t0 = time.perf_counter()
+        try:
+            self.problem = self.p.reduce(self.scene, self.cand, deadline=self.deadline)
+        except OutOfTime:
+            return refined
+        self.session = HighsSession(self.problem.milp)
+        self.build_s += time.perf_counter() - t0
+        return None
+
+    def _add_refined_poses(self, x: np.ndarray, tree: Trees) -> None:
+        """Offer every refined latent pose to the latent sets of the same type and rule."""
+        st = self.p.supertree
+        problem = self.problem
+        assert isinstance(problem, PosedProblem)
+        nodes = problem.st_node[problem.active(x)]
+        _, tops = free_blocks(self.p.grammar, tree)
+        for i in tops:
+            n = nodes[i]
+            same = (
+                self.p.latent
+                & (st.type[st.set_top] == st.type[n])
+                & (st.rule[st.set_top] == st.rule[n])
+            )
+            for e in np.flatnonzero(same):
+                self.cand.add(int(e), tree.xyz[i], tree.quat[i])
+
+
+def tree_signature(grammar: Grammar, tree: Trees) -> tuple:
+    """What makes two parse trees different: types, rules, and the poses of nodes tied to
+    observations, but not the poses of latent nodes (two refinements of one structure are one
+    tree)."""
+    top, tops = free_blocks(grammar, tree)
+    latent = np.isin(top, tops)
+    keys: list[tuple] = [()] * len(tree)
+    kids: list[list[tuple]] = [[] for _ in range(len(tree))]
+    for i in range(len(tree) - 1, -1, -1):  # children first
+        pose = () if latent[i] else tuple(np.round(np.r_[tree.xyz[i], np.abs(tree.quat[i])], 6))
+        keys[i] = (int(tree.type[i]), int(tree.rule[i]), pose, tuple(sorted(kids[i])))
+        if tree.parent[i] >= 0:
+            kids[tree.parent[i]].append(keys[i])
+    return keys[0] if keys else ()
+
+
+def _failed(scene: Scene, status: str, exc: SsgError, t0: float) -> SceneParses:
+    elapsed = time.perf_counter() - t0
+    return SceneParses(
+        name=scene.name,
+        parses=[],
+        status=status,
+        message="; ".join(d.message for d in exc.diagnostics),
+        timing={"build_s": elapsed, "solve_s": 0.0, "total_s": elapsed},
+        model={"variables": 0, "binaries": 0, "rows": 0, "nonzeros": 0},
+    )
 
 
 def _why(scene: Scene, status: str, solver_message: str) -> str:
@@ -200,6 +425,9 @@ def result_to_json(grammar: Grammar, result: SceneParses) -> dict[str, Any]:
         "timing": {k: round(v, 6) for k, v in result.timing.items()},
         "model": {k: result.model[k] for k in ("variables", "binaries", "rows")},
     }
+    bound = result.extra.get("bound", float("nan"))
+    if np.isfinite(bound):
+        out["bound"] = bound
     if result.message:
         out["message"] = result.message
     return out

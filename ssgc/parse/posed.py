@@ -17,6 +17,7 @@ the caller falls back to the set formulation when it is too large.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +36,7 @@ from ssgc.parse.milp import (
     add_count_law,
     add_leq,
 )
+from ssgc.parse.proposals import Candidates
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
@@ -46,6 +48,31 @@ MAX_INSTANCES = 60_000
 
 class TooLarge(Exception):
     """The unrolled model would exceed MAX_INSTANCES nodes."""
+
+
+class OutOfTime(Exception):
+    """The deadline passed while the model was being built."""
+
+
+def check_deadline(deadline: float | None) -> None:
+    if deadline is not None and time.perf_counter() >= deadline:
+        raise OutOfTime
+
+
+@dataclass(frozen=True)
+class Instances:
+    """The unrolled nodes, for callers that rewrite their scores (`reduce_posed(adjust=...)`)."""
+
+    st_node: IntArray  # supertree node of each instance
+    parent: IntArray  # parent instance, -1 for the root
+    cand_k: IntArray  # index of the instance's pose among its set's candidates
+    top: IntArray  # the instance heading each instance's equivalent set
+    score: FloatArray  # log-density of the instance's pose given its parent's (writable)
+
+
+# Per set e: the (member node, rule) child slots and, per candidate pose a of e, the candidate
+# index of the child allowed in each slot (the latent-pose assignments of ssgc.parse.bound).
+Restriction = dict[int, tuple[tuple[tuple[int, int], ...], IntArray]]
 
 
 @dataclass(frozen=True)
@@ -60,9 +87,13 @@ class PosedProblem:
     build_s: float
     supertree: Supertree
 
+    def active(self, x: FloatArray) -> IntArray:
+        """The instances a solution switches on, parents first (the nodes of `invert`)."""
+        return np.flatnonzero((self.col >= 0) & (x[np.maximum(self.col, 0)] > 0.5))
+
     def invert(self, x: FloatArray) -> Trees:
         st = self.supertree
-        on = np.flatnonzero((self.col >= 0) & (x[np.maximum(self.col, 0)] > 0.5))
+        on = self.active(x)
         new_index = np.full(len(self.col), -1, np.int64)
         new_index[on] = np.arange(len(on))
         parent = self.parent[on]
@@ -77,44 +108,47 @@ class PosedProblem:
         )
 
 
-def candidate_poses(
-    grammar: Grammar, st: Supertree, scene: Scene
-) -> tuple[list[FloatArray], list[FloatArray]]:
+def candidate_poses(grammar: Grammar, st: Supertree, scene: Scene) -> Candidates:
     """Per equivalent set, the distinct poses of its top node that put one of its observed
-    nodes exactly on an object of the scene."""
-    xyz: list[list[FloatArray]] = [[] for _ in range(st.n_sets)]
-    quat: list[list[FloatArray]] = [[] for _ in range(st.n_sets)]
-    for n, _, t, q in implied_set_poses(grammar, st, scene):
-        e = int(st.set_of[n])
-        for ti, qi in zip(t, q, strict=True):
-            if not any(
-                np.linalg.norm(ti - tj) <= POS_TOL and quat_angle(qi, qj) <= ROT_TOL
-                for tj, qj in zip(xyz[e], quat[e], strict=True)
-            ):
-                xyz[e].append(ti)
-                quat[e].append(qi)
-    return (
-        [np.asarray(v).reshape(-1, 3) for v in xyz],
-        [np.asarray(v).reshape(-1, 4) for v in quat],
+    nodes exactly on an object of the scene (latent sets get none here: see proposals)."""
+    cand = Candidates(
+        [np.zeros((0, 3)) for _ in range(st.n_sets)], [np.zeros((0, 4)) for _ in range(st.n_sets)]
     )
+    for n, _, t, q in implied_set_poses(grammar, st, scene):
+        cand.add(int(st.set_of[n]), t, q)
+    root_set = int(st.set_of[0])  # the root's set has exactly one pose
+    cand.xyz[root_set] = grammar.root_xyz.reshape(1, 3).copy()
+    cand.quat[root_set] = grammar.root_quat.reshape(1, 4).copy()
+    return cand
 
 
 class _Unroll:
     """Builds the instances (supertree node, pose) top-down, then the MILP over them."""
 
-    def __init__(self, grammar: Grammar, st: Supertree, scene: Scene) -> None:
+    def __init__(
+        self,
+        grammar: Grammar,
+        st: Supertree,
+        scene: Scene,
+        cand: Candidates,
+        restrict: Restriction | None = None,
+    ) -> None:
         self.g, self.st, self.scene = grammar, st, scene
-        self.cand_xyz, self.cand_quat = candidate_poses(grammar, st, scene)
+        self.cand_xyz, self.cand_quat = cand.xyz, cand.quat
+        self.restrict = restrict or {}
+        self.deadline: float | None = None
+        self.top: list[int] = []  # instance heading each instance's set
         self.node: list[int] = []
         self.parent: list[int] = []
         self.slot: list[int] = []  # index of the producing rule slot in the parent's children
+        self.cand_k: list[int] = []  # index of the instance's pose among its set's candidates
         self.xyz: list[FloatArray] = []
         self.quat: list[FloatArray] = []
 
     def unroll(self) -> None:
         st, g = self.st, self.g
         tb = g.tables
-        self._add(0, -1, -1, g.root_xyz, g.root_quat)
+        self._add(0, -1, -1, g.root_xyz, g.root_quat, 0)
         i = 0
         while i < len(self.node):
             n = self.node[i]
@@ -124,14 +158,25 @@ class _Unroll:
                     xyz = self.xyz[i] + quat_rotate(self.quat[i], tb.t_offset[r])
                     quat = quat_multiply(self.quat[i], tb.r_offset[r])
                     for c2 in (c2 for c2 in st.children[n] if st.rule[c2] == r):
-                        self._add(c2, i, slot, xyz, quat)
+                        self._add(c2, i, slot, xyz, quat, self.cand_k[i])
                 else:  # one child per candidate pose of the child's set
                     e = st.set_of[c]
-                    for t, q in zip(self.cand_xyz[e], self.cand_quat[e], strict=True):
-                        self._add(c, i, slot, t, q)
+                    for k in self._allowed(i, n, int(st.rule[c]), e):
+                        self._add(c, i, slot, self.cand_xyz[e][k], self.cand_quat[e][k], k)
             if len(self.node) > MAX_INSTANCES:
                 raise TooLarge
+            if i % 512 == 0:
+                check_deadline(self.deadline)
             i += 1
+
+    def _allowed(self, i: int, n: int, rule: int, e: int) -> range | list[int]:
+        """Candidate indices a child of instance i (node n) through `rule` may take."""
+        own = int(self.st.set_of[n])
+        if own in self.restrict:
+            slots, assignment = self.restrict[own]
+            a = self.cand_k[self.top[i]]
+            return [int(assignment[a, slots.index((n, rule))])]
+        return range(len(self.cand_xyz[e]))
 
     def _slots(self, n: int) -> list[int]:
         """One representative supertree child per rule (the first copy of a `repeat`)."""
@@ -143,7 +188,12 @@ class _Unroll:
                 out.append(c)
         return out
 
-    def _add(self, n: int, parent: int, slot: int, xyz: FloatArray, quat: FloatArray) -> None:
+    def _add(
+        self, n: int, parent: int, slot: int, xyz: FloatArray, quat: FloatArray, k: int
+    ) -> None:
+        self.cand_k.append(k)
+        fixed = parent >= 0 and self.st.set_of[n] == self.st.set_of[self.node[parent]]
+        self.top.append(self.top[parent] if fixed else len(self.node))
         self.node.append(n)
         self.parent.append(parent)
         self.slot.append(slot)
@@ -151,15 +201,37 @@ class _Unroll:
         self.quat.append(np.asarray(quat, float))
 
 
-def reduce_posed(grammar: Grammar, st: Supertree, scene: Scene) -> PosedProblem:
+def reduce_posed(
+    grammar: Grammar,
+    st: Supertree,
+    scene: Scene,
+    cand: Candidates | None = None,
+    adjust: Callable[[Instances], None] | None = None,
+    restrict: Restriction | None = None,
+    deadline: float | None = None,
+) -> PosedProblem:
+    """The unrolled MILP over the given candidate poses (by default, the observed ones).
+
+    `restrict` limits the children of some sets' instances to one candidate per slot, and
+    `adjust` may rewrite the instances' edge scores before the model is built (-inf removes an
+    instance): `ssgc.parse.bound` uses both for latent-pose assignments and their bounds.
+    """
     t0 = time.perf_counter()
-    u = _Unroll(grammar, st, scene)
+    if cand is None:
+        cand = candidate_poses(grammar, st, scene)
+    u = _Unroll(grammar, st, scene, cand, restrict)
+    u.deadline = deadline
     u.unroll()
     node = np.asarray(u.node, np.int64)
     parent = np.asarray(u.parent, np.int64)
     slot = np.asarray(u.slot, np.int64)
     xyz, quat = np.asarray(u.xyz).reshape(-1, 3), np.asarray(u.quat).reshape(-1, 4)
     model = _Model(grammar, st, scene, node, parent, slot, xyz, quat)
+    model.deadline = deadline
+    model.edge_scores()
+    if adjust is not None:
+        cand_k, top = np.asarray(u.cand_k, np.int64), np.asarray(u.top, np.int64)
+        adjust(Instances(node, parent, cand_k, top, model.score))
     milp = model.build()
     return PosedProblem(
         milp,
@@ -194,13 +266,13 @@ class _Model:
         self.rule = st.rule[node]
         self.cols, self.rows = ColumnBuilder(), RowBuilder()
         self.structural: list[IntArray] = []
+        self.deadline: float | None = None
         n = len(node)
         self.children: list[list[int]] = [[] for _ in range(n)]
         for i in range(1, n):
             self.children[parent[i]].append(i)
 
     def build(self) -> Milp:
-        self.edge_scores()
         self.matches()
         self.prune()
         self.columns()
@@ -248,11 +320,14 @@ class _Model:
         explains[self.match_inst] = True
         explains[0] |= self.implicit_root
         can &= ~self.observed | explains
+        check_deadline(self.deadline)
         for i in range(1, n):  # rules that can never fire
             kind = g.types[self.type[self.parent[i]]].kind
             if kind in (Kind.OR, Kind.INDEPENDENT) and self._prob(i) <= 0:
                 can[i] = False
         for i in range(n - 1, -1, -1):
+            if i % 512 == 0:
+                check_deadline(self.deadline)
             if not can[i]:
                 continue
             node = g.types[self.type[i]]
@@ -329,7 +404,9 @@ class _Model:
         n_eq = 0
         cost_c: list[int] = []
         cost_v: list[float] = []
-        for i in np.flatnonzero(self.can):
+        for count, i in enumerate(np.flatnonzero(self.can)):
+            if count % 512 == 0:
+                check_deadline(self.deadline)
             node = g.types[self.type[i]]
             if node.kind == Kind.TERMINAL:
                 continue

@@ -1,0 +1,385 @@
+"""Continuous pose optimisation with the tree structure fixed (thesis 3.6.1, "refinement").
+
+A latent pose (a node of a constituency grammar that no observation pins down) enters the score
+only through the rule log-densities of the edges that touch it.  `PoseEdges` lists those edges;
+each end is either a fixed pose or a pose attached, by a fixed offset, to one of B free *block*
+poses.  `maximize` moves the blocks to maximise the sum of the edge log-densities with scipy's
+L-BFGS, using the grammar's own density code (`ssgc.rules`) so that refinement and scoring can
+never disagree.
+
+The gradient is a central difference taken for every block at once: for each of the 6 pose
+coordinates, all blocks are moved together, first on the parent end of every edge only and then
+on the child end only.  Each edge's change is then the partial derivative with respect to the
+block on that end, so 24 evaluations give the whole gradient whatever B is; they are stacked
+into one vectorised call.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+
+from ssgc.geometry import quat_conjugate, quat_multiply, quat_normalize, quat_rotate
+from ssgc.ir import Grammar, RKind, TKind
+from ssgc.rules import rotation_log_density, translation_log_density
+from ssgc.tree import Trees
+
+IntArray = NDArray[np.int64]
+FloatArray = NDArray[np.float64]
+STEP = 1e-6  # finite-difference step: meters and radians
+PENALTY = 1e30  # the cost of a point outside every rule's support
+
+
+@dataclass(frozen=True)
+class PoseEdges:
+    """Edges whose log-density depends on free block poses.
+
+    `p_block[m] >= 0`: the parent end is block p_block[m] composed with the offset
+    (p_xyz[m], p_quat[m]); `p_block[m] == -1`: (p_xyz[m], p_quat[m]) is the parent's fixed pose.
+    The same holds for the child end.
+    """
+
+    rule: IntArray
+    p_block: IntArray
+    p_xyz: FloatArray
+    p_quat: FloatArray
+    c_block: IntArray
+    c_xyz: FloatArray
+    c_quat: FloatArray
+
+
+def is_fixed(grammar: Grammar, rules: IntArray) -> NDArray[np.bool_]:
+    tb = grammar.tables
+    return (tb.t_kind[rules] == TKind.FIXED) & (tb.r_kind[rules] == RKind.FIXED)
+
+
+def exp_quat(w: FloatArray) -> FloatArray:
+    """The unit quaternion of rotation vector w (angle |w| about w / |w|)."""
+    angle = np.linalg.norm(w, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    scale = np.where(angle > 1e-12, np.sin(half) / np.maximum(angle, 1e-300), 0.5)
+    return np.concatenate([np.cos(half), scale * w], axis=-1)
+
+
+def _end(block: IntArray, xyz: FloatArray, quat: FloatArray, bx: FloatArray, bq: FloatArray):  # type: ignore[no-untyped-def]
+    """World pose of one end of every edge, given the block poses."""
+    on = (block >= 0)[:, None]
+    b = np.maximum(block, 0)
+    t = np.where(on, bx[b] + quat_rotate(bq[b], xyz), xyz)
+    q = np.where(on, quat_multiply(bq[b], quat), quat)
+    return t, q
+
+
+def edge_log_density(
+    grammar: Grammar,
+    edges: PoseEdges,
+    parent_blocks: tuple[FloatArray, FloatArray],
+    child_blocks: tuple[FloatArray, FloatArray],
+) -> FloatArray:
+    pt, pq = _end(edges.p_block, edges.p_xyz, edges.p_quat, *parent_blocks)
+    ct, cq = _end(edges.c_block, edges.c_xyz, edges.c_quat, *child_blocks)
+    return translation_log_density(grammar, edges.rule, pt, pq, ct) + rotation_log_density(
+        grammar, edges.rule, pq, cq
+    )
+
+
+def _moved(x0: FloatArray, q0: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+    return x0 + theta[:, :3], quat_multiply(q0, exp_quat(theta[:, 3:]))
+
+
+def _variants(n_blocks: int, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Parent-end and child-end block offsets of the 25 evaluations: the point itself, then
+    +-STEP on each coordinate, on the parent ends only and on the child ends only."""
+    p_theta, c_theta = [theta], [theta]
+    for j in range(6):
+        step = np.zeros_like(theta)
+        step[:, j] = STEP
+        p_theta += [theta + step, theta - step, theta, theta]
+        c_theta += [theta, theta, theta + step, theta - step]
+    return np.concatenate(p_theta), np.concatenate(c_theta)
+
+
+def _tiled(edges: PoseEdges, n_blocks: int, copies: int) -> PoseEdges:
+    """The edges repeated `copies` times, copy v pointing at blocks v*B .. v*B + B - 1."""
+    shift = np.repeat(np.arange(copies) * n_blocks, len(edges.rule))
+
+    def blocks(b: IntArray) -> IntArray:
+        tiled = np.tile(b, copies)
+        return np.where(tiled >= 0, tiled + shift, -1)
+
+    return PoseEdges(
+        rule=np.tile(edges.rule, copies),
+        p_block=blocks(edges.p_block),
+        p_xyz=np.tile(edges.p_xyz, (copies, 1)),
+        p_quat=np.tile(edges.p_quat, (copies, 1)),
+        c_block=blocks(edges.c_block),
+        c_xyz=np.tile(edges.c_xyz, (copies, 1)),
+        c_quat=np.tile(edges.c_quat, (copies, 1)),
+    )
+
+
+N_VARIANTS = 25
+
+
+def _value_and_gradient(
+    grammar: Grammar,
+    tiled: PoseEdges,
+    edges: PoseEdges,
+    x0: FloatArray,
+    q0: FloatArray,
+    theta: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """Per-edge log-densities at theta (B, 6) and the gradient of their sum, from one
+    vectorised evaluation of all 25 variants."""
+    n_blocks, m = len(x0), len(edges.rule)
+    p_theta, c_theta = _variants(n_blocks, theta)
+    x_all, q_all = np.tile(x0, (N_VARIANTS, 1)), np.tile(q0, (N_VARIANTS, 1))
+    values = edge_log_density(
+        grammar, tiled, _moved(x_all, q_all, p_theta), _moved(x_all, q_all, c_theta)
+    ).reshape(N_VARIANTS, m)
+    grad = np.zeros((n_blocks, 6))
+    ends = ((edges.p_block, 1), (edges.c_block, 3))
+    for j in range(6):
+        for blocks, first in ends:
+            hi, lo = values[1 + 4 * j + first - 1], values[1 + 4 * j + first]
+            d = (hi - lo) / (2 * STEP)
+            d = np.where((blocks >= 0) & np.isfinite(d), d, 0.0)
+            grad[:, j] += np.bincount(np.maximum(blocks, 0), d, minlength=n_blocks)
+    return values[0], grad
+
+
+def block_values(grammar: Grammar, edges: PoseEdges, bx: FloatArray, bq: FloatArray) -> FloatArray:
+    """Sum of edge log-densities per block (an edge counts for its parent block if it has one)."""
+    value = edge_log_density(grammar, edges, (bx, bq), (bx, bq))
+    owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
+    return np.bincount(np.maximum(owner, 0), value, minlength=len(bx))
+
+
+def maximize(
+    grammar: Grammar,
+    edges: PoseEdges,
+    x0: FloatArray,
+    q0: FloatArray,
+    max_iter: int = 200,
+    deadline: float | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Block poses that locally maximise the summed edge log-densities, starting at (x0, q0).
+
+    Never worse than the start: if the optimiser ends lower (it can, on a flat or
+    discontinuous law), the start is returned.  At the deadline (a `time.perf_counter()`
+    value) it stops with the best point so far.
+    """
+    n_blocks = len(x0)
+    if n_blocks == 0 or len(edges.rule) == 0:
+        return x0, q0
+
+    tiled = _tiled(edges, n_blocks, N_VARIANTS)
+
+    def cost(flat: FloatArray) -> tuple[float, FloatArray]:
+        value, grad = _value_and_gradient(grammar, tiled, edges, x0, q0, flat.reshape(n_blocks, 6))
+        total = float(value.sum())
+        if not np.isfinite(total):
+            return PENALTY, np.zeros_like(flat)
+        return -total, -grad.ravel()
+
+    def stop_at_deadline(intermediate_result: object) -> None:
+        if deadline is not None and time.perf_counter() >= deadline:
+            raise StopIteration
+
+    start = cost(np.zeros(6 * n_blocks))[0]
+    res = minimize(
+        cost,
+        np.zeros(6 * n_blocks),
+        jac=True,
+        method="L-BFGS-B",
+        callback=stop_at_deadline,
+        options={"maxiter": max_iter, "ftol": 1e-12, "gtol": 1e-7},
+    )
+    if not np.isfinite(res.fun) or res.fun > start:
+        return x0, q0
+    bx, bq = _moved(x0, q0, res.x.reshape(n_blocks, 6))
+    return bx, quat_normalize(bq)
+
+
+def maximize_independent(
+    grammar: Grammar,
+    edges: PoseEdges,
+    x0: FloatArray,
+    q0: FloatArray,
+    max_iter: int = 50,
+    deadline: float | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """`maximize` for blocks that share no edge (each edge touches one block): a damped Newton
+    step per block, all blocks at once, with a finite-difference Hessian.
+
+    Independent blocks (the pose proposals of one set) converge in a few Newton steps each,
+    where one L-BFGS run over all of them would wait for the slowest.  A block's step is kept
+    only if it raises that block's own value; otherwise its damping grows.
+    """
+    n_blocks = len(x0)
+    if n_blocks == 0 or len(edges.rule) == 0:
+        return x0, q0
+    owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
+    bx, bq = x0.copy(), quat_normalize(q0)
+    current = _owned_values(grammar, edges, owner, bx, bq)
+    damping = np.full(n_blocks, 1e-3)
+    active = np.isfinite(current)
+    for _ in range(max_iter):
+        if not np.any(active) or (deadline is not None and time.perf_counter() >= deadline):
+            break
+        for start in range(0, int(active.sum()), NEWTON_CHUNK):  # bounded work per deadline check
+            if start and deadline is not None and time.perf_counter() >= deadline:
+                break
+            idx = np.flatnonzero(active)[start : start + NEWTON_CHUNK]
+            _newton_update(grammar, edges, owner, idx, bx, bq, current, damping, active)
+    return bx, bq
+
+
+NEWTON_CHUNK = 512
+
+
+def _newton_update(
+    grammar: Grammar,
+    edges: PoseEdges,
+    owner: IntArray,
+    idx: IntArray,
+    bx: FloatArray,
+    bq: FloatArray,
+    current: FloatArray,
+    damping: FloatArray,
+    active: NDArray[np.bool_],
+) -> None:
+    """One damped Newton step on blocks idx, updating the arrays in place."""
+    sub, sub_owner = _sub_edges(edges, owner, idx)
+    tx, tq, predicted = _newton_step(grammar, sub, bx[idx], bq[idx], damping[idx])
+    trial = _owned_values(grammar, sub, sub_owner, tx, tq)
+    now = current[idx]
+    better = np.isfinite(trial) & (trial > now) & (predicted > 0)
+    small = predicted <= 1e-12 * np.maximum(1.0, np.abs(now))
+    moved = idx[better]
+    bx[moved], bq[moved] = tx[better], quat_normalize(tq[better])
+    current[moved] = trial[better]
+    damping[idx] = np.where(better, np.maximum(damping[idx] / 3, 1e-9), damping[idx] * 4)
+    converged = small | (better & (trial - now <= 1e-10 * np.maximum(1.0, np.abs(now))))
+    active[idx[converged | (damping[idx] >= 1e8)]] = False
+
+
+def _owned_values(
+    grammar: Grammar, edges: PoseEdges, owner: IntArray, bx: FloatArray, bq: FloatArray
+) -> FloatArray:
+    v = edge_log_density(grammar, edges, (bx, bq), (bx, bq))
+    return np.bincount(np.maximum(owner, 0), v, minlength=len(bx))
+
+
+def _sub_edges(edges: PoseEdges, owner: IntArray, blocks: IntArray) -> tuple[PoseEdges, IntArray]:
+    """The edges of the given blocks, with the blocks renumbered 0..len(blocks)-1."""
+    new = np.full(int(owner.max()) + 1, -1, np.int64)
+    new[blocks] = np.arange(len(blocks))
+    keep = new[owner] >= 0
+
+    def renumber(b: IntArray) -> IntArray:
+        return np.where(b >= 0, new[np.maximum(b, 0)], -1)
+
+    sub = PoseEdges(
+        rule=edges.rule[keep],
+        p_block=renumber(edges.p_block[keep]),
+        p_xyz=edges.p_xyz[keep],
+        p_quat=edges.p_quat[keep],
+        c_block=renumber(edges.c_block[keep]),
+        c_xyz=edges.c_xyz[keep],
+        c_quat=edges.c_quat[keep],
+    )
+    return sub, new[owner[keep]]
+
+
+def _newton_step(
+    grammar: Grammar, edges: PoseEdges, bx: FloatArray, bq: FloatArray, damping: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A Levenberg–Marquardt step per block: poses after it, and the first-order gain."""
+    n_blocks = len(bx)
+    tiled = _tiled(edges, n_blocks, N_VARIANTS)
+
+    def gradient(x: FloatArray, q: FloatArray) -> FloatArray:
+        return _value_and_gradient(grammar, tiled, edges, x, q, np.zeros((n_blocks, 6)))[1]
+
+    g = gradient(bx, bq)
+    hess = np.zeros((n_blocks, 6, 6))
+    for j in range(6):
+        step = np.zeros((n_blocks, 6))
+        step[:, j] = 1e-4
+        hess[:, :, j] = (gradient(*_moved(bx, bq, step)) - g) / 1e-4
+    hess = 0.5 * (hess + np.swapaxes(hess, 1, 2))
+    scale = np.maximum(np.abs(np.diagonal(hess, axis1=1, axis2=2)).max(axis=1), 1.0)
+    lhs = -hess + (damping * scale)[:, None, None] * np.eye(6)
+    delta = np.linalg.solve(lhs, g[:, :, None])[:, :, 0]
+    delta = np.where(np.isfinite(delta), delta, 0.0)
+    tx, tq = _moved(bx, bq, delta)
+    return tx, tq, np.einsum("ni,ni->n", g, delta)
+
+
+def free_blocks(grammar: Grammar, tree: Trees) -> tuple[IntArray, IntArray]:
+    """(top node of every node's set, the set tops whose pose no observation fixes).
+
+    A node joins its parent's set when its rule is fixed; a set is free when none of its nodes
+    is of an observed type and it is not the root's set.
+    """
+    n = len(tree)
+    top = np.arange(n)
+    fixed = np.zeros(n, bool)
+    has_parent = tree.parent >= 0
+    fixed[has_parent] = is_fixed(grammar, tree.rule[has_parent])
+    for i in range(n):  # parents come first
+        if fixed[i]:
+            top[i] = top[tree.parent[i]]
+    observed = np.zeros(n, bool)
+    np.logical_or.at(observed, top, grammar.tables.type_observed[tree.type])
+    tops = np.flatnonzero((top == np.arange(n)) & ~observed & has_parent)
+    return top, tops
+
+
+def refine_tree(
+    grammar: Grammar, tree: Trees, max_iter: int = 200, deadline: float | None = None
+) -> Trees:
+    """The same tree with every free (latent) set pose moved to a local maximum of the score."""
+    top, tops = free_blocks(grammar, tree)
+    if len(tops) == 0:
+        return tree
+    block = np.full(len(tree), -1, np.int64)
+    block[np.isin(top, tops)] = np.searchsorted(tops, top[np.isin(top, tops)])
+    member = block >= 0
+    # every member's pose in its block's frame
+    tq = tree.quat[top]
+    off_q = np.where(member[:, None], quat_multiply(quat_conjugate(tq), tree.quat), tree.quat)
+    off_t = np.where(
+        member[:, None], quat_rotate(quat_conjugate(tq), tree.xyz - tree.xyz[top]), tree.xyz
+    )
+    child = np.flatnonzero(tree.parent >= 0)
+    par = tree.parent[child]
+    touches = (block[child] >= 0) | (block[par] >= 0)
+    inside = (block[child] == block[par]) & is_fixed(grammar, tree.rule[child])
+    child, par = child[touches & ~inside], par[touches & ~inside]
+    edges = PoseEdges(
+        rule=tree.rule[child],
+        p_block=block[par],
+        p_xyz=off_t[par],
+        p_quat=off_q[par],
+        c_block=block[child],
+        c_xyz=off_t[child],
+        c_quat=off_q[child],
+    )
+    bx, bq = maximize(grammar, edges, tree.xyz[tops], tree.quat[tops], max_iter, deadline)
+    xyz, quat = tree.xyz.copy(), tree.quat.copy()
+    xyz[member], quat[member] = _end(block[member], off_t[member], off_q[member], bx, bq)
+    return Trees(
+        scene=tree.scene,
+        type=tree.type,
+        parent=tree.parent,
+        rule=tree.rule,
+        xyz=xyz,
+        quat=quat,
+        n_scenes=tree.n_scenes,
+    )

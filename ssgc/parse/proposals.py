@@ -1,0 +1,364 @@
+"""Pose proposals for latent equivalent sets (thesis 3.5.1).
+
+A set that can be active without any observed node (a `Pair` formation centre in a
+constituency grammar) has no pose to read off the scene, so the integer program chooses among
+*proposed* poses.  Proposals are made bottom-up, children before parents:
+
+- rule inversion from one child: the pose that puts one candidate child exactly at the mode of
+  its rule (the mean offset, the Bingham mode);
+- rule inversion from two children: the average of two such poses, for every pair of candidate
+  children on two child slots (two rules, or two copies of a `repeat`);
+- top-down: the mode of the set's own rule at each known parent pose, and a few draws from it.
+
+Every proposal made from children is then moved, with scipy, to the pose that maximises the
+log-densities of its parent rule and the children it was made from (`ssgc.parse.poses`), so for
+a latent node with at most two children the proposal made from its true children is already its
+best pose given them.  Refinement of the whole tree afterwards handles the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.geometry import (
+    axis_angle_to_quat,
+    quat_angle,
+    quat_conjugate,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+)
+from ssgc.ir import Grammar, RKind, TKind
+from ssgc.parse.poses import PoseEdges, maximize_independent
+from ssgc.parse.supertree import Supertree
+from ssgc.rules import POS_TOL, ROT_TOL, sample_children
+
+IntArray = NDArray[np.int64]
+FloatArray = NDArray[np.float64]
+MAX_PAIRS = 2000  # two-child proposals per set, the most consistent ones first
+TOP_DOWN_PARENTS = 20  # parent poses whose rule mode is proposed
+TOP_DOWN_SAMPLES = 8  # draws from the set's own rule
+
+
+def latent_sets(st: Supertree) -> NDArray[np.bool_]:
+    """Sets that can be active without an observed node (the root's set has a known pose)."""
+    latent = ~st.always_observed
+    latent[st.set_of[0]] = False
+    return latent
+
+
+@dataclass
+class Candidates:
+    """Candidate poses of every set's top node: observed-implied poses and proposals."""
+
+    xyz: list[FloatArray]
+    quat: list[FloatArray]
+
+    def add(self, e: int, xyz: FloatArray, quat: FloatArray) -> None:
+        """Append poses to set e, skipping any already there (within the pose tolerances)."""
+        xyz, quat = xyz.reshape(-1, 3), quat.reshape(-1, 4)
+        all_xyz = np.vstack([self.xyz[e], xyz])
+        all_quat = np.vstack([self.quat[e], quat])
+        n_old = len(self.xyz[e])
+        # a new pose is kept unless it matches an old one or an earlier new one
+        near = np.linalg.norm(all_xyz[:, None, :] - xyz[None, :, :], axis=2) <= POS_TOL
+        earlier = np.arange(len(all_xyz))[:, None] < (n_old + np.arange(len(xyz)))[None, :]
+        i, j = np.nonzero(near & earlier)
+        same = quat_angle(all_quat[i], quat[j]) <= ROT_TOL
+        keep = np.ones(len(xyz), bool)
+        keep[j[same]] = False
+        self.xyz[e] = np.vstack([self.xyz[e], xyz[keep]])
+        self.quat[e] = np.vstack([self.quat[e], quat[keep]])
+
+
+def rotation_mode(grammar: Grammar, r: int) -> FloatArray | None:
+    """The most likely child rotation relative to its parent, or None if not parent-relative."""
+    tb = grammar.tables
+    kind = tb.r_kind[r]
+    if kind == RKind.FIXED:
+        return tb.r_offset[r]
+    if kind == RKind.PARENT_BINGHAM:
+        return _bingham_mode(tb.r_quadratic[r])
+    if kind == RKind.REVOLUTE:
+        return axis_angle_to_quat(tb.r_axis[r], 0.5 * (tb.r_lo[r] + tb.r_hi[r]))
+    return None
+
+
+def _bingham_mode(quadratic: FloatArray) -> FloatArray:
+    w, v = np.linalg.eigh(quadratic)
+    return v[:, int(np.argmax(w))]
+
+
+def translation_mode(grammar: Grammar, r: int) -> tuple[FloatArray, str]:
+    """The most likely child position and its frame: 'parent', 'offset' (world axes, from the
+    parent's position) or 'world'."""
+    tb = grammar.tables
+    kind = tb.t_kind[r]
+    centre = tb.t_offset[r]
+    if kind in (TKind.WORLD_BOX, TKind.WORLD_BOX_OFFSET):
+        centre = 0.5 * (tb.box_lo[r] + tb.box_hi[r])
+    if kind in (TKind.FIXED, TKind.PARENT_NORMAL_OFFSET):
+        return centre, "parent"
+    if kind in (TKind.WORLD_NORMAL_OFFSET, TKind.WORLD_BOX_OFFSET):
+        return centre, "offset"
+    return centre, "world"
+
+
+def child_mode(
+    grammar: Grammar, r: int, parent_xyz: FloatArray, parent_quat: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """The mode of rule r's child pose at each parent pose (top-down proposals)."""
+    tb = grammar.tables
+    centre, frame = translation_mode(grammar, r)
+    if frame == "parent":
+        xyz = parent_xyz + quat_rotate(parent_quat, centre)
+    elif frame == "offset":
+        xyz = parent_xyz + centre
+    else:
+        xyz = np.broadcast_to(centre, parent_xyz.shape).copy()
+    rel = rotation_mode(grammar, r)
+    if rel is not None:
+        quat = quat_multiply(parent_quat, rel)
+    elif tb.r_kind[r] == RKind.WORLD_BINGHAM:
+        quat = np.broadcast_to(_bingham_mode(tb.r_quadratic[r]), parent_quat.shape).copy()
+    else:
+        quat = parent_quat.copy()
+    return xyz, quat
+
+
+class _SetProposer:
+    """Proposals for one latent set e, from its child slots' candidates and its parent's."""
+
+    def __init__(
+        self,
+        grammar: Grammar,
+        st: Supertree,
+        cand: Candidates,
+        e: int,
+        rng: np.random.Generator,
+        deadline: float | None = None,
+    ) -> None:
+        self.g, self.st, self.cand, self.e, self.rng = grammar, st, cand, e, rng
+        self.deadline = deadline
+        self.top = int(st.set_top[e])
+        self.slots = self._slots()
+        self.prior = self._prior_parent()
+
+    def _slots(self) -> list[tuple[int, int, int, int]]:
+        """(member node, rule, child set, copies) for each rule leaving the set."""
+        st = self.st
+        seen: dict[tuple[int, int], list[int]] = {}
+        for v in np.flatnonzero(st.set_of == self.e):
+            for c in st.children[v]:
+                if st.set_of[c] != self.e:
+                    seen.setdefault((int(v), int(st.rule[c])), []).append(int(c))
+        return [
+            (v, r, int(st.set_of[kids[0]]), len(kids))
+            for (v, r), kids in seen.items()
+            if len(self.cand.xyz[st.set_of[kids[0]]])
+        ]
+
+    def _prior_parent(self) -> tuple[FloatArray, FloatArray] | None:
+        """The parent pose at which the set's own rule is scored during proposal refinement:
+        any pose if the rule ignores its parent, the parent's pose if it has exactly one."""
+        g, st = self.g, self.st
+        r = int(st.rule[self.top])
+        tb = g.tables
+        world_t = tb.t_kind[r] in (TKind.WORLD_NORMAL, TKind.WORLD_BOX)
+        world_r = tb.r_kind[r] in (RKind.WORLD_BINGHAM, RKind.UNIFORM)
+        p = int(st.parent[self.top])
+        e_p = int(st.set_of[p])
+        if world_t and world_r:
+            return np.zeros(3), np.array([1.0, 0, 0, 0])
+        if len(self.cand.xyz[e_p]) == 1:
+            return self._node_pose(p, self.cand.xyz[e_p][0], self.cand.quat[e_p][0])
+        return None
+
+    def _node_pose(self, n: int, top_xyz: FloatArray, top_quat: FloatArray):  # type: ignore[no-untyped-def]
+        st = self.st
+        return (
+            top_xyz + quat_rotate(top_quat, st.offset_xyz[n]),
+            quat_multiply(top_quat, st.offset_quat[n]),
+        )
+
+    def top_down(self) -> tuple[FloatArray, FloatArray]:
+        st, g = self.st, self.g
+        r = int(st.rule[self.top])
+        p = int(st.parent[self.top])
+        e_p = int(st.set_of[p])
+        if len(self.cand.xyz[e_p]) == 0:
+            return np.zeros((0, 3)), np.zeros((0, 4))
+        px, pq = self._node_pose(
+            p, self.cand.xyz[e_p][:TOP_DOWN_PARENTS], self.cand.quat[e_p][:TOP_DOWN_PARENTS]
+        )
+        mx, mq = child_mode(g, r, px, pq)
+        pick = self.rng.integers(0, len(px), TOP_DOWN_SAMPLES)
+        sx, sq, _ = sample_children(g, r, px[pick], pq[pick], self.rng)
+        return np.vstack([mx, sx]), np.vstack([mq, sq])
+
+    def invert(
+        self, slot: tuple[int, int, int, int], child_xyz: FloatArray, child_quat: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Set-top poses that put each given child at the mode of the slot's rule."""
+        v, r, _, _ = slot
+        g = self.g
+        default_xyz, default_quat = child_mode(
+            g, int(self.st.rule[self.top]), *self._default_parent(len(child_xyz))
+        )
+        rel = rotation_mode(g, r)
+        q_v = default_quat if rel is None else quat_multiply(child_quat, quat_conjugate(rel))
+        centre, frame = translation_mode(g, r)
+        if frame == "parent":
+            t_v = child_xyz - quat_rotate(q_v, centre)
+        elif frame == "offset":
+            t_v = child_xyz - centre
+        else:
+            t_v = default_xyz
+        q_top = quat_multiply(q_v, quat_conjugate(self.st.offset_quat[v]))
+        return t_v - quat_rotate(q_top, self.st.offset_xyz[v]), q_top
+
+    def _default_parent(self, n: int) -> tuple[FloatArray, FloatArray]:
+        if self.prior is not None:
+            return np.tile(self.prior[0], (n, 1)), np.tile(self.prior[1], (n, 1))
+        return np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1))
+
+    def propose(self) -> tuple[FloatArray, FloatArray]:
+        xs, qs, edges = [], [], []
+        singles = [self._children(s) for s in self.slots]
+        for s, (cx, cq) in zip(self.slots, singles, strict=True):
+            tx, tq = self.invert(s, cx, cq)
+            xs.append(tx)
+            qs.append(tq)
+            edges += [((s, cx[k], cq[k]),) for k in range(len(cx))]
+        px, pq, pe = self._pairs(singles)
+        xs.append(px)
+        qs.append(pq)
+        edges += pe
+        x0 = np.vstack([np.zeros((0, 3)), *xs])
+        q0 = np.vstack([np.zeros((0, 4)), *qs])
+        if len(x0):
+            x0, q0 = maximize_independent(
+                self.g, self._edges(edges), x0, quat_normalize(q0), deadline=self.deadline
+            )
+        tx, tq = self.top_down()
+        return np.vstack([x0, tx]), np.vstack([q0, tq])
+
+    def _children(self, slot: tuple[int, int, int, int]) -> tuple[FloatArray, FloatArray]:
+        e_c = slot[2]
+        return self.cand.xyz[e_c], self.cand.quat[e_c]
+
+    def _pairs(self, singles: list[tuple[FloatArray, FloatArray]]):  # type: ignore[no-untyped-def]
+        """Two-child proposals: the averaged inversions of every pair of candidate children on
+        two slots (a slot pairs with itself when its rule has several copies)."""
+        found: list[tuple[float, FloatArray, FloatArray, tuple]] = []
+        for a in range(len(self.slots)):
+            for b in range(a, len(self.slots)):
+                if a == b and self.slots[a][3] < 2:
+                    continue
+                found += self._slot_pairs(a, b, singles)
+        found.sort(key=lambda f: f[0])
+        found = found[:MAX_PAIRS]
+        if not found:
+            return np.zeros((0, 3)), np.zeros((0, 4)), []
+        return (
+            np.stack([f[1] for f in found]),
+            np.stack([f[2] for f in found]),
+            [f[3] for f in found],
+        )
+
+    def _slot_pairs(self, a: int, b: int, singles):  # type: ignore[no-untyped-def]
+        (ax, aq), (bx, bq) = singles[a], singles[b]
+        ta, qa = self.invert(self.slots[a], ax, aq)
+        tb_, qb = self.invert(self.slots[b], bx, bq)
+        i, j = np.meshgrid(np.arange(len(ax)), np.arange(len(bx)), indexing="ij")
+        i, j = i.ravel(), j.ravel()
+        distinct = (np.linalg.norm(ax[i] - bx[j], axis=1) > POS_TOL) | (
+            quat_angle(aq[i], bq[j]) > ROT_TOL
+        )
+        if a == b:
+            distinct &= i < j
+        i, j = i[distinct], j[distinct]
+        sign = np.where(np.sum(qa[i] * qb[j], axis=1) < 0, -1.0, 1.0)[:, None]
+        q = quat_normalize(qa[i] + sign * qb[j])
+        t = 0.5 * (ta[i] + tb_[j])
+        disagreement = np.linalg.norm(ta[i] - tb_[j], axis=1) + quat_angle(qa[i], qb[j])
+        sa, sb = self.slots[a], self.slots[b]
+        return [
+            (
+                float(disagreement[k]),
+                t[k],
+                q[k],
+                ((sa, ax[i[k]], aq[i[k]]), (sb, bx[j[k]], bq[j[k]])),
+            )
+            for k in range(len(i))
+        ]
+
+    def _edges(self, assigned: list[tuple]) -> PoseEdges:
+        """Edges of each proposal's local problem: its children, and its own rule if the
+        parent pose is known."""
+        st = self.st
+        rule, pb, pxyz, pquat, cb, cxyz, cquat = [], [], [], [], [], [], []
+        for k, kids in enumerate(assigned):
+            for (v, r, _, _), t, q in kids:
+                rule.append(r)
+                pb.append(k)
+                pxyz.append(st.offset_xyz[v])
+                pquat.append(st.offset_quat[v])
+                cb.append(-1)
+                cxyz.append(t)
+                cquat.append(q)
+            if self.prior is not None:
+                rule.append(int(st.rule[self.top]))
+                pb.append(-1)
+                pxyz.append(self.prior[0])
+                pquat.append(self.prior[1])
+                cb.append(k)
+                cxyz.append(np.zeros(3))
+                cquat.append(np.array([1.0, 0, 0, 0]))
+        return PoseEdges(
+            rule=np.asarray(rule, np.int64),
+            p_block=np.asarray(pb, np.int64),
+            p_xyz=np.asarray(pxyz, float).reshape(-1, 3),
+            p_quat=np.asarray(pquat, float).reshape(-1, 4),
+            c_block=np.asarray(cb, np.int64),
+            c_xyz=np.asarray(cxyz, float).reshape(-1, 3),
+            c_quat=np.asarray(cquat, float).reshape(-1, 4),
+        )
+
+
+def add_proposals(
+    grammar: Grammar,
+    st: Supertree,
+    cand: Candidates,
+    rng: np.random.Generator,
+    deadline: float | None = None,
+) -> None:
+    """Propose poses for every latent set, children's sets first (sets are numbered top-down).
+
+    Sets whose top nodes share a type and whose child slots have the same candidates (the
+    copies of a `repeat`) get the same proposals, computed once.  Past the deadline, proposals
+    are still made but no longer optimised.
+    """
+    memo: dict[tuple, tuple[FloatArray, FloatArray]] = {}
+    for e in np.flatnonzero(latent_sets(st))[::-1]:
+        proposer = _SetProposer(grammar, st, cand, int(e), rng, deadline)
+        parent_set = int(st.set_of[st.parent[st.set_top[e]]])
+        key = (
+            int(st.type[st.set_top[e]]),
+            int(st.rule[st.set_top[e]]),
+            cand.xyz[parent_set].tobytes(),
+            tuple(
+                (s[1], cand.xyz[s[2]].tobytes(), cand.quat[s[2]].tobytes()) for s in proposer.slots
+            ),
+        )
+        if key not in memo:
+            fresh = Candidates([np.zeros((0, 3))], [np.zeros((0, 4))])
+            fresh.add(0, *proposer.propose())
+            memo[key] = (fresh.xyz[0], fresh.quat[0])
+        if len(cand.xyz[e]):
+            cand.add(int(e), *memo[key])
+        else:
+            cand.xyz[e], cand.quat[e] = memo[key][0].copy(), memo[key][1].copy()
