@@ -12,7 +12,7 @@ from ssgc.compile import compile_text, load_grammar
 from ssgc.io.scene import Scene, read_sink_yaml, scene_from_tree
 from ssgc.parse.ip import reduce_scene
 from ssgc.parse.milp import HighsSession
-from ssgc.parse.parser import Parser
+from ssgc.parse.parser import Parser, set_model_size
 from ssgc.sample.forward import sample_trees
 from ssgc.score import score_trees
 
@@ -181,3 +181,34 @@ def test_dimsum_sampled_scenes_match_or_beat_ground_truth():
         result = parser.parse(scene)
         assert result.status == "optimal", (scene.name, result.message)
         assert result.parses[0].score >= scene.log_prob - 1e-6, scene.name
+
+
+def test_scene_with_more_objects_than_any_tree_is_refused_before_modelling():
+    grammar = load_grammar(GRAMMARS / "sink.yaml")
+    parser = Parser(grammar)
+    trees, _ = sample_trees(grammar, 2000, 8)
+    scenes = [scene_from_tree(grammar, trees.tree(i), f"s{i}", 0.0) for i in range(2000)]
+    counts = np.stack([np.bincount(s.types, minlength=len(grammar.types)) for s in scenes])
+    assert np.all(counts <= parser.capacity[:-1])  # sampled trees never exceed it
+    assert max(len(s) for s in scenes) <= parser.capacity[-1]
+    pile = [o for s in scenes for o in range(1, len(s))]  # every non-bin object, many scenes
+    big = Scene(
+        "pile",
+        np.r_[grammar.root, np.concatenate([s.types[1:] for s in scenes])],
+        np.vstack([[0.5, 0, 0], *[s.xyz[1:] for s in scenes]]),
+        np.vstack([[1.0, 0, 0, 0], *[s.quat[1:] for s in scenes]]),
+    )
+    assert len(big) == len(pile) + 1 > parser.capacity[-1]
+    result = parser.parse(big)
+    assert result.status == "infeasible" and result.model["variables"] == 0
+    assert "more objects than any tree of the grammar can hold" in result.message
+    assert f"{len(big)} objects in all (at most {parser.capacity[-1]})" in result.message
+
+
+def test_set_model_size_estimate_counts_its_edge_variables():
+    grammar = load_grammar(GRAMMARS / "sink.yaml")
+    parser = Parser(grammar)
+    for scene in sorted(read_sink_yaml(SINK_DATA, grammar), key=len)[-3:]:
+        cand, _ = parser.candidates(scene)
+        milp = reduce_scene(grammar, parser.supertree, scene).milp
+        assert set_model_size(parser.supertree, cand) == int(np.sum(~milp.integer))

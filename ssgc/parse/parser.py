@@ -30,13 +30,14 @@ from ssgc.parse.posed import (
 )
 from ssgc.parse.poses import free_blocks, refine_tree
 from ssgc.parse.proposals import Candidates, add_proposals, latent_sets
-from ssgc.parse.supertree import Supertree, build_supertree
+from ssgc.parse.supertree import Supertree, build_supertree, max_observed
 from ssgc.score import node_terms, score_trees
 from ssgc.tree import Trees
 
 SCORE_TOL = 1e-6
 METHODS = ("auto", "ip", "micp")
 PROPOSAL_SHARE = 0.3  # of a time limit, for making and optimising pose proposals
+MAX_SET_COLUMNS = 1_000_000  # the set model's variables: HiGHS needs ~2.5 kB each
 DEADLINE_SHARE = 0.95  # of a time limit, when every step must have stopped
 
 
@@ -80,6 +81,7 @@ class Parser:
         self.seed = seed
         self.supertree: Supertree = build_supertree(grammar)
         self.latent = latent_sets(self.supertree)
+        self.capacity = max_observed(grammar, self.supertree)
 
     @property
     def has_latent(self) -> bool:
@@ -90,6 +92,7 @@ class Parser:
         # the last steps after a deadline check (a vectorised pass, HiGHS's exit) take a moment
         deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
         try:
+            self.check_capacity(scene)
             # proposals get part of a time limit; the MILP needs the rest
             cand, bounds = self.candidates(
                 scene, None if time_limit is None else t0 + PROPOSAL_SHARE * time_limit
@@ -131,6 +134,23 @@ class Parser:
             extra={"raw_score": run.raw_score, "bound": run.bound},
         )
 
+    def check_capacity(self, scene: Scene) -> None:
+        """Refuse, before any model is built, a scene with more objects (of one type, or in
+        all) than any tree of the grammar can hold."""
+        counts = np.bincount(scene.types, minlength=len(self.grammar.types))
+        over = np.flatnonzero(counts > self.capacity[:-1])
+        parts = [
+            f"{counts[t]} {self.grammar.types[t].name} (at most {self.capacity[t]})" for t in over
+        ]
+        if len(scene) > self.capacity[-1]:
+            parts.append(f"{len(scene)} objects in all (at most {self.capacity[-1]})")
+        if parts:
+            raise UnparseableScene.single(
+                f"scene '{scene.name}' has more objects than any tree of the grammar can hold: "
+                + ", ".join(parts),
+                exit_code=2,
+            )
+
     def candidates(
         self, scene: Scene, deadline: float | None = None
     ) -> tuple[Candidates, dict[int, SetBound] | None]:
@@ -170,6 +190,13 @@ class Parser:
                     f"scene '{scene.name}': the parse model would have more than "
                     f"{MAX_INSTANCES} node instances ({len(scene)} objects); parse fewer "
                     "objects at a time"
+                ) from None
+            size = set_model_size(self.supertree, cand)
+            if size > MAX_SET_COLUMNS:
+                raise ModelTooLarge.single(
+                    f"scene '{scene.name}': the parse model would have about {size:,} "
+                    f"variables (limit {MAX_SET_COLUMNS:,}) for {len(scene)} objects; parse "
+                    "fewer objects at a time"
                 ) from None
             return reduce_scene(self.grammar, self.supertree, scene)
 
@@ -344,6 +371,16 @@ class _Run:
             )
             for e in np.flatnonzero(same):
                 self.cand.add(int(e), tree.xyz[i], tree.quat[i])
+
+
+def set_model_size(st: Supertree, cand: Candidates) -> int:
+    """The equivalent-set model's edge variables (its bulk): one per pair of candidate poses
+    of every non-fixed parent-child link, counted before any model is built."""
+    n_cand = np.array([len(x) for x in cand.xyz], np.int64)
+    child = np.flatnonzero(st.parent >= 0)
+    link = st.set_of[child] != st.set_of[st.parent[child]]
+    c = child[link]
+    return int(np.sum(n_cand[st.set_of[st.parent[c]]] * n_cand[st.set_of[c]]))
 
 
 def tree_signature(grammar: Grammar, tree: Trees) -> tuple:

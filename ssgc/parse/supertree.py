@@ -155,3 +155,31 @@ def _always_observed(
         elif node.kind == Kind.REPEAT and node.count is not None and kids:
             must[i] = bool(node.count.probs[0] == 0 and in_set and must[in_set[0]])
     return must[set_top]
+
+
+def max_observed(grammar: Grammar, st: Supertree) -> NDArray[np.int64]:
+    """The most nodes of each type one tree can hold (0 for unobserved types).
+
+    A node holds itself plus, for `and`, `independent` and `repeat` nodes, everything its
+    supertree children can hold (every rule, every copy), and for `or` nodes the most any one
+    child can.  A scene with more objects of a type than this, or more objects in all than the
+    most the root can hold, has no parse: `ssg parse` says so before building any model.
+    """
+    n_types = len(grammar.types)
+    observed = grammar.tables.type_observed
+    hold = np.zeros((len(st), n_types), np.int64)
+    total = np.zeros(len(st), np.int64)
+    for i in range(len(st) - 1, -1, -1):  # children before parents
+        kids = list(st.children[i])
+        if kids:
+            if grammar.types[st.type[i]].kind == Kind.OR:
+                best = max(kids, key=lambda c: total[c])
+                hold[i] = hold[kids].max(axis=0)
+                total[i] = total[best]
+            else:
+                hold[i] = hold[kids].sum(axis=0)
+                total[i] = total[kids].sum()
+        if observed[st.type[i]]:
+            hold[i, st.type[i]] += 1
+            total[i] += 1
+    return np.append(hold[0], total[0])
