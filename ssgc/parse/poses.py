@@ -152,13 +152,6 @@ def _value_and_gradient(
     return values[0], grad
 
 
-def block_values(grammar: Grammar, edges: PoseEdges, bx: FloatArray, bq: FloatArray) -> FloatArray:
-    """Sum of edge log-densities per block (an edge counts for its parent block if it has one)."""
-    value = edge_log_density(grammar, edges, (bx, bq), (bx, bq))
-    owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
-    return np.bincount(np.maximum(owner, 0), value, minlength=len(bx))
-
-
 def maximize(
     grammar: Grammar,
     edges: PoseEdges,
