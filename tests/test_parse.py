@@ -118,7 +118,8 @@ def test_scene_the_grammar_cannot_produce_names_the_objects():
     )
     result = Parser(gmm).parse(two_points)
     assert result.status == "infeasible" and not result.parses
-    assert "scene 'two': no tree of the grammar explains all 2 objects" in result.message
+    assert "scene 'two' has more objects than any tree of the grammar can hold" in result.message
+    assert "2 Point (at most 1)" in result.message
     cup = grammar.type_id("MugColeHardwareClassicBlue")
     no_bin = Scene(
         "floating",
