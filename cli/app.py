@@ -28,7 +28,8 @@ from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.inspect import grammar_summary
 from ssgc.io.atomic import write_text_atomic
-from ssgc.io.scene import dumps_json, dumps_scene, scene_from_tree
+from ssgc.io.resume import scan_sampled
+from ssgc.io.scene import dumps_scene, scene_from_tree
 from ssgc.sample.forward import CHUNK, chunk_rng, sample_chunk
 
 app = typer.Typer(
@@ -41,8 +42,10 @@ app = typer.Typer(
 bench_app = typer.Typer(help="Measure speed; prints JSON with --json.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 
-out = Console(soft_wrap=True)
-err = Console(stderr=True, soft_wrap=True)
+# Text is printed as it is: no emoji codes (rich would print `g.yaml:100:3` as `g.yaml💯3`)
+# and no markup (a grammar named "[/]" in an `inspect` table title would be an error).
+out = Console(soft_wrap=True, emoji=False, markup=False)
+err = Console(stderr=True, soft_wrap=True, emoji=False, markup=False)
 MAX_SHOWN_DIAGNOSTICS = 30
 
 
@@ -110,6 +113,15 @@ def _main(
 
 
 GrammarArg = Annotated[Path, typer.Argument(help="Grammar YAML file.", show_default=False)]
+# Mesh and model files a grammar names must be in its directory unless the user allows others
+# (docs/robustness.md): a grammar from elsewhere cannot point ssg at arbitrary files.
+AllowOutside = Annotated[
+    bool,
+    typer.Option(
+        "--allow-outside-files",
+        help="Allow mesh and model files outside the grammar's directory.",
+    ),
+]
 
 
 @app.command()
@@ -117,12 +129,13 @@ GrammarArg = Annotated[Path, typer.Argument(help="Grammar YAML file.", show_defa
 def validate(
     grammars: Annotated[list[Path], typer.Argument(help="Grammar YAML files.", show_default=False)],
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print errors only.")] = False,
+    allow_outside_files: AllowOutside = False,
 ) -> None:
     """Check grammars; print FILE:LINE:COL messages; exit 1 if any has an error."""
     failed = 0
     for path in grammars:
         try:
-            g = load_grammar(path)
+            g = load_grammar(path, allow_outside=allow_outside_files)
         except SsgError as exc:
             _print_diagnostics(exc)
             failed += 1
@@ -153,38 +166,65 @@ def sample(
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress bar or summary.")
     ] = False,
+    resume: Annotated[
+        bool,
+        typer.Option(
+            "--resume", help="Keep the complete scene files of an interrupted run; draw the rest."
+        ),
+    ] = False,
+    allow_outside_files: AllowOutside = False,
 ) -> None:
     """Draw N scenes; write one JSON file per scene (objects, full tree, log-probability).
 
-    Scene i depends only on the seed and i: `-n 100` extends `-n 10` without changing it.
+    Scene i depends only on the seed and i: `-n 100` extends `-n 10` without changing it, and
+    `--resume` finishes an interrupted run with the files an uninterrupted one would write.
     """
-    g = load_grammar(grammar)
+    g = load_grammar(grammar, allow_outside=allow_outside_files)
     _make_dir(output)
-    written: list[Path] = []
+    first: Path | None = None  # the first and last file written, for the summary
+    last: Path | None = None
+    count = 0
     width = max(6, len(str(max(n - 1, 0))))
+    stem = _safe_stem(g.name)
+
+    def name_of(index: int) -> str:
+        return f"{stem}_{index:0{width}d}"
+
+    have = scan_sampled(output, stem, name_of, n, g.name, seed) if resume else None
     with _progress(quiet) as progress:
         task = progress.add_task("sampling", total=n)
         for chunk in range((n + CHUNK - 1) // CHUNK):
+            lo, hi = chunk * CHUNK, min(n, (chunk + 1) * CHUNK)
+            if have is not None and have.done[lo:hi].all():
+                progress.advance(task, hi - lo)
+                continue  # nothing missing: the chunk is not even drawn
             trees, logp = sample_chunk(g, chunk_rng(seed, chunk))
-            for k in range(min(CHUNK, n - chunk * CHUNK)):
-                index = chunk * CHUNK + k
-                name = f"{_safe_stem(g.name)}_{index:0{width}d}"
+            if have is not None:
+                have.check_same_draws(lo, logp[: hi - lo], name_of)
+            for index in range(lo, hi):
+                k = index - lo
+                if have is not None and have.done[index]:
+                    progress.advance(task)
+                    continue
+                name = name_of(index)
                 scene = scene_from_tree(g, trees.tree(k), name, float(logp[k]))
                 path = output / f"{name}.json"
                 write_text_atomic(path, dumps_scene(g, scene, seed=seed, index=index))
-                written.append(path)
+                first, last = first or path, path
+                count += 1
                 progress.advance(task)
     if not quiet:
         where = (
-            f"{written[0]} … {written[-1].name}"
-            if len(written) > 1
-            else (str(written[0]) if written else str(output))
+            f"{first} … {last.name}"
+            if first is not None and last is not None and count > 1
+            else str(first or output)
         )
-        out.print(
-            f"wrote {len(written)} scene(s) of grammar '{g.name}' (seed {seed}) to {where}",
-            markup=False,
-            highlight=False,
-        )
+        summary = f"wrote {count} scene(s) of grammar '{g.name}' (seed {seed}) to {where}"
+        if have is not None:
+            summary += f"; kept {int(have.done.sum())} complete scene file(s)"
+            if have.removed_temps:
+                summary += f", removed {have.removed_temps} temporary file(s) of a killed run"
+        out.print(summary, markup=False, highlight=False)
 
 
 @app.command()
@@ -192,9 +232,10 @@ def sample(
 def inspect(
     grammar: GrammarArg,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of tables.")] = False,
+    allow_outside_files: AllowOutside = False,
 ) -> None:
     """Show the node types and rules of a grammar, and its supertree size."""
-    g = load_grammar(grammar)
+    g = load_grammar(grammar, allow_outside=allow_outside_files)
     summary = grammar_summary(g)
     if as_json:
         print(json.dumps(summary, indent=1))
@@ -213,7 +254,9 @@ def inspect(
         rules.add_row(str(r["id"]), r["name"], r["translation"], r["rotation"])
     out.print(types)
     out.print(rules)
-    out.print(f"root: {summary['root']}   supertree: {summary['supertree_nodes']} nodes")
+    size = summary["supertree_nodes"]
+    nodes = "too large to count" if size is None else f"{size} nodes"
+    out.print(f"root: {summary['root']}   supertree: {nodes}")
 
 
 @bench_app.command("sample")
@@ -244,7 +287,15 @@ def parse(
         ),
     ],
     grammar: Annotated[Path, typer.Option("-g", "--grammar", help="Grammar YAML file.")],
-    method: Annotated[str, typer.Option(help="auto | ip | micp")] = "auto",
+    method: Annotated[
+        str,
+        typer.Option(
+            help="auto | ip | micp. Same exact parser for grammars without latent poses. With "
+            "latent poses: micp optimises them per assignment of children and certifies the "
+            "result by a convex relaxation (gap reported); ip uses pose proposals and "
+            "refinement (no gap). auto: micp."
+        ),
+    ] = "auto",
     top: Annotated[int, typer.Option("--top", min=1, help="Distinct parse trees per scene.")] = 1,
     time_limit: Annotated[
         float | None, typer.Option("--time-limit", min=0.001, help="Seconds per scene.")
@@ -254,6 +305,11 @@ def parse(
         Path | None, typer.Option("-o", "--output", help="Write JSON here (default: stdout).")
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    resume: Annotated[
+        bool,
+        typer.Option("--resume", help="Continue an interrupted run with -o from its journal."),
+    ] = False,
+    allow_outside_files: AllowOutside = False,
 ) -> None:
     """Most probable parse trees of observed scenes (MAP parsing by MILP on HiGHS).
 
@@ -262,39 +318,65 @@ def parse(
     from ssgc.io.scene import load_scenes
     from ssgc.parse.parser import Parser, result_to_json
 
-    if method not in ("auto", "ip", "micp"):
-        raise SsgError.single(f"--method must be auto, ip or micp, got '{method}'")
-    if method == "micp" or solver != "highs":
-        raise SsgError.single(
-            "the pose-optimising MICP parser and --solver scip are not "
-            "available yet; use --method auto (exact for grammars whose poses "
-            "are all observed)"
-        )
-    g = load_grammar(grammar)
+    _check_method(method, solver)
+    g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_scenes(scenes, g)
-    parser = Parser(g)
-    results = []
-    with _progress(quiet) as progress:
-        task = progress.add_task("parsing", total=len(items))
-        for scene in items:
-            results.append(result_to_json(g, parser.parse(scene, top=top, time_limit=time_limit)))
-            progress.advance(task)
-    text = dumps_json({"grammar": g.name, "scenes": results})
-    if output is None:
-        sys.stdout.write(text)
-    else:
-        write_text_atomic(output, text)
-    failed = [r for r in results if r["status"] in ("infeasible", "error")]
+    from ssgc.io.atomic import atomic_writer
+    from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
+
+    if resume and output is None:
+        raise SsgError.single("--resume needs -o OUT.json: the progress is kept next to it")
+    parser = Parser(g, method=method)
+    if output is None:  # stdout: nothing to resume, so the results are kept in memory
+        results = []
+        with _progress(quiet) as progress:
+            task = progress.add_task("parsing", total=len(items))
+            for scene in items:
+                results.append(
+                    result_to_json(g, parser.parse(scene, top=top, time_limit=time_limit))
+                )
+                progress.advance(task)
+        failed = write_parse_output(sys.stdout, g.name, results)
+    else:  # each result goes to the journal as soon as it is known, OUT.json at the end
+        header = run_header(g.name, grammar, scenes, items, top, method, time_limit)
+        with ParseJournal(journal_path(output), header, resume) as journal:
+            if journal.discarded and not quiet:
+                err.print(
+                    f"note: starting again; the journal {journal.path} of an interrupted run "
+                    "is replaced (--resume continues it)",
+                    markup=False,
+                    highlight=False,
+                )
+            with _progress(quiet) as progress:
+                task = progress.add_task("parsing", total=len(items))
+                progress.advance(task, journal.done)
+                for index in range(journal.done, len(items)):
+                    result = parser.parse(items[index], top=top, time_limit=time_limit)
+                    journal.append(index, result_to_json(g, result))
+                    progress.advance(task)
+            with atomic_writer(output) as f:
+                failed = write_parse_output(f, g.name, journal.results())
+        journal.delete()
     for r in failed:
-        err.print(
-            f"{r['name']}: {r['status']}: {r.get('message', '')}", markup=False, highlight=False
-        )
+        err.print(f"{r['name']}: {r['status']}: {r['message']}", markup=False, highlight=False)
     if not quiet and output is not None:
-        out.print(f"parsed {len(results)} scene(s) -> {output}", markup=False, highlight=False)
+        out.print(f"parsed {len(items)} scene(s) -> {output}", markup=False, highlight=False)
     if any(r["status"] == "error" for r in failed):
         raise typer.Exit(1)
     if failed:
         raise typer.Exit(2)
+
+
+def _check_method(method: str, solver: str) -> None:
+    if method not in ("auto", "ip", "micp"):
+        raise SsgError.single(f"--method must be auto, ip or micp, got '{method}'")
+    if solver == "scip":
+        raise SsgError.single(
+            "--solver scip is not available in this build; HiGHS (the default) solves every "
+            "parse model, including the latent-pose bound"
+        )
+    if solver != "highs":
+        raise SsgError.single(f"--solver must be highs or scip, got '{solver}'")
 
 
 @bench_app.command("parse")
@@ -303,7 +385,7 @@ def bench_parse_cmd(
     grammar: GrammarArg,
     scenes: Annotated[int, typer.Option("--scenes", min=1, help="Scenes to sample.")] = 100,
     seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
-    method: Annotated[str, typer.Option(help="auto | ip")] = "auto",
+    method: Annotated[str, typer.Option(help="auto | ip | micp")] = "auto",
     top: Annotated[int, typer.Option("--top", min=1)] = 1,
     time_limit: Annotated[float | None, typer.Option("--time-limit", min=0.001)] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
@@ -311,9 +393,8 @@ def bench_parse_cmd(
     """Sample scenes, parse them, compare with the sampled trees; timings per scene."""
     from ssgc.bench import bench_parse
 
-    if method not in ("auto", "ip"):
-        raise SsgError.single("bench parse supports --method auto or ip for now")
-    result = bench_parse(load_grammar(grammar), scenes, seed, top, time_limit)
+    _check_method(method, "highs")
+    result = bench_parse(load_grammar(grammar), scenes, seed, top, time_limit, method)
     if as_json:
         print(json.dumps(result, indent=1))
     else:

@@ -9,6 +9,7 @@ types, bounds with no effect) travel with the compiled grammar.
 from __future__ import annotations
 
 import difflib
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from ssgc.distributions.bingham import Bingham
 from ssgc.distributions.discrete import CountLaw
 from ssgc.distributions.normal import Normal
 from ssgc.distributions.uniform import UniformBox, UniformRevolute
-from ssgc.errors import Diagnostic, GrammarError, SsgError
+from ssgc.errors import Diagnostic, GrammarError, SsgError, one_line
 from ssgc.geometry import IDENTITY_QUAT, quat_canonical, rpy_to_quat
 from ssgc.ir import (
     Grammar,
@@ -46,11 +47,17 @@ from ssgc.yamlio import (
 MAX_CONCENTRATION = 1e4
 QUAT_NORM_TOL = 1e-3
 ORTHOGONALITY_TOL = 1e-6
+MAX_CYCLES_REPORTED = 20  # a grammar with more unbounded cycles gets the first ones
+MAX_SUGGESTIONS = 50  # "did you mean" for the first unknown type names only
 AXES = {"x": 0, "y": 1, "z": 2}
 
 
-def load_grammar(path: str | Path) -> Grammar:
-    """Read, validate and compile a grammar file; raises `GrammarError` on any mistake."""
+def load_grammar(path: str | Path, allow_outside: bool = False) -> Grammar:
+    """Read, validate and compile a grammar file; raises `GrammarError` on any mistake.
+
+    Files the grammar names (meshes, models) must lie in the grammar file's directory unless
+    `allow_outside`: a grammar from elsewhere cannot point ssgc at arbitrary files.
+    """
     path = Path(path)
     try:
         text = read_text(path, MAX_GRAMMAR_BYTES, "grammar file")
@@ -58,10 +65,19 @@ def load_grammar(path: str | Path) -> Grammar:
         raise
     except SsgError as exc:  # not found, not UTF-8, NUL bytes: still a grammar error
         raise GrammarError(exc.diagnostics) from None
-    return compile_text(text, str(path), base_dir=path.parent)
+    return compile_text(text, str(path), base_dir=path.parent, allow_outside=allow_outside)
 
 
-def compile_text(text: str, file: str = "<grammar>", base_dir: Path | None = None) -> Grammar:
+def compile_text(
+    text: str,
+    file: str = "<grammar>",
+    base_dir: Path | None = None,
+    allow_outside: bool = False,
+) -> Grammar:
+    """Compile grammar text; file names in it are relative to `base_dir` (see `load_grammar`).
+
+    Without `base_dir` only the spelling of a file name is checked (absolute, or `..` out).
+    """
     try:
         data, source = load_located(text, file)
     except GrammarError:
@@ -85,22 +101,28 @@ def compile_text(text: str, file: str = "<grammar>", base_dir: Path | None = Non
         doc = dsl.GrammarDoc.model_validate(data)
     except ValidationError as exc:
         raise GrammarError(validation_diagnostics(exc, source)) from None
-    return Compiler(doc, source, base_dir).run()
+    return Compiler(doc, source, base_dir, allow_outside).run()
 
 
 class Compiler:
     """Checks one validated document and lowers it; collects every diagnostic it finds."""
 
     def __init__(
-        self, doc: dsl.GrammarDoc, source: SourceMap, base_dir: Path | None = None
+        self,
+        doc: dsl.GrammarDoc,
+        source: SourceMap,
+        base_dir: Path | None = None,
+        allow_outside: bool = False,
     ) -> None:
         self.doc = doc
         self.source = source
         self.base_dir = base_dir
+        self.allow_outside = allow_outside
         self.errors: list[Diagnostic] = []
         self.warnings: list[Diagnostic] = []
         self.names = list(doc.types)
         self.ids = {name: i for i, name in enumerate(self.names)}
+        self.suggestions = 0
 
     # ---------------------------------------------------------------- diagnostics ---
 
@@ -111,13 +133,22 @@ class Compiler:
         self.warnings.append(self.source.diagnostic(loc, message, "warning"))
 
     def unknown_type(self, loc: Loc, name: str, what: str) -> None:
-        close = difflib.get_close_matches(name, self.names, n=1)
+        # Suggestions cost a comparison with every type: a few are enough (no quadratic time
+        # for a generated file with thousands of misspelt names).
+        self.suggestions += 1
+        close = (
+            difflib.get_close_matches(name, self.names, n=1)
+            if self.suggestions <= MAX_SUGGESTIONS
+            else []
+        )
         hint = f" (did you mean '{close[0]}'?)" if close else ""
         self.error(loc, f"{what} '{name}' is not a type of this grammar{hint}")
 
     # ----------------------------------------------------------------------- run ---
 
     def run(self) -> Grammar:
+        if one_line(self.doc.grammar) != self.doc.grammar:  # it is printed, and names files
+            self.error(("grammar",), "the grammar name must be one line of printable text")
         root_spec = self.doc.root_spec
         root_loc: Loc = ("root", "type") if isinstance(self.doc.root, dsl.Root) else ("root",)
         if root_spec.type not in self.ids:
@@ -127,7 +158,7 @@ class Compiler:
         types = [self.node_type(name, spec, rules) for name, spec in self.doc.types.items()]
         self.check_root_not_produced(rules, root_spec.type)
         self.check_labels(types)
-        self.check_mesh_files(types)
+        self.check_files(types)
         if not self.errors and root_spec.type in self.ids:
             self.check_recursion(types, rules)
             self.check_reachable(types, rules, self.ids[root_spec.type])
@@ -473,38 +504,85 @@ class Compiler:
                     self.error(loc, f"{key[0]} '{key[1]}' already names type '{owners[key]}'")
                 owners[key] = t.name
 
-    def check_mesh_files(self, types: list[NodeType]) -> None:
-        """Mesh files are relative to the grammar file; a missing one is worth a warning."""
-        if self.base_dir is None:
-            return
+    def check_files(self, types: list[NodeType]) -> None:
+        """Mesh and model files are named relative to the grammar file and must stay in its
+        directory (see `load_grammar`).  A missing mesh is worth a warning; models are names
+        for matching dataset objects too, and are not expected to exist here."""
         for t in types:
             if isinstance(t.geometry, dsl.MeshG):
-                mesh = self.base_dir / t.geometry.mesh.file
-                if not mesh.is_file():
-                    self.warn(
-                        (*t.path, "geometry", "mesh", "file"),
-                        f"mesh file '{t.geometry.mesh.file}' not found next to the grammar "
-                        f"(looked for {mesh})",
-                    )
+                loc = (*t.path, "geometry", "mesh", "file")
+                mesh = self.file_reference(t.geometry.mesh.file, "mesh file", loc)
+                if mesh is not None and self.base_dir is not None and not _is_file(mesh):
+                    inside = mesh.is_relative_to(self.base_dir.resolve())
+                    where = " next to the grammar" if inside else ""
+                    name = t.geometry.mesh.file
+                    self.warn(loc, f"mesh file '{name}' not found{where} (looked for {mesh})")
+            if t.model:
+                self.file_reference(t.model, "model file", (*t.path, "model"))
+
+    def file_reference(self, name: str, what: str, loc: Loc) -> Path | None:
+        """The file `name` means, or None after reporting why it cannot be used.
+
+        The file is outside the grammar's directory when the path, resolved, is: an absolute
+        path elsewhere, a `..` that climbs out, or a symbolic link on the way that points out.
+        Without a directory (text compiled on its own) absolute paths and a leading `..` are.
+        """
+        if "\x00" in name:
+            self.error(loc, f"{what} name contains a NUL character")
+            return None
+        target, place, link = None, "", ""
+        if self.base_dir is None:
+            outside = os.path.isabs(name) or os.path.normpath(name).split(os.sep)[0] == ".."
+        else:
+            try:
+                base = self.base_dir.resolve()
+                target = (self.base_dir / name).resolve()
+            except (OSError, RuntimeError) as exc:  # a loop of symbolic links
+                self.error(loc, f"cannot resolve {what} '{name}': {exc}")
+                return None
+            place = f" ({base})"
+            outside = not target.is_relative_to(base)
+            if outside and Path(os.path.normpath(base / name)).is_relative_to(base):
+                link = f" (through a symbolic link, to {target})"
+        if outside and not self.allow_outside:
+            self.error(
+                loc,
+                f"{what} '{name}'{link} is outside the grammar's directory{place}; move it "
+                "there, or allow it with --allow-outside-files",
+            )
+            return None
+        return target
 
     def check_recursion(self, types: list[NodeType], rules: list[Rule]) -> None:
-        """Every cycle of the type graph must pass through a type with `max_nesting`."""
+        """Every cycle of the type graph must pass through a type with `max_nesting`.
+
+        Strongly connected components find the types on a cycle in linear time (a grammar may
+        have thousands of types); a path is searched for only to name a cycle in a message.
+        """
         children: dict[int, list[Rule]] = {t.id: [] for t in types}
         for r in rules:
             children[r.parent].append(r)
         bounded = {t.id for t in types if t.max_nesting is not None}
+        free = [t.id for t in types if t.id not in bounded]
+        loops = _on_cycles(free, children)  # cycles of types without a bound
         on_cycle: set[int] = set()
+        reported = 0
         for t in types:
-            cycle = _find_cycle(t.id, children, blocked=bounded)
-            if cycle is not None and t.id not in on_cycle:
-                on_cycle.update(r.parent for r in cycle)
-                names = " -> ".join([self.names[r.parent] for r in cycle] + [self.names[t.id]])
-                self.error(
-                    (*cycle[-1].path, "child"),
-                    f"unbounded recursion {names}; set `max_nesting` on one of these types",
-                )
+            if t.id not in loops or t.id in on_cycle or reported >= MAX_CYCLES_REPORTED:
+                continue
+            cycle = _find_cycle(t.id, children, loops[t.id])
+            if cycle is None:  # cannot happen: t is on a cycle of its component
+                continue
+            on_cycle.update(r.parent for r in cycle)
+            reported += 1
+            names = " -> ".join([self.names[r.parent] for r in cycle] + [self.names[t.id]])
+            self.error(
+                (*cycle[-1].path, "child"),
+                f"unbounded recursion {names}; set `max_nesting` on one of these types",
+            )
+        recursive = _on_cycles([t.id for t in types], children)
         for t in types:
-            if t.id in bounded and _find_cycle(t.id, children, blocked=set()) is None:
+            if t.id in bounded and t.id not in recursive:
                 self.warn(
                     (*t.path, "max_nesting"),
                     f"type '{t.name}' is not recursive, so `max_nesting` has no effect",
@@ -537,23 +615,84 @@ def _kind_of(spec: dsl.NodeType) -> tuple[Kind, str, list[dsl.Rule]]:
     return Kind.TERMINAL, "", []
 
 
+def _on_cycles(nodes: list[int], children: dict[int, list[Rule]]) -> dict[int, set[int]]:
+    """The types among `nodes` that lie on a cycle through `nodes` only, each mapped to its
+    strongly connected component (Tarjan's algorithm, without recursion)."""
+    allowed = set(nodes)
+    index: dict[int, int] = {}
+    low: dict[int, int] = {}
+    stack: list[int] = []
+    on_stack: set[int] = set()
+    out: dict[int, set[int]] = {}
+    for root in nodes:
+        if root in index:
+            continue
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        work = [(root, iter(children[root]))]
+        while work:
+            node, kids = work[-1]
+            for r in kids:
+                child = r.child
+                if child not in allowed:
+                    continue
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(children[child])))
+                    break
+                if child in on_stack:
+                    low[node] = min(low[node], index[child])
+            else:  # every child done
+                work.pop()
+                if work:
+                    parent = work[-1][0]
+                    low[parent] = min(low[parent], low[node])
+                if low[node] == index[node]:
+                    component = set()
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.add(member)
+                        if member == node:
+                            break
+                    looped = any(r.child == node for r in children[node])
+                    if len(component) > 1 or looped:
+                        out.update(dict.fromkeys(component, component))
+    return out
+
+
 def _find_cycle(
-    start: int, children: dict[int, list[Rule]], blocked: set[int]
+    start: int, children: dict[int, list[Rule]], allowed: set[int]
 ) -> list[Rule] | None:
-    """Rules of a path start -> ... -> start avoiding `blocked` types (other than start), if any."""
-    if start in blocked:
-        return None
-    stack: list[tuple[int, list[Rule]]] = [(start, [])]
+    """Rules of a path start -> ... -> start through `allowed` types, if any (depth first)."""
+    via: dict[int, Rule] = {}  # the rule each type was first reached by
+    stack = [start]
     seen = {start}
     while stack:
-        node, path = stack.pop()
+        node = stack.pop()
         for r in children[node]:
             if r.child == start:
-                return [*path, r]
-            if r.child not in seen and r.child not in blocked:
+                path = [r]
+                while node != start:
+                    path.append(via[node])
+                    node = via[node].parent
+                return path[::-1]
+            if r.child not in seen and r.child in allowed:
                 seen.add(r.child)
-                stack.append((r.child, [*path, r]))
+                via[r.child] = r
+                stack.append(r.child)
     return None
+
+
+def _is_file(path: Path) -> bool:
+    """`path.is_file()`, False for a name the system refuses (too long, a loop of links)."""
+    try:
+        return path.is_file()
+    except (OSError, RuntimeError):
+        return False
 
 
 def _frozen(a: object) -> NDArray[np.float64]:

@@ -8,10 +8,26 @@ traceback.
 
 from __future__ import annotations
 
+import unicodedata
 from dataclasses import dataclass, field
 from typing import Literal
 
 Severity = Literal["error", "warning"]
+
+
+def one_line(text: str) -> str:
+    """`text` with control characters, line breaks and lone surrogates written as escapes
+    (``\\n``, ``\\x1b``, ``\\ud800``).
+
+    Messages quote what users wrote (keys, names, values); a newline or a terminal escape in
+    one must not split a diagnostic over several lines or recolour the user's terminal, and a
+    lone surrogate cannot be written to a UTF-8 terminal at all.
+    """
+    if text.isprintable():
+        return text
+    return "".join(
+        repr(c)[1:-1] if unicodedata.category(c) in ("Cc", "Cs", "Zl", "Zp") else c for c in text
+    )
 
 
 @dataclass(frozen=True)
@@ -30,7 +46,7 @@ class Diagnostic:
             where += f":{self.line}"
             if self.column is not None:
                 where += f":{self.column}"
-        return f"{where}: {self.severity}: {self.message}"
+        return f"{where}: {self.severity}: {one_line(self.message)}"
 
 
 @dataclass

@@ -14,6 +14,7 @@ from __future__ import annotations
 import datetime
 import difflib
 import math
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +37,7 @@ _PLAIN_TAGS = {
 }
 
 Loc = tuple[str | int, ...]
+_SURROGATE = re.compile("[\ud800-\udfff]")
 
 
 @dataclass(frozen=True)
@@ -213,15 +215,22 @@ def _unreadable_value(text: str, file: str) -> Diagnostic:
                 yaml.constructor.construct_object(node, deep=True)
             except (ValueError, KeyError, TypeError, OverflowError) as exc:
                 tag = str(node.tag).replace("tag:yaml.org,2002:", "!!")
-                why = f" ({exc})" if isinstance(exc, ValueError) else ""
+                why = f" ({_short(str(exc), 80)})" if isinstance(exc, ValueError) else ""
+                if "integer string conversion" in why:  # Python's guard against slow ints
+                    why = " (an integer of more than 4300 digits)"
                 mark = node.start_mark
                 return Diagnostic(
-                    f"invalid YAML: cannot read '{node.value}' as {tag}{why}",
+                    f"invalid YAML: cannot read '{_short(str(node.value), 40)}' as {tag}{why}",
                     file,
                     mark.line + 1,
                     mark.column + 1,
                 )
     return Diagnostic("invalid YAML: a value cannot be read", file)
+
+
+def _short(text: str, limit: int) -> str:
+    """`text` cut to `limit` characters, so a quoted value cannot flood a message."""
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _duplicate_key_message(exc: MarkedYAMLError) -> str:
@@ -240,6 +249,21 @@ class _Plain:
     def fail(self, loc: Loc, message: str) -> SsgError:
         return SsgError([self.source.diagnostic(loc, message)])
 
+    def text(self, value: str, loc: Loc, key: Any = None) -> str:
+        """A string (the value at `loc`, or its `key`) with escaped UTF-16 surrogate pairs
+        (``"\\ud83d\\ude00"``, which ruamel keeps as two characters) joined; a lone
+        surrogate is not text and is refused."""
+        if not _SURROGATE.search(value):
+            return value
+        try:
+            return value.encode("utf-16", "surrogatepass").decode("utf-16")
+        except UnicodeDecodeError:
+            message = "a string holds a lone UTF-16 surrogate escape (\\ud800-\\udfff)"
+            if key is None:
+                raise self.fail(loc, message) from None
+            line, col = self.source.locate_key(loc, key)
+            raise SsgError.single(message, self.source.file, line, col) from None
+
     def convert(self, node: Any, loc: Loc) -> Any:
         self.budget -= 1
         if self.budget < 0:
@@ -248,7 +272,7 @@ class _Plain:
             raise self.fail(loc, "document is nested more than 200 levels deep")
         tag = getattr(getattr(node, "tag", None), "value", None)
         if isinstance(node, TaggedScalar) and tag == "tag:yaml.org,2002:str":
-            return str(node.value)  # `!!str 2024-01-01`: the way to quote with a tag
+            return self.text(str(node.value), loc)  # `!!str 2024-01-01`: quoting with a tag
         if tag is not None and tag not in _PLAIN_TAGS:  # `!!python/object:...` keeps its tag
             shown = str(tag).replace("tag:yaml.org,2002:", "!!")
             raise self.fail(loc, f"YAML tags are not allowed here (found {shown})")
@@ -263,7 +287,7 @@ class _Plain:
                         line,
                         col,
                     )
-                out[str(key)] = self.convert(value, (*loc, key))
+                out[self.text(str(key), loc, key)] = self.convert(value, (*loc, key))
             return out
         if isinstance(node, CommentedSeq):
             return [self.convert(v, (*loc, i)) for i, v in enumerate(node)]
@@ -274,7 +298,7 @@ class _Plain:
         if isinstance(node, float):
             return float(node)
         if isinstance(node, str):
-            return str(node)
+            return self.text(str(node), loc)
         if isinstance(node, (datetime.date, datetime.datetime)):
             raise self.fail(loc, f"dates are not allowed here (got {node}); quote it if it is text")
         what = {"bytes": "binary data (!!binary)", "CommentedSet": "a set (!!set)"}

@@ -3,8 +3,16 @@
 from __future__ import annotations
 
 import os
+import re
 import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import TextIO
+
+# mkstemp names: PREFIX + 8 characters of [a-z0-9_] + SUFFIX.  A process killed with SIGKILL (or a
+# power cut) cannot remove its temporary file, so `--resume` recognises and removes them.
+_TEMP_NAME = re.compile(r"\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp")
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
@@ -12,13 +20,24 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 
     The rename is atomic on POSIX filesystems, so readers see the old file or the new one.
     """
+    with atomic_writer(path) as f:
+        f.write(text)
+
+
+@contextmanager
+def atomic_writer(path: str | Path) -> Iterator[TextIO]:
+    """A text file that replaces `path` only when the block ends without an exception.
+
+    Like `write_text_atomic`, but the text can be streamed, so a large output never has to be
+    built as one string in memory first.
+    """
     path = Path(path)
     umask = os.umask(0)
     os.umask(umask)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+            yield f
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual permissions
@@ -26,3 +45,21 @@ def write_text_atomic(path: str | Path, text: str) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def temp_target(filename: str) -> str | None:
+    """The name of the file that a temporary file of `atomic_writer` was going to become."""
+    m = _TEMP_NAME.fullmatch(filename)
+    return m["target"] if m else None
+
+
+def remove_stale_temps(directory: Path, is_ours: Callable[[str], bool]) -> int:
+    """Delete the temporary files left in `directory` by a killed writer of files named
+    `is_ours`; files of other names are never touched.  Returns how many were removed."""
+    removed = 0
+    for entry in os.scandir(directory):
+        target = temp_target(entry.name)
+        if target is not None and entry.is_file(follow_symlinks=False) and is_ours(target):
+            Path(entry.path).unlink(missing_ok=True)
+            removed += 1
+    return removed

@@ -23,10 +23,17 @@ from typing import Annotated, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from ssgc.dsl import Finite, Strict, Vec3, Vec4
-from ssgc.errors import Diagnostic, SceneError, SsgError
+from ssgc.errors import Diagnostic, SceneError, SsgError, one_line
 from ssgc.geometry import quat_canonical, rpy_to_quat
 from ssgc.ir import Grammar
 from ssgc.tree import Trees
@@ -85,6 +92,21 @@ class SceneDoc(Strict):
     objects: list[SceneObject]
     metadata: dict[str, Any] = Field(default_factory=dict)
     tree: TreeDoc | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _printable_name(cls, name: str | None) -> str | None:
+        problem = _name_problem(name) if name is not None else None
+        if problem:
+            raise ValueError(problem)
+        return name
+
+
+def _name_problem(name: str) -> str | None:
+    """Why `name` cannot name a scene: names go into one-line messages and output files."""
+    if one_line(name) != name:
+        return f"a scene name must be one line of printable text, got '{one_line(name)}'"
+    return None
 
 
 # ---------------------------------------------------------------- in memory ---
@@ -198,6 +220,12 @@ def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str =
         )
         message = exc.msg if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
         raise SceneError.single(f"invalid JSON: {message}", file, line, col) from None
+    except ValueError as exc:  # an integer of more than 4300 digits (Python's own limit)
+        _located(text, file)  # raises with the number's line and column
+        raise SceneError.single(f"invalid JSON: {exc}", file) from None
+    if _SURROGATE_ESCAPE.search(text) and not _is_unicode(data):
+        _located(text, file)  # a lone surrogate such as "\ud800": raises with its position
+        raise SceneError.single("a string holds a lone UTF-16 surrogate escape", file)
     try:
         doc = SceneDoc.model_validate(data)
     except ValidationError as exc:
@@ -206,6 +234,19 @@ def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str =
         raise SceneError(validation_diagnostics(exc, source)) from None
     source = _LazySource(text, file)
     return _scene_from_doc(doc, grammar, source, default_name)
+
+
+_SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")
+
+
+def _is_unicode(data: Any) -> bool:
+    """False if the decoded JSON holds a lone surrogate (JSON joins pairs, not lone ones):
+    such a string cannot be printed or written as UTF-8."""
+    try:
+        json.dumps(data, ensure_ascii=False).encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 class _DuplicateKey(ValueError):
@@ -407,16 +448,28 @@ def read_sink_yaml(path: str | Path, grammar: Grammar) -> list[Scene]:
     data, source = _located(text, str(path))
     if not isinstance(data, dict):
         raise SceneError([source.diagnostic((), "expected a mapping of scene name -> scene")])
+    if not data:  # like a directory without scene files: nothing to do is a mistake
+        raise SceneError([source.diagnostic((), "the dataset has no scenes")])
     by_model = {t.model: t.id for t in grammar.types if t.observed and t.model}
     by_label = {label: t.id for t in grammar.types if t.observed for label in t.labels}
     scenes, errors = [], []
     for name, entry in data.items():
         objects = []
+        if (problem := _name_problem(name)) is not None:
+            errors.append(source.diagnostic((name,), problem))
+            continue
         if not isinstance(entry, dict) or not isinstance(entry.get("objects", []), list):
             errors.append(source.diagnostic((name,), "expected a mapping with a list `objects`"))
             continue
         world = entry.get("world_description") or {}
-        models = world.get("models", []) if isinstance(world, dict) else []
+        models = (world.get("models") if isinstance(world, dict) else None) or []
+        if not isinstance(world, dict) or not isinstance(models, list):
+            errors.append(
+                source.diagnostic(
+                    (name, "world_description"), "expected a mapping with a list `models`"
+                )
+            )
+            continue
         objects += [(("world_description", "models", i), m) for i, m in enumerate(models)]
         objects += [(("objects", i), o) for i, o in enumerate(entry.get("objects", []))]
         scene = _sink_scene(str(name), objects, by_model, by_label, source, errors)

@@ -20,12 +20,16 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from ssgc.errors import SsgError
 from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
 from ssgc.tree import Trees
 
 CHUNK = 256
-MAX_LEVELS = 10_000  # the compiler bounds every recursion; this only guards against a bug
+# Limits, so that a grammar whose trees are huge (nested repeats under a high `max_nesting`
+# grow exponentially) is a message rather than a machine running out of memory.
+MAX_LEVELS = 10_000  # tree depth
+MAX_CHUNK_NODES = 4_000_000  # nodes of the trees drawn together (a chunk): ~320 MB of arrays
 
 
 def sample_trees(grammar: Grammar, n: int, seed: int) -> tuple[Trees, NDArray[np.float64]]:
@@ -70,13 +74,17 @@ def sample_chunk(
     if tb.nesting_slot[grammar.root] >= 0:
         nest[:, tb.nesting_slot[grammar.root]] = 1
     first_id = 0  # global id of the frontier's first node
+    total = size  # nodes drawn so far
     while len(ntype[-1]):
         if len(ntype) > MAX_LEVELS:
-            raise RuntimeError(
-                f"sampled trees deeper than {MAX_LEVELS} levels: unbounded recursion"
+            raise SsgError.single(
+                f"grammar '{grammar.name}' makes trees deeper than {MAX_LEVELS} levels, "
+                "too deep to sample; lower its `max_nesting` bounds",
+                grammar.file,
             )
         f_scene, f_type, f_xyz, f_quat = scene[-1], ntype[-1], xyz[-1], quat[-1]
-        fires, logp_choice = _choose_rules(grammar, f_type, nest, rng)
+        fires, logp_choice = _choose_rules(grammar, f_type, nest, rng, MAX_CHUNK_NODES - total)
+        total += sum(len(where) for _, where in fires)
         lp_scene.append(f_scene)
         lp_value.append(logp_choice)
         next_id = first_id + len(f_type)
@@ -112,12 +120,32 @@ def sample_chunk(
 
 
 def _choose_rules(
-    grammar: Grammar, f_type: NDArray[np.int64], nest: NDArray[np.int64], rng: np.random.Generator
+    grammar: Grammar,
+    f_type: NDArray[np.int64],
+    nest: NDArray[np.int64],
+    rng: np.random.Generator,
+    budget: int | None = None,
 ) -> tuple[list[tuple[int, NDArray[np.int64]]], NDArray[np.float64]]:
-    """Which rules fire at each frontier node: [(rule id, frontier positions)], log-probs."""
+    """Which rules fire at each frontier node: [(rule id, frontier positions)], log-probs.
+
+    More than `budget` children in all is an error, found before they take any memory.
+    """
     tb = grammar.tables
     fires: list[tuple[int, NDArray[np.int64]]] = []
     logp = np.zeros(len(f_type))
+    produced = 0
+
+    def spend(children: int) -> None:
+        nonlocal produced
+        produced += children
+        if budget is not None and produced > budget:
+            raise SsgError.single(
+                f"grammar '{grammar.name}' makes scenes too large to sample: {CHUNK} scenes "
+                f"(drawn together) would hold more than {MAX_CHUNK_NODES:,} nodes; lower its "
+                "counts or `max_nesting` bounds",
+                grammar.file,
+            )
+
     for t in np.unique(f_type):
         node = grammar.types[t]
         if node.kind == Kind.TERMINAL:
@@ -126,6 +154,7 @@ def _choose_rules(
         rules = np.asarray(node.rules)
         blocked = blocked_rules(grammar, rules, nest[sel])
         if node.kind == Kind.AND:
+            spend(int(blocked.size - np.count_nonzero(blocked)))
             fires += [(int(r), sel[~blocked[:, k]]) for k, r in enumerate(rules)]
         elif node.kind == Kind.OR:
             weights = np.where(blocked, 0.0, node.probs)
@@ -136,16 +165,19 @@ def _choose_rules(
             live = total > 0
             with np.errstate(divide="ignore"):
                 logp[sel[live]] = np.log(weights[live, choice[live]] / total[live])
+            spend(int(np.count_nonzero(live)))
             fires += [(int(r), sel[live & (choice == k)]) for k, r in enumerate(rules)]
         elif node.kind == Kind.INDEPENDENT:
             fire = (rng.random((len(sel), len(rules))) < node.probs) & ~blocked
             term = np.where(fire, tb.type_logp[t, : len(rules)], tb.type_log1mp[t, : len(rules)])
             logp[sel] = np.sum(np.where(blocked, 0.0, term), axis=1)
+            spend(int(np.count_nonzero(fire)))
             fires += [(int(r), sel[fire[:, k]]) for k, r in enumerate(rules)]
         else:  # REPEAT
             counts = node.count.sample(rng, len(sel))
             counts[blocked[:, 0]] = 0
             logp[sel] = np.where(blocked[:, 0], 0.0, node.count.log_prob(counts))
+            spend(int(counts.sum()))
             fires.append((int(rules[0]), np.repeat(sel, counts)))
     return [(r, w) for r, w in fires if len(w)], logp
 

@@ -1,0 +1,209 @@
+"""`ssg parse -o OUT.json`: a journal of finished scenes, so an interrupted run can resume.
+
+Parsing a large dataset takes hours; a crash, a Ctrl-C or a killed job must not lose the
+scenes already parsed.  While it runs, `ssg parse` appends each finished scene's result to
+``OUT.json.partial.jsonl`` (JSON Lines), one line per scene, flushed and fsynced before the
+next scene starts.  The first line is a header naming the run; ``--resume`` refuses a journal
+whose header differs from the new run's, since mixing would give an OUT.json no single run
+produces.  At the end OUT.json is written atomically from the journal (streamed, so the results
+are never all in memory) and the journal is deleted.
+
+The journal's lines::
+
+    {"journal": "ssgc.parse-journal/1", "grammar": ..., "grammar_sha256": ...,
+     "scenes": ..., "scene_count": ..., "scenes_sha256": ..., "top": ..., "method": ...,
+     "time_limit": ...}
+    {"index": 0, "result": {...one scene of OUT.json...}}
+    {"index": 1, "result": {...}}
+
+A line is written with a single ``write`` of the whole line, so a kill leaves at most the last
+line cut short; resuming ignores (and truncates) such a line.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any, TextIO
+
+from ssgc.errors import Diagnostic, SsgError
+from ssgc.io.atomic import remove_stale_temps, write_text_atomic
+from ssgc.io.scene import Scene, dumps_json
+
+JOURNAL_FORMAT = "ssgc.parse-journal/1"
+FAILED = ("infeasible", "error")
+
+
+def journal_path(output: Path) -> Path:
+    """Where the journal of a run writing `output` lives: next to it, so it is on the same
+    filesystem and found again by a resumed run."""
+    return output.with_name(output.name + ".partial.jsonl")
+
+
+def run_header(
+    grammar_name: str,
+    grammar_file: Path,
+    scenes_path: Path,
+    scenes: Sequence[Scene],
+    top: int,
+    method: str,
+    time_limit: float | None,
+) -> dict[str, Any]:
+    """What makes two runs the same run: their grammar, their scenes and their options.
+
+    The digests catch a grammar or dataset edited in place between the two runs.
+    """
+    scene_hash = hashlib.sha256()
+    for scene in scenes:
+        for part in (scene.name.encode(), scene.types, scene.xyz, scene.quat):
+            scene_hash.update(part if isinstance(part, bytes) else part.tobytes())
+        scene_hash.update(b"\0")
+    return {
+        "journal": JOURNAL_FORMAT,
+        "grammar": grammar_name,
+        "grammar_sha256": hashlib.sha256(grammar_file.read_bytes()).hexdigest(),
+        "scenes": str(scenes_path.resolve()),
+        "scene_count": len(scenes),
+        "scenes_sha256": scene_hash.hexdigest(),
+        "top": top,
+        "method": method,
+        "time_limit": time_limit,
+    }
+
+
+class ParseJournal:
+    """The journal of one run of `ssg parse -o`: `done` scenes are finished, in input order."""
+
+    def __init__(self, path: Path, header: dict[str, Any], resume: bool) -> None:
+        self.path = path
+        self.done = 0
+        self.discarded = False  # a journal was there but this run does not resume it
+        ours = {path.name, path.name.removesuffix(".partial.jsonl")}
+        try:
+            remove_stale_temps(path.parent, ours.__contains__)
+            if resume and path.exists():
+                self.done = self._recover(header)
+            else:
+                self.discarded = path.exists()
+                write_text_atomic(path, json.dumps(header) + "\n")
+            self._fd = os.open(path, os.O_WRONLY | os.O_APPEND)
+        except OSError as exc:
+            raise SsgError.single(
+                f"cannot write the parse journal: {exc.strerror}", str(path)
+            ) from None
+
+    def _recover(self, header: dict[str, Any]) -> int:
+        """Check the journal's header; count its complete lines; cut off a partial last one."""
+        done, good_bytes = 0, 0
+        with open(self.path, "rb") as f:
+            first = f.readline()
+            found = _json_line(first)
+            if not isinstance(found, dict) or found.get("journal") != JOURNAL_FORMAT:
+                raise SsgError.single(
+                    "not a parse journal of ssgc; delete it or run without --resume",
+                    str(self.path),
+                )
+            _check_same_run(found, header, str(self.path))
+            good_bytes = len(first)
+            for lineno, line in enumerate(f, start=2):
+                if not line.endswith(b"\n"):
+                    break  # the line a killed run was writing: ignored, then cut off
+                entry = _json_line(line)
+                if not isinstance(entry, dict) or entry.get("index") != done:
+                    raise SsgError.single(
+                        f"damaged parse journal (line {lineno} is not the result of scene "
+                        f"{done}); delete it or run without --resume",
+                        str(self.path),
+                    )
+                done += 1
+                good_bytes += len(line)
+        if done > header["scene_count"]:
+            raise SsgError.single("the journal has more scenes than the input", str(self.path))
+        os.truncate(self.path, good_bytes)
+        return done
+
+    def append(self, index: int, result: dict[str, Any]) -> None:
+        """Record scene `index`'s result durably before the next scene is parsed."""
+        if index != self.done:
+            raise ValueError(f"scenes must be journalled in order: expected {self.done}")
+        data = (json.dumps({"index": index, "result": result}) + "\n").encode()
+        view = memoryview(data)
+        while view:
+            view = view[os.write(self._fd, view) :]
+        os.fsync(self._fd)
+        self.done += 1
+
+    def results(self) -> Iterator[dict[str, Any]]:
+        """The recorded results in input order, read back one line at a time."""
+        with open(self.path, "rb") as f:
+            f.readline()  # the header
+            for line in f:
+                yield json.loads(line)["result"]
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+    def delete(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+    def __enter__(self) -> ParseJournal:
+        return self
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+        if exc is not None and self.done == 0:
+            self.delete()  # failed before any scene (e.g. a grammar the parser refuses)
+
+
+def _json_line(line: bytes) -> Any:
+    try:
+        return json.loads(line)
+    except ValueError:
+        return None
+
+
+def _check_same_run(found: dict[str, Any], header: dict[str, Any], file: str) -> None:
+    differ = [k for k in header if k != "journal" and found.get(k) != header[k]]
+    if differ:
+        raise SsgError(
+            [
+                Diagnostic(
+                    f"this journal is of another run ({k}: {json.dumps(found.get(k))}, "
+                    f"now {json.dumps(header[k])}); use the same grammar, scenes and options "
+                    "to resume it, or run without --resume to start again",
+                    file,
+                )
+                for k in differ
+            ]
+        )
+
+
+def write_parse_output(
+    f: TextIO, grammar_name: str, results: Iterable[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Stream `{"grammar": ..., "scenes": [...]}` into `f`, byte for byte what
+    `dumps_json` makes of the whole document, one scene in memory at a time.
+
+    Returns the name, status and message of every scene that failed (infeasible or error), so
+    the caller can report them without keeping all the results.
+    """
+    failed: list[dict[str, Any]] = []
+    f.write('{\n "grammar": ' + json.dumps(grammar_name) + ',\n "scenes": [')
+    count = 0
+    for result in results:
+        f.write(",\n  " if count else "\n  ")
+        f.write(dumps_json(result).rstrip("\n").replace("\n", "\n  "))
+        count += 1
+        if result["status"] in FAILED:
+            failed.append({k: result.get(k, "") for k in ("name", "status", "message")})
+    f.write("\n ]\n}\n" if count else "]\n}\n")
+    return failed
