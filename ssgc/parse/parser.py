@@ -38,7 +38,7 @@ SCORE_TOL = 1e-6
 METHODS = ("auto", "ip", "micp")
 PROPOSAL_SHARE = 0.3  # of a time limit, for making and optimising pose proposals
 MAX_SET_COLUMNS = 1_000_000  # the set model's variables: HiGHS needs ~2.5 kB each
-DEADLINE_SHARE = 0.95  # of a time limit, when every step must have stopped
+DEADLINE_SHARE = 0.9  # of a time limit, when every step must have stopped
 
 
 @dataclass
