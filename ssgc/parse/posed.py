@@ -228,6 +228,7 @@ def reduce_posed(
     xyz, quat = np.asarray(u.xyz).reshape(-1, 3), np.asarray(u.quat).reshape(-1, 4)
     model = _Model(grammar, st, scene, node, parent, slot, xyz, quat)
     model.deadline = deadline
+    check_deadline(deadline)
     model.edge_scores()
     if adjust is not None:
         cand_k, top = np.asarray(u.cand_k, np.int64), np.asarray(u.top, np.int64)
@@ -273,11 +274,16 @@ class _Model:
             self.children[parent[i]].append(i)
 
     def build(self) -> Milp:
-        self.matches()
-        self.prune()
-        self.columns()
-        self.correspondence_rows()
-        self.logic_rows()
+        for step in (
+            self.matches,
+            self.prune,
+            self.columns,
+            self.correspondence_rows,
+            self.logic_rows,
+        ):
+            check_deadline(self.deadline)
+            step()
+        check_deadline(self.deadline)
         return Milp.build(self.cols, self.rows)
 
     def edge_scores(self) -> None:
