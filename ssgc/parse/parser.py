@@ -8,6 +8,7 @@ the binaries that define it and solves again for the next one.
 
 from __future__ import annotations
 
+import gc
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -88,6 +89,18 @@ class Parser:
         return bool(np.any(self.latent))
 
     def parse(self, scene: Scene, top: int = 1, time_limit: float | None = None) -> SceneParses:
+        """The top parses of one scene; `time_limit` (seconds) bounds everything it does."""
+        if time_limit is None or not gc.isenabled():
+            return self._parse(scene, top, time_limit)
+        # A full garbage collection of a large heap can pause for a tenth of a second, a
+        # fifth of a short limit; reference counting still frees what one parse discards.
+        gc.disable()
+        try:
+            return self._parse(scene, top, time_limit)
+        finally:
+            gc.enable()
+
+    def _parse(self, scene: Scene, top: int, time_limit: float | None) -> SceneParses:
         t0 = time.perf_counter()
         # the last steps after a deadline check (a vectorised pass, HiGHS's exit) take a moment
         deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit

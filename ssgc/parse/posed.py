@@ -191,6 +191,8 @@ class _Unroll:
     def _add(
         self, n: int, parent: int, slot: int, xyz: FloatArray, quat: FloatArray, k: int
     ) -> None:
+        if len(self.node) % 2048 == 0:  # one node can have thousands of candidate children
+            check_deadline(self.deadline)
         self.cand_k.append(k)
         fixed = parent >= 0 and self.st.set_of[n] == self.st.set_of[self.node[parent]]
         self.top.append(self.top[parent] if fixed else len(self.node))
