@@ -34,7 +34,7 @@ from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind, RKind, TKind
 from ssgc.parse.posed import Instances, PosedProblem, reduce_posed
 from ssgc.parse.poses import PoseEdges, maximize_independent
-from ssgc.parse.proposals import Candidates, latent_sets
+from ssgc.parse.proposals import Candidates, known_parent, latent_sets
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import rotation_log_density, translation_log_density
 
@@ -265,7 +265,7 @@ def set_bounds(
     memo: dict[tuple, SetBound] = {}
     for e in np.flatnonzero(latent):
         slots = _slots(grammar, st, int(e), latent)
-        parent = _known_parent(grammar, st, cand, int(e))
+        parent = known_parent(grammar, st, cand, int(e))
         if slots is None or parent is False:
             return None
         key = (
@@ -304,24 +304,6 @@ def _slots(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]): 
                     return None
                 slots.append((int(v), int(st.rule[c]), e_c))
     return tuple(slots)
-
-
-def _known_parent(grammar: Grammar, st: Supertree, cand: Candidates, e: int):  # type: ignore[no-untyped-def]
-    """The parent pose the set's rule is scored at; None if irrelevant; False if unknown."""
-    tb = grammar.tables
-    top = int(st.set_top[e])
-    r = int(st.rule[top])
-    if tb.t_kind[r] in (TKind.WORLD_NORMAL, TKind.WORLD_BOX) and tb.r_kind[r] in (
-        RKind.WORLD_BINGHAM,
-        RKind.UNIFORM,
-    ):
-        return None
-    p = int(st.parent[top])
-    e_p = int(st.set_of[p])
-    if len(cand.xyz[e_p]) != 1:
-        return False
-    tx, tq = cand.xyz[e_p][0], cand.quat[e_p][0]
-    return tx + quat_rotate(tq, st.offset_xyz[p]), quat_multiply(tq, st.offset_quat[p])
 
 
 def _bound_one(grammar, st, cand, e, slots, parent, deadline):  # type: ignore[no-untyped-def]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import gc
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -353,7 +353,7 @@ class _Run:
         self.refine_s += time.perf_counter() - t0
         refined = self.p.scored(tree, parse.status, float("nan"), parse.objective)
         if refined.score < parse.score:
-            refined = self.p.scored(parse.tree, parse.status, float("nan"), parse.objective)
+            refined = replace(parse, gap=float("nan"))  # refinement cannot lose: keep it
         improved = refined.score > parse.score + SCORE_TOL * max(1.0, abs(parse.score))
         if self.parses or not improved or self.rounds >= Parser.MAX_ROUNDS:
             return refined

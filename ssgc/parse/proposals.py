@@ -129,6 +129,25 @@ def child_mode(
     return xyz, quat
 
 
+def known_parent(grammar: Grammar, st: Supertree, cand: Candidates, e: int):  # type: ignore[no-untyped-def]
+    """The pose of set e's parent node, at which the set's own rule is scored: None if the rule
+    ignores its parent (world frame), False if the parent's set has other than one pose."""
+    tb = grammar.tables
+    top = int(st.set_top[e])
+    r = int(st.rule[top])
+    if tb.t_kind[r] in (TKind.WORLD_NORMAL, TKind.WORLD_BOX) and tb.r_kind[r] in (
+        RKind.WORLD_BINGHAM,
+        RKind.UNIFORM,
+    ):
+        return None
+    p = int(st.parent[top])
+    e_p = int(st.set_of[p])
+    if len(cand.xyz[e_p]) != 1:
+        return False
+    tx, tq = cand.xyz[e_p][0], cand.quat[e_p][0]
+    return tx + quat_rotate(tq, st.offset_xyz[p]), quat_multiply(tq, st.offset_quat[p])
+
+
 class _SetProposer:
     """Proposals for one latent set e, from its child slots' candidates and its parent's."""
 
@@ -162,20 +181,12 @@ class _SetProposer:
         ]
 
     def _prior_parent(self) -> tuple[FloatArray, FloatArray] | None:
-        """The parent pose at which the set's own rule is scored during proposal refinement:
-        any pose if the rule ignores its parent, the parent's pose if it has exactly one."""
-        g, st = self.g, self.st
-        r = int(st.rule[self.top])
-        tb = g.tables
-        world_t = tb.t_kind[r] in (TKind.WORLD_NORMAL, TKind.WORLD_BOX)
-        world_r = tb.r_kind[r] in (RKind.WORLD_BINGHAM, RKind.UNIFORM)
-        p = int(st.parent[self.top])
-        e_p = int(st.set_of[p])
-        if world_t and world_r:
+        """The parent pose at which the set's own rule is scored during proposal refinement
+        (any pose if the rule ignores its parent), or None if it is not known."""
+        parent = known_parent(self.g, self.st, self.cand, self.e)
+        if parent is None:
             return np.zeros(3), np.array([1.0, 0, 0, 0])
-        if len(self.cand.xyz[e_p]) == 1:
-            return self._node_pose(p, self.cand.xyz[e_p][0], self.cand.quat[e_p][0])
-        return None
+        return parent or None
 
     def _node_pose(self, n: int, top_xyz: FloatArray, top_quat: FloatArray):  # type: ignore[no-untyped-def]
         st = self.st
