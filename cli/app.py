@@ -402,6 +402,145 @@ def bench_parse_cmd(
             out.print(f"{key:>22}: {value}", markup=False, highlight=False)
 
 
+@app.command()
+@_command
+def fit(
+    scenes: Annotated[
+        Path,
+        typer.Argument(
+            help="The dataset: a directory of scene JSON files, one scene JSON, or a "
+            "sink-format YAML file.",
+            show_default=False,
+        ),
+    ],
+    grammar: Annotated[Path, typer.Option("-g", "--grammar", help="Grammar YAML to fit.")],
+    output: Annotated[
+        Path, typer.Option("-o", "--output", help="Write the fitted grammar YAML here.")
+    ],
+    iterations: Annotated[int, typer.Option(min=1, help="At most this many EM iterations.")] = 10,
+    top: Annotated[
+        int, typer.Option("--top", min=1, help="Parse trees per scene (the E-step's N).")
+    ] = 10,
+    method: Annotated[str, typer.Option(help="Parsing method: auto | ip | micp.")] = "auto",
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
+    pseudocount: Annotated[
+        float,
+        typer.Option(
+            min=0.0, help="Added to every possible outcome of a discrete law (0: plain MLE)."
+        ),
+    ] = 0.01,
+    min_variance: Annotated[
+        float, typer.Option(min=1e-300, help="Floor of fitted variances (m²).")
+    ] = 1e-6,
+    tol: Annotated[
+        float,
+        typer.Option(min=0.0, help="Stop when the log-evidence changes less (nats per scene)."),
+    ] = 1e-4,
+    time_limit: Annotated[
+        float | None,
+        typer.Option(
+            "--time-limit",
+            min=0.001,
+            help="Seconds for the whole fit; then the last "
+            "finished iteration's grammar is written.",
+        ),
+    ] = None,
+    report: Annotated[
+        Path | None, typer.Option("--report", help="Write per-iteration numbers (JSON) here.")
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Continue an interrupted fit from its journal.")
+    ] = False,
+    allow_outside_files: AllowOutside = False,
+) -> None:
+    """Fit a grammar's parameters to a dataset of scenes by approximate EM (thesis ch. 4).
+
+    Writes the grammar back with only the fitted numbers changed: comments, order and layout
+    are kept.  Exit code 2 when some scene cannot be produced by the grammar.
+    """
+    from ssgc.compile import compile_text
+    from ssgc.fit.em import (
+        FitJournal,
+        FitOptions,
+        GrammarSource,
+        fit_grammar,
+        fit_header,
+        report_json,
+    )
+    from ssgc.fit.mstep import FitSettings
+    from ssgc.io.journal import journal_path
+    from ssgc.io.scene import load_scenes
+    from ssgc.yamlio import MAX_GRAMMAR_BYTES, read_text
+
+    _check_method(method, "highs")
+    text = read_text(grammar, MAX_GRAMMAR_BYTES, "grammar file")
+    source = GrammarSource(str(grammar), grammar.parent, allow_outside_files)
+    g = compile_text(text, source.file, source.base_dir, source.allow_outside)
+    items = load_scenes(scenes, g)
+    if not items:
+        raise SsgError.single("the dataset has no scenes", str(scenes))
+    options = FitOptions(
+        iterations=iterations,
+        top=top,
+        method=method,
+        seed=seed,
+        tol=tol,
+        settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
+    )
+    header = fit_header(text, scenes, items, options)
+    with FitJournal(journal_path(output), header, resume) as journal:
+        if journal.discarded and not quiet:
+            err.print(
+                f"note: starting again; the journal {journal.path} of an interrupted fit is "
+                "replaced (--resume continues it)",
+                markup=False,
+                highlight=False,
+            )
+        for r in journal.reports:
+            _print_iteration(r, quiet, resumed=True)
+        with _progress(quiet) as progress:
+            task = progress.add_task(
+                f"iteration {journal.iteration}", total=len(items), completed=len(journal.scenes)
+            )
+
+            def on_iteration(r: dict[str, Any]) -> None:
+                _print_iteration(r, quiet)
+                progress.reset(task, description=f"iteration {r['iteration'] + 1}")
+
+            result = fit_grammar(
+                text,
+                source,
+                items,
+                options,
+                journal,
+                time_limit=time_limit,
+                on_scene=lambda: progress.advance(task),
+                on_iteration=on_iteration,
+            )
+        write_text_atomic(output, result.text)
+        if report is not None:
+            write_text_atomic(report, report_json(result))
+    if result.status != "time_limit":
+        journal.delete()
+    if not quiet:
+        out.print(f"{result.message}; wrote {output}", markup=False, highlight=False)
+
+
+def _print_iteration(r: dict[str, Any], quiet: bool, resumed: bool = False) -> None:
+    if quiet:
+        return
+    line = (
+        f"iteration {r['iteration']}: log-evidence {r['log_evidence']:.4f} "
+        f"(mean best tree {r['mean_best_score']:.4f}), {r['scenes']} scene(s), "
+        f"{r['trees']} tree(s)"
+    )
+    line += " (from the journal)" if resumed else f", {r['seconds']:.2f} s"
+    err.print(line, markup=False, highlight=False)
+    for s in r.get("skipped", []):
+        err.print(f"  skipped {s}", markup=False, highlight=False)
+
+
 @app.command("schema", hidden=True)
 @_command
 def schema_cmd(

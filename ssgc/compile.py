@@ -210,6 +210,11 @@ class Compiler:
                 rules.append(rule)
         probs = self.rule_probs(kind, key, rule_specs, rule_locs, loc)
         count = self.count_law(spec.repeat, (*loc, "repeat", "count")) if spec.repeat else None
+        count_family, count_start = "", 0
+        if spec.repeat is not None:
+            geometric = isinstance(spec.repeat.count, dsl.GeometricCountSpec)
+            count_family = "geometric" if geometric else "probs"
+            count_start = spec.repeat.count.geometric.start if geometric else 0
         if spec.labels and not spec.observed:
             self.error(
                 (*loc, "labels"), "labels name dataset objects, so the type must be observed"
@@ -228,6 +233,8 @@ class Compiler:
             labels=tuple(spec.labels),
             fixed=spec.fixed,
             path=loc,
+            count_family=count_family,
+            count_start=count_start,
         )
 
     def rule_probs(
@@ -353,8 +360,19 @@ class Compiler:
             spread = "covariance" if p.covariance is not None else "variance"
             self.error((*loc, spread), f"invalid {spread} (too large or nearly singular): {exc}")
             return None
+        family = (
+            "full"
+            if p.covariance is not None
+            else ("diagonal" if isinstance(p.variance, list) else "isotropic")
+        )
         return TranslationPart(
-            kind, _frozen(p.mean), _frozen(free), normal=normal, fixed=p.fixed, path=loc
+            kind,
+            _frozen(p.mean),
+            _frozen(free),
+            normal=normal,
+            fixed=p.fixed,
+            path=loc,
+            family=family,
         )
 
     def box_part(self, kind: TKind, p: dsl.BoxParams, loc: Loc) -> TranslationPart | None:
@@ -388,12 +406,19 @@ class Compiler:
             if bingham is None:
                 return None
             kind = RKind.WORLD_BINGHAM if world else RKind.PARENT_BINGHAM
+            params = getattr(spec, key)
+            family = (
+                "raw"
+                if params.M is not None
+                else ("axes" if isinstance(params.concentration, list) else "isotropic")
+            )
             return RotationPart(
                 kind,
                 _frozen(IDENTITY_QUAT),
                 bingham=bingham,
-                fixed=getattr(spec, key).fixed,
+                fixed=params.fixed,
                 path=loc,
+                family=family,
             )
         if isinstance(spec, dsl.RevoluteR):
             return self.revolute(spec.revolute, (*loc, "revolute"))

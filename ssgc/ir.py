@@ -72,6 +72,7 @@ class TranslationPart:
     box: UniformBox | None = None
     fixed: bool = False
     path: Loc = ()
+    family: str = ""  # Normal kinds: "isotropic", "diagonal" or "full", as written (for fitting)
 
 
 @dataclass(frozen=True)
@@ -83,6 +84,7 @@ class RotationPart:
     revolute: UniformRevolute | None = None
     fixed: bool = False
     path: Loc = ()
+    family: str = ""  # Bingham kinds: "isotropic", "axes" (mode + 3 concentrations) or "raw"
 
 
 @dataclass(frozen=True)
@@ -111,6 +113,8 @@ class NodeType:
     labels: tuple[str, ...] = ()
     fixed: bool = False
     path: Loc = ()
+    count_family: str = ""  # REPEAT: "geometric" or "probs", as written (for fitting)
+    count_start: int = 0  # REPEAT, geometric: the smallest count
 
 
 @dataclass(frozen=True)

@@ -45,13 +45,7 @@ def translation_log_density(
     """log p(child translation | parent pose) for each edge, under each edge's rule."""
     tb = grammar.tables
     kind = tb.t_kind[rules]
-    world = (kind == TKind.WORLD_NORMAL) | (kind == TKind.WORLD_BOX)
-    parent_frame = (kind == TKind.FIXED) | (kind == TKind.PARENT_NORMAL_OFFSET)
-    # u: the child's position in the coordinates the rule's law is written in.
-    u = np.where(world[:, None], child_xyz, child_xyz - parent_xyz)
-    if np.any(parent_frame):
-        local = quat_rotate(quat_conjugate(parent_quat[parent_frame]), u[parent_frame])
-        u[parent_frame] = local
+    u = translation_coordinates(grammar, rules, parent_xyz, parent_quat, child_xyz)
     free = tb.t_free[rules]
     delta = u - tb.t_offset[rules]
     out = np.zeros(len(rules))
@@ -74,6 +68,37 @@ def translation_log_density(
     return np.where(pinned_ok, out, -np.inf)
 
 
+def translation_coordinates(
+    grammar: Grammar,
+    rules: NDArray[np.int64],
+    parent_xyz: FloatArray,
+    parent_quat: FloatArray,
+    child_xyz: FloatArray,
+) -> FloatArray:
+    """The child's position in the coordinates its rule's law is written in.
+
+    World laws see the position itself, offset laws the offset from the parent, parent-frame
+    laws that offset in the parent's frame.  Scoring and fitting both read positions this way.
+    """
+    kind = grammar.tables.t_kind[rules]
+    world = (kind == TKind.WORLD_NORMAL) | (kind == TKind.WORLD_BOX)
+    parent_frame = (kind == TKind.FIXED) | (kind == TKind.PARENT_NORMAL_OFFSET)
+    u = np.where(world[:, None], child_xyz, child_xyz - parent_xyz)
+    if np.any(parent_frame):
+        u[parent_frame] = quat_rotate(quat_conjugate(parent_quat[parent_frame]), u[parent_frame])
+    return u
+
+
+def rotation_coordinates(
+    grammar: Grammar, rules: NDArray[np.int64], parent_quat: FloatArray, child_quat: FloatArray
+) -> FloatArray:
+    """The child's rotation as its rule's law sees it: absolute for world laws, else relative."""
+    world = grammar.tables.r_kind[rules] == RKind.WORLD_BINGHAM
+    return np.where(
+        world[:, None], child_quat, quat_multiply(quat_conjugate(parent_quat), child_quat)
+    )
+
+
 def rotation_log_density(
     grammar: Grammar,
     rules: NDArray[np.int64],
@@ -84,9 +109,7 @@ def rotation_log_density(
     tb = grammar.tables
     kind = tb.r_kind[rules]
     world = kind == RKind.WORLD_BINGHAM
-    rel = np.where(
-        world[:, None], child_quat, quat_multiply(quat_conjugate(parent_quat), child_quat)
-    )
+    rel = rotation_coordinates(grammar, rules, parent_quat, child_quat)
     out = np.zeros(len(rules))
 
     fixed = kind == RKind.FIXED

@@ -40,7 +40,6 @@ def score_trees(grammar: Grammar, trees: Trees) -> FloatArray:
 
 
 def node_terms(grammar: Grammar, trees: Trees) -> NodeTerms:
-    tb = grammar.tables
     n = len(trees)
     valid = _structure_valid(grammar, trees)
     # Only trust the rule/type tables on nodes whose parent link is consistent.
@@ -48,10 +47,7 @@ def node_terms(grammar: Grammar, trees: Trees) -> NodeTerms:
     child = np.flatnonzero(rule >= 0)
     r, p = rule[child], trees.parent[child]
 
-    width = tb.type_rules.shape[1]
-    counts = np.bincount(p * width + tb.rule_index[r], minlength=n * width).reshape(n, width)
-    exists = tb.type_rules[trees.type] >= 0
-    blocked = _blocked(grammar, trees) & exists
+    counts, exists, blocked = fired_slots(grammar, trees, rule)
     choice, ok = _choice_terms(grammar, trees.type, counts, exists, blocked)
 
     edge = np.zeros(n)
@@ -61,6 +57,25 @@ def node_terms(grammar: Grammar, trees: Trees) -> NodeTerms:
         ) + rotation_log_density(grammar, r, trees.quat[p], trees.quat[child])
     valid &= ok & np.isfinite(edge) & np.isfinite(choice)
     return NodeTerms(choice=np.where(ok, choice, -np.inf), edge=edge, valid=valid)
+
+
+def fired_slots(
+    grammar: Grammar, trees: Trees, rule: NDArray[np.int64] | None = None
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """(nodes, rule slots) arrays: how often each rule of the node's type fired at the node,
+    whether the slot is a rule at all, and whether max_nesting blocks it there.
+
+    The scorer turns them into each node's discrete term and the fitter into rule frequencies,
+    so both count the same way.  `rule` overrides the trees' rules (-1 to leave an edge out).
+    """
+    tb = grammar.tables
+    rule = trees.rule if rule is None else rule
+    child = np.flatnonzero(rule >= 0)
+    width, n = tb.type_rules.shape[1], len(trees)
+    slots = trees.parent[child] * width + tb.rule_index[rule[child]]
+    counts = np.bincount(slots, minlength=n * width).reshape(n, width)
+    exists = tb.type_rules[trees.type] >= 0
+    return counts, exists, _blocked(grammar, trees) & exists
 
 
 def _structure_valid(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:

@@ -322,3 +322,105 @@ def test_streamed_output_is_byte_identical_to_dumps_json() -> None:
             for r in results
             if r["status"] == "infeasible"
         ]
+
+
+# ----------------------------------------------------------------------------- ssg fit ---
+
+GMM_START = (
+    (GRAMMARS / "gmm.yaml")
+    .read_text()
+    .replace("p: 0.2", "p: 0.34")
+    .replace("p: 0.4", "p: 0.33")
+    .replace("mean: [-1.0, 0.0, 0.0]", "mean: [-0.5, 0.3, 0.0]")
+)
+FIT_ARGS = ("--top", 3, "--iterations", 4, "--tol", 0)
+
+
+@pytest.fixture(scope="module")
+def gmm_fit_inputs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    base = tmp_path_factory.mktemp("gmm")
+    start = base / "start.yaml"
+    start.write_text(GMM_START)
+    data = base / "points"
+    assert (
+        run("sample", GRAMMARS / "gmm.yaml", "-n", 150, "--seed", 3, "-o", data, "-q").exit_code
+        == 0
+    )
+    return data, start
+
+
+def report_without_seconds(path: Path) -> dict[str, Any]:
+    doc = json.loads(path.read_text())
+    for r in doc["iterations"]:
+        del r["seconds"]
+    return doc
+
+
+def test_fit_killed_interrupted_and_resumed(
+    gmm_fit_inputs: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """SIGKILL in iteration 2, Ctrl-C of the resumed run in iteration 3, then a resume that
+    finishes: the output stays the previous version until the end, and the fitted grammar
+    and report equal an uninterrupted run's byte for byte (but the seconds)."""
+    data, start_yaml = gmm_fit_inputs
+    ref, ref_report = tmp_path / "ref.yaml", tmp_path / "ref.json"
+    reference = start("fit", data, "-g", start_yaml, "-o", ref, "--report", ref_report, *FIT_ARGS)
+    out, report = tmp_path / "out.yaml", tmp_path / "out.json"
+    out.write_text("the previous version\n")
+    journal = journal_path(out)
+    n = 150
+
+    def journalled(lines: int) -> Callable[[], bool]:
+        return lambda: journal.exists() and journal.read_bytes().count(b"\n") >= lines
+
+    args = ("fit", data, "-g", start_yaml, "-o", out, "--report", report, *FIT_ARGS)
+    code, _ = interrupt_when(start(*args), journalled(1 + n + 1 + 20), signal.SIGKILL)
+    assert code == -signal.SIGKILL
+    assert out.read_text() == "the previous version\n" and not report.exists()
+    code, stderr = interrupt_when(
+        start(*args, "--resume"), journalled(1 + 2 * (n + 1) + 20), signal.SIGINT
+    )
+    assert code == 130 and "interrupted" in stderr and "Traceback" not in stderr
+    assert out.read_text() == "the previous version\n" and not report.exists()
+    assert [p.name for p in tmp_path.iterdir() if temp_target(p.name)] == []
+
+    finished = start(*args, "--resume")
+    _, stderr = finished.communicate(timeout=120)
+    assert finished.returncode == 0, stderr
+    assert "(from the journal)" in stderr  # finished iterations were not redone
+    reference.communicate(timeout=120)
+    assert reference.returncode == 0
+    assert out.read_bytes() == ref.read_bytes()
+    assert report_without_seconds(report) == report_without_seconds(ref_report)
+    assert not journal.exists()
+
+
+def test_fit_time_limit_returns_the_last_finished_iteration(
+    gmm_fit_inputs: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The limit ends the fit with status time_limit; the output is the grammar of the last
+    finished iteration, and the journal stays so that --resume can go on."""
+    data, start_yaml = gmm_fit_inputs
+    out, report = tmp_path / "out.yaml", tmp_path / "out.json"
+    args = ("fit", data, "-g", start_yaml, "-o", out, "--report", report, *FIT_ARGS)
+    result = run(*args, "--time-limit", 0.05)
+    assert result.exit_code == 0, result.output
+    assert json.loads(report.read_text())["status"] == "time_limit"
+    assert out.read_text() == GMM_START  # no iteration finished: the input, unchanged
+    assert journal_path(out).exists()
+    result = run(*args, "--resume")
+    assert result.exit_code == 0, result.output
+    assert json.loads(report.read_text())["status"] == "iterations"
+    assert not journal_path(out).exists()
+
+
+def test_fit_resume_refuses_a_journal_of_another_run(
+    gmm_fit_inputs: tuple[Path, Path], tmp_path: Path
+) -> None:
+    data, start_yaml = gmm_fit_inputs
+    out = tmp_path / "out.yaml"
+    run("fit", data, "-g", start_yaml, "-o", out, "--time-limit", 0.05, "--top", 3)
+    assert journal_path(out).exists()
+    result = run("fit", data, "-g", start_yaml, "-o", out, "--top", 2, "--resume")
+    assert result.exit_code == 1
+    assert "this journal is of another run (top: 3, now 2)" in result.output

@@ -455,6 +455,51 @@ class Bingham:
         z = _fit_concentrations(lam, float(max_concentration))
         return cls(evecs, z)
 
+    @classmethod
+    def fit_about_mode(
+        cls,
+        q: ArrayLike,
+        weights: ArrayLike,
+        start_mode: ArrayLike,
+        isotropic: bool,
+        max_concentration: float = 1e4,
+        rounds: int = 100,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted MLE within the :meth:`from_mode` family: ``(mode, concentrations)``.
+
+        The family fixes the axes to the mode's body axes, so the raw-``M`` fit of :meth:`fit`
+        does not apply.  With ``m_i = mode ⊗ (0, e_i)`` the log likelihood is
+        ``Σ_i z_i m_iᵀ S m_i - log F(z)``: concave in ``z`` for a fixed mode, and for a fixed
+        ``z`` a quadratic form ``modeᵀ A mode`` with ``A = Σ_i z_i R_iᵀ S R_i`` (``R_i`` the
+        right multiplication by ``(0, e_i)``), maximised by A's top eigenvector.  Alternating
+        the two exact steps from ``start_mode`` never lowers the likelihood.  ``isotropic``
+        ties the three concentrations (one scalar), for which the top eigenvector of ``S`` is
+        the exact mode and one round suffices.
+        """
+        arr = _as_unit_quaternions(np.asarray(q, dtype=np.float64))
+        w = np.asarray(weights, dtype=np.float64)
+        scatter = (arr * (w / w.sum())[:, None]).T @ arr
+        scatter = 0.5 * (scatter + scatter.T)
+        right = _right_multipliers()
+        if isotropic:
+            mode = np.linalg.eigh(scatter)[1][:, -1]
+            lam_mode = float(mode @ scatter @ mode)
+            lam = np.append(np.full(3, (1.0 - lam_mode) / 3.0), lam_mode)
+            z = _fit_concentrations(np.clip(lam, 0.0, None), max_concentration)
+            return _canonical_sign(mode), np.full(3, -float(np.mean(z[:3])))
+        mode = _as_unit_quaternions(np.asarray(start_mode, dtype=np.float64))
+        z = np.zeros(4)
+        for _ in range(rounds):
+            axes = right @ mode  # (3, 4): mode ⊗ (0, e_i)
+            lam = np.append(np.einsum("ij,jk,ik->i", axes, scatter, axes), mode @ scatter @ mode)
+            z = _fit_concentrations(np.clip(lam, 0.0, None), max_concentration)
+            a = np.einsum("i,ikj,kl,ilm->jm", z[:3], right, scatter, right)
+            new = np.linalg.eigh(0.5 * (a + a.T))[1][:, -1]
+            if abs(float(new @ mode)) > 1.0 - 1e-15:
+                break
+            mode = new
+        return _canonical_sign(mode), -z[:3]
+
     # -- properties ---------------------------------------------------------
 
     @property
@@ -561,6 +606,14 @@ class Bingham:
             out[filled : filled + take] = accepted[:take] @ self._M.T
             filled += take
         return out
+
+
+def _right_multipliers() -> np.ndarray:
+    """(3, 4, 4): R_i with R_i q = q ⊗ (0, e_i), the body axes of a mode q."""
+    pure = np.zeros((3, _DIM))
+    pure[:, 1:] = np.eye(3)
+    basis = np.eye(_DIM)
+    return np.stack([_quat_mul(basis, np.broadcast_to(e, (_DIM, _DIM))).T for e in pure])
 
 
 def fit_bingham(

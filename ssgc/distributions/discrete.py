@@ -12,12 +12,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import optimize
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["Bernoulli", "Categorical", "CountLaw"]
+__all__ = ["Bernoulli", "Categorical", "CountLaw", "fit_geometric_p"]
 
 
 def _frozen(values: ArrayLike) -> FloatArray:
@@ -344,3 +345,33 @@ class CountLaw:
                 raise ValueError(f"max_count must be non-negative, got {top}")
             size = top + 1
         return cls(_frequencies(counts, weights, size, pseudocount, "counts", "max_count"))
+
+
+def fit_geometric_p(histogram: ArrayLike, start: int, p_min: float = 1e-9) -> float | None:
+    """Maximum-likelihood ``p`` of a geometric count law truncated to ``start..max``.
+
+    ``histogram[n]`` is the (weighted) number of times count ``n`` was seen, ``n = 0..max``.
+    On ``start..max`` the law is ``P(n) ∝ x^(n - start)`` with ``x = 1 - p``: an exponential
+    family in ``log x``, so the MLE matches the mean count and is unique.  A mean at or above
+    the middle of the range would need ``x >= 1`` (counts growing with n), which a geometric
+    law cannot say: ``p`` then stops at ``p_min`` (nearly uniform).  None when the data say
+    nothing about ``p`` (no weight, or a single allowed count).
+    """
+    h = np.asarray(histogram, dtype=np.float64)[start:]
+    total = float(h.sum())
+    if h.size < 2 or not total > 0:
+        return None
+    steps = np.arange(h.size, dtype=np.float64)
+    target = float(steps @ h) / total
+    if target <= 0.0:
+        return 1.0  # every count was `start`: a point mass there
+
+    def mean_count(theta: float) -> float:
+        w = np.exp(theta * steps - max(theta * (h.size - 1), 0.0))
+        return float(steps @ w / w.sum())
+
+    lo, hi = np.log(1e-300), float(np.log1p(-p_min))
+    if mean_count(hi) <= target:
+        return p_min
+    theta = optimize.brentq(lambda t: mean_count(t) - target, lo, hi, xtol=1e-14, rtol=1e-14)
+    return float(-np.expm1(theta))

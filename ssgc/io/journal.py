@@ -75,36 +75,53 @@ def run_header(
     }
 
 
-class ParseJournal:
-    """The journal of one run of `ssg parse -o`: `done` scenes are finished, in input order."""
+class Journal:
+    """A JSON Lines file whose first line names the run and whose other lines are entries.
+
+    Entries are appended with one `write` each and fsynced, so a killed run leaves complete
+    entries and at most one cut-off last line, which recovery ignores and truncates.
+    Subclasses say which entries may follow which (`accept`).
+    """
+
+    FORMAT = JOURNAL_FORMAT
+    WHAT = "parse journal"
 
     def __init__(self, path: Path, header: dict[str, Any], resume: bool) -> None:
         self.path = path
-        self.done = 0
         self.discarded = False  # a journal was there but this run does not resume it
+        self.entries = 0
         ours = {path.name, path.name.removesuffix(".partial.jsonl")}
         try:
             remove_stale_temps(path.parent, ours.__contains__)
             if resume and path.exists():
-                self.done = self._recover(header)
+                self._recover(header)
             else:
                 self.discarded = path.exists()
                 write_text_atomic(path, json.dumps(header) + "\n")
             self._fd = os.open(path, os.O_WRONLY | os.O_APPEND)
         except OSError as exc:
             raise SsgError.single(
-                f"cannot write the parse journal: {exc.strerror}", str(path)
+                f"cannot write the {self.WHAT}: {exc.strerror}", str(path)
             ) from None
 
-    def _recover(self, header: dict[str, Any]) -> int:
-        """Check the journal's header; count its complete lines; cut off a partial last one."""
-        done, good_bytes = 0, 0
+    def accept(self, entry: Any, lineno: int) -> None:
+        """Take in one recovered entry; raise SsgError if it cannot come next."""
+        raise NotImplementedError
+
+    def damaged(self, lineno: int, why: str) -> SsgError:
+        return SsgError.single(
+            f"damaged {self.WHAT} (line {lineno} {why}); delete it or run without --resume",
+            str(self.path),
+        )
+
+    def _recover(self, header: dict[str, Any]) -> None:
+        """Check the journal's header; take its complete lines; cut off a partial last one."""
         with open(self.path, "rb") as f:
             first = f.readline()
             found = _json_line(first)
-            if not isinstance(found, dict) or found.get("journal") != JOURNAL_FORMAT:
+            if not isinstance(found, dict) or found.get("journal") != self.FORMAT:
                 raise SsgError.single(
-                    "not a parse journal of ssgc; delete it or run without --resume",
+                    f"not a {self.WHAT} of ssgc; delete it or run without --resume",
                     str(self.path),
                 )
             _check_same_run(found, header, str(self.path))
@@ -112,29 +129,56 @@ class ParseJournal:
             for lineno, line in enumerate(f, start=2):
                 if not line.endswith(b"\n"):
                     break  # the line a killed run was writing: ignored, then cut off
-                entry = _json_line(line)
-                if not isinstance(entry, dict) or entry.get("index") != done:
-                    raise SsgError.single(
-                        f"damaged parse journal (line {lineno} is not the result of scene "
-                        f"{done}); delete it or run without --resume",
-                        str(self.path),
-                    )
-                done += 1
+                self.accept(_json_line(line), lineno)
+                self.entries += 1
                 good_bytes += len(line)
-        if done > header["scene_count"]:
-            raise SsgError.single("the journal has more scenes than the input", str(self.path))
         os.truncate(self.path, good_bytes)
-        return done
+
+    def write_entry(self, entry: dict[str, Any]) -> None:
+        """Append one entry durably before the work goes on."""
+        data = (json.dumps(entry) + "\n").encode()
+        view = memoryview(data)
+        while view:
+            view = view[os.write(self._fd, view) :]
+        os.fsync(self._fd)
+        self.entries += 1
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+    def delete(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+        if exc is not None and self.entries == 0:
+            self.delete()  # failed before any work was recorded (e.g. a grammar refused)
+
+
+class ParseJournal(Journal):
+    """The journal of one run of `ssg parse -o`: `done` scenes are finished, in input order."""
+
+    def __init__(self, path: Path, header: dict[str, Any], resume: bool) -> None:
+        self.done = 0
+        super().__init__(path, header, resume)
+        if self.done > header["scene_count"]:
+            raise SsgError.single("the journal has more scenes than the input", str(self.path))
+
+    def accept(self, entry: Any, lineno: int) -> None:
+        if not isinstance(entry, dict) or entry.get("index") != self.done:
+            raise self.damaged(lineno, f"is not the result of scene {self.done}")
+        self.done += 1
 
     def append(self, index: int, result: dict[str, Any]) -> None:
         """Record scene `index`'s result durably before the next scene is parsed."""
         if index != self.done:
             raise ValueError(f"scenes must be journalled in order: expected {self.done}")
-        data = (json.dumps({"index": index, "result": result}) + "\n").encode()
-        view = memoryview(data)
-        while view:
-            view = view[os.write(self._fd, view) :]
-        os.fsync(self._fd)
+        self.write_entry({"index": index, "result": result})
         self.done += 1
 
     def results(self) -> Iterator[dict[str, Any]]:
@@ -144,24 +188,8 @@ class ParseJournal:
             for line in f:
                 yield json.loads(line)["result"]
 
-    def close(self) -> None:
-        os.close(self._fd)
-
-    def delete(self) -> None:
-        self.path.unlink(missing_ok=True)
-
     def __enter__(self) -> ParseJournal:
         return self
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-        if exc is not None and self.done == 0:
-            self.delete()  # failed before any scene (e.g. a grammar the parser refuses)
 
 
 def _json_line(line: bytes) -> Any:

@@ -1,0 +1,346 @@
+"""Approximate EM over a dataset of scenes (thesis 4.3): parse, weigh, update, repeat.
+
+Each iteration parses every scene with the current grammar (top-N distinct trees, the
+E-step), weighs each scene's trees by their posterior under the current parameters (the
+softmax of their scores), and sets every parameter to its weighted maximum-likelihood value
+(`ssgc.fit.mstep`, the M-step).  The new numbers are written into the grammar's YAML text
+(`ssgc.fit.writeback`) and the next iteration compiles that text: what the user gets is
+exactly the grammar the last iteration fitted.
+
+The log-evidence reported per iteration is the thesis's estimate: for every scene, the
+log-sum-exp of its top-N tree scores.  It is a lower bound of the true log-evidence (only N
+trees are summed), so it is comparable between iterations with the same N, not across N.
+
+Work is journalled (`FitJournal`): every parsed scene and every finished iteration is on disk
+before the next starts, so `--resume` redoes nothing that was finished.  The results do not
+depend on whether a run was interrupted: the M-step reads the trees back from the same
+JSON records either way.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.special import logsumexp
+
+from ssgc.compile import compile_text
+from ssgc.errors import SsgError
+from ssgc.fit.mstep import FitSettings, Ties, m_step
+from ssgc.fit.writeback import apply_updates, shared_nodes
+from ssgc.io.journal import Journal
+from ssgc.io.scene import Scene
+from ssgc.ir import BINGHAM_KINDS, NORMAL_KINDS, Grammar, Kind, RKind
+from ssgc.parse.parser import PROPOSAL_SHARE, Parser, SceneParses
+from ssgc.tree import Trees
+
+FIT_JOURNAL_FORMAT = "ssgc.fit-journal/1"
+DEADLINE_SHARE = 0.95  # of a time limit: the last parse and the output still take a moment
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Everything that decides a fit's result (all of it goes in the journal's header, except
+    `iterations` and `tol`, which only decide when to stop)."""
+
+    iterations: int = 10
+    top: int = 10
+    method: str = "auto"
+    seed: int = 0
+    tol: float = 1e-4  # nats per scene: stop when the log-evidence improves less
+    settings: FitSettings = field(default_factory=FitSettings)
+
+
+@dataclass
+class FitResult:
+    text: str  # the fitted grammar's YAML
+    iterations: list[dict[str, Any]]  # one report per finished iteration
+    status: str  # "converged", "iterations" (the limit was reached) or "time_limit"
+    message: str = ""
+
+
+class FitJournal(Journal):
+    """The journal of `ssg fit -o`: per iteration, its parsed scenes, then its fitted grammar.
+
+    Lines after the header, in this order for iterations 1, 2, ...::
+
+        {"iteration": k, "index": 0, "scores": [...], "trees": [...]}   one per scene
+        {"iteration": k, "grammar": "<fitted YAML>", "report": {...}}   the M-step's result
+    """
+
+    FORMAT = FIT_JOURNAL_FORMAT
+    WHAT = "fit journal"
+
+    def __init__(self, path: Path, header: dict[str, Any], resume: bool) -> None:
+        self.iteration = 1  # the iteration under way
+        self.scenes: list[dict[str, Any]] = []  # its finished scenes
+        self.text: str | None = None  # the last fitted grammar
+        self.reports: list[dict[str, Any]] = []
+        self.scene_count = int(header["scene_count"])
+        super().__init__(path, header, resume)
+
+    def accept(self, entry: Any, lineno: int) -> None:
+        if not isinstance(entry, dict) or entry.get("iteration") != self.iteration:
+            raise self.damaged(lineno, f"is not part of iteration {self.iteration}")
+        if "grammar" in entry:
+            if len(self.scenes) != self.scene_count:
+                raise self.damaged(lineno, "ends an iteration before all its scenes")
+            self._end_iteration(entry["grammar"], entry["report"])
+        elif entry.get("index") == len(self.scenes) < self.scene_count:
+            self.scenes.append(entry)
+        else:
+            raise self.damaged(lineno, f"is not the record of scene {len(self.scenes)}")
+
+    def add_scene(self, record: dict[str, Any]) -> None:
+        self.write_entry(record)
+        self.scenes.append(record)
+
+    def add_iteration(self, text: str, report: dict[str, Any]) -> None:
+        self.write_entry({"iteration": self.iteration, "grammar": text, "report": report})
+        self._end_iteration(text, report)
+
+    def _end_iteration(self, text: str, report: dict[str, Any]) -> None:
+        self.text = text
+        self.reports.append(report)
+        self.scenes = []
+        self.iteration += 1
+
+    def __enter__(self) -> FitJournal:
+        return self
+
+
+def fit_header(
+    grammar_text: str, scenes_path: Path, scenes: Sequence[Scene], options: FitOptions
+) -> dict[str, Any]:
+    """What makes two fits the same run: grammar, scenes, and every option but when to stop."""
+    scene_hash = hashlib.sha256()
+    for scene in scenes:
+        for part in (scene.name.encode(), scene.types, scene.xyz, scene.quat):
+            scene_hash.update(part if isinstance(part, bytes) else part.tobytes())
+        scene_hash.update(b"\0")
+    return {
+        "journal": FIT_JOURNAL_FORMAT,
+        "grammar_sha256": hashlib.sha256(grammar_text.encode()).hexdigest(),
+        "scenes": str(scenes_path.resolve()),
+        "scene_count": len(scenes),
+        "scenes_sha256": scene_hash.hexdigest(),
+        "top": options.top,
+        "method": options.method,
+        "seed": options.seed,
+        "settings": asdict(options.settings),
+    }
+
+
+@dataclass(frozen=True)
+class GrammarSource:
+    """Where the grammar text came from, so each iteration compiles it like the original."""
+
+    file: str
+    base_dir: Path | None = None
+    allow_outside: bool = False
+
+
+def fit_grammar(
+    text: str,
+    source: GrammarSource,
+    scenes: Sequence[Scene],
+    options: FitOptions,
+    journal: FitJournal,
+    time_limit: float | None = None,
+    on_scene: Callable[[], None] | None = None,
+    on_iteration: Callable[[dict[str, Any]], None] | None = None,
+) -> FitResult:
+    """Run EM from `text` (or from where `journal` stopped) and return the fitted grammar."""
+    t0 = time.perf_counter()
+    deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
+    current = journal.text or text
+    first = compile_text(current, source.file, source.base_dir, source.allow_outside)
+    ties = parameter_ties(first, current, source.file)  # aliases survive every write-back
+    while True:
+        stop = _stop_reason(journal.reports, options, len(scenes))
+        if stop:
+            return FitResult(current, journal.reports, *stop)
+        if deadline is not None and time.perf_counter() >= deadline:
+            return _out_of_time(current, journal.reports)
+        started = time.perf_counter()
+        grammar = compile_text(current, source.file, source.base_dir, source.allow_outside)
+        parser = Parser(grammar, method=options.method, seed=options.seed)
+        for index in range(len(journal.scenes), len(scenes)):
+            remaining = None if deadline is None else deadline - time.perf_counter()
+            if remaining is not None and remaining <= 0:
+                return _out_of_time(current, journal.reports)
+            result = parser.parse(scenes[index], top=options.top, time_limit=remaining)
+            if remaining is not None and _cut_short(result, remaining):
+                return _out_of_time(current, journal.reports)
+            journal.add_scene(_scene_record(journal.iteration, index, result))
+            if on_scene is not None:
+                on_scene()
+        trees, weights, report = _weigh(journal.scenes, journal.iteration)
+        updates = m_step(grammar, trees, weights, options.settings, ties)
+        current = apply_updates(current, updates, source.file)
+        report["seconds"] = round(time.perf_counter() - started, 6)
+        journal.add_iteration(current, report)
+        if on_iteration is not None:
+            on_iteration(report)
+
+
+def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
+    """Which rules share a pose law through YAML aliases (fitted once, on all their edges).
+
+    A discrete law (an `or` or `independent` rule's `p`, a count law) reached through an
+    alias would get one value per use, which one YAML node cannot hold: that is refused.
+    """
+    owner: dict[tuple[str | int, ...], tuple[str, int]] = {}
+    for r in grammar.rules:
+        if r.translation.kind in NORMAL_KINDS and not r.translation.fixed:
+            owner[r.translation.path] = ("translation", r.id)
+        rp = r.rotation
+        if rp.kind in BINGHAM_KINDS and not rp.fixed:
+            key = "world_bingham" if rp.kind == RKind.WORLD_BINGHAM else "parent_bingham"
+            owner[(*rp.path, key)] = ("rotation", r.id)
+    for t in grammar.types:
+        if t.fixed:
+            continue
+        if t.kind in (Kind.OR, Kind.INDEPENDENT):
+            owner.update({grammar.rules[r].path: ("discrete", r) for r in t.rules})
+        elif t.kind == Kind.REPEAT:
+            owner[(*t.path, "repeat", "count")] = ("discrete", -1)
+    ties = Ties.none(grammar)
+    for group in shared_nodes(text, list(owner), file):
+        kinds = {owner[path][0] for path in group}
+        if kinds != {"translation"} and kinds != {"rotation"}:
+            where = ", ".join(".".join(str(k) for k in path) for path in group)
+            raise SsgError.single(
+                f"{where} are one YAML node (an anchor and its aliases), so ssg fit cannot give "
+                "them separate values; write them out, or mark the types `fixed: true`",
+                file,
+            )
+        rules = [owner[path][1] for path in group]
+        table = ties.translation if kinds == {"translation"} else ties.rotation
+        table[rules] = min(rules)
+    return ties
+
+
+def _stop_reason(
+    reports: list[dict[str, Any]], options: FitOptions, n_scenes: int
+) -> tuple[str, str] | None:
+    done = len(reports)
+    if done >= 2:
+        gain = (reports[-1]["log_evidence"] - reports[-2]["log_evidence"]) / max(n_scenes, 1)
+        if abs(gain) < options.tol:
+            return "converged", (
+                f"converged after {done} iterations: the log-evidence changed by "
+                f"{gain:.3g} nats per scene (tolerance {options.tol:g})"
+            )
+    if done >= options.iterations:
+        return "iterations", f"stopped after {done} iterations (--iterations)"
+    return None
+
+
+def _cut_short(result: SceneParses, limit: float) -> bool:
+    """Whether the time limit may have changed this scene's parse.
+
+    The parser gives pose proposals a share of its limit (PROPOSAL_SHARE); a parse that ran
+    that long may have had fewer of them than an unlimited one, so it is not journalled: a
+    resumed fit must give what an uninterrupted one gives.
+    """
+    return result.status == "time_limit" or result.timing["total_s"] >= PROPOSAL_SHARE * limit
+
+
+def _out_of_time(text: str, reports: list[dict[str, Any]]) -> FitResult:
+    done = len(reports)
+    what = (
+        f"the grammar of iteration {done}"
+        if done
+        else "the input grammar, unchanged (no iteration finished)"
+    )
+    return FitResult(
+        text,
+        reports,
+        "time_limit",
+        f"time limit reached during iteration {done + 1}; the output is {what}",
+    )
+
+
+def _scene_record(iteration: int, index: int, result: SceneParses) -> dict[str, Any]:
+    """One parsed scene as the journal keeps it; infeasible scenes stop the fit."""
+    if result.status == "infeasible":
+        raise SsgError.single(
+            f"scene '{result.name}' cannot be explained by the grammar: {result.message}",
+            exit_code=2,
+        )
+    return {
+        "iteration": iteration,
+        "index": index,
+        "name": result.name,
+        "status": result.status,
+        "message": result.message,
+        "scores": [p.score for p in result.parses],
+        "trees": [_tree_json(p.tree) for p in result.parses],
+    }
+
+
+def _tree_json(tree: Trees) -> dict[str, list[Any]]:
+    """A tree as plain lists: exact (JSON keeps every float64), and rule ids stay valid
+    because fitting never changes the grammar's structure."""
+    return {
+        "type": tree.type.tolist(),
+        "parent": tree.parent.tolist(),
+        "rule": tree.rule.tolist(),
+        "xyz": tree.xyz.tolist(),
+        "quat": tree.quat.tolist(),
+    }
+
+
+def _weigh(
+    records: list[dict[str, Any]], iteration: int
+) -> tuple[Trees, np.ndarray, dict[str, Any]]:
+    """All trees as one batch, each weighted by its posterior within its scene; the report."""
+    batches, weights, evidence, best = [], [], [], []
+    skipped = []
+    for r in records:
+        scores = np.asarray(r["scores"], float)
+        if scores.size == 0:
+            skipped.append(f"{r['name']}: {r['status']}: {r['message']}")
+            continue
+        lse = float(logsumexp(scores))
+        evidence.append(lse)
+        best.append(float(scores.max()))
+        weights.append(np.exp(scores - lse))
+        batches += [_tree_from_json(t) for t in r["trees"]]
+    if not batches:
+        raise SsgError.single("no scene could be parsed, so there is nothing to fit to")
+    report = {
+        "iteration": iteration,
+        "log_evidence": float(np.sum(evidence)),
+        "mean_best_score": float(np.mean(best)),
+        "scenes": len(evidence),
+        "trees": len(batches),
+        "skipped": skipped,
+    }
+    return Trees.concatenate(batches), np.concatenate(weights), report
+
+
+def _tree_from_json(t: dict[str, list[Any]]) -> Trees:
+    n = len(t["type"])
+    return Trees(
+        scene=np.zeros(n, np.int64),
+        type=np.asarray(t["type"], np.int64),
+        parent=np.asarray(t["parent"], np.int64),
+        rule=np.asarray(t["rule"], np.int64),
+        xyz=np.asarray(t["xyz"], float).reshape(n, 3),
+        quat=np.asarray(t["quat"], float).reshape(n, 4),
+        n_scenes=1,
+    )
+
+
+def report_json(result: FitResult) -> str:
+    """The `--report` file: every iteration's numbers and how the fit ended."""
+    doc = {"status": result.status, "message": result.message, "iterations": result.iterations}
+    return json.dumps(doc, indent=1) + "\n"

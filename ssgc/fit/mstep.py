@@ -1,0 +1,275 @@
+"""The M-step of approximate EM (thesis 4.3): closed-form parameter updates from weighted trees.
+
+Every parse tree of every scene comes with its posterior weight (the softmax of the top-N
+tree scores of its scene), and each of its nodes and edges counts with that weight.  Each
+parameter is then set to its weighted maximum-likelihood value *within the family the user
+wrote*: an isotropic variance stays one number, a diagonal one three, a Bingham given by mode
+and concentrations keeps that form, a geometric count law stays geometric.  So the fitted
+grammar reads like the original with new numbers, and EM stays a (generalised) EM: every
+update is the exact maximiser of its term, or, for a Bingham about a mode, a coordinate ascent
+that starts from the current value and never lowers it.
+
+Discrete laws get a small pseudocount on every outcome the user left possible, so an outcome
+that the current parses happen not to use does not become impossible (the reference code let
+unseen counts fall to probability 0).  Outcomes the user made impossible (a weight of 0, an
+independent rule with p = 0 or 1) stay so.  Boxes and revolute ranges are supports, not
+shapes: their maximum-likelihood value is the hull of the data, which would make every scene
+slightly outside it impossible, so they are kept as written (docs/fitting.md).
+
+The output is a list of `Update`s: document paths and the numbers to put there, which
+`ssgc.fit.writeback` writes into the user's YAML.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.compile import MAX_CONCENTRATION
+from ssgc.distributions.bingham import Bingham
+from ssgc.distributions.discrete import fit_geometric_p
+from ssgc.distributions.normal import Normal
+from ssgc.fit.writeback import Orientation, Update
+from ssgc.ir import (
+    BINGHAM_KINDS,
+    NORMAL_KINDS,
+    Grammar,
+    Kind,
+    NodeType,
+    RKind,
+    TranslationPart,
+)
+from ssgc.rules import rotation_coordinates, translation_coordinates
+from ssgc.score import fired_slots
+from ssgc.tree import Trees
+
+FloatArray = NDArray[np.float64]
+MM_ROUNDS = 200  # rule-frequency iterations when max_nesting blocks rules at some nodes
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """How the M-step regularises: see `ssg fit --help` and docs/fitting.md."""
+
+    pseudocount: float = 0.01  # added to every possible outcome of a discrete law
+    min_variance: float = 1e-6  # m², the floor of every fitted variance (1 mm std)
+    max_concentration: float = MAX_CONCENTRATION
+
+
+@dataclass(frozen=True)
+class Ties:
+    """Pose laws written once and used by several rules (a YAML anchor and its aliases).
+
+    `translation[r]` is the rule whose translation law rule r shares (itself if none), and the
+    same for `rotation`: one law, so one fit, to the edges of every rule that uses it.
+    """
+
+    translation: NDArray[np.int64]
+    rotation: NDArray[np.int64]
+
+    @classmethod
+    def none(cls, grammar: Grammar) -> Ties:
+        ids = np.arange(len(grammar.rules))
+        return cls(ids, ids.copy())
+
+
+@dataclass(frozen=True)
+class _Edges:
+    """Every edge of the weighted trees: its rule, weight and child pose in its rule's terms."""
+
+    rule: NDArray[np.int64]
+    weight: FloatArray
+    u: FloatArray  # (E, 3) translation coordinates
+    q: FloatArray  # (E, 4) rotation coordinates
+
+
+def m_step(
+    grammar: Grammar,
+    trees: Trees,
+    tree_weight: FloatArray,
+    settings: FitSettings,
+    ties: Ties | None = None,
+) -> list[Update]:
+    """New values for every fittable parameter that the weighted trees say something about."""
+    ties = ties or Ties.none(grammar)
+    node_weight = tree_weight[trees.scene]
+    counts, exists, blocked = fired_slots(grammar, trees)
+    allowed = exists & ~blocked
+    updates: list[Update] = []
+    for t in grammar.types:
+        if t.fixed or t.kind in (Kind.TERMINAL, Kind.AND):
+            continue
+        rows = np.flatnonzero((trees.type == t.id) & (node_weight > 0))
+        c, a, w = counts[rows], allowed[rows], node_weight[rows]
+        updates += _choice_updates(grammar, t, c, a, w, settings.pseudocount)
+    edges = _edges(grammar, trees, node_weight)
+    for rule in grammar.rules:
+        tp, rp = rule.translation, rule.rotation
+        take = ties.translation[edges.rule] == rule.id
+        if tp.kind in NORMAL_KINDS and not tp.fixed and np.any(take):
+            values = _normal_values(tp, edges.u[take], edges.weight[take], settings)
+            updates.append(Update(tp.path, values))
+        take = ties.rotation[edges.rule] == rule.id
+        if rp.kind in BINGHAM_KINDS and rp.bingham is not None and not rp.fixed and np.any(take):
+            key = "world_bingham" if rp.kind == RKind.WORLD_BINGHAM else "parent_bingham"
+            values = _bingham_values(
+                rp.family, rp.bingham, edges.q[take], edges.weight[take], settings
+            )
+            updates.append(Update((*rp.path, key), values))
+    return updates
+
+
+def _edges(grammar: Grammar, trees: Trees, node_weight: FloatArray) -> _Edges:
+    child = np.flatnonzero((trees.rule >= 0) & (node_weight > 0))
+    rule, parent = trees.rule[child], trees.parent[child]
+    u = translation_coordinates(
+        grammar, rule, trees.xyz[parent], trees.quat[parent], trees.xyz[child]
+    )
+    q = rotation_coordinates(grammar, rule, trees.quat[parent], trees.quat[child])
+    return _Edges(rule, node_weight[child], u, q)
+
+
+# ------------------------------------------------------------------ discrete laws ---
+
+
+def _choice_updates(
+    grammar: Grammar,
+    t: NodeType,
+    counts: NDArray[np.int64],
+    allowed: NDArray[np.bool_],
+    w: FloatArray,
+    alpha: float,
+) -> list[Update]:
+    k = len(t.rules)
+    counts, allowed = counts[:, :k], allowed[:, :k]
+    if t.kind == Kind.OR:
+        fired = counts.sum(axis=1) == 1
+        probs = _or_probs(counts[fired], allowed[fired], w[fired], t.probs, alpha)
+        if probs is None:
+            return []
+        return [
+            Update(grammar.rules[r].path, {"p": float(p)})
+            for r, p in zip(t.rules, probs, strict=True)
+        ]
+    if t.kind == Kind.INDEPENDENT:
+        return _independent_updates(grammar, t, counts, allowed, w, alpha)
+    return _count_update(t, counts[allowed[:, 0], 0], w[allowed[:, 0]], alpha)
+
+
+def _or_probs(
+    counts: NDArray[np.int64],
+    allowed: NDArray[np.bool_],
+    w: FloatArray,
+    old: FloatArray,
+    alpha: float,
+) -> FloatArray | None:
+    """Weighted rule frequencies, MAP under a Dirichlet(1 + alpha) prior on possible rules.
+
+    Where max_nesting blocks some rules at a node, that node chose among the others only, with
+    probabilities renormalised over them (ssgc.score); the MLE then has no closed form and is
+    found by the minorise-maximise iteration for choices from subsets, which increases the
+    likelihood at every step and is exact after one step when nothing is blocked.
+    """
+    if not w.sum() > 0:
+        return None
+    possible = old > 0
+    chosen = np.argmax(counts, axis=1)
+    n_k = np.bincount(chosen, weights=w, minlength=len(old)) + alpha * possible
+    p = old / old.sum()
+    full = np.all(allowed | ~possible, axis=1)
+    partial = ~full
+    for _ in range(MM_ROUNDS):
+        denom = np.full(len(old), w[full].sum() + alpha * possible.sum())
+        if np.any(partial):
+            mass = allowed[partial] @ p
+            denom += (w[partial] / mass) @ allowed[partial]
+        new = np.where(possible, n_k / np.maximum(denom, 1e-300), 0.0)
+        new /= new.sum()
+        converged = np.max(np.abs(new - p)) < 1e-13
+        p = new
+        if converged or not np.any(partial):
+            break
+    return p
+
+
+def _independent_updates(
+    grammar: Grammar,
+    t: NodeType,
+    counts: NDArray[np.int64],
+    allowed: NDArray[np.bool_],
+    w: FloatArray,
+    alpha: float,
+) -> list[Update]:
+    fired = (counts >= 1) & allowed
+    seen = w @ allowed
+    hits = w @ fired
+    out = []
+    for slot, rule_id in enumerate(t.rules):
+        old = float(t.probs[slot])
+        if seen[slot] <= 0 or old in (0.0, 1.0):
+            continue
+        p = (hits[slot] + alpha) / (seen[slot] + 2 * alpha)
+        out.append(Update(grammar.rules[rule_id].path, {"p": float(p)}))
+    return out
+
+
+def _count_update(t: NodeType, n: NDArray[np.int64], w: FloatArray, alpha: float) -> list[Update]:
+    """A `probs` law gets its weighted count frequencies, a geometric one its MLE `p`."""
+    if t.count is None or not w.sum() > 0:
+        return []
+    old = t.count.probs
+    possible = old > 0
+    hist = np.bincount(n, weights=w, minlength=old.size)[: old.size] + alpha * possible
+    path = (*t.path, "repeat", "count")
+    if t.count_family == "probs":
+        probs = np.where(possible, hist, 0.0)
+        return [Update(path, {"probs": [float(x) for x in probs / probs.sum()]})]
+    p = fit_geometric_p(hist, t.count_start)
+    return [] if p is None else [Update((*path, "geometric"), {"p": p})]
+
+
+# ------------------------------------------------------------------- pose laws ---
+
+
+def _normal_values(
+    part: TranslationPart, u: FloatArray, w: FloatArray, settings: FitSettings
+) -> dict[str, object]:
+    """Weighted MLE of the mean and spread on the free axes; pinned axes keep their values
+    (the mean is the pinned position; a None spread entry is left as written)."""
+    free = np.flatnonzero(part.free)
+    fit = Normal.fit(
+        u[:, free], w, diagonal=part.family != "full", min_variance=settings.min_variance
+    )
+    mean = np.array(part.offset, dtype=float)
+    mean[free] = fit.mean
+    values: dict[str, object] = {"mean": [float(x) for x in mean]}
+    if part.family == "full":
+        cov: list[list[float | None]] = [[None] * 3 for _ in range(3)]
+        for i, a in enumerate(free):
+            for j, b in enumerate(free):
+                cov[a][b] = float(fit.cov[i, j])
+        values["covariance"] = cov
+    elif part.family == "isotropic":
+        values["variance"] = float(max(np.diag(fit.cov).mean(), settings.min_variance))
+    else:
+        var: list[float | None] = [None, None, None]
+        for i, a in enumerate(free):
+            var[a] = float(fit.cov[i, i])
+        values["variance"] = var
+    return values
+
+
+def _bingham_values(
+    family: str, old: Bingham, q: FloatArray, w: FloatArray, settings: FitSettings
+) -> dict[str, object]:
+    cap = settings.max_concentration
+    if family == "raw":
+        fit = Bingham.fit(q, w, max_concentration=cap)
+        return {"M": [[float(x) for x in row] for row in fit.M], "Z": [float(z) for z in fit.Z]}
+    mode, conc = Bingham.fit_about_mode(q, w, old.mode, family == "isotropic", cap)
+    value: float | list[float] = (
+        float(conc[0]) if family == "isotropic" else [float(c) for c in conc]
+    )
+    return {"mode": Orientation(tuple(float(x) for x in mode)), "concentration": value}
