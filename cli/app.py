@@ -448,6 +448,18 @@ def fit(
     report: Annotated[
         Path | None, typer.Option("--report", help="Write per-iteration numbers (JSON) here.")
     ] = None,
+    jobs: Annotated[
+        int, typer.Option("--jobs", "-j", min=1, help="Processes parsing scenes (same result).")
+    ] = 1,
+    mmd: Annotated[
+        int,
+        typer.Option(
+            "--mmd",
+            min=0,
+            help="Then compare N scenes sampled from the input and the fitted grammar with the "
+            "dataset: MMD² per object type (0: skip).",
+        ),
+    ] = 0,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     resume: Annotated[
         bool, typer.Option("--resume", help="Continue an interrupted fit from its journal.")
@@ -468,6 +480,7 @@ def fit(
         fit_header,
         report_json,
     )
+    from ssgc.fit.metrics import compare_by_mmd
     from ssgc.fit.mstep import FitSettings
     from ssgc.io.journal import journal_path
     from ssgc.io.scene import load_scenes
@@ -486,6 +499,7 @@ def fit(
         method=method,
         seed=seed,
         tol=tol,
+        jobs=jobs,
         settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
     )
     header = fit_header(text, scenes, items, options)
@@ -518,6 +532,10 @@ def fit(
                 on_scene=lambda: progress.advance(task),
                 on_iteration=on_iteration,
             )
+        if mmd:
+            fitted = compile_text(result.text, source.file, source.base_dir, True)
+            result.mmd = compare_by_mmd({"input": g, "fitted": fitted}, items, mmd, seed)
+            _print_mmd(result.mmd, quiet)
         write_text_atomic(output, result.text)
         if report is not None:
             write_text_atomic(report, report_json(result))
@@ -525,6 +543,17 @@ def fit(
         journal.delete()
     if not quiet:
         out.print(f"{result.message}; wrote {output}", markup=False, highlight=False)
+
+
+def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:
+    if quiet:
+        return
+    names = sorted({name for per_type in mmd.values() for name in per_type})
+    for name in names:
+        values = ", ".join(
+            f"{which} {per_type[name]:.4g}" for which, per_type in mmd.items() if name in per_type
+        )
+        err.print(f"MMD² {name}: {values}", markup=False, highlight=False)
 
 
 def _print_iteration(r: dict[str, Any], quiet: bool, resumed: bool = False) -> None:

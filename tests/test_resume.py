@@ -424,3 +424,45 @@ def test_fit_resume_refuses_a_journal_of_another_run(
     result = run("fit", data, "-g", start_yaml, "-o", out, "--top", 2, "--resume")
     assert result.exit_code == 1
     assert "this journal is of another run (top: 3, now 2)" in result.output
+
+
+def child_pids(pid: int) -> list[int]:
+    """Processes whose parent is `pid` (Linux /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_fit_with_jobs_killed_leaves_no_workers_and_resumes(
+    gmm_fit_inputs: tuple[Path, Path], tmp_path: Path
+) -> None:
+    data, start_yaml = gmm_fit_inputs
+    ref = tmp_path / "ref.yaml"
+    assert run("fit", data, "-g", start_yaml, "-o", ref, "-q", *FIT_ARGS).exit_code == 0
+    out = tmp_path / "out.yaml"
+    journal = journal_path(out)
+    args = ("fit", data, "-g", start_yaml, "-o", out, "-j", 2, *FIT_ARGS)
+    proc = start(*args)
+    workers: list[int] = []
+
+    def working() -> bool:
+        workers[:] = child_pids(proc.pid)
+        return len(workers) == 2 and journal.exists() and journal.read_bytes().count(b"\n") > 30
+
+    code, _ = interrupt_when(proc, working, signal.SIGKILL)
+    assert code == -signal.SIGKILL and not out.exists()
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{w}").exists() for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(Path(f"/proc/{w}").exists() for w in workers), "orphaned workers"
+    result = run(*args, "--resume", "-q")
+    assert result.exit_code == 0, result.output
+    assert out.read_bytes() == ref.read_bytes()

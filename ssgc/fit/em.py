@@ -32,6 +32,7 @@ from scipy.special import logsumexp
 
 from ssgc.compile import compile_text
 from ssgc.errors import SsgError
+from ssgc.fit.estep import parse_scenes
 from ssgc.fit.mstep import FitSettings, Ties, m_step
 from ssgc.fit.writeback import apply_updates, shared_nodes
 from ssgc.io.journal import Journal
@@ -47,13 +48,14 @@ DEADLINE_SHARE = 0.95  # of a time limit: the last parse and the output still ta
 @dataclass(frozen=True)
 class FitOptions:
     """Everything that decides a fit's result (all of it goes in the journal's header, except
-    `iterations` and `tol`, which only decide when to stop)."""
+    `iterations` and `tol`, which only decide when to stop, and `jobs`)."""
 
     iterations: int = 10
     top: int = 10
     method: str = "auto"
     seed: int = 0
     tol: float = 1e-4  # nats per scene: stop when the log-evidence improves less
+    jobs: int = 1  # worker processes for the E-step's parsing (the result is the same)
     settings: FitSettings = field(default_factory=FitSettings)
 
 
@@ -63,6 +65,7 @@ class FitResult:
     iterations: list[dict[str, Any]]  # one report per finished iteration
     status: str  # "converged", "iterations" (the limit was reached) or "time_limit"
     message: str = ""
+    mmd: dict[str, dict[str, float]] | None = None  # grammar -> object type -> MMD² to the data
 
 
 class FitJournal(Journal):
@@ -157,7 +160,7 @@ def fit_grammar(
     on_iteration: Callable[[dict[str, Any]], None] | None = None,
 ) -> FitResult:
     """Run EM from `text` (or from where `journal` stopped) and return the fitted grammar."""
-    t0 = time.perf_counter()
+    t0 = time.monotonic()
     deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
     current = journal.text or text
     first = compile_text(current, source.file, source.base_dir, source.allow_outside)
@@ -166,25 +169,23 @@ def fit_grammar(
         stop = _stop_reason(journal.reports, options, len(scenes))
         if stop:
             return FitResult(current, journal.reports, *stop)
-        if deadline is not None and time.perf_counter() >= deadline:
+        if deadline is not None and time.monotonic() >= deadline:
             return _out_of_time(current, journal.reports)
-        started = time.perf_counter()
+        started = time.monotonic()
         grammar = compile_text(current, source.file, source.base_dir, source.allow_outside)
         parser = Parser(grammar, method=options.method, seed=options.seed)
-        for index in range(len(journal.scenes), len(scenes)):
-            remaining = None if deadline is None else deadline - time.perf_counter()
-            if remaining is not None and remaining <= 0:
+        start = len(journal.scenes)
+        for parsed in parse_scenes(parser, scenes, start, options.top, deadline, options.jobs):
+            if parsed.limit is not None and _cut_short(parsed.result, parsed.limit):
                 return _out_of_time(current, journal.reports)
-            result = parser.parse(scenes[index], top=options.top, time_limit=remaining)
-            if remaining is not None and _cut_short(result, remaining):
-                return _out_of_time(current, journal.reports)
-            journal.add_scene(_scene_record(journal.iteration, index, result))
+            assert parsed.result is not None
+            journal.add_scene(_scene_record(journal.iteration, parsed.index, parsed.result))
             if on_scene is not None:
                 on_scene()
         trees, weights, report = _weigh(journal.scenes, journal.iteration)
         updates = m_step(grammar, trees, weights, options.settings, ties)
         current = apply_updates(current, updates, source.file)
-        report["seconds"] = round(time.perf_counter() - started, 6)
+        report["seconds"] = round(time.monotonic() - started, 6)
         journal.add_iteration(current, report)
         if on_iteration is not None:
             on_iteration(report)
@@ -243,13 +244,15 @@ def _stop_reason(
     return None
 
 
-def _cut_short(result: SceneParses, limit: float) -> bool:
+def _cut_short(result: SceneParses | None, limit: float) -> bool:
     """Whether the time limit may have changed this scene's parse.
 
     The parser gives pose proposals a share of its limit (PROPOSAL_SHARE); a parse that ran
     that long may have had fewer of them than an unlimited one, so it is not journalled: a
     resumed fit must give what an uninterrupted one gives.
     """
+    if result is None:
+        return True
     return result.status == "time_limit" or result.timing["total_s"] >= PROPOSAL_SHARE * limit
 
 
@@ -342,5 +345,11 @@ def _tree_from_json(t: dict[str, list[Any]]) -> Trees:
 
 def report_json(result: FitResult) -> str:
     """The `--report` file: every iteration's numbers and how the fit ended."""
-    doc = {"status": result.status, "message": result.message, "iterations": result.iterations}
+    doc: dict[str, Any] = {
+        "status": result.status,
+        "message": result.message,
+        "iterations": result.iterations,
+    }
+    if result.mmd is not None:
+        doc["mmd"] = result.mmd
     return json.dumps(doc, indent=1) + "\n"

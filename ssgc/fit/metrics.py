@@ -33,8 +33,9 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ssgc.io.scene import Scene
+from ssgc.io.scene import Scene, scene_from_tree
 from ssgc.ir import Grammar
+from ssgc.sample.forward import sample_trees
 
 __all__ = ["DEFAULT_ALPHAS", "DEFAULT_BETA", "mmd2", "mmd_by_type"]
 
@@ -216,3 +217,22 @@ def _subsample(index: NDArray[np.int64], limit: int, rng: np.random.Generator) -
     if index.size <= limit:
         return index
     return np.sort(rng.choice(index, size=limit, replace=False))
+
+
+def compare_by_mmd(
+    grammars: dict[str, Grammar], data: Sequence[Scene], n: int, seed: int = 0
+) -> dict[str, dict[str, float]]:
+    """Per grammar, `mmd_by_type` between `n` scenes sampled from it and `data`.
+
+    `ssg fit --mmd` compares the input and the fitted grammar this way (thesis 4.3.1): the
+    same seed for both, so the difference comes from the parameters, not from the draws.
+    """
+    out = {}
+    for name, grammar in grammars.items():
+        trees, logp = sample_trees(grammar, n, seed)
+        sampled = [
+            scene_from_tree(grammar, trees.tree(i), f"sample_{i}", float(logp[i]))
+            for i in range(n)
+        ]
+        out[name] = mmd_by_type(grammar, data, sampled, seed=seed)
+    return out
