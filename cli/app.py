@@ -34,7 +34,7 @@ from ssgc.sample.forward import CHUNK, chunk_rng, sample_chunk
 
 app = typer.Typer(
     name="ssg",
-    help="Spatial scene grammars: validate, inspect, sample (and soon parse and fit) them.",
+    help="Spatial scene grammars: validate, inspect, sample, parse and fit them.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -340,13 +340,7 @@ def parse(
     else:  # each result goes to the journal as soon as it is known, OUT.json at the end
         header = run_header(g.name, grammar, scenes, items, top, method, time_limit)
         with ParseJournal(journal_path(output), header, resume) as journal:
-            if journal.discarded and not quiet:
-                err.print(
-                    f"note: starting again; the journal {journal.path} of an interrupted run "
-                    "is replaced (--resume continues it)",
-                    markup=False,
-                    highlight=False,
-                )
+            _note_discarded(journal, quiet)
             with _progress(quiet) as progress:
                 task = progress.add_task("parsing", total=len(items))
                 progress.advance(task, journal.done)
@@ -365,6 +359,16 @@ def parse(
         raise typer.Exit(1)
     if failed:
         raise typer.Exit(2)
+
+
+def _note_discarded(journal: Any, quiet: bool) -> None:
+    if journal.discarded and not quiet:
+        err.print(
+            f"note: starting again; the journal {journal.path} of an interrupted run is "
+            "replaced (--resume continues it)",
+            markup=False,
+            highlight=False,
+        )
 
 
 def _check_method(method: str, solver: str) -> None:
@@ -488,7 +492,7 @@ def fit(
 
     _check_method(method, "highs")
     text = read_text(grammar, MAX_GRAMMAR_BYTES, "grammar file")
-    source = GrammarSource(str(grammar), grammar.parent, allow_outside_files)
+    source = GrammarSource(str(grammar), grammar.parent, allow_outside_files, str(scenes))
     g = compile_text(text, source.file, source.base_dir, source.allow_outside)
     items = load_scenes(scenes, g)
     if not items:
@@ -504,13 +508,7 @@ def fit(
     )
     header = fit_header(text, scenes, items, options)
     with FitJournal(journal_path(output), header, resume) as journal:
-        if journal.discarded and not quiet:
-            err.print(
-                f"note: starting again; the journal {journal.path} of an interrupted fit is "
-                "replaced (--resume continues it)",
-                markup=False,
-                highlight=False,
-            )
+        _note_discarded(journal, quiet)
         for r in journal.reports:
             _print_iteration(r, quiet, resumed=True)
         with _progress(quiet) as progress:

@@ -253,7 +253,8 @@ def test_cli_fit_refuses_a_scene_the_grammar_cannot_produce(tmp_path):
         app, ["fit", str(data), "-g", str(GRAMMARS / "gmm.yaml"), "-o", str(out)]
     )
     assert result.exit_code == 2
-    assert "s0" in result.output and "Traceback" not in result.output
+    assert result.output.startswith(f"{data}: error: scene 's0' cannot be explained")
+    assert "Traceback" not in result.output
     assert not out.exists()
 
 
@@ -321,3 +322,15 @@ def test_fit_time_limit_is_honoured_within_ten_percent(tmp_path, limit):
         elapsed = time.perf_counter() - started
     assert result.status == "time_limit"
     assert elapsed <= 1.1 * limit, elapsed
+
+
+def test_a_merged_anchor_that_would_get_two_values_is_a_user_error(tmp_path):
+    """`<<: *law` copies the anchored numbers into a rule that is fitted on its own: the anchor
+    cannot hold both fits, so the fit stops with a message (it used to be exit 70)."""
+    text = ALIASED.replace(
+        "translation: {world_normal: *law}",
+        "translation: {world_normal: {<<: *law, variance: 2.0}}",
+    )
+    _, scenes = scenes_of(text, 20, 2)
+    with pytest.raises(SsgError, match="cannot give one YAML node two values"):
+        run_fit(tmp_path, text, scenes, iterations=1, top=1)

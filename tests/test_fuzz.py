@@ -32,6 +32,7 @@ import json
 import math
 import os
 import re
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -877,6 +878,38 @@ def test_fuzz_parse_json(work: Path, data: bytes, grammar: str) -> None:
 @given(data=sink_yaml_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
 def test_fuzz_parse_sink_yaml(work: Path, data: bytes, grammar: str) -> None:
     check_parse(work, data, ".yaml", grammar)
+
+
+def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes) -> None:
+    """`ssg fit` on anything: the contract, and a fitted grammar that compiles or no file."""
+    out = work / "fitted.yaml"
+    out.unlink(missing_ok=True)
+    args = ["fit", str(dataset), "-g", str(grammar), "-o", str(out), "-q"]
+    result, seconds = invoke([*args, "--iterations", "2", "--top", "2", "--time-limit", "5"])
+    check(result, seconds, {0, 1, 2}, [dataset, grammar, out], data)
+    if result.exit_code == 0:
+        compile_text(out.read_text(), str(out))
+    else:
+        assert not out.exists()
+
+
+@fuzz(quick=25)
+@given(data=grammar_inputs())
+def test_fuzz_fit_grammar(work: Path, data: bytes) -> None:
+    """Fuzzed grammars fitted to scenes they sampled themselves (when they can sample)."""
+    path = write(work / "grammar.yaml", data)
+    scenes = work / "fit_scenes"
+    shutil.rmtree(scenes, ignore_errors=True)
+    result, _ = invoke(["sample", str(path), "-n", "3", "-o", str(scenes), "-q"])
+    if result.exit_code != 0:
+        scenes.mkdir(exist_ok=True)  # an empty dataset: refused, with a message
+    check_fit(work, scenes, path, data)
+
+
+@fuzz(quick=30)
+@given(data=scene_json_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
+def test_fuzz_fit_dataset(work: Path, data: bytes, grammar: str) -> None:
+    check_fit(work, write(work / "dataset.json", data), GRAMMARS / grammar, data)
 
 
 # The compiler itself, without the command line around it: every diagnostic of a grammar is

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from bruteforce import enumerate_parses
@@ -12,7 +14,7 @@ from ssgc.compile import compile_text, load_grammar
 from ssgc.io.scene import Scene, read_sink_yaml, scene_from_tree
 from ssgc.parse.ip import reduce_scene
 from ssgc.parse.milp import HighsSession
-from ssgc.parse.parser import Parser, set_model_size
+from ssgc.parse.parser import Parser, set_model_size, tree_signature
 from ssgc.sample.forward import sample_trees
 from ssgc.score import score_trees
 
@@ -213,3 +215,21 @@ def test_set_model_size_estimate_counts_its_edge_variables():
         cand, _ = parser.candidates(scene)
         milp = reduce_scene(grammar, parser.supertree, scene).milp
         assert set_model_size(parser.supertree, cand) == int(np.sum(~milp.integer))
+
+
+def test_a_tree_thousands_of_levels_deep_gets_a_flat_signature():
+    """Found by fuzzing `ssg fit`: top-N parsing keyed trees by nested tuples, and hashing
+    one 2,800 levels deep exhausted Python's recursion limit."""
+    n = 200
+    lines = ["grammar: deep", "root: T0", "types:"]
+    for i in range(n):
+        bound = "max_nesting: 14, " if i == 43 else ""
+        child = f"T{i + 1}" if i + 1 < n else "T1"
+        lines.append(f"  T{i}: {{{bound}observed: true, and: [{{child: {child}}}]}}")
+    grammar = compile_text("\n".join(lines) + "\n")
+    trees, _ = sample_trees(grammar, 1, 0)
+    assert len(trees) > 2500
+    key = tree_signature(grammar, trees)
+    assert key in {key} and key == tree_signature(grammar, trees.tree(0))
+    moved = replace(trees, xyz=trees.xyz + np.eye(3)[0] * (np.arange(len(trees)) == 700)[:, None])
+    assert tree_signature(grammar, moved) != key  # an observed node's pose is part of it

@@ -34,8 +34,8 @@ from ssgc.compile import compile_text
 from ssgc.errors import SsgError
 from ssgc.fit.estep import parse_scenes
 from ssgc.fit.mstep import FitSettings, Ties, m_step
-from ssgc.fit.writeback import apply_updates, shared_nodes
-from ssgc.io.journal import Journal
+from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
+from ssgc.io.journal import Journal, scenes_digest
 from ssgc.io.scene import Scene
 from ssgc.ir import BINGHAM_KINDS, NORMAL_KINDS, Grammar, Kind, RKind
 from ssgc.parse.parser import PROPOSAL_SHARE, Parser, SceneParses
@@ -122,17 +122,12 @@ def fit_header(
     grammar_text: str, scenes_path: Path, scenes: Sequence[Scene], options: FitOptions
 ) -> dict[str, Any]:
     """What makes two fits the same run: grammar, scenes, and every option but when to stop."""
-    scene_hash = hashlib.sha256()
-    for scene in scenes:
-        for part in (scene.name.encode(), scene.types, scene.xyz, scene.quat):
-            scene_hash.update(part if isinstance(part, bytes) else part.tobytes())
-        scene_hash.update(b"\0")
     return {
         "journal": FIT_JOURNAL_FORMAT,
         "grammar_sha256": hashlib.sha256(grammar_text.encode()).hexdigest(),
         "scenes": str(scenes_path.resolve()),
         "scene_count": len(scenes),
-        "scenes_sha256": scene_hash.hexdigest(),
+        "scenes_sha256": scenes_digest(scenes),
         "top": options.top,
         "method": options.method,
         "seed": options.seed,
@@ -142,11 +137,13 @@ def fit_header(
 
 @dataclass(frozen=True)
 class GrammarSource:
-    """Where the grammar text came from, so each iteration compiles it like the original."""
+    """Where the grammar text came from, so each iteration compiles it like the original
+    (and where the scenes came from, for messages)."""
 
     file: str
     base_dir: Path | None = None
     allow_outside: bool = False
+    dataset: str = "<dataset>"  # where the scenes came from, for messages
 
 
 def fit_grammar(
@@ -179,12 +176,19 @@ def fit_grammar(
             if parsed.limit is not None and _cut_short(parsed.result, parsed.limit):
                 return _out_of_time(current, journal.reports)
             assert parsed.result is not None
-            journal.add_scene(_scene_record(journal.iteration, parsed.index, parsed.result))
+            record = _scene_record(journal.iteration, parsed.index, parsed.result, source.dataset)
+            journal.add_scene(record)
             if on_scene is not None:
                 on_scene()
         trees, weights, report = _weigh(journal.scenes, journal.iteration)
         updates = m_step(grammar, trees, weights, options.settings, ties)
-        current = apply_updates(current, updates, source.file)
+        try:
+            current = apply_updates(current, updates, source.file)
+        except SharedValueConflict as exc:
+            raise SsgError.single(
+                f"{exc}; ssg fit cannot give one YAML node two values: write the parameters "
+                "out where they differ, or mark them `fixed: true`"
+            ) from None
         report["seconds"] = round(time.monotonic() - started, 6)
         journal.add_iteration(current, report)
         if on_iteration is not None:
@@ -271,11 +275,12 @@ def _out_of_time(text: str, reports: list[dict[str, Any]]) -> FitResult:
     )
 
 
-def _scene_record(iteration: int, index: int, result: SceneParses) -> dict[str, Any]:
+def _scene_record(iteration: int, index: int, result: SceneParses, dataset: str) -> dict[str, Any]:
     """One parsed scene as the journal keeps it; infeasible scenes stop the fit."""
     if result.status == "infeasible":
         raise SsgError.single(
             f"scene '{result.name}' cannot be explained by the grammar: {result.message}",
+            dataset,
             exit_code=2,
         )
     return {

@@ -231,8 +231,7 @@ def compare_by_mmd(
     for name, grammar in grammars.items():
         trees, logp = sample_trees(grammar, n, seed)
         sampled = [
-            scene_from_tree(grammar, trees.tree(i), f"sample_{i}", float(logp[i]))
-            for i in range(n)
+            scene_from_tree(grammar, trees.tree(i), f"sample_{i}", float(logp[i])) for i in range(n)
         ]
         out[name] = mmd_by_type(grammar, data, sampled, seed=seed)
     return out

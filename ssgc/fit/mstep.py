@@ -236,15 +236,16 @@ def _count_update(t: NodeType, n: NDArray[np.int64], w: FloatArray, alpha: float
 def _normal_values(
     part: TranslationPart, u: FloatArray, w: FloatArray, settings: FitSettings
 ) -> dict[str, object]:
-    """Weighted MLE of the mean and spread on the free axes; pinned axes keep their values
-    (the mean is the pinned position; a None spread entry is left as written)."""
+    """Weighted MLE of the mean and spread on the free axes; what is written for a pinned
+    axis stays as it is (None)."""
     free = np.flatnonzero(part.free)
     fit = Normal.fit(
         u[:, free], w, diagonal=part.family != "full", min_variance=settings.min_variance
     )
-    mean = np.array(part.offset, dtype=float)
-    mean[free] = fit.mean
-    values: dict[str, object] = {"mean": [float(x) for x in mean]}
+    mean: list[float | None] = [None, None, None]
+    for i, a in enumerate(free):
+        mean[a] = float(fit.mean[i])
+    values: dict[str, object] = {"mean": mean}
     if part.family == "full":
         cov: list[list[float | None]] = [[None] * 3 for _ in range(3)]
         for i, a in enumerate(free):

@@ -35,6 +35,10 @@ _DOC_START = re.compile(r"(?:[ \t]*(?:[#%].*)?\n)*---[ \t]*(?:#.*)?\n")
 _DOC_END = re.compile(r"\n\.\.\.[ \t]*(?:#.*)?(?:\n[ \t]*(?:#.*)?)*\Z")
 
 
+class SharedValueConflict(ValueError):
+    """One YAML node (an anchor, its aliases, a `<<` merge) would get two fitted values."""
+
+
 @dataclass(frozen=True)
 class Orientation:
     """A fitted rotation (unit quaternion, wxyz). Written in the form the user used there."""
@@ -212,7 +216,7 @@ def _claim(
     old = owner.get(key)  # a list or mapping edited in place may be aliased on its own
     for slot in [(id(owner), key), *([id(old)] if isinstance(old, (dict, list)) else [])]:
         if slot in written and written[slot][1] != new:
-            raise ValueError(
+            raise SharedValueConflict(
                 f"{place} is the YAML node of {written[slot][0]} too (an anchor and its "
                 "aliases), which was fitted to a different value"
             )

@@ -57,22 +57,27 @@ def run_header(
 
     The digests catch a grammar or dataset edited in place between the two runs.
     """
-    scene_hash = hashlib.sha256()
-    for scene in scenes:
-        for part in (scene.name.encode(), scene.types, scene.xyz, scene.quat):
-            scene_hash.update(part if isinstance(part, bytes) else part.tobytes())
-        scene_hash.update(b"\0")
     return {
         "journal": JOURNAL_FORMAT,
         "grammar": grammar_name,
         "grammar_sha256": hashlib.sha256(grammar_file.read_bytes()).hexdigest(),
         "scenes": str(scenes_path.resolve()),
         "scene_count": len(scenes),
-        "scenes_sha256": scene_hash.hexdigest(),
+        "scenes_sha256": scenes_digest(scenes),
         "top": top,
         "method": method,
         "time_limit": time_limit,
     }
+
+
+def scenes_digest(scenes: Sequence[Scene]) -> str:
+    """SHA-256 of the scenes' names, types and poses: catches a dataset edited in place."""
+    digest = hashlib.sha256()
+    for scene in scenes:
+        for part in (scene.name.encode(), scene.types, scene.xyz, scene.quat):
+            digest.update(part if isinstance(part, bytes) else part.tobytes())
+        digest.update(b"\0")
+    return digest.hexdigest()
 
 
 class Journal:

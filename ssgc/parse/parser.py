@@ -9,6 +9,7 @@ the binaries that define it and solves again for the next one.
 from __future__ import annotations
 
 import gc
+import hashlib
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -396,20 +397,27 @@ def set_model_size(st: Supertree, cand: Candidates) -> int:
     return int(np.sum(n_cand[st.set_of[st.parent[c]]] * n_cand[st.set_of[c]]))
 
 
-def tree_signature(grammar: Grammar, tree: Trees) -> tuple:
+def tree_signature(grammar: Grammar, tree: Trees) -> bytes:
     """What makes two parse trees different: types, rules, and the poses of nodes tied to
     observations, but not the poses of latent nodes (two refinements of one structure are one
-    tree)."""
+    tree).
+
+    Each node gets a digest of its own part and its children's sorted digests (children are
+    unordered), built bottom-up: a flat key even for a tree thousands of levels deep, where
+    nested tuples would exhaust Python's recursion limit when hashed or compared.
+    """
     top, tops = free_blocks(grammar, tree)
     latent = np.isin(top, tops)
-    keys: list[tuple] = [()] * len(tree)
-    kids: list[list[tuple]] = [[] for _ in range(len(tree))]
+    keys: list[bytes] = [b""] * len(tree)
+    kids: list[list[bytes]] = [[] for _ in range(len(tree))]
     for i in range(len(tree) - 1, -1, -1):  # children first
-        pose = () if latent[i] else tuple(np.round(np.r_[tree.xyz[i], np.abs(tree.quat[i])], 6))
-        keys[i] = (int(tree.type[i]), int(tree.rule[i]), pose, tuple(sorted(kids[i])))
+        rounded = np.round(np.r_[tree.xyz[i], np.abs(tree.quat[i])], 6) + 0.0  # no -0.0
+        pose = () if latent[i] else tuple(rounded.tolist())
+        own = repr((int(tree.type[i]), int(tree.rule[i]), pose)).encode()
+        keys[i] = hashlib.blake2b(own + b"".join(sorted(kids[i])), digest_size=20).digest()
         if tree.parent[i] >= 0:
             kids[tree.parent[i]].append(keys[i])
-    return keys[0] if keys else ()
+    return keys[0] if keys else b""
 
 
 def _failed(scene: Scene, status: str, exc: SsgError, t0: float) -> SceneParses:
