@@ -83,14 +83,12 @@ def _structure_valid(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
     tb = grammar.tables
     n_rules = len(grammar.rules)
     is_root = trees.parent < 0
-    r = np.clip(trees.rule, 0, max(n_rules - 1, 0))
+    known = (trees.rule >= 0) & (trees.rule < n_rules)
+    r = np.where(known, trees.rule, 0)
     parent_type = trees.type[np.maximum(trees.parent, 0)]
-    ok_child = (
-        (trees.rule >= 0)
-        & (trees.rule < n_rules)
-        & (tb.rule_parent[r] == parent_type)
-        & (tb.rule_child[r] == trees.type)
-    )
+    ok_child = known.copy()
+    if n_rules:  # a grammar of one terminal root has no rule tables to look in
+        ok_child &= (tb.rule_parent[r] == parent_type) & (tb.rule_child[r] == trees.type)
     ok_root = (
         (trees.type == grammar.root)
         & (np.linalg.norm(trees.xyz - grammar.root_xyz, axis=1) <= POS_TOL)
@@ -122,9 +120,9 @@ def _blocked(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
     tb = grammar.tables
     nest = nesting_counts(grammar, trees)
     rules = tb.type_rules[trees.type]  # (N, K), -1 padded
-    slot = np.where(rules >= 0, tb.nesting_slot[tb.rule_child[np.maximum(rules, 0)]], -1)
-    if nest.shape[1] == 0:
+    if nest.shape[1] == 0:  # (also when the grammar has no rules at all)
         return np.zeros(rules.shape, bool)
+    slot = np.where(rules >= 0, tb.nesting_slot[tb.rule_child[np.maximum(rules, 0)]], -1)
     depth_here = np.take_along_axis(nest, np.maximum(slot, 0), axis=1)
     return (slot >= 0) & (depth_here >= tb.nesting_max[np.maximum(slot, 0)])
 

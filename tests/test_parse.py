@@ -233,3 +233,14 @@ def test_a_tree_thousands_of_levels_deep_gets_a_flat_signature():
     assert key in {key} and key == tree_signature(grammar, trees.tree(0))
     moved = replace(trees, xyz=trees.xyz + np.eye(3)[0] * (np.arange(len(trees)) == 700)[:, None])
     assert tree_signature(grammar, moved) != key  # an observed node's pose is part of it
+
+
+def test_a_grammar_without_rules_parses_its_empty_scenes():
+    """Found by fuzzing `ssg fit`: a grammar of one latent terminal root has no rule tables,
+    and scoring its one-node tree indexed into them (an internal error in parse and fit)."""
+    grammar = compile_text("grammar: g\nroot: R\ntypes: {R: {}}\n")
+    scene = sampled_scenes(grammar, 1, seed=0, max_objects=10)[0]
+    assert len(scene) == 0
+    result = Parser(grammar).parse(scene, top=2)
+    assert result.status == "optimal" and [p.score for p in result.parses] == [0.0]
+    assert len(result.parses[0].tree) == 1  # the root, always in the tree

@@ -91,7 +91,9 @@ class ParseProblem:
     def invert(self, x: FloatArray) -> Trees:
         """The tree a solution encodes: active nodes, parents first, posed from their sets."""
         st = self.supertree
-        active = np.flatnonzero((self.node_col >= 0) & (x[np.maximum(self.node_col, 0)] > 0.5))
+        on = (self.node_col >= 0) & (x[np.maximum(self.node_col, 0)] > 0.5)
+        on[0] = True  # the root is in every tree, also when the model needs no column for it
+        active = np.flatnonzero(on)
         pose_k = np.full(st.n_sets, -1, np.int64)
         for e, cols in enumerate(self.set_cols):
             if len(cols):

@@ -89,7 +89,8 @@ class PosedProblem:
 
     def active(self, x: FloatArray) -> IntArray:
         """The instances a solution switches on, parents first (the nodes of `invert`)."""
-        return np.flatnonzero((self.col >= 0) & (x[np.maximum(self.col, 0)] > 0.5))
+        on = (self.col >= 0) & (x[np.maximum(self.col, 0)] > 0.5)
+        return np.flatnonzero(on | (self.st_node == 0))  # the root is in every tree
 
     def invert(self, x: FloatArray) -> Trees:
         st = self.supertree
