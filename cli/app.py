@@ -531,7 +531,7 @@ def fit(
                 on_iteration=on_iteration,
             )
         if mmd:
-            fitted = compile_text(result.text, source.file, source.base_dir, True)
+            fitted = compile_text(result.text, source.file, source.base_dir, allow_outside_files)
             result.mmd = compare_by_mmd({"input": g, "fitted": fitted}, items, mmd, seed)
             _print_mmd(result.mmd, quiet)
         write_text_atomic(output, result.text)

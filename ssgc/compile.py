@@ -417,7 +417,7 @@ class Compiler:
                 _frozen(IDENTITY_QUAT),
                 bingham=bingham,
                 fixed=params.fixed,
-                path=loc,
+                path=(*loc, key),  # the parameter block, as for translations and revolutes
                 family=family,
             )
         if isinstance(spec, dsl.RevoluteR):

@@ -37,7 +37,7 @@ from ssgc.fit.mstep import FitSettings, Ties, m_step
 from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
 from ssgc.io.journal import Journal, scenes_digest
 from ssgc.io.scene import Scene
-from ssgc.ir import BINGHAM_KINDS, NORMAL_KINDS, Grammar, Kind, RKind
+from ssgc.ir import BINGHAM_KINDS, NORMAL_KINDS, Grammar, Kind
 from ssgc.parse.parser import PROPOSAL_SHARE, Parser, SceneParses
 from ssgc.tree import Trees
 
@@ -160,8 +160,8 @@ def fit_grammar(
     t0 = time.monotonic()
     deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
     current = journal.text or text
-    first = compile_text(current, source.file, source.base_dir, source.allow_outside)
-    ties = parameter_ties(first, current, source.file)  # aliases survive every write-back
+    grammar = compile_text(current, source.file, source.base_dir, source.allow_outside)
+    ties = parameter_ties(grammar, current, source.file)  # aliases survive every write-back
     while True:
         stop = _stop_reason(journal.reports, options, len(scenes))
         if stop:
@@ -169,7 +169,6 @@ def fit_grammar(
         if deadline is not None and time.monotonic() >= deadline:
             return _out_of_time(current, journal.reports)
         started = time.monotonic()
-        grammar = compile_text(current, source.file, source.base_dir, source.allow_outside)
         parser = Parser(grammar, method=options.method, seed=options.seed)
         start = len(journal.scenes)
         for parsed in parse_scenes(parser, scenes, start, options.top, deadline, options.jobs):
@@ -189,6 +188,7 @@ def fit_grammar(
                 f"{exc}; ssg fit cannot give one YAML node two values: write the parameters "
                 "out where they differ, or mark them `fixed: true`"
             ) from None
+        grammar = compile_text(current, source.file, source.base_dir, source.allow_outside)
         report["seconds"] = round(time.monotonic() - started, 6)
         journal.add_iteration(current, report)
         if on_iteration is not None:
@@ -207,8 +207,7 @@ def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
             owner[r.translation.path] = ("translation", r.id)
         rp = r.rotation
         if rp.kind in BINGHAM_KINDS and not rp.fixed:
-            key = "world_bingham" if rp.kind == RKind.WORLD_BINGHAM else "parent_bingham"
-            owner[(*rp.path, key)] = ("rotation", r.id)
+            owner[rp.path] = ("rotation", r.id)
     for t in grammar.types:
         if t.fixed:
             continue

@@ -38,7 +38,6 @@ from ssgc.ir import (
     Grammar,
     Kind,
     NodeType,
-    RKind,
     TranslationPart,
 )
 from ssgc.rules import rotation_coordinates, translation_coordinates
@@ -98,27 +97,36 @@ def m_step(
     counts, exists, blocked = fired_slots(grammar, trees)
     allowed = exists & ~blocked
     updates: list[Update] = []
+    weighted = np.flatnonzero(node_weight > 0)
+    by_type = _groups(trees.type[weighted], len(grammar.types))
     for t in grammar.types:
         if t.fixed or t.kind in (Kind.TERMINAL, Kind.AND):
             continue
-        rows = np.flatnonzero((trees.type == t.id) & (node_weight > 0))
+        rows = weighted[by_type[t.id]]
         c, a, w = counts[rows], allowed[rows], node_weight[rows]
         updates += _choice_updates(grammar, t, c, a, w, settings.pseudocount)
     edges = _edges(grammar, trees, node_weight)
+    by_translation = _groups(ties.translation[edges.rule], len(grammar.rules))
+    by_rotation = _groups(ties.rotation[edges.rule], len(grammar.rules))
     for rule in grammar.rules:
         tp, rp = rule.translation, rule.rotation
-        take = ties.translation[edges.rule] == rule.id
-        if tp.kind in NORMAL_KINDS and not tp.fixed and np.any(take):
+        take = by_translation[rule.id]
+        if tp.kind in NORMAL_KINDS and not tp.fixed and take.size:
             values = _normal_values(tp, edges.u[take], edges.weight[take], settings)
             updates.append(Update(tp.path, values))
-        take = ties.rotation[edges.rule] == rule.id
-        if rp.kind in BINGHAM_KINDS and rp.bingham is not None and not rp.fixed and np.any(take):
-            key = "world_bingham" if rp.kind == RKind.WORLD_BINGHAM else "parent_bingham"
+        take = by_rotation[rule.id]
+        if rp.kind in BINGHAM_KINDS and rp.bingham is not None and not rp.fixed and take.size:
             values = _bingham_values(
                 rp.family, rp.bingham, edges.q[take], edges.weight[take], settings
             )
-            updates.append(Update((*rp.path, key), values))
+            updates.append(Update(rp.path, values))
     return updates
+
+
+def _groups(keys: NDArray[np.int64], n: int) -> list[NDArray[np.int64]]:
+    """For each key 0..n-1, the positions holding it: one sort rather than a scan per key."""
+    order = np.argsort(keys, kind="stable")
+    return np.split(order, np.searchsorted(keys[order], np.arange(1, n)))
 
 
 def _edges(grammar: Grammar, trees: Trees, node_weight: FloatArray) -> _Edges:

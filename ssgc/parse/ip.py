@@ -401,24 +401,16 @@ class _Reduction:
         )
         sp_cols = self.set_cols[st.set_of[st.parent[c]]]
         sc_cols = self.set_cols[st.set_of[c]]
-        ui, ri = np.unique(ii, return_inverse=True)
-        self.rows.add(
-            np.r_[ri, np.arange(len(ui))],
-            np.r_[e, sp_cols[ui]],
-            np.r_[np.ones(m), -np.ones(len(ui))],
-            len(ui),
-            -np.inf,
-            0.0,
-        )
-        uj, rj = np.unique(jj, return_inverse=True)
-        self.rows.add(
-            np.r_[rj, np.arange(len(uj))],
-            np.r_[e, sc_cols[uj]],
-            np.r_[np.ones(m), -np.ones(len(uj))],
-            len(uj),
-            -np.inf,
-            0.0,
-        )
+        for idx, cols in ((ii, sp_cols), (jj, sc_cols)):  # the parent's side, the child's side
+            u, r = np.unique(idx, return_inverse=True)
+            self.rows.add(
+                np.r_[r, np.arange(len(u))],
+                np.r_[e, cols[u]],
+                np.r_[np.ones(m), -np.ones(len(u))],
+                len(u),
+                -np.inf,
+                0.0,
+            )
 
     def symmetry(self) -> None:
         """Copies of a `repeat` child are exchangeable: take their candidate poses in order."""
