@@ -10,32 +10,19 @@ from __future__ import annotations
 
 import difflib
 import os
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import ValidationError
 
+import ssgc.laws  # noqa: F401  (registers the built-in laws)
 from ssgc import dsl
-from ssgc.distributions.bingham import Bingham
-from ssgc.distributions.discrete import CountLaw
-from ssgc.distributions.normal import Normal
-from ssgc.distributions.uniform import UniformBox, UniformRevolute
 from ssgc.errors import Diagnostic, GrammarError, SsgError, one_line
 from ssgc.geometry import IDENTITY_QUAT, quat_canonical, rpy_to_quat
-from ssgc.ir import (
-    Grammar,
-    Kind,
-    Loc,
-    NodeType,
-    RKind,
-    RotationPart,
-    Rule,
-    TKind,
-    TranslationPart,
-    build_tables,
-)
+from ssgc.ir import Grammar, Kind, Loc, NodeType, Rule, build_tables
+from ssgc.laws.base import PoseLaw, frozen, law_for
+from ssgc.laws.counts import RepeatCount
 from ssgc.yamlio import (
     MAX_GRAMMAR_BYTES,
     SourceMap,
@@ -44,12 +31,9 @@ from ssgc.yamlio import (
     validation_diagnostics,
 )
 
-MAX_CONCENTRATION = 1e4
 QUAT_NORM_TOL = 1e-3
-ORTHOGONALITY_TOL = 1e-6
 MAX_CYCLES_REPORTED = 20  # a grammar with more unbounded cycles gets the first ones
 MAX_SUGGESTIONS = 50  # "did you mean" for the first unknown type names only
-AXES = {"x": 0, "y": 1, "z": 2}
 
 
 def load_grammar(path: str | Path, allow_outside: bool = False) -> Grammar:
@@ -171,8 +155,8 @@ class Compiler:
             types=types_t,
             rules=rules_t,
             root=self.ids[root_spec.type],
-            root_xyz=_frozen(root_spec.pose.xyz),
-            root_quat=_frozen(root_quat),
+            root_xyz=frozen(root_spec.pose.xyz),
+            root_quat=frozen(root_quat),
             tables=build_tables(types_t, rules_t),
             warnings=tuple(self.warnings),
             type_ids=dict(self.ids),
@@ -209,12 +193,9 @@ class Compiler:
             if rule is not None:
                 rules.append(rule)
         probs = self.rule_probs(kind, key, rule_specs, rule_locs, loc)
-        count = self.count_law(spec.repeat, (*loc, "repeat", "count")) if spec.repeat else None
-        count_family, count_start = "", 0
-        if spec.repeat is not None:
-            geometric = isinstance(spec.repeat.count, dsl.GeometricCountSpec)
-            count_family = "geometric" if geometric else "probs"
-            count_start = spec.repeat.count.geometric.start if geometric else 0
+        count = (
+            RepeatCount.lower(spec.repeat, (*loc, "repeat", "count"), self) if spec.repeat else None
+        )
         if spec.labels and not spec.observed:
             self.error(
                 (*loc, "labels"), "labels name dataset objects, so the type must be observed"
@@ -225,7 +206,7 @@ class Compiler:
             kind=kind,
             observed=spec.observed,
             rules=tuple(range(first, len(rules))),
-            probs=_frozen(probs),
+            probs=frozen(probs),
             count=count,
             max_nesting=spec.max_nesting,
             geometry=spec.geometry,
@@ -233,8 +214,6 @@ class Compiler:
             labels=tuple(spec.labels),
             fixed=spec.fixed,
             path=loc,
-            count_family=count_family,
-            count_start=count_start,
         )
 
     def rule_probs(
@@ -270,218 +249,27 @@ class Compiler:
             return weights / weights.sum()
         return np.zeros(0)
 
-    def count_law(self, spec: dsl.Repeat, loc: Loc) -> CountLaw | None:
-        count = spec.count
-        try:
-            if isinstance(count, dsl.GeometricCountSpec):
-                g = count.geometric
-                if g.start > g.max:
-                    self.error((*loc, "geometric", "start"), f"start {g.start} exceeds max {g.max}")
-                    return None
-                return CountLaw.geometric(g.p, g.max, g.start)
-            if sum(count.probs) <= 0:
-                self.error((*loc, "probs"), "count probabilities sum to zero")
-                return None
-            return CountLaw(np.asarray(count.probs, float))
-        except ValueError as exc:
-            self.error(loc, str(exc))
-            return None
-
     # ---------------------------------------------------------------------- rules ---
 
     def rule(self, rid: int, parent: int, index: int, spec: dsl.Rule, loc: Loc) -> Rule | None:
         if spec.child not in self.ids:
             self.unknown_type((*loc, "child"), spec.child, "child type")
             return None
-        translation = self.translation(spec.translation, (*loc, "translation"))
-        rotation = self.rotation(spec.rotation, (*loc, "rotation"))
+        translation = self.part("translation", spec.translation, (*loc, "translation"))
+        rotation = self.part("rotation", spec.rotation, (*loc, "rotation"))
         if translation is None or rotation is None:
             return None
         return Rule(rid, parent, index, self.ids[spec.child], translation, rotation, loc)
 
-    def translation(self, spec: object, loc: Loc) -> TranslationPart | None:
-        zero, all_free = np.zeros(3), np.ones(3, bool)
-        if spec == "same":
-            return TranslationPart(TKind.FIXED, _frozen(zero), _frozen(~all_free), path=loc)
-        if isinstance(spec, dsl.OffsetT):
-            return TranslationPart(TKind.FIXED, _frozen(spec.offset), _frozen(~all_free), path=loc)
-        for cls, kind, key in (
-            (dsl.WorldNormalT, TKind.WORLD_NORMAL, "world_normal"),
-            (dsl.WorldNormalOffsetT, TKind.WORLD_NORMAL_OFFSET, "world_normal_offset"),
-            (dsl.ParentNormalOffsetT, TKind.PARENT_NORMAL_OFFSET, "parent_normal_offset"),
-        ):
-            if isinstance(spec, cls):
-                return self.normal_part(kind, getattr(spec, key), (*loc, key))
-        for cls, kind, key in (
-            (dsl.WorldBoxT, TKind.WORLD_BOX, "world_box"),
-            (dsl.WorldBoxOffsetT, TKind.WORLD_BOX_OFFSET, "world_box_offset"),
-        ):
-            if isinstance(spec, cls):
-                return self.box_part(kind, getattr(spec, key), (*loc, key))
-        raise AssertionError(f"unhandled translation {spec!r}")  # pydantic guarantees the variants
-
-    def normal_part(self, kind: TKind, p: dsl.NormalParams, loc: Loc) -> TranslationPart | None:
-        free = np.ones(3, bool)
-        for axis in p.pin:
-            free[AXES[axis]] = False
-        if not free.any():
-            self.error((*loc, "pin"), "all three axes are pinned; use `offset` for a fixed offset")
-            return None
-        if p.covariance is not None:
-            cov = np.asarray(p.covariance, float)
-            if not np.allclose(cov, cov.T, rtol=0, atol=1e-12 * max(1.0, np.abs(cov).max())):
-                self.error((*loc, "covariance"), "covariance must be symmetric")
-                return None
-            sub = cov[np.ix_(free, free)]
-            try:
-                with np.errstate(all="ignore"):  # huge entries overflow: NaN fails below
-                    eig = np.linalg.eigvalsh(sub)
-            except np.linalg.LinAlgError:
-                eig = np.array([np.nan])
-            if not np.all(eig > 0):
-                self.error((*loc, "covariance"), "covariance must be positive definite")
-                return None
-        else:
-            var = np.broadcast_to(np.asarray(p.variance, float), (3,))
-            bad = (var < 0) | (free & (var == 0))  # zero is fine only on a pinned axis
-            for i in np.flatnonzero(bad):
-                where = (
-                    (*loc, "variance", int(i))
-                    if isinstance(p.variance, list)
-                    else (*loc, "variance")
-                )
-                self.error(where, f"variance must be positive, got {var[i]:g} ({'xyz'[i]} axis)")
-            if np.any(bad):
-                return None
-            sub = np.diag(var[free])
-        try:
-            normal = Normal(np.asarray(p.mean, float)[free], sub)
-        except ValueError as exc:  # numerically singular despite the checks above
-            spread = "covariance" if p.covariance is not None else "variance"
-            self.error((*loc, spread), f"invalid {spread} (too large or nearly singular): {exc}")
-            return None
-        family = (
-            "full"
-            if p.covariance is not None
-            else ("diagonal" if isinstance(p.variance, list) else "isotropic")
-        )
-        return TranslationPart(
-            kind,
-            _frozen(p.mean),
-            _frozen(free),
-            normal=normal,
-            fixed=p.fixed,
-            path=loc,
-            family=family,
-        )
-
-    def box_part(self, kind: TKind, p: dsl.BoxParams, loc: Loc) -> TranslationPart | None:
-        lo, hi = np.asarray(p.min, float), np.asarray(p.max, float)
-        if np.any(hi < lo):
-            i = int(np.flatnonzero(hi < lo)[0])
-            self.error((*loc, "max", i), f"box max must be >= min, got {hi[i]:g} < {lo[i]:g}")
-            return None
-        with np.errstate(over="ignore"):
-            too_wide = not np.all(np.isfinite(hi - lo))
-        if too_wide:  # the density 1/volume would be 0
-            self.error((*loc, "max"), "box is too large (its width overflows)")
-            return None
-        box = UniformBox(lo, hi)
-        return TranslationPart(
-            kind, _frozen(lo), _frozen(box.free_axes), box=box, fixed=p.fixed, path=loc
-        )
-
-    def rotation(self, spec: object, loc: Loc) -> RotationPart | None:
-        if spec == "same":
-            return RotationPart(RKind.FIXED, _frozen(IDENTITY_QUAT), path=loc)
-        if spec == "uniform":
-            return RotationPart(RKind.UNIFORM, _frozen(IDENTITY_QUAT), path=loc)
-        if isinstance(spec, dsl.OffsetR):
-            q = self.orientation(spec.offset, (*loc, "offset"))
-            return RotationPart(RKind.FIXED, _frozen(q), path=loc)
-        if isinstance(spec, (dsl.WorldBinghamR, dsl.ParentBinghamR)):
-            world = isinstance(spec, dsl.WorldBinghamR)
-            key = "world_bingham" if world else "parent_bingham"
-            bingham = self.bingham(getattr(spec, key), (*loc, key))
-            if bingham is None:
-                return None
-            kind = RKind.WORLD_BINGHAM if world else RKind.PARENT_BINGHAM
-            params = getattr(spec, key)
-            family = (
-                "raw"
-                if params.M is not None
-                else ("axes" if isinstance(params.concentration, list) else "isotropic")
-            )
-            return RotationPart(
-                kind,
-                _frozen(IDENTITY_QUAT),
-                bingham=bingham,
-                fixed=params.fixed,
-                path=(*loc, key),  # the parameter block, as for translations and revolutes
-                family=family,
-            )
-        if isinstance(spec, dsl.RevoluteR):
-            return self.revolute(spec.revolute, (*loc, "revolute"))
-        raise AssertionError(f"unhandled rotation {spec!r}")
-
-    def bingham(self, p: dsl.BinghamParams, loc: Loc) -> Bingham | None:
-        if p.M is not None and p.Z is not None:
-            m = np.asarray(p.M, float)
-            with np.errstate(all="ignore"):
-                err = np.abs(m.T @ m - np.eye(4)).max()
-            if not err <= ORTHOGONALITY_TOL:  # NaN (overflow) is not orthogonal either
-                self.error((*loc, "M"), f"Bingham M must be orthogonal (max |MᵀM - I| = {err:.2g})")
-                return None
-            z = np.asarray(p.Z, float)
-            spread = z.max() - z.min()
-            if spread > MAX_CONCENTRATION:
-                self.error(
-                    (*loc, "Z"),
-                    f"Bingham Z spans {spread:g}, over the supported {MAX_CONCENTRATION:g}",
-                )
-                return None
-            return self.checked_bingham(lambda: Bingham(m, z), (*loc, "M"))
-        conc = np.broadcast_to(np.asarray(p.concentration, float), (3,))
-        if np.any(conc > MAX_CONCENTRATION):
-            self.error(
-                (*loc, "concentration"),
-                f"concentration must be at most {MAX_CONCENTRATION:g}, got {conc.max():.10g}",
-            )
-            return None
-        mode = self.orientation(p.mode, (*loc, "mode")) if p.mode else IDENTITY_QUAT
-        return self.checked_bingham(lambda: Bingham.from_mode(mode, conc), loc)
-
-    def checked_bingham(self, make: Callable[[], Bingham], loc: Loc) -> Bingham | None:
-        """`make()`, with the distribution's own checks reported as located errors."""
-        try:
-            return make()
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            self.error(loc, f"invalid Bingham parameters: {exc}")
-            return None
-
-    def revolute(self, p: dsl.RevoluteParams, loc: Loc) -> RotationPart | None:
-        axis = np.asarray(p.axis, float)
-        scale = np.abs(axis).max()
-        if scale == 0:
-            self.error((*loc, "axis"), "revolute axis must be nonzero")
-            return None
-        axis = axis / scale  # so that the norm neither overflows nor underflows
-        norm = np.linalg.norm(axis)
-        if not p.max > p.min:
-            self.error((*loc, "max"), f"revolute max must be > min, got [{p.min:g}, {p.max:g}]")
-            return None
-        if p.max - p.min > 2 * np.pi + 1e-9:
-            self.error((*loc, "max"), f"revolute range exceeds 2π ({p.max - p.min:g} rad)")
-            return None
-        revolute = UniformRevolute(p.min, min(p.max, p.min + 2 * np.pi))
-        return RotationPart(
-            RKind.REVOLUTE,
-            _frozen(IDENTITY_QUAT),
-            axis=_frozen(axis / norm),
-            revolute=revolute,
-            fixed=p.fixed,
-            path=loc,
-        )
+    def part(self, part: str, spec: object, loc: Loc) -> PoseLaw | None:
+        """Lower one part of a rule through the law its document word names."""
+        word = spec if isinstance(spec, str) else dsl.one_key(spec)
+        if word is None:  # pydantic guarantees the variants
+            raise AssertionError(f"unhandled {part} {spec!r}")
+        law = law_for(part, word)
+        if isinstance(spec, str):
+            return law.lower(None, word, loc, self)
+        return law.lower(getattr(spec, word), word, (*loc, word), self)
 
     def orientation(self, o: dsl.Orientation, loc: Loc) -> NDArray[np.float64]:
         if o.rpy is not None:
@@ -718,11 +506,3 @@ def _is_file(path: Path) -> bool:
         return path.is_file()
     except (OSError, RuntimeError):
         return False
-
-
-def _frozen(a: object) -> NDArray[np.float64]:
-    """A read-only array, keeping booleans boolean (axis masks) and making the rest float."""
-    arr = np.asarray(a)
-    out = np.array(arr, dtype=bool if arr.dtype == bool else float)
-    out.flags.writeable = False
-    return out

@@ -24,6 +24,7 @@ from pydantic import (
     Tag,
     model_validator,
 )
+from pydantic.fields import FieldInfo
 from pydantic_core import PydanticCustomError
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -89,7 +90,7 @@ class Pose(Orientation):
 # ----------------------------------------------------------------------- discriminators ---
 
 
-def _one_key(value: Any) -> str | None:
+def one_key(value: Any) -> str | None:
     """Tag of a bare-word-or-single-key-mapping union: the word, or the mapping's only key."""
     if isinstance(value, str):
         return value
@@ -108,7 +109,7 @@ def _choice(*variants: tuple[Any, str], what: str) -> Any:
     return Annotated[
         members[0] if len(members) == 1 else Union[members],  # noqa: UP007
         Discriminator(
-            _one_key,
+            one_key,
             custom_error_type="invalid_choice",
             custom_error_message=f"expected a {what}: one of {names}",
         ),
@@ -174,16 +175,18 @@ class WorldBoxOffsetT(Strict):
     )
 
 
-Translation = _choice(
-    (Literal["same"], "same"),
-    (OffsetT, "offset"),
-    (WorldNormalT, "world_normal"),
-    (WorldNormalOffsetT, "world_normal_offset"),
-    (ParentNormalOffsetT, "parent_normal_offset"),
-    (WorldBoxT, "world_box"),
-    (WorldBoxOffsetT, "world_box_offset"),
-    what="translation rule",
-)
+_CHOICES: dict[str, list[tuple[Any, str]]] = {
+    "translation": [
+        (Literal["same"], "same"),
+        (OffsetT, "offset"),
+        (WorldNormalT, "world_normal"),
+        (WorldNormalOffsetT, "world_normal_offset"),
+        (ParentNormalOffsetT, "parent_normal_offset"),
+        (WorldBoxT, "world_box"),
+        (WorldBoxOffsetT, "world_box_offset"),
+    ]
+}
+Translation = _choice(*_CHOICES["translation"], what="translation rule")
 
 
 # --------------------------------------------------------------------------- rotations ---
@@ -243,15 +246,15 @@ class RevoluteR(Strict):
     revolute: RevoluteParams
 
 
-Rotation = _choice(
+_CHOICES["rotation"] = [
     (Literal["same"], "same"),
     (Literal["uniform"], "uniform"),
     (OffsetR, "offset"),
     (WorldBinghamR, "world_bingham"),
     (ParentBinghamR, "parent_bingham"),
     (RevoluteR, "revolute"),
-    what="rotation rule",
-)
+]
+Rotation = _choice(*_CHOICES["rotation"], what="rotation rule")
 
 
 # ------------------------------------------------------------------------------ rules ---
@@ -380,3 +383,26 @@ class GrammarDoc(Strict):
     @property
     def root_spec(self) -> Root:
         return self.root if isinstance(self.root, Root) else Root(type=self.root)
+
+
+# ------------------------------------------------------------------- laws added later ---
+
+
+def add_choice(part: str, model: Any, word: str) -> None:
+    """Let a rule's `part` ("translation" or "rotation") be written `{word: ...}`, validated by
+    `model`: how a law registered in `ssgc.laws` outside this module joins the language."""
+    _CHOICES[part].append((model, word))
+    _rebuild(part)
+
+
+def remove_choice(part: str, word: str) -> None:
+    _CHOICES[part] = [(m, w) for m, w in _CHOICES[part] if w != word]
+    _rebuild(part)
+
+
+def _rebuild(part: str) -> None:
+    """Rebuild the rule's union for `part`, then every model that holds a rule."""
+    union = _choice(*_CHOICES[part], what=f"{part} rule")
+    Rule.model_fields[part] = FieldInfo.from_annotated_attribute(union, "same")
+    for model in (Rule, Repeat, NodeType, GrammarDoc):
+        model.model_rebuild(force=True)

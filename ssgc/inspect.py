@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from ssgc.ir import Grammar, Kind, NodeType, RKind, Rule, TKind
+from ssgc.ir import Grammar, Kind, NodeType, Rule
 from ssgc.supertree import supertree_size
 
 
@@ -47,40 +47,6 @@ def _rule_row(grammar: Grammar, r: Rule) -> dict[str, Any]:
     return {
         "id": r.id,
         "name": grammar.rule_name(r.id),
-        "translation": _translation(r),
-        "rotation": _rotation(r),
+        "translation": r.translation.describe(),
+        "rotation": r.rotation.describe(),
     }
-
-
-def _translation(r: Rule) -> str:
-    t = r.translation
-    if t.kind == TKind.FIXED:
-        return "same" if not np.any(t.offset) else f"offset {np.round(t.offset, 4).tolist()}"
-    name = t.kind.name.lower()
-    if t.normal is not None:
-        pinned = "".join("xyz"[i] for i in range(3) if not t.free[i])
-        pin = f", pin {pinned}" if pinned else ""
-        return (
-            f"{name} mean {np.round(t.offset, 4).tolist()} "
-            f"var {np.round(t.normal.variance, 5).tolist()}{pin}"
-        )
-    assert t.box is not None
-    return f"{name} [{np.round(t.box.lo, 4).tolist()}, {np.round(t.box.hi, 4).tolist()}]"
-
-
-def _rotation(r: Rule) -> str:
-    rot = r.rotation
-    if rot.kind == RKind.FIXED:
-        return (
-            "same" if rot.offset[0] >= 1 - 1e-12 else f"offset {np.round(rot.offset, 4).tolist()}"
-        )
-    if rot.kind == RKind.UNIFORM:
-        return "uniform"
-    if rot.bingham is not None:
-        conc = np.round(rot.bingham.concentration, 3).tolist()
-        return f"{rot.kind.name.lower()} mode {np.round(rot.bingham.mode, 3).tolist()} conc {conc}"
-    assert rot.revolute is not None and rot.axis is not None
-    return (
-        f"revolute axis {np.round(rot.axis, 3).tolist()} "
-        f"[{rot.revolute.lo:.3g}, {rot.revolute.hi:.3g}]"
-    )

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
-from ssgc.ir import Grammar, Kind, RKind, Rule, TKind
+from ssgc.ir import Grammar, Kind, Rule
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.score import score_trees
 from ssgc.tree import Trees
@@ -72,7 +72,7 @@ def enumerate_parses(
 
 def is_fixed(rule: Rule) -> bool:
     """True if the rule places its child exactly (fixed translation and fixed rotation)."""
-    return rule.translation.kind == TKind.FIXED and rule.rotation.kind == RKind.FIXED
+    return rule.translation.point is not None and rule.rotation.point is not None
 
 
 def guaranteed_observed(grammar: Grammar) -> list[bool]:

@@ -89,7 +89,7 @@ _LOG_SPHERE_AREA = math.log(SPHERE_AREA)
 _DIM = 4
 
 #: Maximum deviation of ``MᵀM`` from the identity accepted by :class:`Bingham`.
-_ORTHO_TOL = 1e-6
+ORTHOGONALITY_TOL = 1e-6
 
 _QUAD_EPSREL = 1e-12
 _QUAD_LIMIT = 400
@@ -350,9 +350,10 @@ class Bingham:
         if not np.all(np.isfinite(m)):
             raise ValueError("M must be finite")
         deviation = float(np.max(np.abs(m.T @ m - np.eye(_DIM))))
-        if deviation > _ORTHO_TOL:
+        if deviation > ORTHOGONALITY_TOL:
             raise ValueError(
-                f"M must be orthogonal: max |MᵀM - I| = {deviation:.3g} exceeds {_ORTHO_TOL:g}"
+                f"M must be orthogonal: max |MᵀM - I| = {deviation:.3g} "
+                f"exceeds {ORTHOGONALITY_TOL:g}"
             )
         u, _s, vt = np.linalg.svd(m)
         m = u @ vt

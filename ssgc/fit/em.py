@@ -37,7 +37,7 @@ from ssgc.fit.mstep import FitSettings, Ties, m_step
 from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
 from ssgc.io.journal import Journal, scenes_digest
 from ssgc.io.scene import Scene
-from ssgc.ir import BINGHAM_KINDS, NORMAL_KINDS, Grammar, Kind
+from ssgc.ir import Grammar, Kind
 from ssgc.parse.parser import PROPOSAL_SHARE, Parser, SceneParses
 from ssgc.tree import Trees
 
@@ -203,11 +203,9 @@ def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
     """
     owner: dict[tuple[str | int, ...], tuple[str, int]] = {}
     for r in grammar.rules:
-        if r.translation.kind in NORMAL_KINDS and not r.translation.fixed:
-            owner[r.translation.path] = ("translation", r.id)
-        rp = r.rotation
-        if rp.kind in BINGHAM_KINDS and not rp.fixed:
-            owner[rp.path] = ("rotation", r.id)
+        for part in (r.translation, r.rotation):
+            if part.fits:
+                owner[part.path] = (part.part, r.id)
     for t in grammar.types:
         if t.fixed:
             continue

@@ -27,19 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ssgc.compile import MAX_CONCENTRATION
-from ssgc.distributions.bingham import Bingham
-from ssgc.distributions.discrete import fit_geometric_p
-from ssgc.distributions.normal import Normal
-from ssgc.fit.writeback import Orientation, Update
-from ssgc.ir import (
-    BINGHAM_KINDS,
-    NORMAL_KINDS,
-    Grammar,
-    Kind,
-    NodeType,
-    TranslationPart,
-)
+from ssgc.fit.writeback import Update
+from ssgc.ir import Grammar, Kind, NodeType
+from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 from ssgc.rules import rotation_coordinates, translation_coordinates
 from ssgc.score import fired_slots
 from ssgc.tree import Trees
@@ -109,17 +99,14 @@ def m_step(
     by_translation = _groups(ties.translation[edges.rule], len(grammar.rules))
     by_rotation = _groups(ties.rotation[edges.rule], len(grammar.rules))
     for rule in grammar.rules:
-        tp, rp = rule.translation, rule.rotation
-        take = by_translation[rule.id]
-        if tp.kind in NORMAL_KINDS and not tp.fixed and take.size:
-            values = _normal_values(tp, edges.u[take], edges.weight[take], settings)
-            updates.append(Update(tp.path, values))
-        take = by_rotation[rule.id]
-        if rp.kind in BINGHAM_KINDS and rp.bingham is not None and not rp.fixed and take.size:
-            values = _bingham_values(
-                rp.family, rp.bingham, edges.q[take], edges.weight[take], settings
-            )
-            updates.append(Update(rp.path, values))
+        for law, take, local in (
+            (rule.translation, by_translation[rule.id], edges.u),
+            (rule.rotation, by_rotation[rule.id], edges.q),
+        ):
+            if law.fits and take.size:
+                values = law.fit(local[take], edges.weight[take], settings)
+                if values is not None:
+                    updates.append(Update(law.path, values))
     return updates
 
 
@@ -228,57 +215,6 @@ def _count_update(t: NodeType, n: NDArray[np.int64], w: FloatArray, alpha: float
     if t.count is None or not w.sum() > 0:
         return []
     old = t.count.probs
-    possible = old > 0
-    hist = np.bincount(n, weights=w, minlength=old.size)[: old.size] + alpha * possible
-    path = (*t.path, "repeat", "count")
-    if t.count_family == "probs":
-        probs = np.where(possible, hist, 0.0)
-        return [Update(path, {"probs": [float(x) for x in probs / probs.sum()]})]
-    p = fit_geometric_p(hist, t.count_start)
-    return [] if p is None else [Update((*path, "geometric"), {"p": p})]
-
-
-# ------------------------------------------------------------------- pose laws ---
-
-
-def _normal_values(
-    part: TranslationPart, u: FloatArray, w: FloatArray, settings: FitSettings
-) -> dict[str, object]:
-    """Weighted MLE of the mean and spread on the free axes; what is written for a pinned
-    axis stays as it is (None)."""
-    free = np.flatnonzero(part.free)
-    fit = Normal.fit(
-        u[:, free], w, diagonal=part.family != "full", min_variance=settings.min_variance
-    )
-    mean: list[float | None] = [None, None, None]
-    for i, a in enumerate(free):
-        mean[a] = float(fit.mean[i])
-    values: dict[str, object] = {"mean": mean}
-    if part.family == "full":
-        cov: list[list[float | None]] = [[None] * 3 for _ in range(3)]
-        for i, a in enumerate(free):
-            for j, b in enumerate(free):
-                cov[a][b] = float(fit.cov[i, j])
-        values["covariance"] = cov
-    elif part.family == "isotropic":
-        values["variance"] = float(max(np.diag(fit.cov).mean(), settings.min_variance))
-    else:
-        var: list[float | None] = [None, None, None]
-        for i, a in enumerate(free):
-            var[a] = float(fit.cov[i, i])
-        values["variance"] = var
-    return values
-
-
-def _bingham_values(
-    family: str, old: Bingham, q: FloatArray, w: FloatArray, settings: FitSettings
-) -> dict[str, object]:
-    cap = settings.max_concentration
-    if family == "raw":
-        fit = Bingham.fit(q, w, max_concentration=cap)
-        return {"M": [[float(x) for x in row] for row in fit.M], "Z": [float(z) for z in fit.Z]}
-    mode, conc = Bingham.fit_about_mode(q, w, old.mode, family == "isotropic", cap)
-    value: float | list[float] = (
-        float(conc[0]) if family == "isotropic" else [float(c) for c in conc]
-    )
-    return {"mode": Orientation(tuple(float(x) for x in mode)), "concentration": value}
+    hist = np.bincount(n, weights=w, minlength=old.size)[: old.size] + alpha * (old > 0)
+    fitted = t.count.fit(hist)
+    return [] if fitted is None else [Update(*fitted)]

@@ -26,6 +26,7 @@ from ruamel.yaml.comments import CommentedMap, CommentedSeq
 from ruamel.yaml.representer import RoundTripRepresenter
 
 from ssgc.geometry import quat_to_rpy
+from ssgc.laws.base import Orientation
 
 Loc = tuple[str | int, ...]
 
@@ -37,13 +38,6 @@ _DOC_END = re.compile(r"\n\.\.\.[ \t]*(?:#.*)?(?:\n[ \t]*(?:#.*)?)*\Z")
 
 class SharedValueConflict(ValueError):
     """One YAML node (an anchor, its aliases, a `<<` merge) would get two fitted values."""
-
-
-@dataclass(frozen=True)
-class Orientation:
-    """A fitted rotation (unit quaternion, wxyz). Written in the form the user used there."""
-
-    quat_wxyz: tuple[float, float, float, float]
 
 
 @dataclass(frozen=True)

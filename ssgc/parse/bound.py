@@ -31,7 +31,8 @@ from numpy.typing import NDArray
 
 from ssgc.geometry import quat_conjugate, quat_multiply, quat_rotate, quat_to_matrix
 from ssgc.io.scene import Scene
-from ssgc.ir import Grammar, Kind, RKind, TKind
+from ssgc.ir import Grammar, Kind
+from ssgc.laws.base import Frame
 from ssgc.parse.posed import Instances, PosedProblem, reduce_posed
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.proposals import Candidates, known_parent, latent_sets
@@ -83,32 +84,19 @@ class _Terms:
     const: FloatArray  # (A,)
 
 
-def _normal_precision(grammar: Grammar, r: int) -> FloatArray:
-    w = grammar.tables.t_whiten[r]
-    return w.T @ w
-
-
-def _isotropic(grammar: Grammar, r: int) -> bool:
-    p = _normal_precision(grammar, r)
-    return bool(np.all(grammar.tables.t_free[r]) and np.allclose(p, p[0, 0] * np.eye(3)))
-
-
-def _sup_translation(grammar: Grammar, r: int) -> float:
-    return 0.0 if grammar.tables.t_kind[r] == TKind.FIXED else float(-grammar.tables.t_lognorm[r])
-
-
-def _sup_rotation(grammar: Grammar, r: int) -> float:
-    tb = grammar.tables
-    kind = tb.r_kind[r]
-    if kind == RKind.FIXED:
-        return 0.0
-    if kind in (RKind.WORLD_BINGHAM, RKind.PARENT_BINGHAM):
-        return float(np.linalg.eigvalsh(tb.r_quadratic[r]).max() - tb.r_lognorm[r])
-    return float(-tb.r_lognorm[r])
+def _isotropic(precision: FloatArray) -> bool:
+    """Whether a Normal's precision is a multiple of the identity (no axis pinned)."""
+    return bool(precision[0, 0] > 0 and np.allclose(precision, precision[0, 0] * np.eye(3)))
 
 
 class _LocalBounds:
-    """Upper bounds on the latent-pose-dependent score of one set, for many assignments."""
+    """Upper bounds on the latent-pose-dependent score of one set, for many assignments.
+
+    A law whose log-density is a quadratic form (`concave_form`: a Normal translation is
+    concave in the set's position, a Bingham rotation linear in X = q qᵀ) enters the relaxation
+    exactly where its frame keeps it so; every other law contributes its supremum, or its exact
+    value when it does not depend on the set's pose.
+    """
 
     def __init__(self, grammar: Grammar, n: int) -> None:
         self.g, self.n = grammar, n
@@ -125,59 +113,65 @@ class _LocalBounds:
 
     def prior(self, r: int, parent: tuple[FloatArray, FloatArray] | None) -> None:
         """The set's own rule, at its known parent pose (None: the rule ignores the parent)."""
-        g, tb = self.g, self.g.tables
+        rule = self.g.rules[r]
         px, pq = parent if parent is not None else (np.zeros(3), IDENTITY)
-        kind = tb.t_kind[r]
-        if kind in (TKind.WORLD_NORMAL, TKind.WORLD_NORMAL_OFFSET, TKind.PARENT_NORMAL_OFFSET):
-            P = _normal_precision(g, r)
-            mean = tb.t_offset[r]
-            if kind == TKind.WORLD_NORMAL_OFFSET:
+        law, form = rule.translation, rule.translation.concave_form()
+        if form is not None:
+            mean, P, c = form
+            if law.frame == Frame.WORLD_OFFSET:
                 mean = px + mean
-            elif kind == TKind.PARENT_NORMAL_OFFSET:
+            elif law.frame == Frame.PARENT:
                 Rp = quat_to_matrix(pq)
                 mean, P = px + Rp @ mean, Rp @ P @ Rp.T
             self.quadratic(mean, np.zeros(3), P)
-            self.const -= tb.t_lognorm[r]
+            self.const += c
         else:
-            self.const += _sup_translation(g, r)
-        rkind = tb.r_kind[r]
-        if rkind in (RKind.WORLD_BINGHAM, RKind.PARENT_BINGHAM):
+            self.const += law.supremum()
+        rot, rform = rule.rotation, rule.rotation.concave_form()
+        if rform is not None:
+            A, c = rform
             G = np.eye(4)
-            if rkind == RKind.PARENT_BINGHAM:
+            if rot.frame == Frame.PARENT:
                 G = _left_linear(lambda q: quat_multiply(quat_conjugate(pq), q), 1)[0]
-            self.B += G.T @ tb.r_quadratic[r] @ G
-            self.const -= tb.r_lognorm[r]
+            self.B += G.T @ A @ G
+            self.const += c
         else:
-            self.const += _sup_rotation(g, r)
+            self.const += rot.supremum()
 
     def child(self, r: int, off_t: FloatArray, off_q: FloatArray, cx: FloatArray, cq: FloatArray):  # type: ignore[no-untyped-def]
-        """A child at poses (cx, cq) (one per assignment) of the member at offset (off_t, off_q)."""
-        g, tb = self.g, self.g.tables
-        kind = tb.t_kind[r]
+        """A child at poses (cx, cq) (one per assignment) of the member at offset (off_t, off_q).
+
+        Terms that do not move with the set (world-frame laws) are exact; a parent-frame
+        quadratic is kept only when isotropic (else rotating it is not concave in X)."""
+        g, rule = self.g, self.g.rules[r]
         rules = np.full(self.n, r)
-        if kind == TKind.PARENT_NORMAL_OFFSET and _isotropic(g, r):
-            self.quadratic(cx, off_t + quat_rotate(off_q, tb.t_offset[r]), _normal_precision(g, r))
-            self.const -= tb.t_lognorm[r]
-        elif kind == TKind.WORLD_NORMAL_OFFSET:
-            self.quadratic(cx - tb.t_offset[r], off_t, _normal_precision(g, r))
-            self.const -= tb.t_lognorm[r]
-        elif kind in (TKind.WORLD_NORMAL, TKind.WORLD_BOX):
+        law, form = rule.translation, rule.translation.concave_form()
+        if law.frame == Frame.WORLD:
             zeros, ident = np.zeros((self.n, 3)), np.tile(IDENTITY, (self.n, 1))
             self.const += translation_log_density(g, rules, zeros, ident, cx)
+        elif form is not None and law.frame == Frame.PARENT and _isotropic(form[1]):
+            mean, P, c = form
+            self.quadratic(cx, off_t + quat_rotate(off_q, mean), P)
+            self.const += c
+        elif form is not None and law.frame == Frame.WORLD_OFFSET:
+            mean, P, c = form
+            self.quadratic(cx - mean, off_t, P)
+            self.const += c
         else:
-            self.const += _sup_translation(g, r)
-        rkind = tb.r_kind[r]
-        if rkind == RKind.PARENT_BINGHAM:
+            self.const += law.supremum()
+        rot, rform = rule.rotation, rule.rotation.concave_form()
+        if rot.frame == Frame.WORLD:
+            self.const += rotation_log_density(g, rules, np.tile(IDENTITY, (self.n, 1)), cq)
+        elif rform is not None and rot.frame == Frame.PARENT:
+            A, c = rform
             inv_off = quat_conjugate(off_q)
             G = _left_linear(
                 lambda q: quat_multiply(quat_multiply(inv_off, quat_conjugate(q)), cq), self.n
             )
-            self.B += np.einsum("nki,kl,nlj->nij", G, tb.r_quadratic[r], G)
-            self.const -= tb.r_lognorm[r]
-        elif rkind in (RKind.WORLD_BINGHAM, RKind.UNIFORM):
-            self.const += rotation_log_density(g, rules, np.tile(IDENTITY, (self.n, 1)), cq)
+            self.B += np.einsum("nki,kl,nlj->nij", G, A, G)
+            self.const += c
         else:
-            self.const += _sup_rotation(g, r)
+            self.const += rot.supremum()
 
     def terms(self) -> _Terms:
         if not self.c:

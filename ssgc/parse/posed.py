@@ -156,8 +156,8 @@ class _Unroll:
             for slot, c in enumerate(self._slots(n)):
                 if st.set_of[c] == st.set_of[n]:  # fixed rule: the rule's offset from i
                     r = st.rule[c]
-                    xyz = self.xyz[i] + quat_rotate(self.quat[i], tb.t_offset[r])
-                    quat = quat_multiply(self.quat[i], tb.r_offset[r])
+                    xyz = self.xyz[i] + quat_rotate(self.quat[i], tb.point_xyz[r])
+                    quat = quat_multiply(self.quat[i], tb.point_quat[r])
                     for c2 in (c2 for c2 in st.children[n] if st.rule[c2] == r):
                         self._add(c2, i, slot, xyz, quat, self.cand_k[i])
                 else:  # one child per candidate pose of the child's set

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from ssgc.geometry import quat_conjugate, quat_multiply, quat_normalize, quat_rotate
-from ssgc.ir import Grammar, RKind, TKind
+from ssgc.ir import Grammar
 from ssgc.rules import rotation_log_density, translation_log_density
 from ssgc.tree import Trees
 
@@ -53,8 +53,7 @@ class PoseEdges:
 
 
 def is_fixed(grammar: Grammar, rules: IntArray) -> NDArray[np.bool_]:
-    tb = grammar.tables
-    return (tb.t_kind[rules] == TKind.FIXED) & (tb.r_kind[rules] == RKind.FIXED)
+    return grammar.tables.point[rules]
 
 
 def exp_quat(w: FloatArray) -> FloatArray:

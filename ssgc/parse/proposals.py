@@ -24,17 +24,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.geometry import (
-    axis_angle_to_quat,
     quat_angle,
     quat_conjugate,
     quat_multiply,
     quat_normalize,
     quat_rotate,
 )
-from ssgc.ir import Grammar, RKind, TKind
+from ssgc.ir import Grammar
+from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.supertree import Supertree
-from ssgc.rules import POS_TOL, ROT_TOL, sample_children
+from ssgc.rules import sample_children
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -76,69 +76,44 @@ class Candidates:
 
 def rotation_mode(grammar: Grammar, r: int) -> FloatArray | None:
     """The most likely child rotation relative to its parent, or None if not parent-relative."""
-    tb = grammar.tables
-    kind = tb.r_kind[r]
-    if kind == RKind.FIXED:
-        return tb.r_offset[r]
-    if kind == RKind.PARENT_BINGHAM:
-        return _bingham_mode(tb.r_quadratic[r])
-    if kind == RKind.REVOLUTE:
-        return axis_angle_to_quat(tb.r_axis[r], 0.5 * (tb.r_lo[r] + tb.r_hi[r]))
-    return None
+    law = grammar.rules[r].rotation
+    return law.mode() if law.frame == Frame.PARENT else None
 
 
-def _bingham_mode(quadratic: FloatArray) -> FloatArray:
-    w, v = np.linalg.eigh(quadratic)
-    return v[:, int(np.argmax(w))]
-
-
-def translation_mode(grammar: Grammar, r: int) -> tuple[FloatArray, str]:
-    """The most likely child position and its frame: 'parent', 'offset' (world axes, from the
-    parent's position) or 'world'."""
-    tb = grammar.tables
-    kind = tb.t_kind[r]
-    centre = tb.t_offset[r]
-    if kind in (TKind.WORLD_BOX, TKind.WORLD_BOX_OFFSET):
-        centre = 0.5 * (tb.box_lo[r] + tb.box_hi[r])
-    if kind in (TKind.FIXED, TKind.PARENT_NORMAL_OFFSET):
-        return centre, "parent"
-    if kind in (TKind.WORLD_NORMAL_OFFSET, TKind.WORLD_BOX_OFFSET):
-        return centre, "offset"
-    return centre, "world"
+def translation_mode(grammar: Grammar, r: int) -> tuple[FloatArray, Frame]:
+    """The most likely child position, in the frame its rule's law is written in."""
+    law = grammar.rules[r].translation
+    return law.mode(), law.frame
 
 
 def child_mode(
     grammar: Grammar, r: int, parent_xyz: FloatArray, parent_quat: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """The mode of rule r's child pose at each parent pose (top-down proposals)."""
-    tb = grammar.tables
     centre, frame = translation_mode(grammar, r)
-    if frame == "parent":
+    if frame == Frame.PARENT:
         xyz = parent_xyz + quat_rotate(parent_quat, centre)
-    elif frame == "offset":
+    elif frame == Frame.WORLD_OFFSET:
         xyz = parent_xyz + centre
     else:
         xyz = np.broadcast_to(centre, parent_xyz.shape).copy()
-    rel = rotation_mode(grammar, r)
-    if rel is not None:
-        quat = quat_multiply(parent_quat, rel)
-    elif tb.r_kind[r] == RKind.WORLD_BINGHAM:
-        quat = np.broadcast_to(_bingham_mode(tb.r_quadratic[r]), parent_quat.shape).copy()
-    else:
+    law = grammar.rules[r].rotation
+    mode = law.mode()
+    if mode is None:  # every rotation is as likely: keep the parent's
         quat = parent_quat.copy()
+    elif law.frame == Frame.PARENT:
+        quat = quat_multiply(parent_quat, mode)
+    else:
+        quat = np.broadcast_to(mode, parent_quat.shape).copy()
     return xyz, quat
 
 
 def known_parent(grammar: Grammar, st: Supertree, cand: Candidates, e: int):  # type: ignore[no-untyped-def]
     """The pose of set e's parent node, at which the set's own rule is scored: None if the rule
     ignores its parent (world frame), False if the parent's set has other than one pose."""
-    tb = grammar.tables
     top = int(st.set_top[e])
-    r = int(st.rule[top])
-    if tb.t_kind[r] in (TKind.WORLD_NORMAL, TKind.WORLD_BOX) and tb.r_kind[r] in (
-        RKind.WORLD_BINGHAM,
-        RKind.UNIFORM,
-    ):
+    rule = grammar.rules[int(st.rule[top])]
+    if rule.translation.frame == Frame.WORLD and rule.rotation.frame == Frame.WORLD:
         return None
     p = int(st.parent[top])
     e_p = int(st.set_of[p])
@@ -222,9 +197,9 @@ class _SetProposer:
         rel = rotation_mode(g, r)
         q_v = default_quat if rel is None else quat_multiply(child_quat, quat_conjugate(rel))
         centre, frame = translation_mode(g, r)
-        if frame == "parent":
+        if frame == Frame.PARENT:
             t_v = child_xyz - quat_rotate(q_v, centre)
-        elif frame == "offset":
+        elif frame == Frame.WORLD_OFFSET:
             t_v = child_xyz - centre
         else:
             t_v = default_xyz

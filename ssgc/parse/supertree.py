@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.geometry import quat_multiply, quat_rotate
-from ssgc.ir import Grammar, Kind, RKind, TKind
+from ssgc.ir import Grammar, Kind
 
 IntArray = NDArray[np.int64]
 MAX_SUPERTREE_NODES = 200_000
@@ -98,8 +98,7 @@ def build_supertree(grammar: Grammar) -> Supertree:
 
 def is_fixed_rule(grammar: Grammar, rule_id: int) -> bool:
     """A rule that places its child at a fixed offset from the parent (pose fully determined)."""
-    tb = grammar.tables
-    return bool(tb.t_kind[rule_id] == TKind.FIXED and tb.r_kind[rule_id] == RKind.FIXED)
+    return bool(grammar.tables.point[rule_id])
 
 
 def _equivalent_sets(grammar: Grammar, parent: IntArray, rule: IntArray):  # type: ignore[no-untyped-def]
@@ -114,8 +113,8 @@ def _equivalent_sets(grammar: Grammar, parent: IntArray, rule: IntArray):  # typ
         p = parent[i]
         if p >= 0 and is_fixed_rule(grammar, int(rule[i])):
             set_of[i] = set_of[p]
-            off_xyz[i] = off_xyz[p] + quat_rotate(off_quat[p], tb.t_offset[rule[i]])
-            off_quat[i] = quat_multiply(off_quat[p], tb.r_offset[rule[i]])
+            off_xyz[i] = off_xyz[p] + quat_rotate(off_quat[p], tb.point_xyz[rule[i]])
+            off_quat[i] = quat_multiply(off_quat[p], tb.point_quat[rule[i]])
         else:
             set_of[i] = len(tops)
             tops.append(i)

@@ -1,0 +1,74 @@
+"""Uniform translations on an axis-aligned box (`world_box`, `world_box_offset`).
+
+An axis with min == max is pinned (a point mass).  A box is a support, not a shape: its
+maximum-likelihood value is the hull of the data, which would make every scene slightly
+outside it impossible, so `ssg fit` keeps it as written (docs/fitting.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ssgc import dsl
+from ssgc.distributions.uniform import UniformBox
+from ssgc.laws.base import (
+    POS_TOL,
+    Columns,
+    FloatArray,
+    Frame,
+    Loc,
+    Lowering,
+    TranslationLaw,
+    register,
+)
+
+
+@register
+@dataclass(frozen=True, eq=False, kw_only=True)
+class BoxTranslation(TranslationLaw):
+    keys: ClassVar[dict[str, Frame]] = {
+        "world_box": Frame.WORLD,
+        "world_box_offset": Frame.WORLD_OFFSET,
+    }
+    columns: ClassVar[dict[str, tuple[int, ...]]] = {"lo": (3,), "hi": (3,), "lognorm": ()}
+
+    box: UniformBox
+
+    @classmethod
+    def lower(cls, p: dsl.BoxParams, key: str, loc: Loc, ctx: Lowering) -> BoxTranslation | None:
+        lo, hi = np.asarray(p.min, float), np.asarray(p.max, float)
+        if np.any(hi < lo):
+            i = int(np.flatnonzero(hi < lo)[0])
+            ctx.error((*loc, "max", i), f"box max must be >= min, got {hi[i]:g} < {lo[i]:g}")
+            return None
+        with np.errstate(over="ignore"):
+            too_wide = not np.all(np.isfinite(hi - lo))
+        if too_wide:  # the density 1/volume would be 0
+            ctx.error((*loc, "max"), "box is too large (its width overflows)")
+            return None
+        return cls(key=key, frame=cls.keys[key], path=loc, fixed=p.fixed, box=UniformBox(lo, hi))
+
+    def sample(self, rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
+        local = self.box.sample(rng, n)
+        return local, self.box.log_prob(local)
+
+    def row(self) -> dict[str, Any]:
+        return {"lo": self.box.lo, "hi": self.box.hi, "lognorm": -self.box.log_density}
+
+    @classmethod
+    def density(cls, cols: Columns, u: FloatArray) -> FloatArray:
+        inside = (u >= cols["lo"] - POS_TOL) & (u <= cols["hi"] + POS_TOL)
+        return np.where(np.all(inside, axis=1), -cols["lognorm"], -np.inf)
+
+    def mode(self) -> FloatArray:
+        return 0.5 * (self.box.lo + self.box.hi)
+
+    def supremum(self) -> float:
+        return self.box.log_density
+
+    def describe(self) -> str:
+        lo, hi = np.round(self.box.lo, 4).tolist(), np.round(self.box.hi, 4).tolist()
+        return f"{self.key} [{lo}, {hi}]"
