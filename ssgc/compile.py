@@ -1,15 +1,21 @@
-"""DSL → IR: every semantic check of a grammar, each with a located message.
+"""DSL → IR: the compiler's passes, every problem reported with its place in the document.
 
-`load_grammar(path)` is the one entry point the rest of the program uses: read, validate the
-shape with pydantic, then `Compiler` checks what needs the whole document and lowers it to the
-immutable `ssgc.ir.Grammar`.  All problems found are reported together; warnings (unreachable
-types, bounds with no effect) travel with the compiled grammar.
+`load_grammar(path)` is the one entry point the rest of the program uses.  The passes:
+
+1. read the text keeping positions, and validate its shape with pydantic (`ssgc.dsl`);
+2. lower each type and rule (`Compiler`): node kinds and rule probabilities here, each rule
+   part through the law its document word names (`ssgc.laws`: every law checks and lowers
+   its own parameters, and beside that lowering holds its inverse, the fitted values' write-back);
+3. check the whole grammar (`ssgc.checks`): references, files, recursion, reachability;
+4. assemble the immutable `ssgc.ir.Grammar` and its stacked tables.
+
+All problems found are reported together; warnings (unreachable types, bounds with no
+effect) travel with the compiled grammar.
 """
 
 from __future__ import annotations
 
 import difflib
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +24,7 @@ from pydantic import ValidationError
 
 import ssgc.laws  # noqa: F401  (registers the built-in laws)
 from ssgc import dsl
+from ssgc.checks import Finding, check_references, check_structure
 from ssgc.errors import Diagnostic, GrammarError, SsgError, one_line
 from ssgc.geometry import IDENTITY_QUAT, quat_canonical, rpy_to_quat
 from ssgc.ir import Grammar, Kind, Loc, NodeType, Rule, build_tables
@@ -32,7 +39,6 @@ from ssgc.yamlio import (
 )
 
 QUAT_NORM_TOL = 1e-3
-MAX_CYCLES_REPORTED = 20  # a grammar with more unbounded cycles gets the first ones
 MAX_SUGGESTIONS = 50  # "did you mean" for the first unknown type names only
 
 
@@ -89,7 +95,8 @@ def compile_text(
 
 
 class Compiler:
-    """Checks one validated document and lowers it; collects every diagnostic it finds."""
+    """Lowers one validated document, runs the whole-grammar checks on the result and
+    assembles the IR; collects every diagnostic it finds."""
 
     def __init__(
         self,
@@ -116,6 +123,10 @@ class Compiler:
     def warn(self, loc: Loc, message: str) -> None:
         self.warnings.append(self.source.diagnostic(loc, message, "warning"))
 
+    def add(self, findings: list[Finding]) -> None:
+        for severity, loc, message in findings:
+            (self.error if severity == "error" else self.warn)(loc, message)
+
     def unknown_type(self, loc: Loc, name: str, what: str) -> None:
         # Suggestions cost a comparison with every type: a few are enough (no quadratic time
         # for a generated file with thousands of misspelt names).
@@ -140,12 +151,10 @@ class Compiler:
         root_quat = self.orientation(root_spec.pose, ("root", "pose"))
         rules: list[Rule] = []
         types = [self.node_type(name, spec, rules) for name, spec in self.doc.types.items()]
-        self.check_root_not_produced(rules, root_spec.type)
-        self.check_labels(types)
-        self.check_files(types)
-        if not self.errors and root_spec.type in self.ids:
-            self.check_recursion(types, rules)
-            self.check_reachable(types, rules, self.ids[root_spec.type])
+        root = self.ids.get(root_spec.type)
+        self.add(check_references(types, rules, root, self.base_dir, self.allow_outside))
+        if not self.errors and root is not None:
+            self.add(check_structure(types, rules, root))
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
         types_t, rules_t = tuple(types), tuple(rules)
@@ -288,133 +297,6 @@ class Compiler:
             return quat_canonical(q / norm)
         return IDENTITY_QUAT.copy()
 
-    # ------------------------------------------------------------- global checks ---
-
-    def check_root_not_produced(self, rules: list[Rule], root_name: str) -> None:
-        root = self.ids.get(root_name)
-        for r in rules:
-            if r.child == root:
-                self.error(
-                    (*r.path, "child"), f"the root type '{root_name}' cannot be produced by a rule"
-                )
-
-    def check_labels(self, types: list[NodeType]) -> None:
-        """Dataset objects are matched to types by model file and label: both must be unique."""
-        owners: dict[tuple[str, str], str] = {}
-        for t in types:
-            if t.model and not t.observed:
-                self.warn(
-                    (*t.path, "model"),
-                    f"type '{t.name}' is not observed, so its `model` is never exported or matched",
-                )
-            keys = [("model", t.model)] if t.model and t.observed else []
-            keys += [("label", label) for label in dict.fromkeys(t.labels)]
-            if len(set(t.labels)) < len(t.labels):
-                self.warn((*t.path, "labels"), f"type '{t.name}' lists a label twice")
-            for key in keys:
-                if key in owners:
-                    loc = (*t.path, "model" if key[0] == "model" else "labels")
-                    self.error(loc, f"{key[0]} '{key[1]}' already names type '{owners[key]}'")
-                owners[key] = t.name
-
-    def check_files(self, types: list[NodeType]) -> None:
-        """Mesh and model files are named relative to the grammar file and must stay in its
-        directory (see `load_grammar`).  A missing mesh is worth a warning; models are names
-        for matching dataset objects too, and are not expected to exist here."""
-        for t in types:
-            if isinstance(t.geometry, dsl.MeshG):
-                loc = (*t.path, "geometry", "mesh", "file")
-                mesh = self.file_reference(t.geometry.mesh.file, "mesh file", loc)
-                if mesh is not None and self.base_dir is not None and not _is_file(mesh):
-                    inside = mesh.is_relative_to(self.base_dir.resolve())
-                    where = " next to the grammar" if inside else ""
-                    name = t.geometry.mesh.file
-                    self.warn(loc, f"mesh file '{name}' not found{where} (looked for {mesh})")
-            if t.model:
-                self.file_reference(t.model, "model file", (*t.path, "model"))
-
-    def file_reference(self, name: str, what: str, loc: Loc) -> Path | None:
-        """The file `name` means, or None after reporting why it cannot be used.
-
-        The file is outside the grammar's directory when the path, resolved, is: an absolute
-        path elsewhere, a `..` that climbs out, or a symbolic link on the way that points out.
-        Without a directory (text compiled on its own) absolute paths and a leading `..` are.
-        """
-        if "\x00" in name:
-            self.error(loc, f"{what} name contains a NUL character")
-            return None
-        target, place, link = None, "", ""
-        if self.base_dir is None:
-            outside = os.path.isabs(name) or os.path.normpath(name).split(os.sep)[0] == ".."
-        else:
-            try:
-                base = self.base_dir.resolve()
-                target = (self.base_dir / name).resolve()
-            except (OSError, RuntimeError) as exc:  # a loop of symbolic links
-                self.error(loc, f"cannot resolve {what} '{name}': {exc}")
-                return None
-            place = f" ({base})"
-            outside = not target.is_relative_to(base)
-            if outside and Path(os.path.normpath(base / name)).is_relative_to(base):
-                link = f" (through a symbolic link, to {target})"
-        if outside and not self.allow_outside:
-            self.error(
-                loc,
-                f"{what} '{name}'{link} is outside the grammar's directory{place}; move it "
-                "there, or allow it with --allow-outside-files",
-            )
-            return None
-        return target
-
-    def check_recursion(self, types: list[NodeType], rules: list[Rule]) -> None:
-        """Every cycle of the type graph must pass through a type with `max_nesting`.
-
-        Strongly connected components find the types on a cycle in linear time (a grammar may
-        have thousands of types); a path is searched for only to name a cycle in a message.
-        """
-        children: dict[int, list[Rule]] = {t.id: [] for t in types}
-        for r in rules:
-            children[r.parent].append(r)
-        bounded = {t.id for t in types if t.max_nesting is not None}
-        free = [t.id for t in types if t.id not in bounded]
-        loops = _on_cycles(free, children)  # cycles of types without a bound
-        on_cycle: set[int] = set()
-        reported = 0
-        for t in types:
-            if t.id not in loops or t.id in on_cycle or reported >= MAX_CYCLES_REPORTED:
-                continue
-            cycle = _find_cycle(t.id, children, loops[t.id])
-            if cycle is None:  # cannot happen: t is on a cycle of its component
-                continue
-            on_cycle.update(r.parent for r in cycle)
-            reported += 1
-            names = " -> ".join([self.names[r.parent] for r in cycle] + [self.names[t.id]])
-            self.error(
-                (*cycle[-1].path, "child"),
-                f"unbounded recursion {names}; set `max_nesting` on one of these types",
-            )
-        recursive = _on_cycles([t.id for t in types], children)
-        for t in types:
-            if t.id in bounded and t.id not in recursive:
-                self.warn(
-                    (*t.path, "max_nesting"),
-                    f"type '{t.name}' is not recursive, so `max_nesting` has no effect",
-                )
-
-    def check_reachable(self, types: list[NodeType], rules: list[Rule], root: int) -> None:
-        seen, stack = {root}, [root]
-        kids: dict[int, list[int]] = {}
-        for r in rules:
-            kids.setdefault(r.parent, []).append(r.child)
-        while stack:
-            for c in kids.get(stack.pop(), []):
-                if c not in seen:
-                    seen.add(c)
-                    stack.append(c)
-        for t in types:
-            if t.id not in seen:
-                self.warn(t.path, f"type '{t.name}' is unreachable from the root")
-
 
 def _kind_of(spec: dsl.NodeType) -> tuple[Kind, str, list[dsl.Rule]]:
     if spec.and_ is not None:
@@ -426,83 +308,3 @@ def _kind_of(spec: dsl.NodeType) -> tuple[Kind, str, list[dsl.Rule]]:
     if spec.repeat is not None:
         return Kind.REPEAT, "repeat", [spec.repeat.rule]
     return Kind.TERMINAL, "", []
-
-
-def _on_cycles(nodes: list[int], children: dict[int, list[Rule]]) -> dict[int, set[int]]:
-    """The types among `nodes` that lie on a cycle through `nodes` only, each mapped to its
-    strongly connected component (Tarjan's algorithm, without recursion)."""
-    allowed = set(nodes)
-    index: dict[int, int] = {}
-    low: dict[int, int] = {}
-    stack: list[int] = []
-    on_stack: set[int] = set()
-    out: dict[int, set[int]] = {}
-    for root in nodes:
-        if root in index:
-            continue
-        index[root] = low[root] = len(index)
-        stack.append(root)
-        on_stack.add(root)
-        work = [(root, iter(children[root]))]
-        while work:
-            node, kids = work[-1]
-            for r in kids:
-                child = r.child
-                if child not in allowed:
-                    continue
-                if child not in index:
-                    index[child] = low[child] = len(index)
-                    stack.append(child)
-                    on_stack.add(child)
-                    work.append((child, iter(children[child])))
-                    break
-                if child in on_stack:
-                    low[node] = min(low[node], index[child])
-            else:  # every child done
-                work.pop()
-                if work:
-                    parent = work[-1][0]
-                    low[parent] = min(low[parent], low[node])
-                if low[node] == index[node]:
-                    component = set()
-                    while True:
-                        member = stack.pop()
-                        on_stack.discard(member)
-                        component.add(member)
-                        if member == node:
-                            break
-                    looped = any(r.child == node for r in children[node])
-                    if len(component) > 1 or looped:
-                        out.update(dict.fromkeys(component, component))
-    return out
-
-
-def _find_cycle(
-    start: int, children: dict[int, list[Rule]], allowed: set[int]
-) -> list[Rule] | None:
-    """Rules of a path start -> ... -> start through `allowed` types, if any (depth first)."""
-    via: dict[int, Rule] = {}  # the rule each type was first reached by
-    stack = [start]
-    seen = {start}
-    while stack:
-        node = stack.pop()
-        for r in children[node]:
-            if r.child == start:
-                path = [r]
-                while node != start:
-                    path.append(via[node])
-                    node = via[node].parent
-                return path[::-1]
-            if r.child not in seen and r.child in allowed:
-                seen.add(r.child)
-                via[r.child] = r
-                stack.append(r.child)
-    return None
-
-
-def _is_file(path: Path) -> bool:
-    """`path.is_file()`, False for a name the system refuses (too long, a loop of links)."""
-    try:
-        return path.is_file()
-    except (OSError, RuntimeError):
-        return False
