@@ -12,9 +12,9 @@ from test_bruteforce import REPEAT, ROUTES, SINGLES_PAIRS, trays
 
 from ssgc.compile import compile_text, load_grammar
 from ssgc.io.scene import Scene, read_sink_yaml, scene_from_tree
-from ssgc.parse.ip import reduce_scene
-from ssgc.parse.milp import HighsSession
-from ssgc.parse.parser import Parser, set_model_size, tree_signature
+from ssgc.parse.highs import HighsSession
+from ssgc.parse.ip import reduce_scene, set_model_size
+from ssgc.parse.parser import Parser, tree_signature
 from ssgc.sample.forward import sample_trees
 from ssgc.score import score_trees
 

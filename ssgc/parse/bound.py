@@ -33,11 +33,21 @@ from ssgc.geometry import quat_conjugate, quat_multiply, quat_rotate, quat_to_ma
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
 from ssgc.laws.base import Frame
-from ssgc.parse.posed import Instances, PosedProblem, reduce_posed
+from ssgc.parse.milp import Milp
+from ssgc.parse.posed import (
+    MAX_INSTANCES,
+    Instances,
+    PosedProblem,
+    instance_count,
+    reduce_posed,
+    too_many_instances,
+)
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.proposals import Candidates, known_parent, latent_sets
+from ssgc.parse.reduction import Request
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import rotation_log_density, translation_log_density
+from ssgc.tree import Trees
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -361,6 +371,44 @@ def polish(
     return maximize_independent(grammar, edges, bound.xyz, bound.quat, deadline=deadline)
 
 
+class AssignmentReduction:
+    """The assignment model (`assignment_problem`), for latent grammars whose latent sets all
+    have assignments (`set_bounds`), within the unrolled model's MAX_INSTANCES."""
+
+    def accepts(self, request: Request) -> bool:
+        return request.bounds is not None and self._count(request) <= MAX_INSTANCES
+
+    def refusal(self, request: Request) -> str | None:
+        if request.bounds is None or self._count(request) <= MAX_INSTANCES:
+            return None
+        return too_many_instances(request.scene)
+
+    def apply(self, request: Request) -> tuple[Milp, PosedProblem]:
+        r = request
+        assert r.bounds is not None
+        problem = assignment_problem(
+            r.grammar, r.supertree, r.scene, r.cand, r.bounds, deadline=r.deadline
+        )
+        return problem.milp, problem
+
+    def invert(self, problem: PosedProblem, x: FloatArray) -> Trees:
+        return problem.invert(x)
+
+    @staticmethod
+    def _count(request: Request) -> int:
+        assert request.bounds is not None
+        posed = assignment_candidates(request.cand, request.bounds)
+        return instance_count(request.supertree, posed, frozenset(request.bounds))
+
+
+def assignment_candidates(cand: Candidates, bounds: dict[int, SetBound]) -> Candidates:
+    """The candidates with each latent set's replaced by its assignments' best poses."""
+    posed = Candidates(list(cand.xyz), list(cand.quat))
+    for e, sb in bounds.items():
+        posed.xyz[e], posed.quat[e] = sb.xyz, sb.quat
+    return posed
+
+
 def assignment_problem(
     grammar: Grammar,
     st: Supertree,
@@ -380,9 +428,7 @@ def assignment_problem(
     everything else — structure, count laws, correspondences, observed edges — is unchanged,
     so the optimum is an upper bound on the MAP score.
     """
-    posed = Candidates(list(cand.xyz), list(cand.quat))
-    for e, sb in bounds.items():
-        posed.xyz[e], posed.quat[e] = sb.xyz, sb.quat
+    posed = assignment_candidates(cand, bounds)
 
     restrict = {
         e: (tuple((v, r) for v, r, _ in sb.slots), sb.assignment) for e, sb in bounds.items()

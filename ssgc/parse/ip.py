@@ -1,4 +1,4 @@
-"""The proposal-based integer program for MAP parsing (thesis 3.5), as a reduction.
+"""The equivalent-set integer program for MAP parsing (thesis 3.5), as a reduction.
 
 `reduce_scene(grammar, supertree, scene)` lowers a parse problem to a `Milp` plus the data to
 map a solution back (`ParseProblem.invert(x) -> Trees`); the tree read back is re-scored with
@@ -14,9 +14,10 @@ Variables (all derived from the supertree, after pruning nodes that cannot be ac
 Objective: the tree's log-probability (Eq. 2.1), exactly — discrete terms on a and z, every
 rule's log-density precomputed per candidate pose pair on e.
 
-Candidate poses of a set come from the observed objects its observed nodes could explain.  A
-set that can be active without any observed node (a latent pose, constituency grammars) needs
-pose proposals, which this version does not generate: such grammars are refused with a message.
+Candidate poses of a set come from the observed objects its observed nodes could explain, so
+this model is for grammars without latent poses (`SetReduction.accepts`); the parser takes it
+when the pose-instantiated model (`ssgc.parse.posed`) would be too large.  Grammars with latent
+poses go through `ssgc.parse.posed` and `ssgc.parse.bound`, over proposed poses.
 """
 
 from __future__ import annotations
@@ -40,9 +41,13 @@ from ssgc.parse.milp import (
     add_count_law,
     add_leq,
 )
+from ssgc.parse.proposals import Candidates
+from ssgc.parse.reduction import Request
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
+
+MAX_SET_COLUMNS = 1_000_000  # the set model's variables: HiGHS needs ~2.5 kB each
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -115,6 +120,46 @@ class ParseProblem:
             quat=quat,
             n_scenes=1,
         )
+
+
+class SetReduction:
+    """The equivalent-set model (`reduce_scene`), for grammars without latent poses whose edge
+    variables stay within MAX_SET_COLUMNS."""
+
+    def accepts(self, request: Request) -> bool:
+        return not request.latent and self._size(request) <= MAX_SET_COLUMNS
+
+    def refusal(self, request: Request) -> str | None:
+        size = 0 if request.latent else self._size(request)
+        if size <= MAX_SET_COLUMNS:
+            return None
+        scene = request.scene
+        return (
+            f"scene '{scene.name}': the parse model would have about {size:,} "
+            f"variables (limit {MAX_SET_COLUMNS:,}) for {len(scene)} objects; parse "
+            "fewer objects at a time"
+        )
+
+    def apply(self, request: Request) -> tuple[Milp, ParseProblem]:
+        problem = reduce_scene(request.grammar, request.supertree, request.scene)
+        return problem.milp, problem
+
+    def invert(self, problem: ParseProblem, x: FloatArray) -> Trees:
+        return problem.invert(x)
+
+    @staticmethod
+    def _size(request: Request) -> int:
+        return set_model_size(request.supertree, request.cand)
+
+
+def set_model_size(st: Supertree, cand: Candidates) -> int:
+    """The equivalent-set model's edge variables (its bulk): one per pair of candidate poses
+    of every non-fixed parent-child link, counted before any model is built."""
+    n_cand = np.array([len(x) for x in cand.xyz], np.int64)
+    child = np.flatnonzero(st.parent >= 0)
+    link = st.set_of[child] != st.set_of[st.parent[child]]
+    c = child[link]
+    return int(np.sum(n_cand[st.set_of[st.parent[c]]] * n_cand[st.set_of[c]]))
 
 
 def reduce_scene(grammar: Grammar, st: Supertree, scene: Scene) -> ParseProblem:

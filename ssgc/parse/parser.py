@@ -1,9 +1,12 @@
 """MAP parsing of scenes: top-N distinct parse trees with their scores and certificates.
 
-`parse_scene` reduces a scene to a MILP (`ssgc.parse.ip`), solves it with HiGHS, maps each
-solution back to a tree, re-scores the tree with the grammar's scorer (the score reported is
-that one, and it must equal the MILP objective), then excludes the tree with a no-good cut on
-the binaries that define it and solves again for the next one.
+`Parser.parse` makes candidate poses for every equivalent set (observed, proposed, or the
+bound's assignments), reduces the scene to a MILP through the first reduction that accepts it
+(`ssgc.parse.reduction`: the assignment, pose-instantiated or equivalent-set model), solves it
+in a solver session (`ssgc.parse.milp.Session`, HiGHS by default), maps each solution back to
+a tree, re-scores the tree with the grammar's scorer (the score reported is that one, and it
+must equal the MILP objective), then excludes the tree with a no-good cut on the binaries that
+define it and solves again for the next one.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import gc
 import hashlib
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -19,19 +23,14 @@ import numpy as np
 from ssgc.errors import SsgError
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar
-from ssgc.parse.bound import SetBound, assignment_problem, set_bounds
-from ssgc.parse.ip import ParseProblem, UnparseableScene, reduce_scene
-from ssgc.parse.milp import HighsSession
-from ssgc.parse.posed import (
-    MAX_INSTANCES,
-    OutOfTime,
-    PosedProblem,
-    TooLarge,
-    candidate_poses,
-    reduce_posed,
-)
+from ssgc.parse.bound import AssignmentReduction, SetBound, assignment_problem, set_bounds
+from ssgc.parse.highs import HighsSession
+from ssgc.parse.ip import SetReduction, UnparseableScene
+from ssgc.parse.milp import Milp, Session
+from ssgc.parse.posed import OutOfTime, PosedProblem, PosedReduction, candidate_poses
 from ssgc.parse.poses import free_blocks, refine_tree
 from ssgc.parse.proposals import Candidates, add_proposals, latent_sets
+from ssgc.parse.reduction import ModelTooLarge, Problem, Reduction, Request, choose
 from ssgc.parse.supertree import Supertree, build_supertree, max_observed
 from ssgc.score import node_terms, score_trees
 from ssgc.tree import Trees
@@ -39,8 +38,8 @@ from ssgc.tree import Trees
 SCORE_TOL = 1e-6
 METHODS = ("auto", "ip", "micp")
 PROPOSAL_SHARE = 0.3  # of a time limit, for making and optimising pose proposals
-MAX_SET_COLUMNS = 1_000_000  # the set model's variables: HiGHS needs ~2.5 kB each
 DEADLINE_SHARE = 0.9  # of a time limit, when every step must have stopped
+REDUCTIONS = (AssignmentReduction(), PosedReduction(), SetReduction())  # first that accepts
 
 
 @dataclass
@@ -75,12 +74,21 @@ class Parser:
 
     MAX_ROUNDS = 4
 
-    def __init__(self, grammar: Grammar, method: str = "auto", seed: int = 0) -> None:
+    def __init__(
+        self,
+        grammar: Grammar,
+        method: str = "auto",
+        seed: int = 0,
+        session: Callable[[Milp, float | None], Session] = HighsSession,
+        reductions: tuple[Reduction, ...] = REDUCTIONS,
+    ) -> None:
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.grammar = grammar
         self.method = method
         self.seed = seed
+        self.session = session
+        self.reductions = reductions
         self.supertree: Supertree = build_supertree(grammar)
         self.latent = latent_sets(self.supertree)
         self.capacity = max_observed(grammar, self.supertree)
@@ -188,35 +196,24 @@ class Parser:
         cand: Candidates | None = None,
         bounds: dict[int, SetBound] | None = None,
         deadline: float | None = None,
-    ) -> ParseProblem | PosedProblem:
-        """The pose-instantiated model when it is small enough, else (for grammars without
-        latent poses) the equivalent-set model."""
+    ) -> Problem:
+        """The scene reduced by the first reduction of the chain that accepts it (the
+        assignment model with bounds; else the pose-instantiated model when it is small
+        enough; else, for grammars without latent poses, the equivalent-set model)."""
         if cand is None:
             cand, bounds = self.candidates(scene)
-        try:
-            g, st = self.grammar, self.supertree
-            if bounds is not None:
-                return assignment_problem(g, st, scene, cand, bounds, deadline=deadline)
-            return reduce_posed(g, st, scene, cand, deadline=deadline)
-        except TooLarge:
-            if self.has_latent:
-                raise ModelTooLarge.single(
-                    f"scene '{scene.name}': the parse model would have more than "
-                    f"{MAX_INSTANCES} node instances ({len(scene)} objects); parse fewer "
-                    "objects at a time"
-                ) from None
-            size = set_model_size(self.supertree, cand)
-            if size > MAX_SET_COLUMNS:
-                raise ModelTooLarge.single(
-                    f"scene '{scene.name}': the parse model would have about {size:,} "
-                    f"variables (limit {MAX_SET_COLUMNS:,}) for {len(scene)} objects; parse "
-                    "fewer objects at a time"
-                ) from None
-            return reduce_scene(self.grammar, self.supertree, scene)
+        request = Request(
+            self.grammar, self.supertree, scene, cand, self.has_latent, bounds, deadline
+        )
+        return choose(self.reductions, request).apply(request)[1]
+
+    def open_session(self, milp: Milp, time_limit: float | None = None) -> Session:
+        """The one place a solver session is made (HiGHS unless the parser was given another)."""
+        return self.session(milp, time_limit)
 
     def read(
         self,
-        problem: ParseProblem | PosedProblem,
+        problem: Problem,
         x: np.ndarray,
         objective: float,
         status: str,
@@ -244,10 +241,6 @@ class Parser:
         )
 
 
-class ModelTooLarge(SsgError):
-    """The parse model of a scene would not fit the stated limits."""
-
-
 class _Run:
     """One scene's solve loop: the refinement rounds (latent grammars), then top-N by cuts."""
 
@@ -255,7 +248,7 @@ class _Run:
         self,
         parser: Parser,
         scene: Scene,
-        problem: ParseProblem | PosedProblem,
+        problem: Problem,
         cand: Candidates,
         bounds: dict[int, SetBound] | None,
         deadline: float | None,
@@ -273,7 +266,7 @@ class _Run:
         self.raw_score = float("nan")  # the first MILP tree's score, before any refinement
         self.bound = float("nan")  # an upper bound on the MAP score, when one is known
         self.bound_s = 0.0
-        self.session = HighsSession(problem.milp)
+        self.session = parser.open_session(problem.milp)
 
     def _solve_once(self):  # type: ignore[no-untyped-def]
         if self.deadline is not None:
@@ -332,7 +325,7 @@ class _Run:
         except OutOfTime:
             self.message = "time limit reached before the bound: the gap is unknown"
             return
-        session = HighsSession(problem.milp)
+        session = self.p.open_session(problem.milp)
         if self.deadline is not None:
             session.set_time_limit(max(self.deadline - time.perf_counter(), 1e-3))
         sol = session.solve()
@@ -365,7 +358,7 @@ class _Run:
             self.problem = self.p.reduce(self.scene, self.cand, deadline=self.deadline)
         except OutOfTime:
             return refined
-        self.session = HighsSession(self.problem.milp)
+        self.session = self.p.open_session(self.problem.milp)
         self.build_s += time.perf_counter() - t0
         return None
 
@@ -385,16 +378,6 @@ class _Run:
             )
             for e in np.flatnonzero(same):
                 self.cand.add(int(e), tree.xyz[i], tree.quat[i])
-
-
-def set_model_size(st: Supertree, cand: Candidates) -> int:
-    """The equivalent-set model's edge variables (its bulk): one per pair of candidate poses
-    of every non-fixed parent-child link, counted before any model is built."""
-    n_cand = np.array([len(x) for x in cand.xyz], np.int64)
-    child = np.flatnonzero(st.parent >= 0)
-    link = st.set_of[child] != st.set_of[st.parent[child]]
-    c = child[link]
-    return int(np.sum(n_cand[st.set_of[st.parent[c]]] * n_cand[st.set_of[c]]))
 
 
 def tree_signature(grammar: Grammar, tree: Trees) -> bytes:
@@ -444,7 +427,7 @@ def _why(scene: Scene, status: str, solver_message: str) -> str:
     return f"scene '{scene.name}': solver failure ({solver_message})"
 
 
-def _exclude(session: HighsSession, problem: ParseProblem | PosedProblem, x: np.ndarray) -> None:
+def _exclude(session: Session, problem: Problem, x: np.ndarray) -> None:
     """No-good cut: at least one tree-defining binary must change."""
     cols = problem.structural
     on = x[cols] > 0.5

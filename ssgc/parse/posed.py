@@ -37,6 +37,7 @@ from ssgc.parse.milp import (
     add_leq,
 )
 from ssgc.parse.proposals import Candidates
+from ssgc.parse.reduction import Request
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
@@ -44,10 +45,6 @@ from ssgc.tree import Trees
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
 MAX_INSTANCES = 60_000
-
-
-class TooLarge(Exception):
-    """The unrolled model would exceed MAX_INSTANCES nodes."""
 
 
 class OutOfTime(Exception):
@@ -164,8 +161,6 @@ class _Unroll:
                     e = st.set_of[c]
                     for k in self._allowed(i, n, int(st.rule[c]), e):
                         self._add(c, i, slot, self.cand_xyz[e][k], self.cand_quat[e][k], k)
-            if len(self.node) > MAX_INSTANCES:
-                raise TooLarge
             if i % 512 == 0:
                 check_deadline(self.deadline)
             i += 1
@@ -202,6 +197,33 @@ class _Unroll:
         self.slot.append(slot)
         self.xyz.append(np.asarray(xyz, float))
         self.quat.append(np.asarray(quat, float))
+
+
+def instance_count(
+    st: Supertree, cand: Candidates, restricted: frozenset[int] = frozenset()
+) -> int:
+    """How many instances `reduce_posed` would unroll (counting stops past MAX_INSTANCES):
+    a fixed child has one per instance of its parent, the first copy of every other rule one
+    per candidate pose of its set (one, under a `restrict`ed parent set), other copies none."""
+    n_cand = [len(x) for x in cand.xyz]
+    count = [0] * len(st)
+    count[0] = total = 1
+    for n in range(len(st)):
+        if not count[n]:
+            continue
+        own = int(st.set_of[n])
+        seen: set[int] = set()
+        for c in st.children[n]:
+            r = int(st.rule[c])
+            if st.set_of[c] == own:
+                count[c] = count[n]
+            elif r not in seen:
+                count[c] = count[n] * (1 if own in restricted else n_cand[st.set_of[c]])
+            seen.add(r)
+            total += count[c]
+        if total > MAX_INSTANCES:
+            break
+    return total
 
 
 def reduce_posed(
@@ -247,6 +269,38 @@ def reduce_posed(
         np.concatenate(model.structural).astype(np.int64),
         time.perf_counter() - t0,
         st,
+    )
+
+
+class PosedReduction:
+    """The unrolled model over candidate poses (`reduce_posed`), for requests without the
+    bound's assignments whose unrolled instances stay within MAX_INSTANCES."""
+
+    def accepts(self, request: Request) -> bool:
+        return request.bounds is None and self._count(request) <= MAX_INSTANCES
+
+    def refusal(self, request: Request) -> str | None:
+        if request.bounds is not None or self._count(request) <= MAX_INSTANCES:
+            return None
+        return too_many_instances(request.scene)
+
+    def apply(self, request: Request) -> tuple[Milp, PosedProblem]:
+        r = request
+        problem = reduce_posed(r.grammar, r.supertree, r.scene, r.cand, deadline=r.deadline)
+        return problem.milp, problem
+
+    def invert(self, problem: PosedProblem, x: FloatArray) -> Trees:
+        return problem.invert(x)
+
+    @staticmethod
+    def _count(request: Request) -> int:
+        return instance_count(request.supertree, request.cand)
+
+
+def too_many_instances(scene: Scene) -> str:
+    return (
+        f"scene '{scene.name}': the parse model would have more than {MAX_INSTANCES} node "
+        f"instances ({len(scene)} objects); parse fewer objects at a time"
     )
 
 
