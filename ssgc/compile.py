@@ -94,28 +94,15 @@ def compile_text(
     return Compiler(doc, source, base_dir, allow_outside).run()
 
 
-class Compiler:
-    """Lowers one validated document, runs the whole-grammar checks on the result and
-    assembles the IR; collects every diagnostic it finds."""
+class Report:
+    """The diagnostics of one compile, located in the document by `source`."""
 
-    def __init__(
-        self,
-        doc: dsl.GrammarDoc,
-        source: SourceMap,
-        base_dir: Path | None = None,
-        allow_outside: bool = False,
-    ) -> None:
-        self.doc = doc
+    def __init__(self, source: SourceMap, names: list[str]) -> None:
         self.source = source
-        self.base_dir = base_dir
-        self.allow_outside = allow_outside
+        self.names = names
         self.errors: list[Diagnostic] = []
         self.warnings: list[Diagnostic] = []
-        self.names = list(doc.types)
-        self.ids = {name: i for i, name in enumerate(self.names)}
         self.suggestions = 0
-
-    # ---------------------------------------------------------------- diagnostics ---
 
     def error(self, loc: Loc, message: str) -> None:
         self.errors.append(self.source.diagnostic(loc, message))
@@ -139,7 +126,23 @@ class Compiler:
         hint = f" (did you mean '{close[0]}'?)" if close else ""
         self.error(loc, f"{what} '{name}' is not a type of this grammar{hint}")
 
-    # ----------------------------------------------------------------------- run ---
+
+class Compiler(Report):
+    """Lowers one validated document, runs the whole-grammar checks on the result and
+    assembles the IR; collects every diagnostic it finds."""
+
+    def __init__(
+        self,
+        doc: dsl.GrammarDoc,
+        source: SourceMap,
+        base_dir: Path | None = None,
+        allow_outside: bool = False,
+    ) -> None:
+        super().__init__(source, list(doc.types))
+        self.doc = doc
+        self.base_dir = base_dir
+        self.allow_outside = allow_outside
+        self.ids = {name: i for i, name in enumerate(self.names)}
 
     def run(self) -> Grammar:
         if one_line(self.doc.grammar) != self.doc.grammar:  # it is printed, and names files
@@ -201,7 +204,7 @@ class Compiler:
             rule = self.rule(len(rules), tid, index, rspec, rloc)
             if rule is not None:
                 rules.append(rule)
-        probs = self.rule_probs(kind, key, rule_specs, rule_locs, loc)
+        probs = rule_probs(kind, key, rule_specs, rule_locs, loc, self)
         count = (
             RepeatCount.lower(spec.repeat, (*loc, "repeat", "count"), self) if spec.repeat else None
         )
@@ -224,39 +227,6 @@ class Compiler:
             fixed=spec.fixed,
             path=loc,
         )
-
-    def rule_probs(
-        self, kind: Kind, key: str, specs: list[dsl.Rule], locs: list[Loc], loc: Loc
-    ) -> NDArray[np.float64]:
-        given = [r.p is not None for r in specs]
-        if kind in (Kind.AND, Kind.REPEAT):
-            for spec, rloc in zip(specs, locs, strict=True):
-                if spec.p is not None:
-                    self.error((*rloc, "p"), f"`p` has no meaning in `{key}` (every rule fires)")
-            return np.ones(len(specs))
-        if kind == Kind.INDEPENDENT:
-            for spec, rloc in zip(specs, locs, strict=True):
-                if spec.p is None:
-                    self.error(rloc, "every rule of `independent` needs its probability `p`")
-                elif spec.p > 1:
-                    self.error(
-                        (*rloc, "p"),
-                        f"`p` of an `independent` rule is a probability in [0, 1], got {spec.p:g}",
-                    )
-            return np.array([r.p if r.p is not None else 0.0 for r in specs])
-        if kind == Kind.OR and specs:
-            if any(given) and not all(given):
-                missing = locs[given.index(False)]
-                self.error(
-                    missing, "give `p` for every rule of an `or`, or for none (equal weights)"
-                )
-                return np.full(len(specs), 1.0 / len(specs))
-            weights = np.array([r.p for r in specs]) if all(given) else np.ones(len(specs))
-            if weights.sum() <= 0:
-                self.error((*loc, key), "the weights `p` of an `or` sum to zero")
-                return np.full(len(specs), 1.0 / len(specs))
-            return weights / weights.sum()
-        return np.zeros(0)
 
     # ---------------------------------------------------------------------- rules ---
 
@@ -281,21 +251,7 @@ class Compiler:
         return law.lower(getattr(spec, word), word, (*loc, word), self)
 
     def orientation(self, o: dsl.Orientation, loc: Loc) -> NDArray[np.float64]:
-        if o.rpy is not None:
-            return quat_canonical(rpy_to_quat(np.asarray(o.rpy, float)))
-        if o.rpy_deg is not None:
-            return quat_canonical(rpy_to_quat(np.radians(np.asarray(o.rpy_deg, float))))
-        if o.quat_wxyz is not None:
-            q = np.asarray(o.quat_wxyz, float)
-            norm = float(np.hypot.reduce(q))  # no overflow for huge entries
-            if abs(norm - 1) > QUAT_NORM_TOL:
-                self.error(
-                    (*loc, "quat_wxyz"),
-                    f"quaternion must have unit norm (±{QUAT_NORM_TOL:g}), got {norm:.6g}",
-                )
-                return IDENTITY_QUAT.copy()
-            return quat_canonical(q / norm)
-        return IDENTITY_QUAT.copy()
+        return orientation(o, loc, self)
 
 
 def _kind_of(spec: dsl.NodeType) -> tuple[Kind, str, list[dsl.Rule]]:
@@ -308,3 +264,55 @@ def _kind_of(spec: dsl.NodeType) -> tuple[Kind, str, list[dsl.Rule]]:
     if spec.repeat is not None:
         return Kind.REPEAT, "repeat", [spec.repeat.rule]
     return Kind.TERMINAL, "", []
+
+
+def rule_probs(
+    kind: Kind, key: str, specs: list[dsl.Rule], locs: list[Loc], loc: Loc, report: Report
+) -> NDArray[np.float64]:
+    """The normalised weights of an `or`, the probabilities of an `independent`."""
+    given = [r.p is not None for r in specs]
+    if kind in (Kind.AND, Kind.REPEAT):
+        for spec, rloc in zip(specs, locs, strict=True):
+            if spec.p is not None:
+                report.error((*rloc, "p"), f"`p` has no meaning in `{key}` (every rule fires)")
+        return np.ones(len(specs))
+    if kind == Kind.INDEPENDENT:
+        for spec, rloc in zip(specs, locs, strict=True):
+            if spec.p is None:
+                report.error(rloc, "every rule of `independent` needs its probability `p`")
+            elif spec.p > 1:
+                report.error(
+                    (*rloc, "p"),
+                    f"`p` of an `independent` rule is a probability in [0, 1], got {spec.p:g}",
+                )
+        return np.array([r.p if r.p is not None else 0.0 for r in specs])
+    if kind == Kind.OR and specs:
+        if any(given) and not all(given):
+            missing = locs[given.index(False)]
+            report.error(missing, "give `p` for every rule of an `or`, or for none (equal weights)")
+            return np.full(len(specs), 1.0 / len(specs))
+        weights = np.array([r.p for r in specs]) if all(given) else np.ones(len(specs))
+        if weights.sum() <= 0:
+            report.error((*loc, key), "the weights `p` of an `or` sum to zero")
+            return np.full(len(specs), 1.0 / len(specs))
+        return weights / weights.sum()
+    return np.zeros(0)
+
+
+def orientation(o: dsl.Orientation, loc: Loc, report: Report) -> NDArray[np.float64]:
+    """A written orientation as a canonical unit quaternion (wxyz)."""
+    if o.rpy is not None:
+        return quat_canonical(rpy_to_quat(np.asarray(o.rpy, float)))
+    if o.rpy_deg is not None:
+        return quat_canonical(rpy_to_quat(np.radians(np.asarray(o.rpy_deg, float))))
+    if o.quat_wxyz is not None:
+        q = np.asarray(o.quat_wxyz, float)
+        norm = float(np.hypot.reduce(q))  # no overflow for huge entries
+        if abs(norm - 1) > QUAT_NORM_TOL:
+            report.error(
+                (*loc, "quat_wxyz"),
+                f"quaternion must have unit norm (±{QUAT_NORM_TOL:g}), got {norm:.6g}",
+            )
+            return IDENTITY_QUAT.copy()
+        return quat_canonical(q / norm)
+    return IDENTITY_QUAT.copy()

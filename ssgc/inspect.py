@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from ssgc.ir import Grammar, Kind, NodeType, Rule
-from ssgc.supertree import supertree_size
+from ssgc.supertree_size import supertree_size
 
 
 def grammar_summary(grammar: Grammar) -> dict[str, Any]:

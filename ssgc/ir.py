@@ -1,12 +1,11 @@
 """The compiled grammar: an immutable intermediate representation.
 
-`ssgc.compile` produces a `Grammar` from a validated document; samplers, the scorer, and later
-the parser and the fitter only ever read this.  Types and rules have integer ids; a rule's
-pose is placed by two laws (`ssgc.laws`: a translation and a rotation law, each with its frame),
-whose parameters are also stacked into the numpy `Tables` (for vectorised scoring over many
-edges at once).  Both are derived from the same
-numbers at compile time, and every parameter keeps the document path it came from so that
-fitted values can be written back into the user's YAML.
+`ssgc.compile` produces a `Grammar` from a validated document; the sampler, the scorer, the
+parser and the fitter only ever read this.  Types and rules have integer ids; a rule places its
+child by two laws (`ssgc.laws`: a translation and a rotation law, each in its frame), whose
+parameters are also stacked into the numpy `Tables` for vectorised scoring over many edges at
+once.  Both come from the same numbers at compile time, and every law keeps the document path
+it came from so that fitted values can be written back into the user's YAML.
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.errors import Diagnostic
-from ssgc.laws.base import PartTable, RotationLaw, TranslationLaw
+from ssgc.laws.base import PartTable, RotationLaw, TranslationLaw, frozen
 from ssgc.laws.counts import RepeatCount
 
 Loc = tuple[str | int, ...]
@@ -131,12 +130,6 @@ class Grammar:
         return [t for t in self.types if t.observed]
 
 
-def _frozen(a: Any, dtype: Any = np.float64) -> NDArray[Any]:
-    out = np.array(a, dtype=dtype)
-    out.flags.writeable = False
-    return out
-
-
 def build_tables(types: tuple[NodeType, ...], rules: tuple[Rule, ...]) -> Tables:
     """Stack per-rule and per-type parameters so the scorer can work on all edges at once."""
     n_rules, n_types = len(rules), len(types)
@@ -188,5 +181,5 @@ def build_tables(types: tuple[NodeType, ...], rules: tuple[Rule, ...]) -> Tables
     return Tables(
         translation=PartTable.build([r.translation for r in rules]),
         rotation=PartTable.build([r.rotation for r in rules]),
-        **{k: _frozen(v, v.dtype) for k, v in arrays.items()},
+        **{k: frozen(v, v.dtype) for k, v in arrays.items()},
     )

@@ -11,7 +11,6 @@ sampled tree, and the M-step fits it and writes the fit back into the YAML.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -51,7 +50,6 @@ class ParentLaplaceOffsetT(dsl.Strict):
     parent_laplace_offset: LaplaceParams
 
 
-@dataclass(frozen=True, eq=False, kw_only=True)
 class ParentLaplaceOffset(TranslationLaw):
     keys: ClassVar[dict[str, Frame]] = {"parent_laplace_offset": Frame.PARENT}
     columns: ClassVar[dict[str, tuple[int, ...]]] = {"mean": (3,), "scale": ()}

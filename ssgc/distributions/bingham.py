@@ -73,6 +73,9 @@ import numpy as np
 import numpy.typing as npt
 from scipy import integrate, optimize, special
 
+from ssgc.distributions.arrays import frozen
+from ssgc.geometry import quat_multiply
+
 __all__ = [
     "SPHERE_AREA",
     "Bingham",
@@ -257,21 +260,6 @@ def moments(z: ArrayLike) -> np.ndarray:
 # ---------------------------------------------------------------------------
 
 
-def _quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product ``p ⊗ q`` of ``wxyz`` quaternions (broadcasting)."""
-    pw, px, py, pz = np.moveaxis(p, -1, 0)
-    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
-
-
 def _canonical_sign(q: np.ndarray) -> np.ndarray:
     """Flip ``q`` so its first non-negligible component is positive."""
     q = np.array(q, dtype=np.float64)
@@ -289,12 +277,6 @@ def _as_unit_quaternions(q: ArrayLike, name: str = "q") -> np.ndarray:
     if not np.all(np.isfinite(norms)) or np.any(norms == 0.0):
         raise ValueError(f"{name} must contain finite, non-zero quaternions")
     return arr / norms
-
-
-def _readonly(a: np.ndarray) -> np.ndarray:
-    a = np.array(a, dtype=np.float64, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 def _acg_parameter(lam: np.ndarray) -> float:
@@ -359,8 +341,8 @@ class Bingham:
         m = u @ vt
         z = _as_z(Z)
         z = z - np.max(z)
-        self._M = _readonly(m)
-        self._Z = _readonly(z)
+        self._M = frozen(m)
+        self._Z = frozen(z)
         self._log_norm = log_normalizer(z)
         self._acg_b = _acg_parameter(-z)
 
@@ -393,7 +375,7 @@ class Bingham:
             raise ValueError(f"concentration must be finite and >= 0, got {c.tolist()}")
         pure = np.zeros((3, _DIM))
         pure[:, 1:] = np.eye(3)
-        axes = _quat_mul(qm[None, :], pure)  # (3, 4): q_mode ⊗ (0, e_i)
+        axes = quat_multiply(qm[None, :], pure)  # (3, 4): q_mode ⊗ (0, e_i)
         m = np.column_stack([axes[0], axes[1], axes[2], qm])
         return cls(m, np.concatenate([-c, [0.0]]))
 
@@ -519,7 +501,7 @@ class Bingham:
 
         For :meth:`from_mode` distributions this is ``(c_x, c_y, c_z, 0)``.
         """
-        return _readonly(-self._Z)
+        return frozen(-self._Z)
 
     @property
     def mode(self) -> np.ndarray:
@@ -529,7 +511,7 @@ class Bingham:
         several ``Z_i`` equal 0 the mode is not unique and the first such
         column of ``M`` is returned.
         """
-        return _readonly(_canonical_sign(self._M[:, int(np.argmax(self._Z))]))
+        return frozen(_canonical_sign(self._M[:, int(np.argmax(self._Z))]))
 
     @property
     def log_normalizer(self) -> float:
@@ -614,7 +596,7 @@ def _right_multipliers() -> np.ndarray:
     pure = np.zeros((3, _DIM))
     pure[:, 1:] = np.eye(3)
     basis = np.eye(_DIM)
-    return np.stack([_quat_mul(basis, np.broadcast_to(e, (_DIM, _DIM))).T for e in pure])
+    return np.stack([quat_multiply(basis, np.broadcast_to(e, (_DIM, _DIM))).T for e in pure])
 
 
 def fit_bingham(

@@ -14,18 +14,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import optimize
 
+from ssgc.distributions.arrays import fit_weights, frozen, sample_count
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 __all__ = ["Bernoulli", "Categorical", "CountLaw", "fit_geometric_p"]
-
-
-def _frozen(values: ArrayLike) -> FloatArray:
-    """Copy to float64 and lock, so a distribution can never be mutated behind our back."""
-    arr = np.array(values, dtype=np.float64)
-    arr.flags.writeable = False
-    return arr
 
 
 def _as_int(value: object, name: str) -> int:
@@ -36,32 +31,11 @@ def _as_int(value: object, name: str) -> int:
         raise ValueError(f"{name} must be an integer, got {value!r}") from None
 
 
-def _sample_count(n: int) -> int:
-    count = _as_int(n, "n")
-    if count < 0:
-        raise ValueError(f"n must be a non-negative integer, got {count}")
-    return count
-
-
 def _non_negative(value: float, name: str) -> float:
     out = float(value)
     if not (np.isfinite(out) and out >= 0):
         raise ValueError(f"{name} must be non-negative and finite, got {value!r}")
     return out
-
-
-def _fit_weights(weights: ArrayLike | None, n: int) -> FloatArray:
-    """Validate EM responsibilities; None means every sample counts once."""
-    if weights is None:
-        return np.ones(n, dtype=np.float64)
-    w = np.asarray(weights, dtype=np.float64)
-    if w.shape != (n,):
-        raise ValueError(f"weights must have shape ({n},) to match the samples, got {w.shape}")
-    if not np.all(np.isfinite(w)):
-        raise ValueError("weights must be finite")
-    if np.any(w < 0):
-        raise ValueError(f"weights must be non-negative, got {float(w.min())!r}")
-    return w
 
 
 def _index_mask(k: ArrayLike, size: int) -> tuple[IntArray, BoolArray]:
@@ -113,7 +87,7 @@ def _frequencies(
         bad = arr[~ok][0].item()
         raise ValueError(f"{name} must be integers in [0, {size - 1}], got {bad!r}")
     alpha = _non_negative(pseudocount, "pseudocount")
-    w = _fit_weights(weights, idx.size)
+    w = fit_weights(weights, idx.size, positive_total=False)
     counts = np.bincount(idx, weights=w, minlength=size) + alpha
     if not counts.sum() > 0:
         raise ValueError("weights must have a positive total (or pseudocount must be > 0)")
@@ -157,9 +131,9 @@ class Categorical:
         # trailing zero-probability bin.
         last = int(np.flatnonzero(probs)[-1])
         cdf[last:] = 1.0
-        object.__setattr__(self, "probs", _frozen(probs))
-        object.__setattr__(self, "log_probs", _frozen(log_probs))
-        object.__setattr__(self, "_cdf", _frozen(cdf))
+        object.__setattr__(self, "probs", frozen(probs))
+        object.__setattr__(self, "log_probs", frozen(log_probs))
+        object.__setattr__(self, "_cdf", frozen(cdf))
 
     @property
     def num_categories(self) -> int:
@@ -167,7 +141,7 @@ class Categorical:
 
     def sample(self, rng: np.random.Generator, n: int) -> IntArray:
         """Draw ``n`` category indices by inverse-CDF lookup."""
-        u = rng.random(_sample_count(n))
+        u = rng.random(sample_count(n))
         # side="right" maps u to the first bin whose CDF exceeds it, so zero-width bins
         # (zero probability) are never chosen, even for u == 0.
         return np.searchsorted(self._cdf, u, side="right").astype(np.int64)
@@ -221,7 +195,7 @@ class Bernoulli:
 
     def sample(self, rng: np.random.Generator, n: int) -> BoolArray:
         """Draw ``n`` booleans; ``u < p`` makes p = 0 and p = 1 exact."""
-        return rng.random(_sample_count(n)) < self.p
+        return rng.random(sample_count(n)) < self.p
 
     def log_prob(self, x: ArrayLike) -> FloatArray:
         """Log probability of booleans (or 0/1 numbers); any other value scores -inf."""
@@ -252,7 +226,7 @@ class Bernoulli:
                 raise ValueError("x must contain only booleans or 0/1 values")
             arr = vals == 1
         alpha = _non_negative(pseudocount, "pseudocount")
-        w = _fit_weights(weights, arr.size)
+        w = fit_weights(weights, arr.size, positive_total=False)
         total = float(w.sum()) + 2.0 * alpha
         if not total > 0:
             raise ValueError("weights must have a positive total (or pseudocount must be > 0)")

@@ -8,51 +8,19 @@ construction, and every density evaluation is a triangular solve against that fa
 
 from __future__ import annotations
 
-import operator
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import solve_triangular
 
+from ssgc.distributions.arrays import fit_weights, frozen, sample_count
+
 FloatArray = NDArray[np.float64]
 
 __all__ = ["Normal"]
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
-
-
-def _frozen(values: ArrayLike) -> FloatArray:
-    """Copy to float64 and lock, so a distribution can never be mutated behind our back."""
-    arr = np.array(values, dtype=np.float64)
-    arr.flags.writeable = False
-    return arr
-
-
-def _sample_count(n: int) -> int:
-    try:
-        count = operator.index(n)
-    except TypeError:
-        raise ValueError(f"n must be a non-negative integer, got {n!r}") from None
-    if count < 0:
-        raise ValueError(f"n must be a non-negative integer, got {count}")
-    return count
-
-
-def _fit_weights(weights: ArrayLike | None, n: int) -> FloatArray:
-    """Validate EM responsibilities; None means every sample counts once."""
-    if weights is None:
-        return np.ones(n, dtype=np.float64)
-    w = np.asarray(weights, dtype=np.float64)
-    if w.shape != (n,):
-        raise ValueError(f"weights must have shape ({n},) to match the samples, got {w.shape}")
-    if not np.all(np.isfinite(w)):
-        raise ValueError("weights must be finite")
-    if np.any(w < 0):
-        raise ValueError(f"weights must be non-negative, got {float(w.min())!r}")
-    if not w.sum() > 0:
-        raise ValueError("weights must have a positive total")
-    return w
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,9 +66,9 @@ class Normal:
         if not (np.all(np.isfinite(chol)) and np.all(diag > 0)):
             raise ValueError("cov must be positive definite (Cholesky factorisation failed)")
 
-        object.__setattr__(self, "mean", _frozen(mean))
-        object.__setattr__(self, "cov", _frozen(cov))
-        object.__setattr__(self, "_chol", _frozen(chol))
+        object.__setattr__(self, "mean", frozen(mean))
+        object.__setattr__(self, "cov", frozen(cov))
+        object.__setattr__(self, "_chol", frozen(chol))
         log_norm = -0.5 * d * _LOG_2PI - float(np.sum(np.log(diag)))
         object.__setattr__(self, "_log_norm", log_norm)
 
@@ -134,7 +102,7 @@ class Normal:
     @property
     def variance(self) -> FloatArray:
         """Marginal variances, i.e. the diagonal of ``cov``."""
-        return _frozen(np.diag(self.cov))
+        return frozen(np.diag(self.cov))
 
     @property
     def chol(self) -> FloatArray:
@@ -152,7 +120,7 @@ class Normal:
 
     def sample(self, rng: np.random.Generator, n: int) -> FloatArray:
         """Draw ``n`` points, shape (n, d)."""
-        z = rng.standard_normal((_sample_count(n), self.dim))
+        z = rng.standard_normal((sample_count(n), self.dim))
         return self.mean + z @ self._chol.T
 
     def log_prob(self, x: ArrayLike) -> FloatArray:
@@ -212,7 +180,7 @@ class Normal:
         floor = float(min_variance)
         if not (np.isfinite(floor) and floor > 0):
             raise ValueError(f"min_variance must be positive and finite, got {min_variance!r}")
-        w = _fit_weights(weights, pts.shape[0])
+        w = fit_weights(weights, pts.shape[0])
         total = float(w.sum())
 
         mean = (w @ pts) / total

@@ -10,11 +10,12 @@ same free axes remain comparable.
 
 from __future__ import annotations
 
-import operator
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from ssgc.distributions.arrays import fit_weights, frozen, sample_count
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -33,36 +34,9 @@ _PINNED_RTOL = 1e-9
 _BOUND_RTOL = 1e-12
 
 
-def _frozen(values: ArrayLike) -> FloatArray:
-    """Copy to float64 and lock, so a distribution can never be mutated behind our back."""
-    arr = np.array(values, dtype=np.float64)
-    arr.flags.writeable = False
-    return arr
-
-
-def _sample_count(n: int) -> int:
-    try:
-        count = operator.index(n)
-    except TypeError:
-        raise ValueError(f"n must be a non-negative integer, got {n!r}") from None
-    if count < 0:
-        raise ValueError(f"n must be a non-negative integer, got {count}")
-    return count
-
-
 def _support_mask(weights: ArrayLike | None, n: int) -> BoolArray:
     """Points that carry weight; zero-weight points must not widen a fitted support."""
-    if weights is None:
-        keep = np.ones(n, dtype=np.bool_)
-    else:
-        w = np.asarray(weights, dtype=np.float64)
-        if w.shape != (n,):
-            raise ValueError(f"weights must have shape ({n},) to match the samples, got {w.shape}")
-        if not np.all(np.isfinite(w)):
-            raise ValueError("weights must be finite")
-        if np.any(w < 0):
-            raise ValueError(f"weights must be non-negative, got {float(w.min())!r}")
-        keep = w > 0
+    keep = fit_weights(weights, n, positive_total=False) > 0
     if not np.any(keep):
         raise ValueError("weights must give at least one sample positive weight")
     return keep
@@ -105,8 +79,8 @@ class UniformBox:
             )
         free = hi > lo
         free.flags.writeable = False
-        object.__setattr__(self, "lo", _frozen(lo))
-        object.__setattr__(self, "hi", _frozen(hi))
+        object.__setattr__(self, "lo", frozen(lo))
+        object.__setattr__(self, "hi", frozen(hi))
         object.__setattr__(self, "free_axes", free)
         log_density = -float(np.sum(np.log(hi[free] - lo[free])))
         object.__setattr__(self, "_log_density", log_density)
@@ -117,7 +91,7 @@ class UniformBox:
 
     @property
     def width(self) -> FloatArray:
-        return _frozen(self.hi - self.lo)
+        return frozen(self.hi - self.lo)
 
     @property
     def log_density(self) -> float:
@@ -126,7 +100,7 @@ class UniformBox:
 
     def sample(self, rng: np.random.Generator, n: int) -> FloatArray:
         """Draw ``n`` points, shape (n, d); pinned axes come out exactly equal to ``lo``."""
-        u = rng.random((_sample_count(n), self.dim))
+        u = rng.random((sample_count(n), self.dim))
         return self.lo + u * (self.hi - self.lo)
 
     def log_prob(self, x: ArrayLike) -> FloatArray:
@@ -224,7 +198,7 @@ class UniformRevolute:
 
     def sample(self, rng: np.random.Generator, n: int) -> FloatArray:
         """Draw ``n`` angles in ``[lo, hi)``."""
-        return self.lo + rng.random(_sample_count(n)) * self._width
+        return self.lo + rng.random(sample_count(n)) * self._width
 
     def log_prob(self, theta: ArrayLike) -> FloatArray:
         """Log density of angles, testing arc membership modulo 2 pi; -inf off the arc."""

@@ -26,7 +26,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Protocol, dataclass_transform
 
 import numpy as np
 from numpy.typing import NDArray
@@ -80,13 +80,19 @@ def frozen(a: object, dtype: Any = None) -> NDArray[Any]:
     return out
 
 
+@dataclass_transform(frozen_default=True, kw_only_default=True, eq_default=False)
 @dataclass(frozen=True, eq=False, kw_only=True)
 class PoseLaw:
     """One part of a rule: a law, the frame it is written in, and where it was written.
 
     `key` is the document word it was written with (`world_normal`, `same`, ...), `path` the
-    document path of its parameter block, and `fixed` keeps it as written when fitting.
+    document path of its parameter block, and `fixed` keeps it as written when fitting.  Every
+    subclass is a frozen, keyword-only dataclass of its parameters (no decorator needed).
     """
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        dataclass(frozen=True, eq=False, kw_only=True)(cls)
 
     part: ClassVar[str]  # "translation" or "rotation"
     keys: ClassVar[dict[str, Frame]]  # document word -> frame

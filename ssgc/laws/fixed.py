@@ -7,7 +7,6 @@ frame arithmetic that rounds).  It has nothing to fit.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -28,9 +27,24 @@ from ssgc.laws.base import (
 )
 
 
+class _PointMass:
+    """A fixed part's mode is its offset, where its log-density is 0."""
+
+    offset: FloatArray
+
+    def mode(self) -> FloatArray:
+        return self.offset
+
+    def supremum(self) -> float:
+        return 0.0
+
+    @property
+    def point(self) -> FloatArray:
+        return self.offset
+
+
 @register
-@dataclass(frozen=True, eq=False, kw_only=True)
-class FixedTranslation(TranslationLaw):
+class FixedTranslation(_PointMass, TranslationLaw):
     keys: ClassVar[dict[str, Frame]] = {"same": Frame.PARENT, "offset": Frame.PARENT}
     columns: ClassVar[dict[str, tuple[int, ...]]] = {"offset": (3,)}
 
@@ -52,23 +66,12 @@ class FixedTranslation(TranslationLaw):
         ok = np.all(np.abs(u - cols["offset"]) <= POS_TOL, axis=1)
         return np.where(ok, 0.0, -np.inf)
 
-    def mode(self) -> FloatArray:
-        return self.offset
-
-    def supremum(self) -> float:
-        return 0.0
-
-    @property
-    def point(self) -> FloatArray:
-        return self.offset
-
     def describe(self) -> str:
         return "same" if not np.any(self.offset) else f"offset {np.round(self.offset, 4).tolist()}"
 
 
 @register
-@dataclass(frozen=True, eq=False, kw_only=True)
-class FixedRotation(RotationLaw):
+class FixedRotation(_PointMass, RotationLaw):
     keys: ClassVar[dict[str, Frame]] = {"same": Frame.PARENT, "offset": Frame.PARENT}
     columns: ClassVar[dict[str, tuple[int, ...]]] = {"offset": (4,)}
 
@@ -88,16 +91,6 @@ class FixedRotation(RotationLaw):
     @classmethod
     def density(cls, cols: Columns, u: FloatArray) -> FloatArray:
         return np.where(quat_angle(u, cols["offset"]) <= ROT_TOL, 0.0, -np.inf)
-
-    def mode(self) -> FloatArray:
-        return self.offset
-
-    def supremum(self) -> float:
-        return 0.0
-
-    @property
-    def point(self) -> FloatArray:
-        return self.offset
 
     def describe(self) -> str:
         if self.offset[0] >= 1 - 1e-12:

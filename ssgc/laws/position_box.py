@@ -7,7 +7,6 @@ outside it impossible, so `ssg fit` keeps it as written (docs/fitting.md).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -27,7 +26,6 @@ from ssgc.laws.base import (
 
 
 @register
-@dataclass(frozen=True, eq=False, kw_only=True)
 class BoxTranslation(TranslationLaw):
     keys: ClassVar[dict[str, Frame]] = {
         "world_box": Frame.WORLD,

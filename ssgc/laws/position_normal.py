@@ -7,7 +7,6 @@ isotropic `variance` (one number), a per-axis `variance` (three) or a full `cova
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from enum import Enum
 from typing import Any, ClassVar
 
@@ -40,7 +39,6 @@ class Spread(Enum):
 
 
 @register
-@dataclass(frozen=True, eq=False, kw_only=True)
 class NormalTranslation(TranslationLaw):
     keys: ClassVar[dict[str, Frame]] = {
         "world_normal": Frame.WORLD,

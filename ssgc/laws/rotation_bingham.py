@@ -9,7 +9,6 @@ concentration (isotropic), a mode with three (one per axis), or the raw `M` and 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from enum import Enum
 from typing import Any, ClassVar
 
@@ -35,7 +34,7 @@ MAX_CONCENTRATION = 1e4
 
 
 class Form(Enum):
-    """How the law was written, which is the form it is fitted in."""
+    """Mode and concentrations, or the raw matrices: the fit keeps the one written."""
 
     ISOTROPIC = "mode, concentration: number"
     AXES = "mode, concentration: [x, y, z]"
@@ -43,7 +42,6 @@ class Form(Enum):
 
 
 @register
-@dataclass(frozen=True, eq=False, kw_only=True)
 class BinghamRotation(RotationLaw):
     keys: ClassVar[dict[str, Frame]] = {
         "world_bingham": Frame.WORLD,

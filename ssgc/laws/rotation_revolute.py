@@ -6,7 +6,6 @@ Like a box, the range is a support, so `ssg fit` keeps it as written.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -28,7 +27,6 @@ from ssgc.laws.base import (
 
 
 @register
-@dataclass(frozen=True, eq=False, kw_only=True)
 class RevoluteRotation(RotationLaw):
     keys: ClassVar[dict[str, Frame]] = {"revolute": Frame.PARENT}
     columns: ClassVar[dict[str, tuple[int, ...]]] = {

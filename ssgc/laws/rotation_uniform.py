@@ -6,7 +6,6 @@ mode, its supremum is its value, and there is nothing to fit.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -17,7 +16,6 @@ from ssgc.laws.base import Columns, FloatArray, Frame, Loc, Lowering, RotationLa
 
 
 @register
-@dataclass(frozen=True, eq=False, kw_only=True)
 class UniformRotation(RotationLaw):
     keys: ClassVar[dict[str, Frame]] = {"uniform": Frame.WORLD}
 

@@ -1,8 +1,9 @@
-"""The supertree: every node any tree of the grammar could contain (thesis 3.3).
+"""The supertree's size, counted without building it (for `ssg inspect`).
 
-Each node expands all of its rules (a `repeat` as many times as its largest count), down to
-the recursion bounds.  The parser will work on this tree; for now its size tells a user how
-big a parse problem a grammar makes.
+The supertree (thesis 3.3; built by `ssgc.parse.supertree`) holds every node any tree of the
+grammar could contain: each node expands all of its rules (a `repeat` as many times as its
+largest count), down to the recursion bounds.  Its size tells a user how big a parse problem a
+grammar makes, even for grammars whose supertree is far too large to build.
 """
 
 from __future__ import annotations
