@@ -106,10 +106,12 @@ def place_translation(
     parent_quat: FloatArray,
     rng: np.random.Generator,
 ) -> tuple[FloatArray, FloatArray]:
-    """A draw of `law` per parent, moved from the law's frame to the world."""
-    local, logp = law.sample(rng, parent_xyz.shape[0])
+    """A draw of `law` per parent, moved from the law's frame to the world (a point mass
+    needs no draw: its one value broadcasts)."""
+    n, point = parent_xyz.shape[0], law.point
+    local, logp = (point, np.zeros(n)) if point is not None else law.sample(rng, n)
     if law.frame == Frame.WORLD:
-        return local, logp
+        return np.broadcast_to(local, (n, 3)).copy(), logp
     if law.frame == Frame.PARENT:
         return parent_xyz + quat_rotate(parent_quat, local), logp
     return parent_xyz + local, logp
@@ -118,7 +120,8 @@ def place_translation(
 def place_rotation(
     law: RotationLaw, parent_quat: FloatArray, rng: np.random.Generator
 ) -> tuple[FloatArray, FloatArray]:
-    local, logp = law.sample(rng, parent_quat.shape[0])
+    n, point = parent_quat.shape[0], law.point
+    local, logp = (point, np.zeros(n)) if point is not None else law.sample(rng, n)
     if law.frame == Frame.WORLD:
-        return local, logp
+        return np.broadcast_to(local, (n, 4)).copy(), logp
     return quat_multiply(parent_quat, local), logp
