@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from pydantic import ValidationError
 
 from ssgc import dsl
+from ssgc.constraints.build import build_constraints
 from ssgc.distributions.bingham import Bingham
 from ssgc.distributions.discrete import CountLaw
 from ssgc.distributions.normal import Normal
@@ -162,6 +163,9 @@ class Compiler:
         if not self.errors and root_spec.type in self.ids:
             self.check_recursion(types, rules)
             self.check_reachable(types, rules, self.ids[root_spec.type])
+        constraints = build_constraints(
+            self, types, rules, self.ids.get(root_spec.type), sound=not self.errors
+        )
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
         types_t, rules_t = tuple(types), tuple(rules)
@@ -176,6 +180,7 @@ class Compiler:
             tables=build_tables(types_t, rules_t),
             warnings=tuple(self.warnings),
             type_ids=dict(self.ids),
+            constraints=constraints,
         )
 
     # ----------------------------------------------------------------- node types ---

@@ -1,0 +1,118 @@
+"""Pose constraints on primitives' origins, axes and keep-out discs (thesis 2.4, 2.6.4).
+
+Everything is one array expression over all selected nodes (or node pairs) of the batch;
+a tree's margin is the minimum over its nodes or pairs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.constraints.base import (
+    Constraint,
+    FloatArray,
+    lineal,
+    nearest_ancestor,
+    per_scene_min,
+    tree_pairs,
+)
+from ssgc.geometry import quat_conjugate, quat_rotate
+
+UNIT = np.eye(3)
+
+
+def _selected(batch: Any, mask: NDArray[np.bool_]) -> NDArray[np.int64]:
+    return np.flatnonzero(mask[batch.type])
+
+
+def frame_of(batch: Any, nodes: NDArray[np.int64], frame: int | None) -> tuple[Any, Any, Any]:
+    """Position and rotation of each node's frame (world, or its nearest `frame` ancestor),
+    and a mask of the nodes that have one."""
+    if frame is None:
+        n = len(nodes)
+        return np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.ones(n, bool)
+    anc = nearest_ancestor(batch.parent, batch.type, frame)[nodes]
+    ok = anc >= 0
+    a = np.maximum(anc, 0)
+    return batch.xyz[a], batch.quat[a], ok
+
+
+@dataclass(frozen=True)
+class InsideBox(Constraint):
+    """Origins of the `types` nodes inside [lo, hi] in the frame (per axis; nan = unbounded);
+    with keep-out radii, the x-y disc of each object inside too."""
+
+    types: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    frame: int | None = None
+    lo: FloatArray = field(default_factory=lambda: np.full(3, np.nan))
+    hi: FloatArray = field(default_factory=lambda: np.full(3, np.nan))
+    radius: FloatArray = field(default_factory=lambda: np.zeros(0))  # per type; 0 without keep_out
+    kind: ClassVar[str] = "pose"
+    word: ClassVar[str] = "inside_box"
+
+    def margin(self, batch: Any) -> FloatArray:
+        nodes = _selected(batch, self.types)
+        p, q, ok = frame_of(batch, nodes, self.frame)
+        local = quat_rotate(quat_conjugate(q), batch.xyz[nodes] - p)
+        r = self.radius[batch.type[nodes]]
+        inset = np.stack([r, r, np.zeros_like(r)], axis=1)
+        with np.errstate(invalid="ignore"):
+            gaps = np.concatenate([local - inset - self.lo, self.hi - inset - local], axis=1)
+        gaps = np.where(np.isnan(gaps), np.inf, gaps)
+        value = np.where(ok, gaps.min(axis=1, initial=np.inf), -np.inf)
+        return per_scene_min(batch.scene[nodes], value, batch.n_scenes)
+
+
+@dataclass(frozen=True)
+class Clearance(Constraint):
+    """World x-y distance between two objects minus their keep-out radii, over every pair of
+    `types` nodes of a tree that is not exempt."""
+
+    types: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    radius: FloatArray = field(default_factory=lambda: np.zeros(0))  # per type
+    exempt: NDArray[np.bool_] = field(default_factory=lambda: np.zeros((0, 0), bool))
+    exempt_ancestors: bool = False
+    kind: ClassVar[str] = "pose"
+    word: ClassVar[str] = "clearance"
+
+    def pairs(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        i, j = tree_pairs(_selected(batch, self.types), batch.scene)
+        keep = ~self.exempt[batch.type[i], batch.type[j]]
+        i, j = i[keep], j[keep]
+        if self.exempt_ancestors and len(i):
+            related = lineal(i, j, batch.parent)
+            i, j = i[~related], j[~related]
+        return i, j
+
+    def margin(self, batch: Any) -> FloatArray:
+        i, j = self.pairs(batch)
+        d = np.hypot(*(batch.xyz[i, :2] - batch.xyz[j, :2]).T)
+        gap = d - self.radius[batch.type[i]] - self.radius[batch.type[j]]
+        return per_scene_min(batch.scene[i], gap, batch.n_scenes)
+
+
+@dataclass(frozen=True)
+class Upright(Constraint):
+    """Angle between each object's `axis` and its frame's `frame_axis`, at most `max_angle`
+    (radians); the margin is max_angle - angle."""
+
+    types: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    axis: int = 2
+    frame: int | None = None
+    frame_axis: int = 2
+    max_angle: float = 0.0
+    kind: ClassVar[str] = "pose"
+    word: ClassVar[str] = "upright"
+
+    def margin(self, batch: Any) -> FloatArray:
+        nodes = _selected(batch, self.types)
+        _, q, ok = frame_of(batch, nodes, self.frame)
+        mine = quat_rotate(batch.quat[nodes], np.broadcast_to(UNIT[self.axis], (len(nodes), 3)))
+        ref = quat_rotate(q, np.broadcast_to(UNIT[self.frame_axis], (len(nodes), 3)))
+        cos = np.clip(np.sum(mine * ref, axis=1), -1.0, 1.0)
+        value = np.where(ok, self.max_angle - np.arccos(cos), -np.inf)
+        return per_scene_min(batch.scene[nodes], value, batch.n_scenes)
