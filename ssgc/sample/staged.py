@@ -35,7 +35,7 @@ from ssgc.constraints.base import Constraint, range_margin
 from ssgc.constraints.structural import Children, Count, LongestChain
 from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
-from ssgc.sample.forward import MAX_LEVELS, _choose_rules
+from ssgc.sample.forward import MAX_CHUNK_NODES, MAX_LEVELS, _choose_rules
 from ssgc.tree import Trees
 
 IntArray = NDArray[np.int64]
@@ -140,7 +140,8 @@ def grow(
         f = {k: v[live] for k, v in f.items()}
         if watch is not None:
             watch.select(live)
-        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng)
+        budget = MAX_CHUNK_NODES - next_id  # memory bound, as in forward sampling
+        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng, budget)
         logp += np.bincount(f["scene"], lp, minlength=len(logp))
         parts: dict[str, list[NDArray]] = {k: [] for k in (*f, "parent", "rule", "at")}  # type: ignore[type-arg]
         for rid, where in fires:
