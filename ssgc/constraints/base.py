@@ -59,22 +59,21 @@ def range_margin(value: NDArray[Any], lo: float, hi: float | None) -> FloatArray
     return low if hi is None else np.minimum(low, hi - v)
 
 
-def nearest_ancestor(parent: IntArray, type_: IntArray, of_type: int) -> IntArray:
-    """For every node, its nearest proper ancestor of type `of_type`; -1 if there is none.
-
-    One vectorised step per tree level.
-    """
-    out = np.full(len(parent), -1, np.int64)
-    anc = parent.copy()
-    open_ = anc >= 0
-    while np.any(open_):
-        idx = np.flatnonzero(open_)
+def nearest_ancestor(
+    parent: IntArray, type_: IntArray, of_type: int, nodes: IntArray | None = None
+) -> IntArray:
+    """For each of `nodes` (default all), its nearest proper ancestor of type `of_type`; -1
+    if there is none.  One vectorised step per tree level."""
+    nodes = np.arange(len(parent)) if nodes is None else nodes
+    out = np.full(len(nodes), -1, np.int64)
+    anc = parent[nodes]
+    idx = np.flatnonzero(anc >= 0)
+    while len(idx):
         hit = type_[anc[idx]] == of_type
         out[idx[hit]] = anc[idx[hit]]
-        rest = idx[~hit]
-        anc[rest] = parent[anc[rest]]
-        open_[:] = False
-        open_[rest] = anc[rest] >= 0
+        idx = idx[~hit]
+        anc[idx] = parent[anc[idx]]
+        idx = idx[anc[idx] >= 0]
     return out
 
 
@@ -113,6 +112,20 @@ def lineal(a: IntArray, b: IntArray, parent: IntArray) -> NDArray[np.bool_]:
     hi = np.where(da < db, a, b)  # the shallower node
     lo = np.where(da < db, b, a)
     return (da != db) & (table[lo, np.minimum(da, db)] == hi)
+
+
+def lineal_few(a: IntArray, b: IntArray, parent: IntArray) -> NDArray[np.bool_]:
+    """`lineal` for a few pairs: walks up from both nodes (one step per level), without the
+    whole batch's ancestor table."""
+    out = np.zeros(len(a), bool)
+    for x, y in ((a, b), (b, a)):
+        cur = parent[y]
+        live = np.flatnonzero(cur >= 0)
+        while len(live):
+            out[live[cur[live] == x[live]]] = True
+            cur[live] = parent[cur[live]]
+            live = live[cur[live] >= 0]
+    return out
 
 
 def tree_pairs(nodes: IntArray, scene: IntArray) -> tuple[IntArray, IntArray]:

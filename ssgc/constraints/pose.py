@@ -16,6 +16,7 @@ from ssgc.constraints.base import (
     Constraint,
     FloatArray,
     lineal,
+    lineal_few,
     nearest_ancestor,
     per_scene_min,
     tree_pairs,
@@ -35,7 +36,7 @@ def frame_of(batch: Any, nodes: NDArray[np.int64], frame: int | None) -> tuple[A
     if frame is None:
         n = len(nodes)
         return np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.ones(n, bool)
-    anc = nearest_ancestor(batch.parent, batch.type, frame)[nodes]
+    anc = nearest_ancestor(batch.parent, batch.type, frame, nodes)
     ok = anc >= 0
     a = np.maximum(anc, 0)
     return batch.xyz[a], batch.quat[a], ok
@@ -80,19 +81,38 @@ class Clearance(Constraint):
     word: ClassVar[str] = "clearance"
 
     def pairs(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        i, j = tree_pairs(_selected(batch, self.types), batch.scene)
-        keep = ~self.exempt[batch.type[i], batch.type[j]]
-        i, j = i[keep], j[keep]
+        """Every pair the constraint checks (exempt ones left out)."""
+        i, j = self.typed_pairs(batch)
         if self.exempt_ancestors and len(i):
             related = lineal(i, j, batch.parent)
             i, j = i[~related], j[~related]
         return i, j
 
+    def typed_pairs(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        i, j = tree_pairs(_selected(batch, self.types), batch.scene)
+        keep = ~self.exempt[batch.type[i], batch.type[j]]
+        return i[keep], j[keep]
+
     def margin(self, batch: Any) -> FloatArray:
-        i, j = self.pairs(batch)
-        d = np.hypot(*(batch.xyz[i, :2] - batch.xyz[j, :2]).T)
-        gap = d - self.radius[batch.type[i]] - self.radius[batch.type[j]]
-        return per_scene_min(batch.scene[i], gap, batch.n_scenes)
+        i, j = self.typed_pairs(batch)
+        x, y = batch.xyz[:, 0], batch.xyz[:, 1]  # 1-D gathers are much cheaper than 2-D
+        r = self.radius[batch.type]
+        gap = np.hypot(x[i] - x[j], y[i] - y[j]) - r[i] - r[j]
+        if not self.exempt_ancestors:
+            return per_scene_min(batch.scene[i], gap, batch.n_scenes)
+        # Ancestry is looked up only where it can matter: the overlapping pairs (a stack's
+        # parts overlap), then each tree's closest pair until it is not a lineal one.
+        live = np.ones(len(i), bool)
+        near = np.flatnonzero(gap < 0)
+        live[near[lineal_few(i[near], j[near], batch.parent)]] = False
+        scene = batch.scene[i]
+        while True:
+            best = per_scene_min(scene[live], gap[live], batch.n_scenes)
+            at = np.flatnonzero(live & (gap == best[scene]) & (gap >= 0))
+            related = at[lineal_few(i[at], j[at], batch.parent)]
+            if not len(related):
+                return best
+            live[related] = False
 
 
 @dataclass(frozen=True)

@@ -65,6 +65,25 @@ class Nodes:
         for key in levels[0]:
             setattr(self, key, np.concatenate([getattr(self, key), *(lv[key] for lv in levels)]))
 
+    def extend_kept(
+        self,
+        levels: list[dict[str, NDArray]],
+        keep_scene: NDArray[np.bool_],
+        pending: IntArray,  # type: ignore[type-arg]
+    ) -> IntArray:
+        """`extend` and `compact` in one pass: only the kept candidates' nodes are copied."""
+        masks = [keep_scene[self.scene]] + [keep_scene[lv["scene"]] for lv in levels]
+        keep = np.concatenate(masks)
+        new = np.cumsum(keep) - 1
+        new[~keep] = -1
+        for key in ("scene", "type", "parent", "rule", "depth", "nest"):
+            parts = [getattr(self, key)[masks[0]]]
+            parts += [lv[key][m] for lv, m in zip(levels, masks[1:], strict=True)]
+            setattr(self, key, np.concatenate(parts))
+        self.parent = np.where(self.parent >= 0, new[np.maximum(self.parent, 0)], -1)
+        pending = new[pending]
+        return pending[pending >= 0]
+
     def compact(self, keep_scene: NDArray[np.bool_], pending: IntArray) -> IntArray:
         """Keep only the nodes of the kept candidates (scene ids unchanged); returns the
         kept pending nodes, renumbered."""
@@ -106,12 +125,14 @@ def grow(
     rng: np.random.Generator,
     logp: FloatArray,
     watch: Watch | None = None,
+    levels: list[dict[str, NDArray]] | None = None,  # type: ignore[type-arg]
 ) -> IntArray:
     """Expand the nodes `start` level by level, only nodes whose type is in `expand`; with
     `poses`, children get poses drawn by their rules (the store must have poses).  Adds the
     log-probability of every choice and pose to `logp` (per scene).  A `watch` sees every
     level and may kill candidates (their nodes stop growing).  Returns the nodes left
-    unexpanded (pending)."""
+    unexpanded (pending).  With `levels`, the new nodes are put there, not in the store
+    (for `Nodes.extend_kept`)."""
     tb = grammar.tables
     kind = tb.type_kind
     f_id = start
@@ -126,7 +147,9 @@ def grow(
         f["xyz"], f["quat"] = nodes.xyz[f_id], nodes.quat[f_id]
     if watch is not None:
         watch.start(f["type"], f["scene"])
-    pending, levels = [], []
+    pending = []
+    keep_levels = levels is not None
+    levels = levels if levels is not None else []
     next_id = len(nodes.type)
     for _ in range(MAX_LEVELS):
         nonterminal = kind[f["type"]] != Kind.TERMINAL
@@ -174,7 +197,8 @@ def grow(
         f = {k: level[k] for k in f}
         if watch is not None:
             watch.step(at, level["type"], level["scene"], f["type"])
-    nodes.extend(levels)
+    if not keep_levels:
+        nodes.extend(levels)
     return np.concatenate(pending) if pending else np.zeros(0, np.int64)
 
 
@@ -281,7 +305,7 @@ class Watch:
                     "c": c,
                     "opens": opens,
                     "stat": np.zeros(n, np.int64),
-                    "decided": np.zeros(n, bool),
+                    "undecided": np.arange(n),
                 }
             )
         self.f_type = np.zeros(0, np.int64)
@@ -323,24 +347,35 @@ class Watch:
         self.check(next_type, c_scene)
 
     def check(self, f_type: IntArray, f_scene: IntArray) -> None:
+        """Decide the candidates whose statistic is sealed; only undecided ones are looked at,
+        so a level costs what its frontier and the open candidates cost."""
         n = len(self.alive)
         for it in self.items:
-            c, stat = it["c"], it["stat"]
-            margin = range_margin(stat, c.lo, c.hi)
-            still_open = np.bincount(f_scene[it["opens"][f_type]], minlength=n) > 0
-            over = stat > c.hi if c.hi is not None else np.zeros(n, bool)
-            ready = self.alive & ~it["decided"] & (over | ~still_open)
-            self.decide(it, ready, margin)
+            idx = it["undecided"]
+            idx = idx[self.alive[idx]]
+            if not len(idx):
+                it["undecided"] = idx
+                continue
+            c, stat = it["c"], it["stat"][idx]
+            still_open = (np.bincount(f_scene[it["opens"][f_type]], minlength=n) > 0)[idx]
+            ready = ~still_open
+            if c.hi is not None:
+                ready |= stat > c.hi
+            self.decide(it, idx[ready], range_margin(stat[ready], c.lo, c.hi))
+            it["undecided"] = idx[~ready]
 
     def finish(self) -> None:
         for it in self.items:
+            idx = it["undecided"]
+            idx = idx[self.alive[idx]]
             c = it["c"]
-            ready = self.alive & ~it["decided"]
-            self.decide(it, ready, range_margin(it["stat"], c.lo, c.hi))
+            self.decide(it, idx, range_margin(it["stat"][idx], c.lo, c.hi))
+            it["undecided"] = idx[:0]
 
-    def decide(self, it: dict, ready: NDArray[np.bool_], margin: FloatArray) -> None:  # type: ignore[type-arg]
-        it["decided"] |= ready
-        self.alive &= self.stats.judge(it["c"], margin, ready) | ~ready
+    def decide(self, it: dict, idx: IntArray, margin: FloatArray) -> None:  # type: ignore[type-arg]
+        """Candidates `idx` are decided by `it`'s constraint, with these margins."""
+        self.alive[idx[margin < 0]] = False
+        self.stats.count(it["c"].name, margin)
 
 
 @dataclass
@@ -368,10 +403,11 @@ def rejection_batch(
     # 1. the structure of the part that structural constraints depend on
     watch = Watch(grammar, constraints, size, stats)
     relevant = relevant_types(grammar, constraints)
-    pending = grow(grammar, nodes, np.arange(size), relevant, False, rng, logp, watch)
+    levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
+    pending = grow(grammar, nodes, np.arange(size), relevant, False, rng, logp, watch, levels)
     watch.finish()
     alive = watch.alive
-    pending = nodes.compact(alive, pending)
+    pending = nodes.extend_kept(levels, alive, pending)
     # 2. its poses, and the pose constraints on the partial trees
     nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
     nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
@@ -406,6 +442,14 @@ class _Stats:
         self.evaluated = dict.fromkeys(names, 0)
         self.rejected = dict.fromkeys(names, 0)
         self.best = dict.fromkeys(names, -np.inf)
+
+    def count(self, name: str, margin: FloatArray) -> None:
+        """Candidates judged by `name` with these margins (negative: rejected)."""
+        bad = margin < 0
+        self.evaluated[name] += len(margin)
+        self.rejected[name] += int(bad.sum())
+        if np.any(bad):
+            self.best[name] = max(self.best[name], float(margin[bad].max()))
 
     def judge(
         self, c: Constraint, margin: FloatArray, alive: NDArray[np.bool_], first: bool = True
