@@ -378,3 +378,36 @@ def test_bin_example_count_histogram_matches_brute_force() -> None:
     assert _same_law(na, nb) > 1e-3
     # and the conditioning matters: 6+ discs are far rarer than under the prior (6/11)
     assert np.mean(nb >= 6) < 0.01
+
+
+def test_non_penetration_distances_of_primitives() -> None:
+    pytest.importorskip("fcl")
+    text = """\
+grammar: pairs
+root: Root
+types:
+  Root:
+    and:
+      - {child: Ball, translation: {offset: [0, 0, 0]}}
+      - {child: Ball, translation: {offset: [0.25, 0, 0]}}
+      - {child: Can, translation: {offset: [0, 1, 0]}}
+      - {child: Can, translation: {offset: [0.15, 1, 0]}, rotation: {offset: {rpy_deg: [0, 90, 0]}}}
+      - {child: Brick, translation: {offset: [0, 3, 0]}}
+  Ball: {observed: true, geometry: {sphere: {radius: 0.1}}}
+  Can: {observed: true, geometry: {cylinder: {radius: 0.05, length: 0.4}}}
+  Brick: {observed: true, geometry: {box: {size: [0.2, 0.2, 0.2]}}}
+constraints:
+  balls: {non_penetration: {types: [Ball]}}
+  cans: {non_penetration: {types: [Can]}}
+  far: {non_penetration: {types: [Ball, Brick], margin: 0.01, exempt: [[Ball, Ball]]}}
+"""
+    g = compile_text(text, "pairs.yaml")
+    trees, _ = sample_trees(g, 1, 0)
+    got = {c.name: float(c.margin(trees)[0]) for c in g.constraints}
+    assert got["balls"] == pytest.approx(0.05, abs=1e-6)  # 0.25 - 2 * 0.1
+    # the lying can (axis along x, from -0.05 to 0.35) crosses the standing one: they part
+    # after 0.1 m along y, the penetration depth
+    assert got["cans"] == pytest.approx(-0.1, abs=0.01)
+    # ball to brick: too far apart for FCL to be asked; the bounding spheres' gap (a lower
+    # bound of the true 2.8 m) minus the margin stands in
+    assert got["far"] == pytest.approx(3 - 0.1 - np.sqrt(3) * 0.1 - 0.01, abs=1e-9)

@@ -34,6 +34,7 @@ class Constraint:
     path: Loc
     kind: ClassVar[str] = ""  # "structure" or "pose"
     word: ClassVar[str] = ""  # its key in the grammar file
+    rank: ClassVar[int] = 1  # evaluation order among pose constraints: likely rejecters first
 
     def margin(self, batch: Any) -> FloatArray:  # pragma: no cover - abstract
         """(n_scenes,) margins: >= 0 holds; +inf when there is nothing to check."""

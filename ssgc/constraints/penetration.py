@@ -30,6 +30,7 @@ class NonPenetration(Constraint):
     gap: float = 0.0
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "non_penetration"
+    rank: ClassVar[int] = 2  # one FCL call per close pair: last, on the fewest candidates
     screened: list[int] = field(default_factory=lambda: [0, 0], compare=False)
 
     def margin(self, batch: Any) -> FloatArray:

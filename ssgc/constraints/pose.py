@@ -79,6 +79,7 @@ class Clearance(Constraint):
     exempt_ancestors: bool = False
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "clearance"
+    rank: ClassVar[int] = 0  # crowded scenes fail it most
 
     def pairs(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """Every pair the constraint checks (exempt ones left out)."""

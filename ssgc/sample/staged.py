@@ -395,7 +395,8 @@ def rejection_batch(
     grammar: Grammar, constraints: list[Constraint], size: int, rng: np.random.Generator
 ) -> Outcome:
     """Draw `size` candidates in stages; keep those that satisfy every constraint."""
-    pose = [c for c in constraints if c.kind != "structure"]
+    # The verdict does not depend on the order (every constraint must hold); the cost does.
+    pose = sorted((c for c in constraints if c.kind != "structure"), key=lambda c: c.rank)
     stats = _Stats([c.name for c in constraints])
     nodes = roots(grammar, size)
     logp = np.zeros(size)
