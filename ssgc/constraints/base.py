@@ -53,6 +53,16 @@ def per_scene_min(scene: IntArray, values: FloatArray, n_scenes: int) -> FloatAr
     return out
 
 
+def per_scene_argmin(scene: IntArray, values: FloatArray, n_scenes: int) -> IntArray:
+    """Per tree, the index (into `values`) of its smallest value; -1 for a tree with none."""
+    out = np.full(n_scenes, -1, np.int64)
+    if len(values):
+        order = np.lexsort((values, scene))
+        first = np.r_[True, scene[order][1:] != scene[order][:-1]]
+        out[scene[order][first]] = order[first]
+    return out
+
+
 def range_margin(value: NDArray[Any], lo: float, hi: float | None) -> FloatArray:
     """How far an integer statistic is inside [lo, hi] (negative: outside)."""
     v = value.astype(np.float64)

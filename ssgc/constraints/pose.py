@@ -18,6 +18,7 @@ from ssgc.constraints.base import (
     lineal,
     lineal_few,
     nearest_ancestor,
+    per_scene_argmin,
     per_scene_min,
     tree_pairs,
 )
@@ -67,6 +68,32 @@ class InsideBox(Constraint):
         value = np.where(ok, gaps.min(axis=1, initial=np.inf), -np.inf)
         return per_scene_min(batch.scene[nodes], value, batch.n_scenes)
 
+    def gradient(self, batch: Any) -> tuple[FloatArray, FloatArray]:
+        """(margins, d margin / d xyz of every node): the gradient of each tree's margin with
+        respect to node positions (rotations held), nonzero at its closest node and frame."""
+        nodes = _selected(batch, self.types)
+        p, q, ok = frame_of(batch, nodes, self.frame)
+        local = quat_rotate(quat_conjugate(q), batch.xyz[nodes] - p)
+        r = self.radius[batch.type[nodes]]
+        inset = np.stack([r, r, np.zeros_like(r)], axis=1)
+        with np.errstate(invalid="ignore"):
+            gaps = np.concatenate([local - inset - self.lo, self.hi - inset - local], axis=1)
+        gaps = np.where(np.isnan(gaps) | ~ok[:, None], np.inf, gaps)
+        face = np.argmin(gaps, axis=1)
+        value = gaps[np.arange(len(nodes)), face]
+        grad = np.zeros((len(batch.type), 3))
+        best = per_scene_argmin(batch.scene[nodes], value, batch.n_scenes)
+        k = best[(best >= 0)]
+        k = k[np.isfinite(value[k])]
+        axis, sign = face[k] % 3, np.where(face[k] < 3, 1.0, -1.0)
+        # local = R^T (x - p): d local[a] / d x = R[:, a], the frame's a-th axis in the world
+        direction = quat_rotate(q[k], np.eye(3)[axis]) * sign[:, None]
+        np.add.at(grad, nodes[k], direction)
+        if self.frame is not None:
+            anc = nearest_ancestor(batch.parent, batch.type, self.frame, nodes[k])
+            np.add.at(grad, anc, -direction)
+        return per_scene_min(batch.scene[nodes], value, batch.n_scenes), grad
+
 
 @dataclass(frozen=True)
 class Clearance(Constraint):
@@ -88,6 +115,21 @@ class Clearance(Constraint):
             related = lineal(i, j, batch.parent)
             i, j = i[~related], j[~related]
         return i, j
+
+    def gradient(self, batch: Any) -> tuple[FloatArray, FloatArray]:
+        """(margins, d margin / d xyz of every node), nonzero at each tree's closest pair."""
+        i, j = self.pairs(batch)
+        dx = batch.xyz[i, :2] - batch.xyz[j, :2]
+        d = np.hypot(dx[:, 0], dx[:, 1])
+        gap = d - self.radius[batch.type[i]] - self.radius[batch.type[j]]
+        best = per_scene_argmin(batch.scene[i], gap, batch.n_scenes)
+        k = best[best >= 0]
+        unit = np.zeros((len(k), 3))
+        unit[:, :2] = dx[k] / np.maximum(d[k], 1e-300)[:, None]
+        grad = np.zeros((len(batch.type), 3))
+        np.add.at(grad, i[k], unit)
+        np.add.at(grad, j[k], -unit)
+        return per_scene_min(batch.scene[i], gap, batch.n_scenes), grad
 
     def typed_pairs(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         i, j = tree_pairs(_selected(batch, self.types), batch.scene)
