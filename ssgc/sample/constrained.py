@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from ssgc.constraints.base import Constraint
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.ir import Grammar
-from ssgc.sample.staged import Outcome, rejection_batch
+from ssgc.sample.staged import Outcome, OutOfTime, rejection_batch
 from ssgc.tree import Trees
 
 BLOCK = 256
@@ -30,7 +30,8 @@ TAG = 0x5C0C  # keeps constrained streams apart from forward sampling's ([seed, 
 FIRST_ATTEMPT = 1024
 LARGEST_ATTEMPT = 65536
 
-Method = Callable[[Grammar, list[Constraint], int, np.random.Generator], Outcome]
+# (grammar, constraints, candidates, generator, deadline) -> the kept ones; may raise OutOfTime
+Method = Callable[[Grammar, list[Constraint], int, np.random.Generator, float | None], Outcome]
 METHODS: dict[str, Method] = {"rejection": rejection_batch}
 EXACT = {"rejection": True}
 
@@ -127,8 +128,9 @@ def sample_blocks(
     progress: Callable[[int], None] | None = None,
 ) -> Iterator[Block]:
     """Yield the blocks of scenes 0..n-1, in order.  Raises `Unmet` when `max_tries`
-    candidates or `time_limit` seconds are spent first (both are checked between attempts);
-    the scenes found by then are yielded first, as a last, shorter block."""
+    candidates or `time_limit` seconds are spent first (tries are checked between attempts,
+    time also between an attempt's stages); the scenes found by then are yielded first, as a
+    last, shorter block."""
     draw = METHODS[method]
     tally = tally if tally is not None else Tally()
     deadline = None if time_limit is None else time.monotonic() + time_limit
@@ -148,7 +150,12 @@ def sample_blocks(
                     yield _block(b, got, have)
                 raise _unmet(grammar, tally, n, limit)
             rng = np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, b, k + 1, TAG])
-            o = draw(grammar, constraints, attempt_size(k), rng)
+            try:
+                o = draw(grammar, constraints, attempt_size(k), rng, deadline)
+            except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
+                if have:
+                    yield _block(b, got, have)
+                raise _unmet(grammar, tally, n, f"--time-limit {time_limit:g} s") from None
             tally.add(o)
             take = min(o.trees.n_scenes, want - have)
             if o.trees.n_scenes:

@@ -26,6 +26,7 @@ types and rules.
 from __future__ import annotations
 
 import itertools
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -391,8 +392,21 @@ class Outcome:
     drawn: int
 
 
+class OutOfTime(Exception):
+    """The deadline passed during an attempt (checked between its stages)."""
+
+
+def _check(deadline: float | None) -> None:
+    if deadline is not None and time.monotonic() > deadline:
+        raise OutOfTime
+
+
 def rejection_batch(
-    grammar: Grammar, constraints: list[Constraint], size: int, rng: np.random.Generator
+    grammar: Grammar,
+    constraints: list[Constraint],
+    size: int,
+    rng: np.random.Generator,
+    deadline: float | None = None,
 ) -> Outcome:
     """Draw `size` candidates in stages; keep those that satisfy every constraint."""
     # The verdict does not depend on the order (every constraint must hold); the cost does.
@@ -409,12 +423,14 @@ def rejection_batch(
     watch.finish()
     alive = watch.alive
     pending = nodes.extend_kept(levels, alive, pending)
+    _check(deadline)
     # 2. its poses, and the pose constraints on the partial trees
     nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
     nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
     draw_poses(grammar, nodes, np.arange(len(nodes.type)), rng, logp)
     for c in pose:
         alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
+    _check(deadline)
     # 3. the rest of each surviving tree, with poses; every pose constraint on it
     pending = nodes.compact(alive, pending)
     grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), True, rng, logp)
