@@ -286,7 +286,8 @@ def bench_sample_cmd(
     seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     constraints: Annotated[
-        str | None, typer.Option(help="Valid scenes per second under: all, or NAME,NAME.")
+        str | None,
+        typer.Option(help="Valid scenes/s under: all, or NAME,NAME (-n defaults to 1,000 then)."),
     ] = None,
 ) -> None:
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
