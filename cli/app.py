@@ -173,13 +173,32 @@ def sample(
         ),
     ] = False,
     allow_outside_files: AllowOutside = False,
+    constraints: Annotated[
+        str | None,
+        typer.Option(help="Sample under constraints: all, or NAME,NAME (docs/constraints.md)."),
+    ] = None,
+    method: Annotated[str, typer.Option(help="With --constraints: auto | rejection.")] = "auto",
+    max_tries: Annotated[
+        int | None, typer.Option(min=1, help="With --constraints: stop after this many candidates.")
+    ] = None,
+    time_limit: Annotated[
+        float | None, typer.Option(min=0.001, help="With --constraints: stop after these seconds.")
+    ] = None,
 ) -> None:
     """Draw N scenes; write one JSON file per scene (objects, full tree, log-probability).
 
     Scene i depends only on the seed and i: `-n 100` extends `-n 10` without changing it, and
     `--resume` finishes an interrupted run with the files an uninterrupted one would write.
+    With --constraints, scenes follow the grammar conditioned on them; when --max-tries or
+    --time-limit run out first, the exit code is 2 and the scenes found so far are kept.
     """
     g = load_grammar(grammar, allow_outside=allow_outside_files)
+    if constraints is not None or (max_tries, time_limit) != (None, None):
+        from ssgc.cli.constrained import sample_constrained
+
+        _make_dir(output)
+        options = (constraints, method, max_tries, time_limit, resume)
+        return sample_constrained(g, n, seed, output, quiet, options, _safe_stem(g.name))
     _make_dir(output)
     first: Path | None = None  # the first and last file written, for the summary
     last: Path | None = None
@@ -266,9 +285,19 @@ def bench_sample_cmd(
     n: Annotated[int, typer.Option("-n", "--num", min=1, help="Scenes to sample.")] = 20000,
     seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    constraints: Annotated[
+        str | None,
+        typer.Option(help="Valid scenes/s under: all, or NAME,NAME (-n defaults to 1,000 then)."),
+    ] = None,
 ) -> None:
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
-    result = bench_sample(load_grammar(grammar), n, seed)
+    if constraints is not None:
+        from ssgc.bench import bench_constrained
+
+        g = load_grammar(grammar)
+        result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed)
+    else:
+        result = bench_sample(load_grammar(grammar), n, seed)
     if as_json:
         print(json.dumps(result, indent=1))
     else:

@@ -133,3 +133,48 @@ def _linearity(size: np.ndarray, seconds: np.ndarray) -> dict[str, float]:
         "smallest_nonzeros": float(size.min()),
         "largest_nonzeros": float(size.max()),
     }
+
+
+def bench_constrained(grammar: Grammar, names: str, n: int, seed: int) -> dict[str, Any]:
+    """Valid scenes per second under constraints, and where the candidates were rejected.
+
+    `n` valid scenes are drawn (after a warm-up of one small run); the acceptance rate of a
+    constraint is the share of the candidates it judged that it let through.
+    """
+    from ssgc.sample.constrained import METHODS, Tally, sample_blocks, select
+
+    chosen = select(grammar, names)
+    list(sample_blocks(grammar, chosen, 8, seed + 1))  # warm caches
+    rows = {}
+    for method in METHODS:
+        tally = Tally()
+        t0 = time.perf_counter()
+        for _ in sample_blocks(grammar, chosen, n, seed, method, tally=tally):
+            pass
+        seconds = time.perf_counter() - t0
+        rows[method] = {
+            "valid_scenes_per_second": round(n / seconds, 1),
+            "seconds": round(seconds, 3),
+            "candidates": tally.drawn,
+            "candidates_per_second": round(tally.drawn / seconds, 1),
+            "acceptance_rate": tally.kept / tally.drawn if tally.drawn else None,
+            "constraints": {
+                k: {
+                    "judged": tally.evaluated[k],
+                    "rejected": tally.rejected[k],
+                    "acceptance_rate": (
+                        1 - tally.rejected[k] / tally.evaluated[k] if tally.evaluated[k] else None
+                    ),
+                }
+                for k in tally.evaluated
+            },
+        }
+    return {
+        "grammar": grammar.name,
+        "constraints": [c.name for c in chosen],
+        "scenes": n,
+        "seed": seed,
+        "methods": rows,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+    }

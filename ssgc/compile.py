@@ -25,6 +25,7 @@ from pydantic import ValidationError
 import ssgc.laws  # noqa: F401  (registers the built-in laws)
 from ssgc import dsl
 from ssgc.checks import Finding, check_references, check_structure
+from ssgc.constraints.build import build_constraints
 from ssgc.errors import Diagnostic, GrammarError, SsgError, one_line
 from ssgc.geometry import IDENTITY_QUAT, quat_canonical, rpy_to_quat
 from ssgc.ir import Grammar, Kind, Loc, NodeType, Rule, build_tables
@@ -158,6 +159,9 @@ class Compiler(Report):
         self.add(check_references(types, rules, root, self.base_dir, self.allow_outside))
         if not self.errors and root is not None:
             self.add(check_structure(types, rules, root))
+        constraints = build_constraints(
+            self, types, rules, root, sound=not self.errors
+        )
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
         types_t, rules_t = tuple(types), tuple(rules)
@@ -172,6 +176,7 @@ class Compiler(Report):
             tables=build_tables(types_t, rules_t),
             warnings=tuple(self.warnings),
             type_ids=dict(self.ids),
+            constraints=constraints,
         )
 
     # ----------------------------------------------------------------- node types ---

@@ -365,6 +365,133 @@ class NodeType(Strict):
         return self
 
 
+# ------------------------------------------------------------------------ constraints ---
+# Scene-wide conditions the grammar itself cannot express (thesis 2.4); docs/constraints.md.
+# Each constraint is a mapping with one key naming its kind.
+
+Count_ = Annotated[int, Field(ge=0, le=1_000_000)]
+Bound = Annotated[float, Field(allow_inf_nan=False)] | None
+
+
+class CountC(Strict):
+    """How many nodes of `type` a scene tree holds."""
+
+    type: TypeName
+    min: Count_ = 0
+    max: Count_ | None = None
+
+
+class ChainC(Strict):
+    """The longest unbroken parent-to-child chain of nodes of a recursive `type`."""
+
+    type: TypeName
+    min: Count_ = 0
+    max: Count_ | None = None
+
+
+class ChildrenC(Strict):
+    """How many children the nodes of type `of` produce, summed over the tree's `of` nodes."""
+
+    of: TypeName
+    child: TypeName | None = Field(None, description="Count only children of this type.")
+    min: Count_ = 0
+    max: Count_ | None = None
+
+
+Radii = dict[TypeName, NonNegative]
+TypePair = Annotated[list[TypeName], Field(min_length=2, max_length=2)]
+
+
+class InsideBoxC(Strict):
+    """Every node of `types` has its origin inside a box given in a frame."""
+
+    types: Annotated[list[TypeName], Field(min_length=1)]
+    frame: TypeName | Literal["world"] = Field(
+        "world", description="`world`, or a type: the nearest ancestor of that type."
+    )
+    min: Annotated[list[Bound], Field(min_length=3, max_length=3)] = Field(
+        description="Box corner in the frame (m); null for an unbounded side."
+    )
+    max: Annotated[list[Bound], Field(min_length=3, max_length=3)]
+    keep_out: bool = Field(
+        False, description="The keep-out disc (x, y) must fit in the box too, not only the origin."
+    )
+    radius: Radii = Field(default_factory=dict, description="Keep-out radius per type (m).")
+
+
+class ClearanceC(Strict):
+    """Horizontal (world x-y) distance between two objects >= the sum of their keep-out radii."""
+
+    types: Annotated[list[TypeName], Field(min_length=1)]
+    radius: Radii = Field(default_factory=dict, description="Keep-out radius per type (m).")
+    exempt: list[TypePair] = Field(default_factory=list, description="Type pairs not checked.")
+    exempt_ancestors: bool = Field(
+        False, description="Do not check a node against its ancestors (stacked objects)."
+    )
+
+
+class UprightC(Strict):
+    """An axis of each object within `max_angle_deg` of an axis of a frame."""
+
+    types: Annotated[list[TypeName], Field(min_length=1)]
+    axis: Axis = "z"
+    frame: TypeName | Literal["world"] = "world"
+    frame_axis: Axis = "z"
+    max_angle_deg: Annotated[float, Field(allow_inf_nan=False, ge=0, le=180)]
+
+
+class NonPenetrationC(Strict):
+    """3-D signed distance between the geometries of two objects >= `margin`."""
+
+    types: Annotated[list[TypeName], Field(min_length=1)]
+    margin: Finite = 0.0
+    exempt: list[TypePair] = Field(default_factory=list)
+    exempt_ancestors: bool = False
+
+
+class CountSpec(Strict):
+    count: CountC
+
+
+class ChainSpec(Strict):
+    longest_chain: ChainC
+
+
+class ChildrenSpec(Strict):
+    children: ChildrenC
+
+
+class InsideBoxSpec(Strict):
+    inside_box: InsideBoxC
+
+
+class ClearanceSpec(Strict):
+    clearance: ClearanceC
+
+
+class UprightSpec(Strict):
+    upright: UprightC
+
+
+class NonPenetrationSpec(Strict):
+    non_penetration: NonPenetrationC
+
+
+ConstraintSpec = _choice(
+    (CountSpec, "count"),
+    (ChainSpec, "longest_chain"),
+    (ChildrenSpec, "children"),
+    (InsideBoxSpec, "inside_box"),
+    (ClearanceSpec, "clearance"),
+    (UprightSpec, "upright"),
+    (NonPenetrationSpec, "non_penetration"),
+    what="constraint",
+)
+ConstraintName = Annotated[
+    str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_-]*$", max_length=200)
+]
+
+
 class Root(Strict):
     type: TypeName
     pose: Pose = Field(default_factory=Pose)
@@ -379,6 +506,9 @@ class GrammarDoc(Strict):
     description: str | None = None
     root: Root | TypeName = Field(description="Root type, or {type, pose}.")
     types: dict[TypeName, NodeType] = Field(min_length=1)
+    constraints: dict[ConstraintName, ConstraintSpec] = Field(  # type: ignore[valid-type]
+        default_factory=dict, description="Named scene constraints (docs/constraints.md)."
+    )
 
     @property
     def root_spec(self) -> Root:

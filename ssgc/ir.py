@@ -117,6 +117,7 @@ class Grammar:
     tables: Tables
     warnings: tuple[Diagnostic, ...] = ()
     type_ids: dict[str, int] = field(default_factory=dict)
+    constraints: tuple[Any, ...] = ()  # ssgc.constraints.Constraint, in file order
 
     def type_id(self, name: str) -> int:
         return self.type_ids[name]

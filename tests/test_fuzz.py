@@ -422,6 +422,32 @@ node_type = mapping(
         "repeat": mapping({"count": sometimes_junk(count), "rule": sometimes_junk(rule)}),
     },
 )
+bound = st.one_of(st.integers(-2, 12), numbers, st.none())
+type_list = st.one_of(st.lists(type_names, max_size=3), junk)
+axis = st.sampled_from(["x", "y", "z", "w"])
+exempt = st.one_of(st.lists(st.lists(type_names, max_size=3), max_size=2), junk)
+radius = st.one_of(st.dictionaries(type_names, numbers, max_size=2), junk)
+box_corner = st.one_of(st.lists(st.one_of(numbers, st.none()), min_size=3, max_size=3), junk)
+constraint = one_of_keys(
+    {
+        "count": mapping({"type": type_names}, {"min": bound, "max": bound}),
+        "longest_chain": mapping({"type": type_names}, {"min": bound, "max": bound}),
+        "children": mapping({"of": type_names}, {"child": type_names, "min": bound, "max": bound}),
+        "inside_box": mapping(
+            {"types": type_list, "min": box_corner, "max": box_corner},
+            {"frame": type_names, "keep_out": st.booleans(), "radius": radius},
+        ),
+        "clearance": mapping(
+            {"types": type_list},
+            {"radius": radius, "exempt": exempt, "exempt_ancestors": st.booleans()},
+        ),
+        "upright": mapping(
+            {"types": type_list, "max_angle_deg": numbers},
+            {"axis": axis, "frame": type_names, "frame_axis": axis},
+        ),
+        "non_penetration": mapping({"types": type_list}, {"margin": numbers, "exempt": exempt}),
+    }
+)
 grammar_doc = mapping(
     {
         "grammar": sometimes_junk(names),
@@ -430,7 +456,12 @@ grammar_doc = mapping(
             st.dictionaries(type_names, sometimes_junk(node_type), min_size=1, max_size=5), junk
         ),
     },
-    {"description": sometimes_junk(st.text(max_size=20))},
+    {
+        "description": sometimes_junk(st.text(max_size=20)),
+        "constraints": st.one_of(
+            st.dictionaries(names, sometimes_junk(constraint), max_size=3), junk
+        ),
+    },
 )
 
 
@@ -857,6 +888,16 @@ def test_fuzz_sample(work: Path, data: bytes) -> None:
     path = write(work / "grammar.yaml", data)
     result, seconds = invoke(["sample", str(path), "-n", "2", "-o", str(work / "out"), "-q"])
     check(result, seconds, {0, 1}, [path, work / "out"], data)
+
+
+@fuzz(quick=40)
+@given(data=grammar_inputs(), names=st.sampled_from(["all", "all", "a,b", "", ","]))
+def test_fuzz_sample_constrained(work: Path, data: bytes, names: str) -> None:
+    path = write(work / "grammar.yaml", data)
+    out = work / "out_constrained"
+    args = ["sample", str(path), "-n", "2", "-o", str(out), "-q", "--constraints", names]
+    result, seconds = invoke([*args, "--max-tries", "3000", "--time-limit", "20"])
+    check(result, seconds, {0, 1, 2}, [path, out], data)
 
 
 def check_parse(work: Path, data: bytes, suffix: str, grammar: str) -> None:

@@ -146,7 +146,7 @@ def _choose_rules(
                 grammar.file,
             )
 
-    for t in np.unique(f_type):
+    for t in np.flatnonzero(np.bincount(f_type, minlength=len(grammar.types))):  # unique, fast
         node = grammar.types[t]
         if node.kind == Kind.TERMINAL:
             continue

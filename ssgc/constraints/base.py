@@ -1,0 +1,169 @@
+"""What every constraint kind shares, and the array helpers they are built from.
+
+A batch of trees is anything with the flat node arrays of `ssgc.tree.Trees` (`scene`, `type`,
+`parent`, `n_scenes`; pose constraints also `xyz`, `quat`).  Parents must come before their
+children, but nodes need not be grouped by tree: the structure sampler evaluates structural
+constraints on level-major arrays without reordering them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+IntArray = NDArray[np.int64]
+FloatArray = NDArray[np.float64]
+Loc = tuple[str | int, ...]
+
+
+class NodeBatch(Protocol):
+    scene: IntArray
+    type: IntArray
+    parent: IntArray
+    n_scenes: int
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """A named constraint; subclasses set `kind` and implement `margin`."""
+
+    name: str
+    path: Loc
+    kind: ClassVar[str] = ""  # "structure" or "pose"
+    word: ClassVar[str] = ""  # its key in the grammar file
+    rank: ClassVar[int] = 1  # evaluation order among pose constraints: likely rejecters first
+
+    def margin(self, batch: Any) -> FloatArray:  # pragma: no cover - abstract
+        """(n_scenes,) margins: >= 0 holds; +inf when there is nothing to check."""
+        raise NotImplementedError
+
+
+def satisfied(margins: FloatArray) -> NDArray[np.bool_]:
+    return margins >= 0
+
+
+def per_scene_min(scene: IntArray, values: FloatArray, n_scenes: int) -> FloatArray:
+    """Minimum of `values` per tree; +inf for a tree with none."""
+    out = np.full(n_scenes, np.inf)
+    if len(values):
+        np.minimum.at(out, scene, values)
+    return out
+
+
+def per_scene_argmin(scene: IntArray, values: FloatArray, n_scenes: int) -> IntArray:
+    """Per tree, the index (into `values`) of its smallest value; -1 for a tree with none."""
+    out = np.full(n_scenes, -1, np.int64)
+    if len(values):
+        order = np.lexsort((values, scene))
+        first = np.r_[True, scene[order][1:] != scene[order][:-1]]
+        out[scene[order][first]] = order[first]
+    return out
+
+
+def range_margin(value: NDArray[Any], lo: float, hi: float | None) -> FloatArray:
+    """How far an integer statistic is inside [lo, hi] (negative: outside)."""
+    v = value.astype(np.float64)
+    low = v - lo
+    return low if hi is None else np.minimum(low, hi - v)
+
+
+def nearest_ancestor(
+    parent: IntArray, type_: IntArray, of_type: int, nodes: IntArray | None = None
+) -> IntArray:
+    """For each of `nodes` (default all), its nearest proper ancestor of type `of_type`; -1
+    if there is none.  One vectorised step per tree level."""
+    nodes = np.arange(len(parent)) if nodes is None else nodes
+    out = np.full(len(nodes), -1, np.int64)
+    anc = parent[nodes]
+    idx = np.flatnonzero(anc >= 0)
+    while len(idx):
+        hit = type_[anc[idx]] == of_type
+        out[idx[hit]] = anc[idx[hit]]
+        idx = idx[~hit]
+        anc[idx] = parent[anc[idx]]
+        idx = idx[anc[idx] >= 0]
+    return out
+
+
+def depths(parent: IntArray) -> IntArray:
+    """Depth of every node (roots 0), one vectorised step per level."""
+    depth = np.zeros(len(parent), np.int64)
+    anc = parent.copy()
+    live = np.flatnonzero(anc >= 0)
+    while len(live):
+        depth[live] += 1
+        anc[live] = parent[anc[live]]
+        live = live[anc[live] >= 0]
+    return depth
+
+
+def ancestor_table(parent: IntArray) -> tuple[IntArray, IntArray]:
+    """(depth, table): table[n, d] is node n's ancestor at depth d (itself at its own depth,
+    -1 below it).  Parents must come before children."""
+    depth = depths(parent)
+    top = int(depth.max(initial=0)) + 1
+    table = np.full((len(parent), top), -1, np.int64)
+    for d in range(top):
+        at = np.flatnonzero(depth == d)
+        if d:
+            table[at, :d] = table[parent[at], :d]
+        table[at, d] = at
+    return depth, table
+
+
+def lineal(a: IntArray, b: IntArray, parent: IntArray) -> NDArray[np.bool_]:
+    """Pairwise: is one of nodes a[k], b[k] an ancestor of the other?"""
+    if not len(a):
+        return np.zeros(0, bool)
+    depth, table = ancestor_table(parent)
+    da, db = depth[a], depth[b]
+    hi = np.where(da < db, a, b)  # the shallower node
+    lo = np.where(da < db, b, a)
+    return (da != db) & (table[lo, np.minimum(da, db)] == hi)
+
+
+def lineal_few(a: IntArray, b: IntArray, parent: IntArray) -> NDArray[np.bool_]:
+    """`lineal` for a few pairs: walks up from both nodes (one step per level), without the
+    whole batch's ancestor table."""
+    out = np.zeros(len(a), bool)
+    for x, y in ((a, b), (b, a)):
+        cur = parent[y]
+        live = np.flatnonzero(cur >= 0)
+        while len(live):
+            out[live[cur[live] == x[live]]] = True
+            cur[live] = parent[cur[live]]
+            live = live[cur[live] >= 0]
+    return out
+
+
+def tree_pairs(nodes: IntArray, scene: IntArray) -> tuple[IntArray, IntArray]:
+    """Every unordered pair (i, j) of `nodes` that lie in the same tree, as two index arrays."""
+    if len(nodes) < 2:
+        empty = np.zeros(0, np.int64)
+        return empty, empty
+    order = nodes[np.argsort(scene[nodes], kind="stable")]
+    s = scene[order]
+    start = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
+    size = np.diff(np.r_[start, len(order)])
+    pos = np.arange(len(order)) - np.repeat(start, size)  # position within its tree
+    partners = np.repeat(size, size) - 1 - pos  # later nodes of the same tree
+    first = np.repeat(np.arange(len(order)), partners)
+    offset = np.arange(len(first)) - np.repeat(np.cumsum(partners) - partners, partners)
+    return order[first], order[first + 1 + offset]
+
+
+def type_mask(type_ids: list[int], n_types: int) -> NDArray[np.bool_]:
+    mask = np.zeros(n_types, bool)
+    mask[type_ids] = True
+    return mask
+
+
+def pair_table(pairs: list[tuple[int, int]], n_types: int) -> NDArray[np.bool_]:
+    """Symmetric (type, type) table of exempt pairs."""
+    table = np.zeros((n_types, n_types), bool)
+    for a, b in pairs:
+        table[a, b] = table[b, a] = True
+    return table

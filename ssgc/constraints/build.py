@@ -1,0 +1,385 @@
+"""The `constraints:` section of a grammar document → constraint objects, with every check.
+
+Called once by `ssgc.compile.Compiler.run`; messages go through the compiler, so they are
+located (file:line:col) like every other grammar error.  Besides names (types, frames), it
+flags constraints that no tree can satisfy: count bounds outside what the grammar can
+produce, boxes narrower than an object's keep-out disc, frames an object can lack.
+"""
+
+from __future__ import annotations
+
+import sys
+from functools import cache
+from typing import Any
+
+import numpy as np
+
+from ssgc import dsl
+from ssgc.constraints.base import Constraint, Loc, pair_table, type_mask
+from ssgc.constraints.penetration import NonPenetration
+from ssgc.constraints.pose import Clearance, InsideBox, Upright
+from ssgc.constraints.shapes import ShapeError, bounding_radius, collision_shape, keep_out_radius
+from ssgc.constraints.structural import Children, Count, LongestChain
+from ssgc.ir import Kind, NodeType, Rule
+
+MAX_STATES = 200_000  # feasibility of count bounds is checked only below this many states
+AXIS = {"x": 0, "y": 1, "z": 2}
+
+
+def build_constraints(
+    compiler: Any, types: list[NodeType], rules: list[Rule], root: int | None, sound: bool
+) -> tuple[Constraint, ...]:
+    """Lower and check every constraint.  `sound`: the grammar itself had no error, so its
+    recursion is bounded and the can-never-hold checks may explore it."""
+    b = _Builder(compiler, types, rules, root if sound else None)
+    out = []
+    for name, spec in compiler.doc.constraints.items():
+        c = b.build(name, spec, ("constraints", name))
+        if c is not None:
+            out.append(c)
+    return tuple(out)
+
+
+class _Builder:
+    def __init__(self, compiler: Any, types: list[NodeType], rules: list[Rule], root: int | None):
+        self.c = compiler
+        self.types = types
+        self.rules = rules
+        self.root = root
+        self.n = len(types)
+
+    # ----------------------------------------------------------------- names ---
+
+    def type_id(self, name: str, loc: Loc, what: str = "type") -> int | None:
+        tid = self.c.ids.get(name)
+        if tid is None:
+            self.c.unknown_type(loc, name, what)
+        return tid
+
+    def type_ids(self, names: list[str], loc: Loc) -> list[int] | None:
+        ids = [self.type_id(n, (*loc, i)) for i, n in enumerate(names)]
+        return None if any(i is None for i in ids) else [int(i) for i in ids]  # type: ignore[arg-type]
+
+    def frame(self, name: str, loc: Loc, listed: list[int]) -> int | bool | None:
+        """None for the world, a type id, or False after an error."""
+        if name == "world":
+            return None
+        tid = self.type_id(name, loc, "frame type")
+        if tid is None:
+            return False
+        if self.root is not None:
+            for t in listed:
+                if self.reachable_avoiding(t, tid):
+                    self.c.error(
+                        loc,
+                        f"a '{self.types[t].name}' can occur without a '{name}' above it, so it "
+                        "has no frame to be checked in",
+                    )
+                    return False
+        return tid
+
+    def reachable_avoiding(self, target: int, avoid: int) -> bool:
+        """Can `target` be produced by a chain of rules from the root that skips `avoid`?"""
+        assert self.root is not None
+        if self.root == avoid:
+            return False
+        seen, stack = {self.root}, [self.root]
+        while stack:
+            t = stack.pop()
+            if t == target:
+                return True
+            for rid in self.types[t].rules:
+                child = self.rules[rid].child
+                if child != avoid and child not in seen:
+                    seen.add(child)
+                    stack.append(child)
+        return False
+
+    # ----------------------------------------------------------------- build ---
+
+    def build(self, name: str, spec: Any, loc: Loc) -> Constraint | None:
+        if isinstance(spec, dsl.CountSpec):
+            return self.count(name, spec.count, (*loc, "count"))
+        if isinstance(spec, dsl.ChainSpec):
+            return self.chain(name, spec.longest_chain, (*loc, "longest_chain"))
+        if isinstance(spec, dsl.ChildrenSpec):
+            return self.children(name, spec.children, (*loc, "children"))
+        if isinstance(spec, dsl.InsideBoxSpec):
+            return self.inside_box(name, spec.inside_box, (*loc, "inside_box"))
+        if isinstance(spec, dsl.ClearanceSpec):
+            return self.clearance(name, spec.clearance, (*loc, "clearance"))
+        if isinstance(spec, dsl.UprightSpec):
+            return self.upright(name, spec.upright, (*loc, "upright"))
+        return self.non_penetration(name, spec.non_penetration, (*loc, "non_penetration"))
+
+    def bounds(self, spec: Any, loc: Loc, possible: tuple[int, int] | None, what: str) -> bool:
+        """min <= max, and [min, max] meets what the grammar can produce."""
+        if spec.max is not None and spec.min > spec.max:
+            self.c.error((*loc, "max"), f"max {spec.max} is below min {spec.min}")
+            return False
+        if possible is None:
+            return True
+        lo, hi = possible
+        if spec.min > hi:
+            self.c.error(
+                (*loc, "min"),
+                f"can never hold: {what} is at most {hi} in any tree, min is {spec.min}",
+            )
+            return False
+        if spec.max is not None and spec.max < lo:
+            self.c.error(
+                (*loc, "max"),
+                f"can never hold: {what} is at least {lo} in every tree, max is {spec.max}",
+            )
+            return False
+        return True
+
+    def count(self, name: str, s: dsl.CountC, loc: Loc) -> Constraint | None:
+        t = self.type_id(s.type, (*loc, "type"))
+        if t is None:
+            return None
+        possible = self.count_range(lambda tt: int(tt == t))
+        if not self.bounds(s, loc, possible, f"the number of '{s.type}' nodes"):
+            return None
+        return Count(name, loc, type_id=t, lo=s.min, hi=s.max)
+
+    def chain(self, name: str, s: dsl.ChainC, loc: Loc) -> Constraint | None:
+        t = self.type_id(s.type, (*loc, "type"))
+        if t is None:
+            return None
+        node = self.types[t]
+        direct = any(self.rules[r].child == t for r in node.rules)
+        top = (node.max_nesting or 1) if direct else 1
+        present = self.count_range(lambda tt: int(tt == t))
+        possible = None if present is None else (min(1, present[0]), top if present[1] else 0)
+        if not self.bounds(s, loc, possible, f"the longest chain of '{s.type}'"):
+            return None
+        return LongestChain(name, loc, type_id=t, lo=s.min, hi=s.max)
+
+    def children(self, name: str, s: dsl.ChildrenC, loc: Loc) -> Constraint | None:
+        of = self.type_id(s.of, (*loc, "of"))
+        child = self.type_id(s.child, (*loc, "child")) if s.child is not None else None
+        if of is None or (s.child is not None and child is None):
+            return None
+
+        def produced(tt: int) -> tuple[int, int]:  # children of a node of type `of`
+            return (0, 0) if tt != of else self.child_range(of, child)
+
+        possible = self.count_range(lambda tt: 0, per_node=produced)
+        what = f"the number of children of '{s.of}' nodes"
+        if not self.bounds(s, loc, possible, what):
+            return None
+        return Children(name, loc, of=of, child=child, lo=s.min, hi=s.max)
+
+    # ---------------------------------------------------------------- radii ---
+
+    def radii(self, ids: list[int], given: dict[str, float], loc: Loc, needed: bool) -> Any:
+        r = np.zeros(self.n)
+        ok = True
+        for key, value in given.items():
+            t = self.type_id(key, (*loc, "radius", key))
+            if t is None:
+                ok = False
+            elif t not in ids:
+                self.c.error(
+                    (*loc, "radius", key), f"'{key}' is not one of this constraint's types"
+                )
+                ok = False
+            else:
+                r[t] = value
+        if needed:
+            for t in ids:
+                tname = self.types[t].name
+                if tname in given:
+                    continue
+                try:
+                    r[t] = keep_out_radius(self.types[t].geometry, self.c.base_dir)
+                except ShapeError as exc:
+                    self.c.error(
+                        (*loc, "types"),
+                        f"no keep-out radius for '{tname}': {exc}; give it under `radius`",
+                    )
+                    ok = False
+        return r if ok else None
+
+    def exempt(self, pairs: list[list[str]], loc: Loc) -> Any:
+        ids = []
+        for k, (a, b) in enumerate(pairs):
+            ta = self.type_id(a, (*loc, "exempt", k, 0))
+            tb = self.type_id(b, (*loc, "exempt", k, 1))
+            if ta is None or tb is None:
+                return None
+            ids.append((ta, tb))
+        return pair_table(ids, self.n)
+
+    # ----------------------------------------------------------------- pose ---
+
+    def inside_box(self, name: str, s: dsl.InsideBoxC, loc: Loc) -> Constraint | None:
+        ids = self.type_ids(s.types, (*loc, "types"))
+        if ids is None:
+            return None
+        frame = self.frame(s.frame, (*loc, "frame"), ids)
+        r = self.radii(ids, s.radius, loc, s.keep_out)
+        if frame is False or r is None:
+            return None
+        lo = np.array([np.nan if v is None else v for v in s.min])
+        hi = np.array([np.nan if v is None else v for v in s.max])
+        for axis in range(3):
+            if s.min[axis] is not None and s.max[axis] is not None and lo[axis] > hi[axis]:
+                self.c.error((*loc, "max"), f"box max is below min on the {'xyz'[axis]} axis")
+                return None
+        if s.keep_out:
+            width = np.nanmin(np.where(np.isnan(hi - lo), np.inf, hi - lo)[:2])
+            for t in ids:
+                if 2 * r[t] > width:
+                    self.c.error(
+                        (*loc, "types"),
+                        f"can never hold: the box is {width:g} m wide, narrower than the "
+                        f"keep-out disc of '{self.types[t].name}' ({2 * r[t]:g} m across)",
+                    )
+                    return None
+        if not s.keep_out:
+            r = np.zeros(self.n)
+        return InsideBox(
+            name, loc, types=type_mask(ids, self.n), frame=frame, lo=lo, hi=hi, radius=r
+        )
+
+    def clearance(self, name: str, s: dsl.ClearanceC, loc: Loc) -> Constraint | None:
+        ids = self.type_ids(s.types, (*loc, "types"))
+        if ids is None:
+            return None
+        r = self.radii(ids, s.radius, loc, True)
+        ex = self.exempt(s.exempt, loc)
+        if r is None or ex is None:
+            return None
+        return Clearance(
+            name,
+            loc,
+            types=type_mask(ids, self.n),
+            radius=r,
+            exempt=ex,
+            exempt_ancestors=s.exempt_ancestors,
+        )
+
+    def upright(self, name: str, s: dsl.UprightC, loc: Loc) -> Constraint | None:
+        ids = self.type_ids(s.types, (*loc, "types"))
+        if ids is None:
+            return None
+        frame = self.frame(s.frame, (*loc, "frame"), ids)
+        if frame is False:
+            return None
+        return Upright(
+            name,
+            loc,
+            types=type_mask(ids, self.n),
+            axis=AXIS[s.axis],
+            frame=frame,
+            frame_axis=AXIS[s.frame_axis],
+            max_angle=float(np.radians(s.max_angle_deg)),
+        )
+
+    def non_penetration(self, name: str, s: dsl.NonPenetrationC, loc: Loc) -> Constraint | None:
+        ids = self.type_ids(s.types, (*loc, "types"))
+        ex = self.exempt(s.exempt, loc)
+        if ids is None or ex is None:
+            return None
+        shapes: list[Any] = [None] * self.n
+        r = np.zeros(self.n)
+        for t in ids:
+            try:
+                shapes[t] = collision_shape(self.types[t].geometry, self.c.base_dir)
+                r[t] = bounding_radius(self.types[t].geometry, self.c.base_dir)
+            except ShapeError as exc:
+                self.c.error((*loc, "types"), f"cannot check '{self.types[t].name}': {exc}")
+                return None
+        sel = Clearance(
+            name,
+            loc,
+            types=type_mask(ids, self.n),
+            radius=r,
+            exempt=ex,
+            exempt_ancestors=s.exempt_ancestors,
+        )
+        return NonPenetration(name, loc, pairs_of=sel, shapes=tuple(shapes), gap=s.margin)
+
+    # ------------------------------------------------- what the grammar can produce ---
+
+    def child_range(self, of: int, child: int | None) -> tuple[int, int]:
+        """Fewest and most children one node of type `of` can produce (of type `child`)."""
+        node = self.types[of]
+        hits = [int(child is None or self.rules[r].child == child) for r in node.rules]
+        if node.kind == Kind.AND:
+            return sum(hits), sum(hits)
+        if node.kind == Kind.OR:
+            live = [h for h, p in zip(hits, node.probs, strict=True) if p > 0]
+            return min(live, default=0), max(live, default=0)
+        if node.kind == Kind.INDEPENDENT:
+            sure = sum(h for h, p in zip(hits, node.probs, strict=True) if p >= 1)
+            return sure, sum(h for h, p in zip(hits, node.probs, strict=True) if p > 0)
+        if node.kind == Kind.REPEAT and node.count is not None and hits and hits[0]:
+            possible = np.flatnonzero(node.count.probs > 0)
+            return int(possible.min()), int(possible.max())
+        return 0, 0
+
+    def count_range(self, own: Any, per_node: Any = None) -> tuple[int, int] | None:
+        """Fewest and most of a per-node quantity summed over a tree (`own(type)` counts each
+        node; `per_node(type)` a range per node), respecting `max_nesting`; None when the
+        grammar has errors or too many nesting states to explore."""
+        if self.root is None:
+            return None
+        bounded = [t.id for t in self.types if t.max_nesting is not None]
+        slot = {t: i for i, t in enumerate(bounded)}
+        limit = [self.types[t].max_nesting for t in bounded]
+        states = [0]
+
+        @cache
+        def rng(t: int, nest: tuple[int, ...]) -> tuple[int, int]:
+            states[0] += 1
+            if states[0] > MAX_STATES:
+                raise _TooBig
+            lo = hi = own(t)
+            if per_node is not None:
+                a, b = per_node(t)
+                lo, hi = lo + a, hi + b
+            node = self.types[t]
+            kids = []
+            for rid in node.rules:
+                c = self.rules[rid].child
+                depth = nest
+                if c in slot:
+                    i = slot[c]
+                    if nest[i] >= limit[i]:
+                        kids.append(None)  # blocked
+                        continue
+                    depth = (*nest[:i], nest[i] + 1, *nest[i + 1 :])
+                kids.append(rng(c, depth))
+            live = [(k, p) for k, p in zip(kids, node.probs, strict=True) if k is not None]
+            if node.kind == Kind.AND:
+                lo += sum(k[0] for k, _ in live)
+                hi += sum(k[1] for k, _ in live)
+            elif node.kind == Kind.OR and live:
+                lo += min(k[0] for k, p in live if p > 0) if any(p > 0 for _, p in live) else 0
+                hi += max((k[1] for k, p in live if p > 0), default=0)
+            elif node.kind == Kind.INDEPENDENT:
+                lo += sum(k[0] for k, p in live if p >= 1)
+                hi += sum(k[1] for k, p in live if p > 0)
+            elif node.kind == Kind.REPEAT and live and node.count is not None:
+                possible = np.flatnonzero(node.count.probs > 0)
+                k = live[0][0]
+                lo += int(possible.min()) * k[0]
+                hi += int(possible.max()) * k[1]
+            return lo, hi
+
+        start = tuple(1 if t == self.root else 0 for t in bounded)
+        old = sys.getrecursionlimit()
+        try:
+            sys.setrecursionlimit(max(old, 20_000))
+            return rng(self.root, start)
+        except (_TooBig, RecursionError):
+            return None
+        finally:
+            sys.setrecursionlimit(old)
+
+
+class _TooBig(Exception):
+    pass

@@ -1,0 +1,206 @@
+"""`ssg sample --constraints`: scenes of P(T | constraints), reproducibly, by a chosen method.
+
+Seeding: scenes are made in blocks of `BLOCK`; block b draws its candidates in attempts
+k = 0, 1, ... of growing size (`attempt_size(k)`), attempt k with the generator
+``default_rng([seed, b, k + 1, TAG])``, and scene b*BLOCK + j is the j-th candidate of block
+b that satisfies the constraints.  So scene i depends only on the seed and i (and the
+method), never on how many scenes were asked for, or on any time or try limit.
+
+Methods are registered in `METHODS` by name; each is one function drawing one attempt.  Only
+`rejection` (exact, `ssgc.sample.staged`) exists today; `auto` picks it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.constraints.base import Constraint
+from ssgc.errors import Diagnostic, SsgError
+from ssgc.ir import Grammar
+from ssgc.sample.staged import Outcome, OutOfTime, rejection_batch
+from ssgc.tree import Trees
+
+BLOCK = 256
+TAG = 0x5C0C  # keeps constrained streams apart from forward sampling's ([seed, chunk])
+FIRST_ATTEMPT = 1024
+LARGEST_ATTEMPT = 65536
+
+# (grammar, constraints, candidates, generator, deadline) -> the kept ones; may raise OutOfTime
+Method = Callable[[Grammar, list[Constraint], int, np.random.Generator, float | None], Outcome]
+METHODS: dict[str, Method] = {"rejection": rejection_batch}
+EXACT = {"rejection": True}
+
+
+def attempt_size(k: int) -> int:
+    return min(LARGEST_ATTEMPT, FIRST_ATTEMPT << min(k, 16))
+
+
+def select(grammar: Grammar, names: str | None) -> list[Constraint]:
+    """The constraints `--constraints` names: `all`, or a comma-separated list of names."""
+    if names is None:
+        return []
+    known = {c.name: c for c in grammar.constraints}
+    if names.strip() == "all":
+        if not known:
+            raise SsgError.single(f"grammar '{grammar.name}' declares no constraints", grammar.file)
+        return list(known.values())
+    wanted = [n.strip() for n in names.split(",") if n.strip()]
+    unknown = [n for n in wanted if n not in known]
+    if unknown or not wanted:
+        have = ", ".join(known) or "none"
+        raise SsgError.single(
+            f"unknown constraint {', '.join(repr(n) for n in unknown) or '(empty list)'}; "
+            f"this grammar declares: {have}",
+            grammar.file,
+        )
+    return [known[n] for n in dict.fromkeys(wanted)]
+
+
+def choose_method(method: str, constraints: list[Constraint]) -> str:
+    """`auto` picks per constraint kind; today every kind goes to exact rejection."""
+    if method == "auto":
+        return "rejection"
+    if method not in METHODS:
+        raise SsgError.single(
+            f"unknown sampling method '{method}'; expected auto or one of: {', '.join(METHODS)}"
+        )
+    return method
+
+
+@dataclass
+class Tally:
+    """What the constraints did over a whole run (for the failure message and the bench)."""
+
+    drawn: int = 0
+    kept: int = 0
+    evaluated: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+    best: dict[str, float] = field(default_factory=dict)
+
+    def add(self, o: Outcome) -> None:
+        self.drawn += o.drawn
+        self.kept += o.trees.n_scenes
+        for k in o.evaluated:
+            self.evaluated[k] = self.evaluated.get(k, 0) + o.evaluated[k]
+            self.rejected[k] = self.rejected.get(k, 0) + o.rejected[k]
+            self.best[k] = max(self.best.get(k, -np.inf), o.best[k])
+
+    def report(self) -> list[str]:
+        lines = []
+        for k in self.evaluated:
+            best = self.best[k]
+            closest = f"; the closest rejected came to {best:.4g}" if np.isfinite(best) else ""
+            lines.append(
+                f"constraint '{k}' rejected {self.rejected[k]:,} of the "
+                f"{self.evaluated[k]:,} candidates it judged{closest}"
+            )
+        return lines
+
+
+@dataclass
+class Block:
+    """The scenes of one block, in order: trees, log-probabilities and margins."""
+
+    index: int
+    trees: Trees
+    logp: NDArray[np.float64]
+    margins: dict[str, NDArray[np.float64]]
+
+
+class Unmet(SsgError):
+    """The try or time budget ran out before the scenes were found (exit 2)."""
+
+
+def sample_blocks(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    n: int,
+    seed: int,
+    method: str = "rejection",
+    max_tries: int | None = None,
+    time_limit: float | None = None,
+    tally: Tally | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Iterator[Block]:
+    """Yield the blocks of scenes 0..n-1, in order.  Raises `Unmet` when `max_tries`
+    candidates or `time_limit` seconds are spent first (tries are checked between attempts,
+    time also between an attempt's stages); the scenes found by then are yielded first, as a
+    last, shorter block."""
+    draw = METHODS[method]
+    tally = tally if tally is not None else Tally()
+    deadline = None if time_limit is None else time.monotonic() + time_limit
+    for b in range((n + BLOCK - 1) // BLOCK):
+        want = min(BLOCK, n - b * BLOCK)
+        got: list[Outcome] = []
+        have = 0
+        k = 0
+        while have < want:
+            limit = None
+            if max_tries is not None and tally.drawn >= max_tries:
+                limit = f"--max-tries {max_tries:,} candidates"
+            elif deadline is not None and time.monotonic() > deadline:
+                limit = f"--time-limit {time_limit:g} s"
+            if limit is not None:
+                if have:  # the scenes found are final: scene b*BLOCK + j never changes
+                    yield _block(b, got, have)
+                raise _unmet(grammar, tally, n, limit)
+            rng = np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, b, k + 1, TAG])
+            try:
+                o = draw(grammar, constraints, attempt_size(k), rng, deadline)
+            except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
+                if have:
+                    yield _block(b, got, have)
+                raise _unmet(grammar, tally, n, f"--time-limit {time_limit:g} s") from None
+            tally.add(o)
+            take = min(o.trees.n_scenes, want - have)
+            if o.trees.n_scenes:
+                got.append(o)
+            if progress is not None and take:
+                progress(take)
+            have += take
+            k += 1
+        yield _block(b, got, want)
+
+
+def _block(index: int, outcomes: list[Outcome], want: int) -> Block:
+    trees = Trees.concatenate([o.trees for o in outcomes])
+    logp = np.concatenate([o.logp for o in outcomes])[:want]
+    names = outcomes[0].margins.keys()
+    margins = {k: np.concatenate([o.margins[k] for o in outcomes])[:want] for k in names}
+    if trees.n_scenes > want:
+        end = int(trees.offsets[want])
+        trees = Trees(
+            trees.scene[:end],
+            trees.type[:end],
+            trees.parent[:end],
+            trees.rule[:end],
+            trees.xyz[:end],
+            trees.quat[:end],
+            want,
+        )
+    return Block(index, trees, logp, margins)
+
+
+def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str) -> Unmet:
+    head = (
+        f"found {tally.kept:,} of the {n:,} requested scene(s) satisfying the constraints "
+        f"after {tally.drawn:,} candidates ({limit})"
+    )
+    lines = [head, *tally.report()]
+    return Unmet([Diagnostic(line, grammar.file) for line in lines], exit_code=2)
+
+
+def scene_metadata(method: str, names: list[str], margins: dict[str, NDArray], k: int) -> dict:  # type: ignore[type-arg]
+    """What a scene file records about how it was sampled: method and each margin."""
+    return {
+        "sampler": {"method": method, "exact": EXACT.get(method, False)},
+        "constraints": {
+            name: (float(margins[name][k]) if np.isfinite(margins[name][k]) else None)
+            for name in names
+        },
+    }

@@ -1,0 +1,504 @@
+"""Exact rejection sampling under constraints, in stages that stop drawing a doomed candidate.
+
+Plain rejection draws a whole tree (structure and poses) from P(T) and keeps it when every
+constraint holds; the kept trees are exactly P(T | constraints).  This module makes the same
+accept/reject decision for each candidate, but draws as little of the candidate as decides it:
+
+1. **Structure of the relevant part.**  Only nodes of types from which a structurally
+   constrained type can be reached are expanded (no poses).  Other nodes stay *pending*: they
+   can never add or remove a constrained node, so the structural margins are final.
+2. **Poses of that part**, for the candidates whose structure passed, drawn from the
+   grammar's own rules.  Pose margins are minima over nodes or pairs, so they can only fall
+   when more nodes are added: a partial tree that already violates one is rejected.
+3. **The rest**: pending nodes of the survivors are expanded with poses (forward sampling
+   from them), and every pose constraint is evaluated on the complete tree.
+
+Every random choice of a candidate is drawn from the grammar's law given what was drawn
+before (subtrees are independent given their root's pose, so the order does not matter), and
+a candidate is kept iff its complete tree satisfies every constraint: the kept candidates are
+i.i.d. draws of P(T | C).  A rejected structure is never reused with new poses: that would
+sample structures by P(S) instead of P(S) P(poses ok | S) (thesis 2.7.3; docs/constraints.md).
+
+Everything is vectorised over a batch of candidates; the Python loops run over tree levels,
+types and rules.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.constraints.base import Constraint, range_margin
+from ssgc.constraints.structural import Children, Count, LongestChain
+from ssgc.ir import Grammar, Kind
+from ssgc.rules import sample_children
+from ssgc.sample.forward import MAX_CHUNK_NODES, MAX_LEVELS, _choose_rules
+from ssgc.tree import Trees
+
+IntArray = NDArray[np.int64]
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class Nodes:
+    """A level-major node store of many candidate trees (parents before children).
+
+    Poses are absent (None) until the structure stage is over and the store is compacted to
+    the surviving candidates."""
+
+    scene: IntArray
+    type: IntArray
+    parent: IntArray
+    rule: IntArray
+    depth: IntArray
+    nest: IntArray  # (N, B) nesting depth of every bounded type
+    n_scenes: int
+    xyz: FloatArray | None = None
+    quat: FloatArray | None = None
+
+    def extend(self, levels: list[dict[str, NDArray]]) -> None:  # type: ignore[type-arg]
+        if not levels:
+            return
+        for key in levels[0]:
+            setattr(self, key, np.concatenate([getattr(self, key), *(lv[key] for lv in levels)]))
+
+    def extend_kept(
+        self,
+        levels: list[dict[str, NDArray]],
+        keep_scene: NDArray[np.bool_],
+        pending: IntArray,  # type: ignore[type-arg]
+    ) -> IntArray:
+        """`extend` and `compact` in one pass: only the kept candidates' nodes are copied."""
+        masks = [keep_scene[self.scene]] + [keep_scene[lv["scene"]] for lv in levels]
+        keep = np.concatenate(masks)
+        new = np.cumsum(keep) - 1
+        new[~keep] = -1
+        for key in ("scene", "type", "parent", "rule", "depth", "nest"):
+            parts = [getattr(self, key)[masks[0]]]
+            parts += [lv[key][m] for lv, m in zip(levels, masks[1:], strict=True)]
+            setattr(self, key, np.concatenate(parts))
+        self.parent = np.where(self.parent >= 0, new[np.maximum(self.parent, 0)], -1)
+        pending = new[pending]
+        return pending[pending >= 0]
+
+    def compact(self, keep_scene: NDArray[np.bool_], pending: IntArray) -> IntArray:
+        """Keep only the nodes of the kept candidates (scene ids unchanged); returns the
+        kept pending nodes, renumbered."""
+        idx = np.flatnonzero(keep_scene[self.scene])
+        new = np.full(len(self.type), -1, np.int64)
+        new[idx] = np.arange(len(idx))
+        par = self.parent[idx]
+        self.parent = np.where(par >= 0, new[np.maximum(par, 0)], -1)
+        for key in ("scene", "type", "rule", "depth", "nest"):
+            setattr(self, key, getattr(self, key)[idx])
+        if self.xyz is not None and self.quat is not None:
+            self.xyz, self.quat = self.xyz[idx], self.quat[idx]
+        pending = new[pending]
+        return pending[pending >= 0]
+
+
+def roots(grammar: Grammar, size: int) -> Nodes:
+    tb = grammar.tables
+    nest = np.zeros((size, tb.nesting_max.shape[0]), np.int64)
+    if tb.nesting_slot[grammar.root] >= 0:
+        nest[:, tb.nesting_slot[grammar.root]] = 1
+    return Nodes(
+        scene=np.arange(size),
+        type=np.full(size, grammar.root, np.int64),
+        parent=np.full(size, -1, np.int64),
+        rule=np.full(size, -1, np.int64),
+        depth=np.zeros(size, np.int64),
+        nest=nest,
+        n_scenes=size,
+    )
+
+
+def grow(
+    grammar: Grammar,
+    nodes: Nodes,
+    start: IntArray,
+    expand: NDArray[np.bool_],
+    poses: bool,
+    rng: np.random.Generator,
+    logp: FloatArray,
+    watch: Watch | None = None,
+    levels: list[dict[str, NDArray]] | None = None,  # type: ignore[type-arg]
+) -> IntArray:
+    """Expand the nodes `start` level by level, only nodes whose type is in `expand`; with
+    `poses`, children get poses drawn by their rules (the store must have poses).  Adds the
+    log-probability of every choice and pose to `logp` (per scene).  A `watch` sees every
+    level and may kill candidates (their nodes stop growing).  Returns the nodes left
+    unexpanded (pending).  With `levels`, the new nodes are put there, not in the store
+    (for `Nodes.extend_kept`)."""
+    tb = grammar.tables
+    kind = tb.type_kind
+    f_id = start
+    f = {
+        "scene": nodes.scene[f_id],
+        "type": nodes.type[f_id],
+        "nest": nodes.nest[f_id],
+        "depth": nodes.depth[f_id],
+    }
+    if poses:
+        assert nodes.xyz is not None and nodes.quat is not None
+        f["xyz"], f["quat"] = nodes.xyz[f_id], nodes.quat[f_id]
+    if watch is not None:
+        watch.start(f["type"], f["scene"])
+    pending = []
+    keep_levels = levels is not None
+    levels = levels if levels is not None else []
+    next_id = len(nodes.type)
+    for _ in range(MAX_LEVELS):
+        nonterminal = kind[f["type"]] != Kind.TERMINAL
+        live = nonterminal & expand[f["type"]]
+        if watch is not None:
+            live &= watch.alive[f["scene"]]
+        pending.append(f_id[nonterminal & ~live])
+        if not np.any(live):
+            break
+        f_id = f_id[live]
+        f = {k: v[live] for k, v in f.items()}
+        if watch is not None:
+            watch.select(live)
+        budget = MAX_CHUNK_NODES - next_id  # memory bound, as in forward sampling
+        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng, budget)
+        logp += np.bincount(f["scene"], lp, minlength=len(logp))
+        parts: dict[str, list[NDArray]] = {k: [] for k in (*f, "parent", "rule", "at")}  # type: ignore[type-arg]
+        for rid, where in fires:
+            child = int(tb.rule_child[rid])
+            nest = f["nest"][where]
+            if tb.nesting_slot[child] >= 0:
+                nest = nest.copy()
+                nest[:, tb.nesting_slot[child]] += 1
+            if poses:
+                xyz, quat, lp_pose = sample_children(
+                    grammar, rid, f["xyz"][where], f["quat"][where], rng
+                )
+                logp += np.bincount(f["scene"][where], lp_pose, minlength=len(logp))
+                parts["xyz"].append(xyz)
+                parts["quat"].append(quat)
+            parts["scene"].append(f["scene"][where])
+            parts["type"].append(np.full(len(where), child, np.int64))
+            parts["nest"].append(nest)
+            parts["depth"].append(f["depth"][where] + 1)
+            parts["parent"].append(f_id[where])
+            parts["rule"].append(np.full(len(where), rid, np.int64))
+            parts["at"].append(where)
+        if not fires:
+            break
+        level = {k: np.concatenate(v) for k, v in parts.items()}
+        at = level.pop("at")
+        levels.append(level)
+        f_id = next_id + np.arange(len(at))
+        next_id += len(at)
+        f = {k: level[k] for k in f}
+        if watch is not None:
+            watch.step(at, level["type"], level["scene"], f["type"])
+    if not keep_levels:
+        nodes.extend(levels)
+    return np.concatenate(pending) if pending else np.zeros(0, np.int64)
+
+
+def draw_poses(
+    grammar: Grammar, nodes: Nodes, which: IntArray, rng: np.random.Generator, logp: FloatArray
+) -> None:
+    """Draw the poses of the non-root nodes `which` (whole trees, parents included), depth by
+    depth and rule by rule, from the grammar's rules."""
+    which = which[nodes.parent[which] >= 0]
+    order = which[np.lexsort((nodes.rule[which], nodes.depth[which]))]
+    if not len(order):
+        return
+    key = nodes.depth[order] * (len(grammar.rules) + 1) + nodes.rule[order]
+    cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+    for a, b in itertools.pairwise(cuts):
+        idx = order[a:b]
+        par = nodes.parent[idx]
+        xyz, quat, lp = sample_children(
+            grammar, int(nodes.rule[idx[0]]), nodes.xyz[par], nodes.quat[par], rng
+        )
+        nodes.xyz[idx], nodes.quat[idx] = xyz, quat
+        logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
+
+
+@dataclass
+class View:
+    """The nodes of some candidates, renumbered, in the shape constraints read."""
+
+    scene: IntArray
+    type: IntArray
+    parent: IntArray
+    xyz: FloatArray
+    quat: FloatArray
+    n_scenes: int
+    index: IntArray  # position of each node in the store
+
+
+def view(nodes: Nodes, keep_scene: NDArray[np.bool_]) -> View:
+    idx = np.flatnonzero(keep_scene[nodes.scene])
+    new = np.full(len(nodes.type), -1, np.int64)
+    new[idx] = np.arange(len(idx))
+    par = nodes.parent[idx]
+    return View(
+        scene=nodes.scene[idx],
+        type=nodes.type[idx],
+        parent=np.where(par >= 0, new[np.maximum(par, 0)], -1),
+        xyz=nodes.xyz[idx],
+        quat=nodes.quat[idx],
+        n_scenes=nodes.n_scenes,
+        index=idx,
+    )
+
+
+def reachers(grammar: Grammar) -> NDArray[np.bool_]:
+    """reach[a, b]: a type-b node can descend from a type-a node (through >= 1 rule)."""
+    n = len(grammar.types)
+    reach = np.zeros((n, n), bool)
+    for r in grammar.rules:
+        reach[r.parent, r.child] = True
+    for k in range(n):  # transitive closure (Warshall), n is small
+        reach |= reach[:, [k]] & reach[[k], :]
+    return reach
+
+
+def relevant_types(grammar: Grammar, constraints: list[Constraint]) -> NDArray[np.bool_]:
+    """Types whose expansion can change a structural margin: the types a structural
+    constraint names, and every type from which one of them can descend."""
+    reach = reachers(grammar)
+    out = np.zeros(len(grammar.types), bool)
+    for c in constraints:
+        if c.kind == "structure":
+            for t in _named(c):
+                out[t] = True
+                out |= reach[:, t]
+    return out
+
+
+def _named(c: Constraint) -> list[int]:
+    return [
+        int(v) for v in (getattr(c, a, None) for a in ("type_id", "of", "child")) if v is not None
+    ]
+
+
+class Watch:
+    """Structural margins kept up to date level by level during the structure stage, so a
+    candidate is rejected as soon as its fate is sealed: a bound `max` is exceeded (counts
+    only grow), or no node that could still change the statistic is left to expand."""
+
+    def __init__(self, grammar: Grammar, constraints: list[Constraint], n: int, stats: _Stats):
+        reach = reachers(grammar)
+        self.stats = stats
+        self.alive = np.ones(n, bool)
+        self.items = []
+        for c in constraints:
+            if c.kind != "structure":
+                continue
+            if isinstance(c, Children):
+                opens = reach[:, c.of].copy()
+                opens[c.of] = True
+            else:
+                opens = reach[:, c.type_id].copy()
+            self.items.append(
+                {
+                    "c": c,
+                    "opens": opens,
+                    "stat": np.zeros(n, np.int64),
+                    "undecided": np.arange(n),
+                }
+            )
+        self.f_type = np.zeros(0, np.int64)
+        self.runs: dict[int, IntArray] = {}
+
+    def start(self, f_type: IntArray, f_scene: IntArray) -> None:
+        self.f_type = f_type
+        for it in self.items:
+            c = it["c"]
+            if isinstance(c, Count | LongestChain):
+                hit = f_type == c.type_id
+                np.add.at(it["stat"], f_scene[hit], 1)
+                if isinstance(c, LongestChain):
+                    self.runs[id(c)] = hit.astype(np.int64)
+        self.check(f_type, f_scene)
+
+    def select(self, live: NDArray[np.bool_]) -> None:
+        self.f_type = self.f_type[live]
+        for key in self.runs:
+            self.runs[key] = self.runs[key][live]
+
+    def step(self, at: IntArray, c_type: IntArray, c_scene: IntArray, next_type: IntArray) -> None:
+        p_type = self.f_type[at]
+        for it in self.items:
+            c = it["c"]
+            if isinstance(c, Count):
+                it["stat"] += np.bincount(c_scene[c_type == c.type_id], minlength=len(self.alive))
+            elif isinstance(c, Children):
+                hit = p_type == c.of
+                if c.child is not None:
+                    hit &= c_type == c.child
+                it["stat"] += np.bincount(c_scene[hit], minlength=len(self.alive))
+            else:
+                is_t = c_type == c.type_id
+                run = np.where(is_t, np.where(p_type == c.type_id, self.runs[id(c)][at] + 1, 1), 0)
+                self.runs[id(c)] = run
+                np.maximum.at(it["stat"], c_scene[is_t], run[is_t])
+        self.f_type = c_type
+        self.check(next_type, c_scene)
+
+    def check(self, f_type: IntArray, f_scene: IntArray) -> None:
+        """Decide the candidates whose statistic is sealed; only undecided ones are looked at,
+        so a level costs what its frontier and the open candidates cost."""
+        n = len(self.alive)
+        for it in self.items:
+            idx = it["undecided"]
+            idx = idx[self.alive[idx]]
+            if not len(idx):
+                it["undecided"] = idx
+                continue
+            c, stat = it["c"], it["stat"][idx]
+            still_open = (np.bincount(f_scene[it["opens"][f_type]], minlength=n) > 0)[idx]
+            ready = ~still_open
+            if c.hi is not None:
+                ready |= stat > c.hi
+            self.decide(it, idx[ready], range_margin(stat[ready], c.lo, c.hi))
+            it["undecided"] = idx[~ready]
+
+    def finish(self) -> None:
+        for it in self.items:
+            idx = it["undecided"]
+            idx = idx[self.alive[idx]]
+            c = it["c"]
+            self.decide(it, idx, range_margin(it["stat"][idx], c.lo, c.hi))
+            it["undecided"] = idx[:0]
+
+    def decide(self, it: dict, idx: IntArray, margin: FloatArray) -> None:  # type: ignore[type-arg]
+        """Candidates `idx` are decided by `it`'s constraint, with these margins."""
+        self.alive[idx[margin < 0]] = False
+        self.stats.count(it["c"].name, margin)
+
+
+@dataclass
+class Outcome:
+    """One batch of candidates: which were kept, and what the constraints said."""
+
+    trees: Trees  # the kept candidates, in candidate order
+    logp: FloatArray
+    margins: dict[str, FloatArray]  # per constraint, for the kept trees
+    evaluated: dict[str, int]  # candidates each constraint was evaluated on
+    rejected: dict[str, int]  # candidates it rejected
+    best: dict[str, float]  # the largest margin among the candidates it rejected
+    drawn: int
+
+
+class OutOfTime(Exception):
+    """The deadline passed during an attempt (checked between its stages)."""
+
+
+def _check(deadline: float | None) -> None:
+    if deadline is not None and time.monotonic() > deadline:
+        raise OutOfTime
+
+
+def rejection_batch(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    size: int,
+    rng: np.random.Generator,
+    deadline: float | None = None,
+) -> Outcome:
+    """Draw `size` candidates in stages; keep those that satisfy every constraint."""
+    # The verdict does not depend on the order (every constraint must hold); the cost does.
+    pose = sorted((c for c in constraints if c.kind != "structure"), key=lambda c: c.rank)
+    stats = _Stats([c.name for c in constraints])
+    nodes = roots(grammar, size)
+    logp = np.zeros(size)
+
+    # 1. the structure of the part that structural constraints depend on
+    watch = Watch(grammar, constraints, size, stats)
+    relevant = relevant_types(grammar, constraints)
+    levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
+    pending = grow(grammar, nodes, np.arange(size), relevant, False, rng, logp, watch, levels)
+    watch.finish()
+    alive = watch.alive
+    pending = nodes.extend_kept(levels, alive, pending)
+    _check(deadline)
+    # 2. its poses, and the pose constraints on the partial trees
+    nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
+    nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
+    draw_poses(grammar, nodes, np.arange(len(nodes.type)), rng, logp)
+    for c in pose:
+        alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
+    _check(deadline)
+    # 3. the rest of each surviving tree, with poses; every pose constraint on it
+    pending = nodes.compact(alive, pending)
+    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), True, rng, logp)
+    full = view(nodes, alive)
+    margins = {}
+    for c in constraints:
+        m = c.margin(full)
+        if c.kind != "structure":
+            alive &= stats.judge(c, m, alive, first=False)
+        margins[c.name] = m
+    trees = _as_trees(nodes, alive)
+    kept = np.flatnonzero(alive)
+    return Outcome(
+        trees=trees,
+        logp=logp[kept],
+        margins={k: v[kept] for k, v in margins.items()},
+        evaluated=stats.evaluated,
+        rejected=stats.rejected,
+        best=stats.best,
+        drawn=size,
+    )
+
+
+class _Stats:
+    def __init__(self, names: list[str]) -> None:
+        self.evaluated = dict.fromkeys(names, 0)
+        self.rejected = dict.fromkeys(names, 0)
+        self.best = dict.fromkeys(names, -np.inf)
+
+    def count(self, name: str, margin: FloatArray) -> None:
+        """Candidates judged by `name` with these margins (negative: rejected)."""
+        bad = margin < 0
+        self.evaluated[name] += len(margin)
+        self.rejected[name] += int(bad.sum())
+        if np.any(bad):
+            self.best[name] = max(self.best[name], float(margin[bad].max()))
+
+    def judge(
+        self, c: Constraint, margin: FloatArray, alive: NDArray[np.bool_], first: bool = True
+    ) -> NDArray[np.bool_]:
+        """Which candidates `c` lets through; a candidate counts as evaluated the `first` time
+        `c` sees it (pose constraints see the partial trees, then the complete ones)."""
+        ok = margin >= 0
+        bad = alive & ~ok
+        if first:
+            self.evaluated[c.name] += int(alive.sum())
+        self.rejected[c.name] += int(bad.sum())
+        if np.any(bad):
+            self.best[c.name] = max(self.best[c.name], float(margin[bad].max()))
+        return ok
+
+
+def _as_trees(nodes: Nodes, keep: NDArray[np.bool_]) -> Trees:
+    """The kept candidates as a `Trees` batch: grouped by tree, parents before children."""
+    idx = np.flatnonzero(keep[nodes.scene])
+    idx = idx[np.argsort(nodes.scene[idx], kind="stable")]
+    new = np.full(len(nodes.type), -1, np.int64)
+    new[idx] = np.arange(len(idx))
+    scenes = np.flatnonzero(keep)
+    renumber = np.full(nodes.n_scenes, -1, np.int64)
+    renumber[scenes] = np.arange(len(scenes))
+    par = nodes.parent[idx]
+    return Trees(
+        scene=renumber[nodes.scene[idx]],
+        type=nodes.type[idx],
+        parent=np.where(par >= 0, new[np.maximum(par, 0)], -1),
+        rule=nodes.rule[idx],
+        xyz=nodes.xyz[idx],
+        quat=nodes.quat[idx],
+        n_scenes=len(scenes),
+    )
