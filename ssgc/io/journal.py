@@ -31,6 +31,7 @@ from types import TracebackType
 from typing import Any, TextIO
 
 from ssgc.errors import Diagnostic, SsgError
+from ssgc.io import atomic
 from ssgc.io.atomic import remove_stale_temps, write_text_atomic
 from ssgc.io.scene import Scene, dumps_json
 
@@ -141,11 +142,14 @@ class Journal:
 
     def write_entry(self, entry: dict[str, Any]) -> None:
         """Append one entry durably before the work goes on."""
-        data = (json.dumps(entry) + "\n").encode()
-        view = memoryview(data)
-        while view:
-            view = view[os.write(self._fd, view) :]
-        os.fsync(self._fd)
+        try:
+            atomic.write_all(self._fd, (json.dumps(entry) + "\n").encode())
+            os.fsync(self._fd)
+        except OSError as exc:
+            kept = "; its finished work is kept, --resume continues it" if self.entries else ""
+            raise SsgError.single(
+                f"cannot write the {self.WHAT}: {exc.strerror}{kept}", str(self.path)
+            ) from None
         self.entries += 1
 
     def close(self) -> None:
