@@ -855,8 +855,9 @@ def test_fuzz_inspect(work: Path, data: bytes, as_json: bool) -> None:
 @given(data=grammar_inputs())
 def test_fuzz_sample(work: Path, data: bytes) -> None:
     path = write(work / "grammar.yaml", data)
-    result, seconds = invoke(["sample", str(path), "-n", "2", "-o", str(work / "out"), "-q"])
-    check(result, seconds, {0, 1}, [path, work / "out"], data)
+    out = work / "out"  # each case is another run: --overwrite clears the last one's scenes
+    result, seconds = invoke(["sample", str(path), "-n", "2", "-o", str(out), "-q", "--overwrite"])
+    check(result, seconds, {0, 1}, [path, out], data)
 
 
 def check_parse(work: Path, data: bytes, suffix: str, grammar: str) -> None:
@@ -910,6 +911,13 @@ def test_fuzz_fit_grammar(work: Path, data: bytes) -> None:
 @given(data=scene_json_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
 def test_fuzz_fit_dataset(work: Path, data: bytes, grammar: str) -> None:
     check_fit(work, write(work / "dataset.json", data), GRAMMARS / grammar, data)
+
+
+@fuzz(quick=25)
+@given(data=sink_yaml_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
+def test_fuzz_fit_sink_yaml(work: Path, data: bytes, grammar: str) -> None:
+    """Sink-format datasets, as `parse` gets them: the third form of `ssg fit`'s dataset."""
+    check_fit(work, write(work / "dataset.yaml", data), GRAMMARS / grammar, data)
 
 
 # The compiler itself, without the command line around it: every diagnostic of a grammar is

@@ -32,6 +32,8 @@ from typing import Any
 
 import pytest
 from conftest import GRAMMARS
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 import ssgc.io.atomic as atomic
@@ -705,3 +707,110 @@ def test_sigkill_at_random_points(data: Path, tmp_path: Path) -> None:
         total_damaged += damaged
     print(f"\nSIGKILL: {total_killed} runs killed while writing, {total_damaged} damaged files")
     assert total_damaged == 0
+
+
+# ------------------------------------------------------------- any output, fuzzed ---
+
+FUZZ = os.environ.get("SSG_FUZZ", "quick")
+OUTPUT_CASES = {"quick": 40, "long": 10_000}.get(FUZZ) or int(FUZZ)
+
+
+def output_kinds(base: Path, inputs: dict[str, Path]) -> dict[str, str]:
+    """Places a user might send an output to, made in `base` (fresh for each case)."""
+    (base / "dir").mkdir()
+    (base / "file.json").write_text("old")
+    (base / "link").symlink_to(base / "file.json")
+    (base / "dirlink").symlink_to(base / "dir")
+    (base / "dangling").symlink_to(base / "gone" / "x.json")
+    (base / "loop").symlink_to(base / "loop")
+    (base / "devlink").symlink_to("/dev/null")
+    return {
+        "null": "/dev/null",
+        "full": "/dev/full",
+        "stdout": "/dev/stdout",
+        "dash": "-",
+        "dir": str(base / "dir"),
+        "dir/": str(base / "dir") + "/",
+        "file": str(base / "file.json"),
+        "new": str(base / "new.json"),
+        "link": str(base / "link"),
+        "dirlink": str(base / "dirlink"),
+        "dangling": str(base / "dangling"),
+        "loop": str(base / "loop"),
+        "devlink": str(base / "devlink"),
+        "through a file": str(base / "file.json" / "x.json"),
+        "missing parent": str(base / "no" / "such" / "x.json"),
+        "long name": str(base / ("x" * 300)),
+        "nul": str(base / "a\0b"),
+        "dot": ".",
+        **{f"input {k}": str(v) for k, v in inputs.items()},
+    }
+
+
+def state(path: Path) -> Any:
+    """What must not change: the kind of file, a link's target, a device's identity."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    if stat.S_ISLNK(st.st_mode):
+        return ("link", os.readlink(path))
+    if stat.S_ISDIR(st.st_mode):
+        return ("dir",)
+    if stat.S_ISREG(st.st_mode):
+        return ("file",)
+    return ("special", st.st_mode, st.st_rdev, st.st_ino)
+
+
+@settings(max_examples=OUTPUT_CASES, deadline=None, suppress_health_check=list(HealthCheck))
+@given(
+    command=st.sampled_from(["parse", "fit", "sample"]),
+    output=st.integers(0, 100),
+    report=st.one_of(st.none(), st.integers(0, 100)),
+)
+def test_fuzz_output_paths(
+    data: Path,
+    tmp_path_factory: pytest.TempPathFactory,
+    command: str,
+    output: int,
+    report: int | None,
+) -> None:
+    """Any command with any output (and `--report`): exit 0 or 1, a message, never a bug; no
+    device, link or input changed; no temporary file or lock left."""
+    base = tmp_path_factory.mktemp("out")
+    grammar = base / "g.yaml"
+    shutil.copy(GMM, grammar)
+    scene = base / "scene.json"
+    shutil.copy(data / "gmm_000000.json", scene)
+    inputs = {"grammar": grammar, "scene": scene}
+    kinds = output_kinds(base, inputs)
+    names = sorted(kinds)
+    out = kinds[names[output % len(names)]]
+    watched = [Path(p) for p in (*DEVICES, "/dev/stdout", *kinds.values()) if "\0" not in p]
+    before = {p: state(p) for p in watched}
+    input_bytes = {p: p.read_bytes() for p in inputs.values()}
+    args: list[Any]
+    if command == "parse":
+        args = ["parse", scene, "-g", grammar, "-o", out, "-q"]
+    elif command == "fit":
+        args = ["fit", scene, "-g", grammar, "-o", out, *FIT]
+        if report is not None:
+            args += ["--report", kinds[names[report % len(names)]]]
+    else:
+        args = ["sample", grammar, "-n", 2, "-o", out, "-q"]
+    result = run(*args)
+    shown = f"{args}\n{result.output}"
+    usage = result.exit_code == 2 and "Invalid value" in result.output  # typer: a NUL in a name
+    assert result.exit_code in (0, 1) or usage, shown
+    assert result.exception is None or isinstance(result.exception, SystemExit), shown
+    no_bug(result.output)
+    if result.exit_code == 1:
+        assert ": error: " in result.output, shown
+    for p, was in before.items():
+        now = state(p)
+        if was is not None and was[0] in ("link", "special", "dir"):
+            assert now == was, (p, shown)
+    if out != str(grammar) or command != "fit":  # `fit -o GRAMMAR` updates it, on purpose
+        assert {p: p.read_bytes() for p in inputs.values()} == input_bytes, shown
+    for directory in (base, base / "dir"):
+        assert not leftovers(directory), (leftovers(directory), shown)

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ssgc.errors import SsgError
+from ssgc.errors import SsgError, one_line
 from ssgc.io.atomic import TextSink, atomic_writer
 
 STDOUT_NAMES = frozenset({"-", "/dev/stdout", "/dev/fd/1", "/proc/self/fd/1"})
@@ -81,7 +81,7 @@ def check_output(
     except those in `in_place`, which the command updates on purpose.  `others` are the
     command's outputs checked before this one: two outputs must be two files.
     """
-    path = Path(path)
+    path = _usable_name(path, what)
     if str(path) in STDOUT_NAMES:
         out = Output(path, path, what, stream=True, stdout=True)
         _check_distinct(out, others)
@@ -111,6 +111,12 @@ def check_output(
     _check_not_an_input(out, inputs, in_place)
     _check_distinct(out, others)
     return out
+
+
+def _usable_name(path: str | Path, what: str) -> Path:
+    if "\0" in str(path):
+        raise SsgError.single(f"the {what}'s name holds a NUL character", one_line(str(path)))
+    return Path(path)
 
 
 def _check_directory_accepts_files(directory: Path, what: str, name: str) -> None:
@@ -279,7 +285,7 @@ def _locks(files: list[Output]) -> Iterator[None]:
 def check_directory(path: str | Path, what: str = "output directory") -> Path:
     """A directory to write files into: made if absent; refused if it is a file, a device or
     standard output, or cannot take a new file."""
-    path = Path(path)
+    path = _usable_name(path, what)
     if str(path) in STDOUT_NAMES:
         raise SsgError.single(f"the {what} must be a directory, not standard output", str(path))
     if path.exists() and not path.is_dir():
