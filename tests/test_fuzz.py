@@ -920,6 +920,80 @@ def test_fuzz_fit_sink_yaml(work: Path, data: bytes, grammar: str) -> None:
     check_fit(work, write(work / "dataset.yaml", data), GRAMMARS / grammar, data)
 
 
+@pytest.fixture(scope="module")
+def journals(work: Path) -> dict[str, tuple[list[str], Path, str]]:
+    """A complete journal of `ssg parse -o` and one of `ssg fit` (kept by disabling their
+    deletion), with the command line that resumes each."""
+    from ssgc.io.journal import Journal
+
+    data = work / "journal_scenes"
+    assert (
+        invoke(["sample", str(GRAMMARS / "gmm.yaml"), "-n", "4", "-o", str(data), "-q"])[
+            0
+        ].exit_code
+        == 0
+    )
+    runs = {
+        "parse": [
+            "parse",
+            str(data),
+            "-g",
+            str(GRAMMARS / "gmm.yaml"),
+            "-o",
+            str(work / "jp.json"),
+        ],
+        "fit": ["fit", str(data), "-g", str(GRAMMARS / "gmm.yaml"), "-o", str(work / "jf.yaml")],
+    }
+    runs["fit"] += ["--iterations", "2", "--top", "2"]
+    found = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Journal, "delete", lambda self: None)
+        for name, args in runs.items():
+            result, _ = invoke([*args, "-q"])
+            assert result.exit_code == 0, result.output
+            journal = Path(args[args.index("-o") + 1] + ".partial.jsonl")
+            found[name] = ([*args, "-q", "--resume"], journal, journal.read_text())
+    return found
+
+
+def journal_inputs(text: str) -> st.SearchStrategy[bytes]:
+    """A journal with lines deleted, duplicated or moved (each line still intact: the order
+    checks), values or bytes changed (the checksums), cut off anywhere, or not text at all."""
+    lines = text.splitlines(keepends=True)
+    return st.one_of(
+        mutated([text]).map(encode),
+        mutated([text]).map(encode),
+        st.integers(0, len(text)).map(lambda n: encode(text[:n])),
+        st.permutations(lines).map(lambda ls: encode("".join(ls))),
+        st.lists(st.sampled_from(lines), max_size=len(lines) + 2).map(
+            lambda ls: encode("".join(ls))
+        ),
+        raw_bytes([text]),
+    )
+
+
+@fuzz(quick=25)
+@given(data=st.data(), command=st.sampled_from(["parse", "fit"]))
+def test_fuzz_resume_journal(
+    journals: dict[str, tuple[list[str], Path, str]], data: st.DataObject, command: str
+) -> None:
+    """`--resume` from a damaged journal: a located message or a finished run, never a bug."""
+    args, journal, text = journals[command]
+    content = data.draw(journal_inputs(text))
+    journal.write_bytes(content)
+    out = Path(args[args.index("-o") + 1])
+    out.unlink(missing_ok=True)
+    result, seconds = invoke(args)
+    files = [journal, out, Path(args[1]), GRAMMARS / "gmm.yaml"]
+    check(result, seconds, {0, 1, 2}, files, content)
+    if result.exit_code == 0 and command == "fit":
+        compile_text(out.read_text(), str(out))
+    elif result.exit_code == 0:
+        assert json.loads(out.read_text())["scenes"]
+    else:
+        assert not out.exists()
+
+
 # The compiler itself, without the command line around it: every diagnostic of a grammar is
 # located (line and column), whatever the text.  (Merged from test_grammar_errors.py.)
 UNLOCATED = ("invalid YAML: nested too deeply",)  # no position: ruamel gives up in recursion
