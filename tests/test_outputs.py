@@ -7,9 +7,10 @@ byte) or is killed (SIGKILL at random moments).  Afterwards every file is its ol
 the complete new content, no device or link has changed, no temporary file is left, and a
 journal is left only when `--resume` finishes the run from it.
 
-The number of fault points is `SSG_FAULTS` (default: a quick run) per command, e.g.::
+The number of byte faults per command is `SSG_FAULTS`, of SIGKILLed runs per command
+`SSG_KILLS` (defaults: a quick run); `-s` prints the counts::
 
-    SSG_FAULTS=200 python -m pytest tests/test_outputs.py -q -s -k fault
+    SSG_FAULTS=40 SSG_KILLS=8 python -m pytest tests/test_outputs.py -q -s -k "fault or sigkill"
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ from ssgc.io.resume import MANIFEST
 
 GMM = GRAMMARS / "gmm.yaml"
 SINK = GRAMMARS / "sink.yaml"
-FAULTS = int(os.environ.get("SSG_FAULTS", "0")) or None
+FAULTS = int(os.environ.get("SSG_FAULTS", "0")) or None  # byte faults per command
+KILLS = int(os.environ.get("SSG_KILLS", "0")) or None  # SIGKILLed runs per command
 runner = CliRunner()
 
 
@@ -642,7 +644,7 @@ def kill_runs(
 
 def test_sigkill_at_random_points(data: Path, tmp_path: Path) -> None:
     rng = random.Random(os.environ.get("SSG_FAULT_SEED", "12"))
-    runs = FAULTS or 1
+    runs = KILLS or 1
     parsed_ref = tmp_path / "parse-ref" / "p.json"
     null = device("/dev/null")
 
@@ -705,7 +707,7 @@ def test_sigkill_at_random_points(data: Path, tmp_path: Path) -> None:
         killed, damaged = kill_runs(tmp_path, name, argv, prepare, check, runs, rng)
         total_killed += killed
         total_damaged += damaged
-    print(f"\nSIGKILL: {total_killed} runs killed while writing, {total_damaged} damaged files")
+    print(f"\nSIGKILL: {total_killed} of {3 * runs} runs killed, {total_damaged} damaged files")
     assert total_damaged == 0
 
 
