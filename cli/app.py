@@ -694,9 +694,12 @@ def schema_cmd(
     ),
 ) -> None:
     """Regenerate the JSON Schemas of grammar and scene files."""
-    from ssgc.schemas import write_schemas
+    from ssgc.schemas import SCHEMA_FILES, schema_text
 
-    for path in write_schemas(directory):
+    check_directory(directory)
+    for name, model in SCHEMA_FILES.items():
+        path = directory / name
+        write_output_text(Output(path, path, "schema file"), schema_text(model))
         out.print(f"wrote {path}", markup=False, highlight=False)
 
 
