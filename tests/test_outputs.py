@@ -744,7 +744,7 @@ def output_kinds(base: Path, inputs: dict[str, Path]) -> dict[str, str]:
         "missing parent": str(base / "no" / "such" / "x.json"),
         "long name": str(base / ("x" * 300)),
         "nul": str(base / "a\0b"),
-        "dot": ".",
+        "dot": str(base) + "/.",  # never the working directory: the test must not write there
         **{f"input {k}": str(v) for k, v in inputs.items()},
     }
 
