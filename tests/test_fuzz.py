@@ -1100,7 +1100,10 @@ def test_sampling_an_exploding_grammar_is_a_message(work: Path) -> None:
         """)
     path = write(work / "boom.yaml", encode(text))
     result = run_ok(
-        ["sample", str(path), "-n", "2", "-o", str(work / "out"), "-q"], b"", [path], {1}
+        ["sample", str(path), "-n", "2", "-o", str(work / "out"), "-q", "--overwrite"],
+        b"",
+        [path],
+        {1},
     )
     assert "makes scenes too large to sample" in result.stderr
 
@@ -1111,7 +1114,9 @@ def test_sampling_too_deep_trees_is_a_message(work: Path, monkeypatch: pytest.Mo
 
     monkeypatch.setattr(ssgc.sample.forward, "MAX_LEVELS", 5)
     path = write(work / "chain.yaml", encode(chain(10)))
-    result = run_ok(["sample", str(path), "-n", "1", "-o", str(work / "out")], b"", [path], {1})
+    result = run_ok(
+        ["sample", str(path), "-n", "1", "-o", str(work / "out"), "--overwrite"], b"", [path], {1}
+    )
     assert "makes trees deeper than 5 levels" in result.stderr
 
 
