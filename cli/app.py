@@ -11,6 +11,7 @@ import json
 import os
 import re
 import sys
+import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,8 +28,18 @@ from ssgc.bench import bench_sample
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.inspect import grammar_summary
-from ssgc.io.atomic import write_text_atomic
-from ssgc.io.resume import scan_sampled
+from ssgc.io.journal import journal_path
+from ssgc.io.outputs import (
+    ENVIRONMENT_ERRNOS,
+    Output,
+    check_directory,
+    check_output,
+    directory_lock,
+    lock_outputs,
+    write_output,
+    write_output_text,
+)
+from ssgc.io.resume import prepare_sample_dir, run_manifest, scan_sampled, write_manifest
 from ssgc.io.scene import dumps_scene, scene_from_tree
 from ssgc.sample.forward import CHUNK, chunk_rng, sample_chunk
 
@@ -61,16 +72,53 @@ def _user_errors() -> Iterator[None]:
         raise typer.Exit(130) from None
     except (typer.Exit, typer.Abort):
         raise
+    except BrokenPipeError:  # `ssg ... | head`: the reader is gone; end quietly, as Unix tools do
+        _silence_stdout()
+        raise typer.Exit(EXIT_PIPE) from None
+    except OSError as exc:
+        if exc.errno not in ENVIRONMENT_ERRNOS:
+            raise _internal_error(exc) from None
+        _print_diagnostics(_environment_error(exc))
+        raise typer.Exit(1) from None
     except Exception as exc:  # a bug in ssgc, not the user's mistake
-        if os.environ.get("SSG_DEBUG"):
-            raise
-        err.print(
-            f"ssg: internal error: {type(exc).__name__}: {exc}. This is a bug in ssgc; "
-            "please report it with the command you ran (SSG_DEBUG=1 shows the traceback).",
-            markup=False,
-            highlight=False,
-        )
-        raise typer.Exit(70) from None
+        raise _internal_error(exc) from None
+
+
+EXIT_PIPE = 141  # what a shell reports for a command ended by SIGPIPE (128 + 13)
+
+
+def _internal_error(exc: Exception) -> typer.Exit:
+    if os.environ.get("SSG_DEBUG"):
+        raise exc
+    err.print(
+        f"ssg: internal error: {type(exc).__name__}: {exc}. This is a bug in ssgc; "
+        "please report it with the command you ran (SSG_DEBUG=1 shows the traceback).",
+        markup=False,
+        highlight=False,
+    )
+    return typer.Exit(70)
+
+
+def _environment_error(exc: OSError) -> SsgError:
+    """A full disk, an I/O error, a denied permission: the machine's fault, exit 1.  An error
+    without a file name comes from writing standard output (every file ssgc writes is named by
+    `ssgc.io.outputs`)."""
+    if exc.filename is None:
+        _silence_stdout()  # what is still buffered cannot be written either
+        return SsgError.single(f"cannot write standard output: {exc.strerror}", "<stdout>")
+    return SsgError.single(exc.strerror or str(exc), str(exc.filename))
+
+
+def _silence_stdout() -> None:
+    """Point standard output at /dev/null, so the flush at exit neither fails nor complains
+    (Python prints "Exception ignored ... BrokenPipeError" otherwise)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, ValueError, OSError):
+        return  # not a real file (in tests: typer's CliRunner)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
 
 
 def _print_diagnostics(exc: SsgError) -> None:
@@ -172,6 +220,10 @@ def sample(
             "--resume", help="Keep the complete scene files of an interrupted run; draw the rest."
         ),
     ] = False,
+    overwrite: Annotated[
+        bool,
+        typer.Option("--overwrite", help="Delete another run's scenes in the output directory."),
+    ] = False,
     allow_outside_files: AllowOutside = False,
     constraints: Annotated[
         str | None,
@@ -187,29 +239,51 @@ def sample(
 ) -> None:
     """Draw N scenes; write one JSON file per scene (objects, full tree, log-probability).
 
-    Scene i depends only on the seed and i: `-n 100` extends `-n 10` without changing it, and
-    `--resume` finishes an interrupted run with the files an uninterrupted one would write.
+    Scene i depends only on the seed and i, and `--resume` finishes an interrupted run with the
+    files an uninterrupted one would write.  The directory's manifest records the run; a
+    directory holding another run's scenes is refused unless `--overwrite`.
     With --constraints, scenes follow the grammar conditioned on them; when --max-tries or
     --time-limit run out first, the exit code is 2 and the scenes found so far are kept.
     """
+    if resume and overwrite:
+        raise SsgError.single(
+            "--resume keeps a run's scenes and --overwrite deletes them: give one"
+        )
     g = load_grammar(grammar, allow_outside=allow_outside_files)
-    if constraints is not None or (max_tries, time_limit) != (None, None):
-        from ssgc.cli.constrained import sample_constrained
+    constrained = constraints is not None or (max_tries, time_limit) != (None, None)
+    check_directory(output)
+    width = max(6, len(str(max(n - 1, 0))))
+    with directory_lock(output):
+        manifest = run_manifest(g.name, grammar, seed, n, width)
+        manifest.update(constraints=constraints, method=method if constrained else None)
+        prepare_sample_dir(output, manifest, resume, overwrite)
+        if constrained:
+            from ssgc.cli.constrained import sample_constrained
 
-        _make_dir(output)
-        options = (constraints, method, max_tries, time_limit, resume)
-        return sample_constrained(g, n, seed, output, quiet, options, _safe_stem(g.name))
-    _make_dir(output)
+            options = (constraints, method, max_tries, time_limit, resume)
+            sample_constrained(
+                g, n, seed, output, quiet, options, _safe_stem(g.name),
+                lambda: _write_manifest(output, manifest),
+            )
+            _write_manifest(output, {**manifest, "complete": True})
+            return
+        _sample_into(g, output, n, seed, width, manifest, resume, quiet)
+
+
+def _sample_into(
+    g: Any, output: Path, n: int, seed: int, width: int, manifest: dict, resume: bool, quiet: bool
+) -> None:
+    """`ssg sample`'s work, once the directory is checked and locked."""
     first: Path | None = None  # the first and last file written, for the summary
     last: Path | None = None
     count = 0
-    width = max(6, len(str(max(n - 1, 0))))
     stem = _safe_stem(g.name)
 
     def name_of(index: int) -> str:
         return f"{stem}_{index:0{width}d}"
 
     have = scan_sampled(output, stem, name_of, n, g.name, seed) if resume else None
+    _write_manifest(output, manifest)
     with _progress(quiet) as progress:
         task = progress.add_task("sampling", total=n)
         for chunk in range((n + CHUNK - 1) // CHUNK):
@@ -228,10 +302,12 @@ def sample(
                 name = name_of(index)
                 scene = scene_from_tree(g, trees.tree(k), name, float(logp[k]))
                 path = output / f"{name}.json"
-                write_text_atomic(path, dumps_scene(g, scene, seed=seed, index=index))
+                text = dumps_scene(g, scene, seed=seed, index=index)
+                write_output_text(Output(path, path, "scene file"), text)
                 first, last = first or path, path
                 count += 1
                 progress.advance(task)
+    _write_manifest(output, {**manifest, "complete": True})
     if not quiet:
         where = (
             f"{first} … {last.name}"
@@ -344,19 +420,38 @@ def parse(
 
     Exit code 2 when some scene cannot be produced by the grammar.
     """
+    _check_method(method, solver)
+    dest = check_output(output or "-", inputs=[grammar, scenes])
+    if resume and dest.stream:
+        raise SsgError.single(
+            "--resume needs -o OUT.json, a file: the progress is kept next to it", dest.name
+        )
+    with lock_outputs([dest]):
+        _parse_into(
+            dest, scenes, grammar, method, top, time_limit, quiet, resume, allow_outside_files
+        )
+
+
+def _parse_into(
+    dest: Output,
+    scenes: Path,
+    grammar: Path,
+    method: str,
+    top: int,
+    time_limit: float | None,
+    quiet: bool,
+    resume: bool,
+    allow_outside_files: bool,
+) -> None:
+    """`ssg parse`'s work, once its output is checked and locked."""
+    from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
     from ssgc.io.scene import load_scenes
     from ssgc.parse.parser import Parser, result_to_json
 
-    _check_method(method, solver)
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_scenes(scenes, g)
-    from ssgc.io.atomic import atomic_writer
-    from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
-
-    if resume and output is None:
-        raise SsgError.single("--resume needs -o OUT.json: the progress is kept next to it")
     parser = Parser(g, method=method)
-    if output is None:  # stdout: nothing to resume, so the results are kept in memory
+    if dest.stream:  # stdout or a device: nothing to resume, so the results are kept in memory
         results = []
         with _progress(quiet) as progress:
             task = progress.add_task("parsing", total=len(items))
@@ -365,10 +460,11 @@ def parse(
                     result_to_json(g, parser.parse(scene, top=top, time_limit=time_limit))
                 )
                 progress.advance(task)
-        failed = write_parse_output(sys.stdout, g.name, results)
+        with write_output(dest) as f:
+            failed = write_parse_output(f, g.name, results)
     else:  # each result goes to the journal as soon as it is known, OUT.json at the end
         header = run_header(g.name, grammar, scenes, items, top, method, time_limit)
-        with ParseJournal(journal_path(output), header, resume) as journal:
+        with ParseJournal(journal_path(dest.target), header, resume) as journal:
             _note_discarded(journal, quiet)
             with _progress(quiet) as progress:
                 task = progress.add_task("parsing", total=len(items))
@@ -377,17 +473,22 @@ def parse(
                     result = parser.parse(items[index], top=top, time_limit=time_limit)
                     journal.append(index, result_to_json(g, result))
                     progress.advance(task)
-            with atomic_writer(output) as f:
+            with write_output(dest, kept=journal.path) as f:
                 failed = write_parse_output(f, g.name, journal.results())
         journal.delete()
     for r in failed:
         err.print(f"{r['name']}: {r['status']}: {r['message']}", markup=False, highlight=False)
-    if not quiet and output is not None:
-        out.print(f"parsed {len(items)} scene(s) -> {output}", markup=False, highlight=False)
+    if not quiet and not dest.stdout:
+        _summary(dest, f"parsed {len(items)} scene(s) -> {dest.name}")
     if any(r["status"] == "error" for r in failed):
         raise typer.Exit(1)
     if failed:
         raise typer.Exit(2)
+
+
+def _summary(dest_: Output, text: str) -> None:
+    """The closing line: on stdout, unless the output itself went there."""
+    (err if dest_.stdout else out).print(text, markup=False, highlight=False)
 
 
 def _note_discarded(journal: Any, quiet: bool) -> None:
@@ -515,12 +616,19 @@ def fit(
     )
     from ssgc.fit.metrics import compare_by_mmd
     from ssgc.fit.mstep import FitSettings
-    from ssgc.io.journal import journal_path
     from ssgc.io.scene import load_scenes
     from ssgc.yamlio import MAX_GRAMMAR_BYTES, read_text
 
     _check_method(method, "highs")
+    # `-o` may be the grammar itself (an in-place update), never the dataset.
+    dest = check_output(output, inputs=[grammar, scenes], in_place=[grammar])
+    report_dest = None
+    if report is not None:
+        report_dest = check_output(report, "report", inputs=[grammar, scenes], others=[dest])
+    if resume and dest.stream:
+        raise SsgError.single("--resume needs -o FILE: the journal is kept next to it", dest.name)
     text = read_text(grammar, MAX_GRAMMAR_BYTES, "grammar file")
+
     source = GrammarSource(str(grammar), grammar.parent, allow_outside_files, str(scenes))
     g = compile_text(text, source.file, source.base_dir, source.allow_outside)
     items = load_scenes(scenes, g)
@@ -536,7 +644,11 @@ def fit(
         settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
     )
     header = fit_header(text, scenes, items, options)
-    with FitJournal(journal_path(output), header, resume) as journal:
+    with (
+        lock_outputs([dest, report_dest]),
+        _fit_journal_path(dest) as journal_file,
+        FitJournal(journal_file, header, resume) as journal,
+    ):
         _note_discarded(journal, quiet)
         for r in journal.reports:
             _print_iteration(r, quiet, resumed=True)
@@ -563,13 +675,25 @@ def fit(
             fitted = compile_text(result.text, source.file, source.base_dir, allow_outside_files)
             result.mmd = compare_by_mmd({"input": g, "fitted": fitted}, items, mmd, seed)
             _print_mmd(result.mmd, quiet)
-        write_text_atomic(output, result.text)
-        if report is not None:
-            write_text_atomic(report, report_json(result))
-    if result.status != "time_limit":
-        journal.delete()
+        kept = None if dest.stream else journal.path
+        write_output_text(dest, result.text, kept)
+        if report_dest is not None:
+            write_output_text(report_dest, report_json(result), kept)
+        if result.status != "time_limit":
+            journal.delete()
     if not quiet:
-        out.print(f"{result.message}; wrote {output}", markup=False, highlight=False)
+        _summary(dest, f"{result.message}; wrote {dest.name}")
+
+
+@contextmanager
+def _fit_journal_path(dest: Output) -> Iterator[Path]:
+    """The fit journal's place: next to the output file, or, for a stream (which cannot be
+    resumed), in a temporary directory removed at the end."""
+    if not dest.stream:
+        yield journal_path(dest.target)
+        return
+    with tempfile.TemporaryDirectory(prefix="ssg-fit-") as tmp:
+        yield Path(tmp) / "fit.partial.jsonl"
 
 
 def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:
@@ -605,9 +729,12 @@ def schema_cmd(
     ),
 ) -> None:
     """Regenerate the JSON Schemas of grammar and scene files."""
-    from ssgc.schemas import write_schemas
+    from ssgc.schemas import SCHEMA_FILES, schema_text
 
-    for path in write_schemas(directory):
+    check_directory(directory)
+    for name, model in SCHEMA_FILES.items():
+        path = directory / name
+        write_output_text(Output(path, path, "schema file"), schema_text(model))
         out.print(f"wrote {path}", markup=False, highlight=False)
 
 
@@ -617,15 +744,13 @@ def _safe_stem(name: str) -> str:
     return stem or "scene"
 
 
-def _make_dir(path: Path) -> None:
+def _write_manifest(directory: Path, manifest: dict) -> None:
     try:
-        path.mkdir(parents=True, exist_ok=True)
+        write_manifest(directory, manifest)
     except OSError as exc:
         raise SsgError.single(
-            f"cannot create output directory: {exc.strerror}", str(path)
+            f"cannot write the manifest: {exc.strerror}", str(directory)
         ) from None
-    if not os.access(path, os.W_OK):
-        raise SsgError.single("output directory is not writable", str(path))
 
 
 @contextmanager
@@ -645,7 +770,30 @@ def _progress(quiet: bool) -> Iterator[Progress]:
 
 def main() -> None:
     np.seterr(all="ignore")  # -inf log-probabilities are expected values, not warnings
-    app()
+    try:
+        app()
+        code: Any = 0
+    except SystemExit as exc:
+        code = exc.code
+    sys.exit(_flush_stdout(code))
+
+
+def _flush_stdout(code: Any) -> Any:
+    """Write out what standard output still buffers before Python does it at exit, where a
+    closed pipe or a full disk would only print "Exception ignored" and exit 120."""
+    try:
+        if sys.stdout is not None:
+            sys.stdout.flush()
+    except BrokenPipeError:
+        _silence_stdout()
+        return code or EXIT_PIPE
+    except OSError as exc:
+        _silence_stdout()
+        _print_diagnostics(
+            SsgError.single(f"cannot write standard output: {exc.strerror}", "<stdout>")
+        )
+        return code or 1
+    return code
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ Kept apart from `cli/app.py` so that the sampling methods can grow without touch
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +25,17 @@ from ssgc.sample.constrained import (
 
 
 def sample_constrained(
-    g: Grammar, n: int, seed: int, output: Path, quiet: bool, options: Any, stem: str
+    g: Grammar,
+    n: int,
+    seed: int,
+    output: Path,
+    quiet: bool,
+    options: Any,
+    stem: str,
+    before_first_write: Callable[[], None],
 ) -> None:
+    """Write the scenes; `before_first_write` records the run (its manifest) before the first
+    scene file, so a run that finds no scene leaves the directory as it was."""
     from ssgc.cli.app import _progress, err, out
 
     names, method, max_tries, time_limit, resume = options
@@ -64,6 +74,8 @@ def sample_constrained(
                     scene = scene_from_tree(g, block.trees.tree(k), name, float(block.logp[k]))
                     meta = scene_metadata(method, names_, block.margins, k)
                     text = dumps_scene(g, scene, seed=seed, index=index, metadata=meta)
+                    if not written:
+                        before_first_write()
                     write_text_atomic(output / f"{name}.json", text)
                     written += 1
     except Unmet as exc:

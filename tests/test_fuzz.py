@@ -886,8 +886,9 @@ def test_fuzz_inspect(work: Path, data: bytes, as_json: bool) -> None:
 @given(data=grammar_inputs())
 def test_fuzz_sample(work: Path, data: bytes) -> None:
     path = write(work / "grammar.yaml", data)
-    result, seconds = invoke(["sample", str(path), "-n", "2", "-o", str(work / "out"), "-q"])
-    check(result, seconds, {0, 1}, [path, work / "out"], data)
+    out = work / "out"  # each case is another run: --overwrite clears the last one's scenes
+    result, seconds = invoke(["sample", str(path), "-n", "2", "-o", str(out), "-q", "--overwrite"])
+    check(result, seconds, {0, 1}, [path, out], data)
 
 
 @fuzz(quick=40)
@@ -951,6 +952,87 @@ def test_fuzz_fit_grammar(work: Path, data: bytes) -> None:
 @given(data=scene_json_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
 def test_fuzz_fit_dataset(work: Path, data: bytes, grammar: str) -> None:
     check_fit(work, write(work / "dataset.json", data), GRAMMARS / grammar, data)
+
+
+@fuzz(quick=25)
+@given(data=sink_yaml_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
+def test_fuzz_fit_sink_yaml(work: Path, data: bytes, grammar: str) -> None:
+    """Sink-format datasets, as `parse` gets them: the third form of `ssg fit`'s dataset."""
+    check_fit(work, write(work / "dataset.yaml", data), GRAMMARS / grammar, data)
+
+
+@pytest.fixture(scope="module")
+def journals(work: Path) -> dict[str, tuple[list[str], Path, str]]:
+    """A complete journal of `ssg parse -o` and one of `ssg fit` (kept by disabling their
+    deletion), with the command line that resumes each."""
+    from ssgc.io.journal import Journal
+
+    data = work / "journal_scenes"
+    assert (
+        invoke(["sample", str(GRAMMARS / "gmm.yaml"), "-n", "4", "-o", str(data), "-q"])[
+            0
+        ].exit_code
+        == 0
+    )
+    runs = {
+        "parse": [
+            "parse",
+            str(data),
+            "-g",
+            str(GRAMMARS / "gmm.yaml"),
+            "-o",
+            str(work / "jp.json"),
+        ],
+        "fit": ["fit", str(data), "-g", str(GRAMMARS / "gmm.yaml"), "-o", str(work / "jf.yaml")],
+    }
+    runs["fit"] += ["--iterations", "2", "--top", "2"]
+    found = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Journal, "delete", lambda self: None)
+        for name, args in runs.items():
+            result, _ = invoke([*args, "-q"])
+            assert result.exit_code == 0, result.output
+            journal = Path(args[args.index("-o") + 1] + ".partial.jsonl")
+            found[name] = ([*args, "-q", "--resume"], journal, journal.read_text())
+    return found
+
+
+def journal_inputs(text: str) -> st.SearchStrategy[bytes]:
+    """A journal with lines deleted, duplicated or moved (each line still intact: the order
+    checks), values or bytes changed (the checksums), cut off anywhere, or not text at all."""
+    lines = text.splitlines(keepends=True)
+    return st.one_of(
+        mutated([text]).map(encode),
+        mutated([text]).map(encode),
+        st.integers(0, len(text)).map(lambda n: encode(text[:n])),
+        st.permutations(lines).map(lambda ls: encode("".join(ls))),
+        st.lists(st.sampled_from(lines), max_size=len(lines) + 2).map(
+            lambda ls: encode("".join(ls))
+        ),
+        raw_bytes([text]),
+    )
+
+
+@fuzz(quick=25)
+@given(data=st.data(), command=st.sampled_from(["parse", "fit"]))
+def test_fuzz_resume_journal(
+    journals: dict[str, tuple[list[str], Path, str]], data: st.DataObject, command: str
+) -> None:
+    """`--resume` from a damaged journal: a located message or a finished run, never a bug."""
+    args, journal, text = journals[command]
+    content = data.draw(journal_inputs(text))
+    journal.write_bytes(content)
+    out = Path(args[args.index("-o") + 1])
+    out.unlink(missing_ok=True)
+    result, seconds = invoke(args)
+    files = [journal, out, Path(args[1]), GRAMMARS / "gmm.yaml"]
+    check(result, seconds, {0, 1, 2}, files, content)
+    if result.exit_code == 0 and command == "fit":
+        compile_text(out.read_text(), str(out))
+    elif result.exit_code == 0:
+        assert json.loads(out.read_text())["scenes"]
+    else:
+        assert not out.exists()
 
 
 # The compiler itself, without the command line around it: every diagnostic of a grammar is
@@ -1059,7 +1141,10 @@ def test_sampling_an_exploding_grammar_is_a_message(work: Path) -> None:
         """)
     path = write(work / "boom.yaml", encode(text))
     result = run_ok(
-        ["sample", str(path), "-n", "2", "-o", str(work / "out"), "-q"], b"", [path], {1}
+        ["sample", str(path), "-n", "2", "-o", str(work / "out"), "-q", "--overwrite"],
+        b"",
+        [path],
+        {1},
     )
     assert "makes scenes too large to sample" in result.stderr
 
@@ -1070,7 +1155,9 @@ def test_sampling_too_deep_trees_is_a_message(work: Path, monkeypatch: pytest.Mo
 
     monkeypatch.setattr(ssgc.sample.forward, "MAX_LEVELS", 5)
     path = write(work / "chain.yaml", encode(chain(10)))
-    result = run_ok(["sample", str(path), "-n", "1", "-o", str(work / "out")], b"", [path], {1})
+    result = run_ok(
+        ["sample", str(path), "-n", "1", "-o", str(work / "out"), "--overwrite"], b"", [path], {1}
+    )
     assert "makes trees deeper than 5 levels" in result.stderr
 
 

@@ -26,6 +26,7 @@ import ssgc.cli.app as cli
 from ssgc.compile import load_grammar
 from ssgc.io.atomic import temp_target
 from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
+from ssgc.io.resume import MANIFEST, run_manifest, write_manifest
 from ssgc.io.scene import dumps_json, load_scenes
 
 SINK = GRAMMARS / "sink.yaml"
@@ -90,6 +91,8 @@ def contents(directory: Path) -> dict[str, bytes]:
 def assert_only_complete_scenes(directory: Path, temps_allowed: bool) -> None:
     """Every scene file parses and is whole; anything else is a removable temporary file."""
     for p in directory.iterdir():
+        if p.name in (MANIFEST, ".ssg.lock"):  # the run's manifest; a killed run's lock file
+            continue
         if temp_target(p.name) is not None:
             assert temps_allowed, f"temporary file left behind: {p.name}"
             continue
@@ -112,7 +115,7 @@ def reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_sample_killed_with_sigkill_then_resumed(reference: Path, tmp_path: Path) -> None:
     out = tmp_path / "scenes"
-    proc = start("sample", SINK, "-n", 10000, "-o", out, "-q")
+    proc = start("sample", SINK, "-n", N_REF, "-o", out, "-q")
     code, _ = interrupt_when(
         proc, lambda: out.is_dir() and len(scene_files(out)) >= 300, signal.SIGKILL
     )
@@ -129,8 +132,6 @@ def test_sample_killed_with_sigkill_then_resumed(reference: Path, tmp_path: Path
     cut.write_bytes(cut.read_bytes()[:100])
     (out / "notes.txt").write_text("not ours")  # other files are left alone
 
-    # Scene i depends only on (seed, i), so finishing with a smaller -n gives the first
-    # N_REF scenes of the -n 10000 run: compare with an uninterrupted -n N_REF run.
     result = run("sample", SINK, "-n", N_REF, "-o", out, "--resume")
     assert result.exit_code == 0, result.output
     assert f"kept {len(names) - 1} complete scene file(s)" in result.output
@@ -158,6 +159,7 @@ def test_sample_resume_draws_only_the_chunks_with_missing_scenes(
 ) -> None:
     out = tmp_path / "scenes"
     out.mkdir()
+    write_manifest(out, run_manifest("sink", SINK, 0, 600, 6))
     for i in range(600):  # chunks 0 and 1 complete, chunk 2 (512..599) misses scene 550
         if i != 550:
             name = f"sink_{i:06d}.json"
@@ -184,10 +186,24 @@ def test_sample_resume_never_mixes_runs(tmp_path: Path) -> None:
 
     other_seed = run("sample", SINK, "-n", 5, "--seed", 4, "-o", out, "--resume")
     assert other_seed.exit_code == 1
-    assert "sink_000000.json: error: this scene file has seed 3, but this run writes seed 4" in (
+    assert f"{MANIFEST}: error: these scenes are of another run (seed: 3, now 4)" in (
         other_seed.output
     )
     assert "--resume never mixes two runs" in other_seed.output
+    other_count = run("sample", SINK, "-n", 6, "--seed", 3, "-o", out, "--resume")
+    assert other_count.exit_code == 1 and "(count: 5, now 6)" in other_count.output
+    assert contents(out) == before
+
+    # A scene file edited behind the manifest's back is still caught, file by file.
+    doc = json.loads(before["sink_000000.json"])
+    doc["seed"] = 4
+    (out / "sink_000000.json").write_text(dumps_json(doc))
+    edited_file = run("sample", SINK, "-n", 5, "--seed", 3, "-o", out, "--resume")
+    assert edited_file.exit_code == 1
+    assert "sink_000000.json: error: this scene file has seed 4, but this run writes seed 3" in (
+        edited_file.output
+    )
+    (out / "sink_000000.json").write_bytes(before["sink_000000.json"])
 
     doc = json.loads(before["sink_000002.json"])
     doc["grammar"] = "sink_v2"
@@ -205,7 +221,13 @@ def test_sample_resume_never_mixes_runs(tmp_path: Path) -> None:
     (out / "sink_000004.json").unlink()
     changed = run("sample", edited, "-n", 5, "--seed", 3, "-o", out, "--resume")
     assert changed.exit_code == 1
+    assert "(grammar_sha256: " in changed.output  # the manifest records the grammar's digest
+    # Behind the manifest, every done scene of a chunk drawn again is compared as it is drawn.
+    write_manifest(out, run_manifest("sink", edited, 3, 5, 6))
+    changed = run("sample", edited, "-n", 5, "--seed", 3, "-o", out, "--resume")
+    assert changed.exit_code == 1
     assert "the grammar (or the ssgc or numpy version) changed" in changed.output
+    (out / MANIFEST).write_bytes(before[MANIFEST])
     assert not (out / "sink_000004.json").exists()
     assert contents(out) == {k: v for k, v in before.items() if k != "sink_000004.json"}
 

@@ -10,11 +10,48 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TextIO
 
 # mkstemp names: PREFIX + 8 characters of [a-z0-9_] + SUFFIX.  A process killed with SIGKILL (or a
 # power cut) cannot remove its temporary file, so `--resume` recognises and removes them.
 _TEMP_NAME = re.compile(r"\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp")
+
+
+BLOCK = 1 << 16  # bytes gathered before one write: streamed outputs are not kept in memory
+
+
+def write_all(fd: int, data: bytes) -> None:
+    """Write all of `data` to `fd`.  Every byte ssgc writes to a file goes through here, so the
+    fault-injection tests can make a write fail at a chosen byte (tests/test_outputs.py)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view) :]
+
+
+class TextSink:
+    """UTF-8 text written to a file descriptor in blocks of `BLOCK` bytes, through `write_all`.
+
+    The file descriptor is the caller's to close; `flush` pushes out what is gathered.
+    """
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self._parts: list[bytes] = []
+        self._size = 0
+
+    def write(self, text: str) -> int:
+        data = text.encode("utf-8")
+        self._parts.append(data)
+        self._size += len(data)
+        if self._size >= BLOCK:
+            self.flush()
+        return len(text)
+
+    def flush(self) -> None:
+        data = b"".join(self._parts)
+        self._parts.clear()
+        self._size = 0
+        if data:
+            write_all(self.fd, data)
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
@@ -27,7 +64,7 @@ def write_text_atomic(path: str | Path, text: str) -> None:
 
 
 @contextmanager
-def atomic_writer(path: str | Path) -> Iterator[TextIO]:
+def atomic_writer(path: str | Path) -> Iterator[TextSink]:
     """A text file that replaces `path` only when the block ends without an exception.
 
     Like `write_text_atomic`, but the text can be streamed, so a large output never has to be
@@ -40,10 +77,13 @@ def atomic_writer(path: str | Path) -> Iterator[TextIO]:
     try:
         with _ctrl_c_deferred():  # no Ctrl-C between creating the file and knowing its name
             fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
+        try:
+            sink = TextSink(fd)
+            yield sink
+            sink.flush()
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual permissions
         with _ctrl_c_deferred():  # renamed, or still there to be removed: never both
             os.replace(tmp, path)

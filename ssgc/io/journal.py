@@ -17,7 +17,9 @@ The journal's lines::
     {"index": 1, "result": {...}}
 
 A line is written with a single ``write`` of the whole line, so a kill leaves at most the last
-line cut short; resuming ignores (and truncates) such a line.
+line cut short; resuming ignores (and truncates) such a line.  Every entry line ends with the
+SHA-256 of the rest of it (``"sha256": ...``, `_sealed`): a line changed on disk — a bad sector,
+an edit, a line of another journal pasted in — is reported as damage, never taken as work done.
 """
 
 from __future__ import annotations
@@ -31,10 +33,11 @@ from types import TracebackType
 from typing import Any, TextIO
 
 from ssgc.errors import Diagnostic, SsgError
+from ssgc.io import atomic
 from ssgc.io.atomic import remove_stale_temps, write_text_atomic
 from ssgc.io.scene import Scene, dumps_json
 
-JOURNAL_FORMAT = "ssgc.parse-journal/1"
+JOURNAL_FORMAT = "ssgc.parse-journal/2"
 FAILED = ("infeasible", "error")
 
 
@@ -134,19 +137,32 @@ class Journal:
             for lineno, line in enumerate(f, start=2):
                 if not line.endswith(b"\n"):
                     break  # the line a killed run was writing: ignored, then cut off
-                self.accept(_json_line(line), lineno)
+                self.accept(self._unsealed(line, lineno), lineno)
                 self.entries += 1
                 good_bytes += len(line)
         os.truncate(self.path, good_bytes)
 
     def write_entry(self, entry: dict[str, Any]) -> None:
         """Append one entry durably before the work goes on."""
-        data = (json.dumps(entry) + "\n").encode()
-        view = memoryview(data)
-        while view:
-            view = view[os.write(self._fd, view) :]
-        os.fsync(self._fd)
+        try:
+            atomic.write_all(self._fd, _sealed(entry))
+            os.fsync(self._fd)
+        except OSError as exc:
+            kept = "; its finished work is kept, --resume continues it" if self.entries else ""
+            raise SsgError.single(
+                f"cannot write the {self.WHAT}: {exc.strerror}{kept}", str(self.path)
+            ) from None
         self.entries += 1
+
+    def _unsealed(self, line: bytes, lineno: int) -> Any:
+        """The entry of a line, if its checksum holds (else the journal is damaged)."""
+        entry = _json_line(line)
+        if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
+            raise self.damaged(lineno, "is not an entry")
+        digest = entry.pop("sha256")
+        if _digest(json.dumps(entry)) != digest:
+            raise self.damaged(lineno, "does not match its checksum")
+        return entry
 
     def close(self) -> None:
         os.close(self._fd)
@@ -190,11 +206,25 @@ class ParseJournal(Journal):
         """The recorded results in input order, read back one line at a time."""
         with open(self.path, "rb") as f:
             f.readline()  # the header
-            for line in f:
-                yield json.loads(line)["result"]
+            for lineno, line in enumerate(f, start=2):
+                yield self._unsealed(line, lineno)["result"]
 
     def __enter__(self) -> ParseJournal:
         return self
+
+
+def _digest(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()
+
+
+def _sealed(entry: dict[str, Any]) -> bytes:
+    """One journal line: the entry's JSON with the SHA-256 of that JSON as its last key.
+
+    Reading the line back and dumping it without that key gives the same text (Python's JSON
+    round-trips every value), so the checksum can be verified."""
+    text = json.dumps(entry)
+    sep = ", " if entry else ""
+    return (text[:-1] + f'{sep}"sha256": "{_digest(text)}"}}\n').encode("utf-8", "surrogatepass")
 
 
 def _json_line(line: bytes) -> Any:

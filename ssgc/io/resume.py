@@ -13,6 +13,7 @@ again (the chunks holding missing scenes) with the freshly drawn value: `check_s
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -26,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.errors import Diagnostic, SsgError
-from ssgc.io.atomic import remove_stale_temps
+from ssgc.io.atomic import remove_stale_temps, write_text_atomic
 from ssgc.io.scene import FORMAT
 
 _NEVER_MIX = "--resume never mixes two runs: use the same grammar and --seed, or another -o"
@@ -130,3 +131,119 @@ def _complete(doc: dict[str, Any]) -> bool:
         and not isinstance(lp, bool)
         and math.isfinite(lp)
     )
+
+
+# ----------------------------------------------------------------- the run manifest ---
+
+MANIFEST = "ssg-sample.manifest"  # not *.json: a dataset directory's *.json files are scenes
+MANIFEST_FORMAT = "ssgc.sample-run/1"
+SAME_RUN = (
+    "grammar", "grammar_sha256", "seed", "count", "width", "constraints", "method"
+)  # what --resume compares
+_SCENE_NAME = re.compile(r"[A-Za-z0-9_.-]*_[0-9]+\.json")  # the names `ssg sample` gives
+
+
+def run_manifest(grammar: str, grammar_file: Path, seed: int, count: int, width: int) -> dict:
+    """What identifies one run of `ssg sample -o DIR`; kept in DIR as `MANIFEST`."""
+    return {
+        "format": MANIFEST_FORMAT,
+        "grammar": grammar,
+        "grammar_file": str(grammar_file.resolve()),
+        "grammar_sha256": hashlib.sha256(grammar_file.read_bytes()).hexdigest(),
+        "seed": seed,
+        "count": count,
+        "width": width,
+        "complete": False,
+    }
+
+
+def prepare_sample_dir(directory: Path, manifest: dict, resume: bool, overwrite: bool) -> None:
+    """Before a run of `ssg sample` writes into `directory` (under its lock): refuse a
+    directory holding another run's scenes (or clear them with `overwrite`); with `resume`,
+    refuse a run that is not the same one (grammar, its file's digest, seed, count)."""
+    found = _read_manifest(directory, overwrite)
+    jsons = sorted(e.name for e in os.scandir(directory) if e.name.endswith(".json"))
+    if resume:
+        if found is None and jsons:
+            raise SsgError.single(
+                f"--resume continues only a run of `ssg sample` recorded in a manifest "
+                f"({MANIFEST}); this directory holds {len(jsons)} .json file(s) but no manifest: "
+                "write to another -o, or start again with --overwrite",
+                str(directory),
+            )
+        if found is not None:
+            _check_same_sample_run(found, manifest, directory)
+        return
+    same = found is not None and all(found.get(k) == manifest[k] for k in SAME_RUN)
+    if same or (found is None and not jsons):
+        return  # a new directory, or this very run again: every file is rewritten the same
+    if not overwrite:
+        raise SsgError.single(
+            f"this directory holds {_describe(found, jsons)}; --overwrite deletes them first, "
+            "--resume continues the same run, or write to another -o",
+            str(directory),
+        )
+    _clear(directory, jsons)
+
+
+def _read_manifest(directory: Path, overwrite: bool) -> dict | None:
+    path = directory / MANIFEST
+    try:
+        doc = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, RecursionError):
+        doc = None
+    if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT:
+        if overwrite:
+            return {}  # cleared with the scenes
+        raise SsgError.single(
+            "not a manifest of `ssg sample`; delete it, or start again with --overwrite",
+            str(path),
+        )
+    return doc
+
+
+def _describe(found: dict | None, jsons: list[str]) -> str:
+    if found:
+        return (
+            f"the scenes of another run ({found.get('count')} scene(s) of grammar "
+            f"{json.dumps(found.get('grammar'))}, seed {found.get('seed')})"
+        )
+    return f"{len(jsons)} .json file(s) of another run"
+
+
+def _check_same_sample_run(found: dict, manifest: dict, directory: Path) -> None:
+    differ = [k for k in SAME_RUN if found.get(k) != manifest[k]]
+    if differ:
+        raise SsgError(
+            [
+                Diagnostic(
+                    f"these scenes are of another run ({k}: {json.dumps(found.get(k))}, now "
+                    f"{json.dumps(manifest[k])}); {_NEVER_MIX}",
+                    str(directory / MANIFEST),
+                )
+                for k in differ
+            ]
+        )
+
+
+def _clear(directory: Path, jsons: list[str]) -> None:
+    """`--overwrite`: delete the scenes (and temporary files) of `ssg sample` runs and the
+    manifest; refuse if other .json files remain, which a dataset reader would take as scenes."""
+    others = [n for n in jsons if not _SCENE_NAME.fullmatch(n)]
+    if others:
+        shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
+        raise SsgError.single(
+            f"this directory holds .json files that `ssg sample` did not name ({shown}); "
+            "--overwrite deletes only scene files: move them, or write to another -o",
+            str(directory),
+        )
+    remove_stale_temps(directory, lambda target: _SCENE_NAME.fullmatch(target) is not None)
+    for name in jsons:
+        (directory / name).unlink(missing_ok=True)
+    (directory / MANIFEST).unlink(missing_ok=True)
+
+
+def write_manifest(directory: Path, manifest: dict) -> None:
+    write_text_atomic(directory / MANIFEST, json.dumps(manifest, indent=1) + "\n")
