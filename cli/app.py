@@ -309,14 +309,18 @@ def parse(
         bool,
         typer.Option("--resume", help="Continue an interrupted run with -o from its journal."),
     ] = False,
+    explain: Annotated[
+        bool, typer.Option("--explain", help="Add each scene's explanation (as ssg explain).")
+    ] = False,
     allow_outside_files: AllowOutside = False,
 ) -> None:
     """Most probable parse trees of observed scenes (MAP parsing by MILP on HiGHS).
 
     Exit code 2 when some scene cannot be produced by the grammar.
     """
+    from ssgc.cli.explain import annotate
     from ssgc.io.scene import load_scenes
-    from ssgc.parse.parser import Parser, result_to_json
+    from ssgc.parse.parser import Parser
 
     _check_method(method, solver)
     g = load_grammar(grammar, allow_outside=allow_outside_files)
@@ -332,9 +336,8 @@ def parse(
         with _progress(quiet) as progress:
             task = progress.add_task("parsing", total=len(items))
             for scene in items:
-                results.append(
-                    result_to_json(g, parser.parse(scene, top=top, time_limit=time_limit))
-                )
+                result = parser.parse(scene, top=top, time_limit=time_limit)
+                results.append(annotate(parser, scene, result, top, explain, time_limit, quiet))
                 progress.advance(task)
         failed = write_parse_output(sys.stdout, g.name, results)
     else:  # each result goes to the journal as soon as it is known, OUT.json at the end
@@ -345,8 +348,10 @@ def parse(
                 task = progress.add_task("parsing", total=len(items))
                 progress.advance(task, journal.done)
                 for index in range(journal.done, len(items)):
-                    result = parser.parse(items[index], top=top, time_limit=time_limit)
-                    journal.append(index, result_to_json(g, result))
+                    scene = items[index]
+                    result = parser.parse(scene, top=top, time_limit=time_limit)
+                    row = annotate(parser, scene, result, top, explain, time_limit, quiet)
+                    journal.append(index, row)
                     progress.advance(task)
             with atomic_writer(output) as f:
                 failed = write_parse_output(f, g.name, journal.results())
@@ -612,6 +617,9 @@ def _progress(quiet: bool) -> Iterator[Progress]:
     )
     with progress:
         yield progress
+
+
+from ssgc.cli import explain as _explain  # noqa: E402, F401  (registers `ssg explain`)
 
 
 def main() -> None:

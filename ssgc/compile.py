@@ -100,8 +100,43 @@ def compile_text(
     try:
         doc = dsl.GrammarDoc.model_validate(data)
     except ValidationError as exc:
-        raise GrammarError(validation_diagnostics(exc, source)) from None
+        later = _errors_beyond_shape(data, exc, source, base_dir, allow_outside)
+        raise GrammarError(validation_diagnostics(exc, source) + later) from None
     return Compiler(doc, source, base_dir, allow_outside).run()
+
+
+def _errors_beyond_shape(
+    data: dict,
+    exc: ValidationError,
+    source: SourceMap,
+    base_dir: Path | None,
+    allow_outside: bool,
+) -> list[Diagnostic]:
+    """The semantic errors of the rest of a grammar whose shape is wrong in some node types,
+    so that one run reports them all (not one stage per run).
+
+    Each malformed type is checked as a terminal stub: its name stays known, so the rest gets
+    no follow-on "unknown type" errors, and warnings (which a stub could cause) are dropped.
+    A shape error outside `types` (root, grammar name) leaves nothing sound to check.
+    """
+    bad: set[str] = set()
+    for err in exc.errors(include_url=False):
+        loc = tuple(err["loc"])
+        if len(loc) < 3 or loc[0] != "types" or not isinstance(loc[1], str) or loc[2] == "[key]":
+            return []
+        bad.add(loc[1])
+    types = data.get("types")
+    if not isinstance(types, dict):
+        return []
+    stubbed = {**data, "types": {k: ({} if k in bad else v) for k, v in types.items()}}
+    try:
+        doc = dsl.GrammarDoc.model_validate(stubbed)
+        Compiler(doc, source, base_dir, allow_outside).run()
+    except ValidationError:
+        return []
+    except GrammarError as later:
+        return [d for d in later.diagnostics if d.severity != "warning"]
+    return []
 
 
 class Compiler:
@@ -159,9 +194,11 @@ class Compiler:
         self.check_root_not_produced(rules, root_spec.type)
         self.check_labels(types)
         self.check_files(types)
-        if not self.errors and root_spec.type in self.ids:
+        if root_spec.type in self.ids:
+            # rules with errors are left out, which can hide a cycle but never make one up
             self.check_recursion(types, rules)
-            self.check_reachable(types, rules, self.ids[root_spec.type])
+            if not self.errors:  # a dropped rule would make its children look unreachable
+                self.check_reachable(types, rules, self.ids[root_spec.type])
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
         types_t, rules_t = tuple(types), tuple(rules)

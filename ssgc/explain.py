@@ -128,7 +128,7 @@ class Explanation:
         for o in self.objects[:limit]:
             lines.append(f"  {o.label}: unusual {o.unusual:.2f}, share {o.share:.3f}")
             for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
-                lines.append(f"    {r.kind}: {r.text}")
+                lines.append(f"    {r.text}")
         if self.rules:
             lines.append("rules by share of −log p:")
             for r in self.rules[:limit]:
@@ -138,31 +138,51 @@ class Explanation:
 
 def explain(grammar: Grammar, scene: Scene, tree: Trees | None = None, **parse: Any) -> Explanation:
     """Explain a scene's best parse (parsed here unless `tree` is given; `parse` goes to
-    `Parser.parse`, e.g. time_limit).  Raises `UnexplainedScene` when no tree exists."""
+    `Parser.parse`, e.g. time_limit).  Raises `UnexplainedScene` when there is no parse; for a
+    scene no tree contains, with the diagnosis (`diagnose`) that names the objects to blame."""
+    from ssgc.parse.parser import Parser
+
+    parser = Parser(grammar)
     if tree is None:
-        tree = best_tree(grammar, scene, **parse)
-    return explain_tree(grammar, scene, tree)
+        tree = best_tree(grammar, scene, parser, **parse)
+    return explain_tree(grammar, scene, tree, parser, parse.get("time_limit"))
 
 
 class UnexplainedScene(Exception):
-    """No parse: `diagnosis` names the objects and rules that rule the scene out."""
+    """No parse; `diagnosis` (for an infeasible scene) names the objects and rules to blame."""
 
-    def __init__(self, message: str, status: str) -> None:
+    def __init__(self, message: str, status: str, diagnosis: Diagnosis | None = None) -> None:
         super().__init__(message)
         self.status = status
+        self.diagnosis = diagnosis
 
 
-def best_tree(grammar: Grammar, scene: Scene, **parse: Any) -> Trees:
+def best_tree(grammar: Grammar, scene: Scene, parser: Any = None, **parse: Any) -> Trees:
     from ssgc.parse.parser import Parser
 
-    result = Parser(grammar).parse(scene, top=1, **parse)
-    if not result.parses:
+    parser = parser or Parser(grammar)
+    result = parser.parse(scene, top=1, **parse)
+    if result.parses:
+        return result.parses[0].tree
+    if result.status != "infeasible":
         raise UnexplainedScene(result.message, result.status)
-    return result.parses[0].tree
+    d = diagnose(grammar, scene, parser, time_limit=parse.get("time_limit") or 30.0)
+    raise UnexplainedScene(d.message, result.status, d)
 
 
-def explain_tree(grammar: Grammar, scene: Scene, tree: Trees) -> Explanation:
-    """Explain one tree of the scene (its observed nodes are the scene's objects)."""
+def explain_tree(
+    grammar: Grammar,
+    scene: Scene,
+    tree: Trees,
+    parser: Any = None,
+    time_limit: float | None = None,
+) -> Explanation:
+    """Explain one tree of the scene (its observed nodes are the scene's objects).
+
+    With a `parser`, each object's repaired pose is also tried by parsing the scene again with
+    that one object moved (so other objects may change parent: a flipped plate whose cups had
+    to move to a far plate gets the credit for the whole mess); its pose gain is then the
+    better of the two."""
     terms = _terms(grammar, tree)
     obj_of = match_objects(grammar, scene, tree)
     weights = ownership(grammar, tree, obj_of, len(scene))
@@ -192,13 +212,31 @@ def explain_tree(grammar: Grammar, scene: Scene, tree: Trees) -> Explanation:
             )
             if term["kind"] in ("count", "choice"):
                 objects[o].unusual += float(w[o]) * max(0.0, excess)
-    for o, gain in pose_gains(grammar, tree, obj_of).items():
+    log_prob = float(sum(t["log_prob"] for t in terms))
+    for o, fix in pose_gains(grammar, tree, obj_of).items():
+        gain = fix.gain
+        if parser is not None and gain > 0:
+            gain = max(gain, _reparsed_gain(parser, scene, o, fix, log_prob, time_limit))
         objects[o].pose_gain = gain
         objects[o].unusual += gain
-    log_prob = float(sum(t["log_prob"] for t in terms))
     unattributed = -log_prob if len(scene) == 0 else 0.0
     objects.sort(key=lambda o: (-o.unusual, -o.share, o.index))
     return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed)
+
+
+def _reparsed_gain(
+    parser: Any, scene: Scene, o: int, fix: Repair, log_prob: float, time_limit: float | None
+) -> float:
+    """The best score gain over the repair's poses of object o, the scene parsed again."""
+    best = 0.0
+    for xyz_o, quat_o in fix.poses[:2]:
+        xyz, quat = scene.xyz.copy(), scene.quat.copy()
+        xyz[o], quat[o] = xyz_o, quat_o
+        moved = Scene(scene.name, scene.types, xyz, quat, metadata=scene.metadata)
+        result = parser.parse(moved, top=1, time_limit=time_limit)
+        if result.parses:
+            best = max(best, result.parses[0].score - log_prob)
+    return best
 
 
 # ------------------------------------------------------------------ terms ---
@@ -321,28 +359,49 @@ def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -
 # ------------------------------------------------------------ pose repair ---
 
 
-def pose_gains(grammar: Grammar, tree: Trees, obj_of: IntArray) -> dict[int, float]:
+@dataclass
+class Repair:
+    """Rigid moves of one object's block that raise the tree's score: the best gain, and the
+    object's pose after each move (best first; a shift alone, a turn alone, both)."""
+
+    gain: float
+    poses: list[tuple[FloatArray, FloatArray]]
+
+
+def pose_gains(grammar: Grammar, tree: Trees, obj_of: IntArray) -> dict[int, Repair]:
     """For each object: how much the tree's score rises when its block alone is moved rigidly
     to the best of a few candidate poses (each puts one touched edge at its law's mode)."""
     top = blocks(grammar, tree)
-    out: dict[int, float] = {}
+    out: dict[int, Repair] = {}
     for b in np.unique(top[obj_of >= 0]):
         members = np.flatnonzero(top == b)
-        gain = _block_gain(grammar, tree, members, int(b))
-        for o in obj_of[members]:
-            if o >= 0:
-                out[int(o)] = gain
+        moves = _block_gain(grammar, tree, members, int(b))
+        x0 = tree.xyz[b]
+        for m in members:
+            if obj_of[m] < 0:
+                continue
+            poses = [
+                (
+                    x0 + quat_rotate(turn, tree.xyz[m] - x0) + shift,
+                    quat_multiply(turn, tree.quat[m]),
+                )
+                for shift, turn, _ in moves
+            ]
+            out[int(obj_of[m])] = Repair(moves[0][2] if moves else 0.0, poses)
     return out
 
 
-def _block_gain(grammar: Grammar, tree: Trees, members: IntArray, top: int) -> float:
+def _block_gain(
+    grammar: Grammar, tree: Trees, members: IntArray, top: int
+) -> list[tuple[FloatArray, FloatArray, float]]:
+    """Rigid moves (shift, turn, gain) of a block that raise the score, best first."""
     tb = grammar.tables
     inside = np.zeros(len(tree), bool)
     inside[members] = True
     kids = np.flatnonzero((tree.parent >= 0) & ~inside & inside[np.maximum(tree.parent, 0)])
     edges = np.r_[[top] if tree.parent[top] >= 0 else [], kids].astype(np.int64)
     if len(edges) == 0:
-        return 0.0
+        return []
     shifts, turns = [np.zeros(3)], [IDENTITY]
     x0, q0 = tree.xyz[top], tree.quat[top]
     if tree.parent[top] >= 0:
@@ -367,12 +426,18 @@ def _block_gain(grammar: Grammar, tree: Trees, members: IntArray, top: int) -> f
     if len(shifts) > 2:
         shifts.append(np.mean(shifts[1:], axis=0))
     d = np.array(shifts)
-    s = _moved_scores(grammar, tree, members, top, edges, d, np.tile(IDENTITY, (len(d), 1)))
-    best_d = d[int(np.argmax(s))]
     rq = np.array(turns)
-    s2 = _moved_scores(grammar, tree, members, top, edges, np.tile(best_d, (len(rq), 1)), rq)
-    gain = max(float(np.max(s)), float(np.max(s2))) - float(s[0])
-    return max(0.0, gain) if np.isfinite(gain) else 0.0
+    # shifts alone, turns alone, and the best turn after the best shift: (K, 3) and (K, 4)
+    shift = np.r_[d, np.zeros((len(rq), 3))]
+    turn = np.r_[np.tile(IDENTITY, (len(d), 1)), rq]
+    s = _moved_scores(grammar, tree, members, top, edges, shift, turn)
+    best_d, best_r = int(np.argmax(s[: len(d)])), len(d) + int(np.argmax(s[len(d) :]))
+    s2 = _moved_scores(grammar, tree, members, top, edges, np.tile(d[best_d], (len(rq), 1)), rq)
+    moves = [(d[best_d], IDENTITY, s[best_d]), (np.zeros(3), turn[best_r], s[best_r])]
+    moves.append((d[best_d], rq[int(np.argmax(s2))], float(np.max(s2))))
+    moves = [(a, b, float(v) - float(s[0])) for a, b, v in moves]
+    moves = [m for m in moves if np.isfinite(m[2]) and m[2] > 0]
+    return sorted(moves, key=lambda m: -m[2])
 
 
 def _moved_scores(

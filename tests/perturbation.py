@@ -21,7 +21,8 @@ from ssgc.geometry import axis_angle_to_quat, quat_multiply
 from ssgc.io.scene import Scene, load_scenes
 from ssgc.parse.parser import Parser
 
-KINDS = ("move", "flip", "retype")
+KINDS = ("move", "flip", "retype", "move3d")
+DETECTABLE = 2.0  # nats: the change lowers the best tree's log-probability at least this much
 SINK = "ssgc/data/sink/saved_scenes.yaml"
 
 
@@ -33,6 +34,9 @@ def perturb(
     if kind == "move":
         phi = rng.uniform(0, 2 * np.pi)
         xyz[o] += 0.15 * np.array([np.cos(phi), np.sin(phi), 0.0])
+    elif kind == "move3d":  # a direction uniform on the sphere
+        v = rng.standard_normal(3)
+        xyz[o] += 0.15 * v / np.linalg.norm(v)
     elif kind == "flip":
         quat[o] = quat_multiply(axis_angle_to_quat(np.array([1.0, 0, 0]), np.pi), quat[o])
     else:
@@ -47,16 +51,21 @@ def run(
     scenes = load_scenes(scenes_path, g)[:limit]
     types = np.unique(np.concatenate([s.types for s in scenes]))
     parser = Parser(g)
-    out: dict = {"scenes": len(scenes)}
+    base = [parser.parse(s, top=1) for s in scenes]
+    out: dict = {"scenes": len(scenes), "detectable_nats": DETECTABLE}
     for k, kind in enumerate(KINDS):
-        first = unparseable = named = 0
+        first = unparseable = named = detectable = first_detectable = 0
         misses = []
         for i, scene in enumerate(scenes):
             changed, o = perturb(scene, kind, np.random.default_rng([seed, k, i]), types)
             result = parser.parse(changed, top=1)
             if result.parses:
-                e = explain_tree(g, changed, result.parses[0].tree)
+                e = explain_tree(g, changed, result.parses[0].tree, parser)
                 ok = e.objects[0].index == o
+                drop = base[i].parses[0].score - result.parses[0].score
+                if drop >= DETECTABLE:
+                    detectable += 1
+                    first_detectable += ok
             else:
                 unparseable += 1
                 d = diagnose(g, changed, parser, time_limit=60.0)
@@ -70,6 +79,8 @@ def run(
             "ranked_first": first,
             "unparseable": unparseable,
             "unparseable_named_exactly": named,
+            "parsed_and_detectable": detectable,
+            "ranked_first_of_detectable": first_detectable,
             "misses": misses,
         }
     return out
