@@ -10,6 +10,8 @@ import typer
 
 from .app import AllowOutside, _command, app, err, out
 
+DIAGNOSE_S = 20.0  # seconds (at most) to find the objects that rule out an infeasible scene
+
 
 def explain_results(grammar: Any, scenes: list[Any], time_limit: float | None) -> list[dict]:
     """One JSON object per scene: its explanation, or the diagnosis of why it has no parse."""
@@ -24,7 +26,7 @@ def explain_results(grammar: Any, scenes: list[Any], time_limit: float | None) -
             e = explain_tree(grammar, scene, result.parses[0].tree, parser, time_limit)
             rows.append({"status": result.status, **e.to_json(), "_text": e.text(10)})
         elif result.status == "infeasible":
-            d = diagnose(grammar, scene, parser, time_limit=time_limit or 30.0)
+            d = diagnose(grammar, scene, parser, time_limit=time_limit or DIAGNOSE_S)
             rows.append(
                 {
                     "scene": scene.name,
@@ -103,7 +105,7 @@ def annotate(
     g = parser.grammar
     row = result_to_json(g, result)
     if result.status == "infeasible":
-        d = diagnose(g, scene, parser, time_limit=time_limit or 30.0)
+        d = diagnose(g, scene, parser, time_limit=min(time_limit or DIAGNOSE_S, DIAGNOSE_S))
         row["message"] = d.message
         row["diagnosis"] = d.to_json()
     elif result.parses:

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
+from ssgc.errors import SsgError
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate, quat_to_matrix
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind, RKind, TKind
@@ -691,6 +692,10 @@ def diagnose(
     from ssgc.parse.parser import Parser
 
     parser = parser or Parser(grammar)
+    try:  # too many objects for the grammar: any of them may go, so none is named
+        parser.check_capacity(scene)
+    except SsgError as exc:
+        return Diagnosis(scene.name, [], {}, [], "; ".join(d.message for d in exc.diagnostics))
     t_end = time.perf_counter() + time_limit
     names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
     never = [o for o in range(len(scene)) if parser.capacity[scene.types[o]] == 0]

@@ -131,7 +131,8 @@ def test_a_displaced_mug_ranks_first(dinner, mug):
     e = explain(dinner, moved(dinner_scene(dinner), mug, [0.08, 0.0, 0.0]))
     assert e.objects[0].index == mug
     words = next(r.text for r in e.objects[0].reasons if r.kind == "position")
-    assert re.search(r"0\.0\d m from where its parent Plate #\d places it \([3-9]\.\dσ", words), words
+    pattern = r"0\.0\d m from where its parent Plate #\d places it \([3-9]\.\dσ"
+    assert re.search(pattern, words), words
 
 
 def test_a_lone_mug_off_its_plate_blames_the_pair(dinner):
