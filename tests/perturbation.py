@@ -22,6 +22,10 @@ from ssgc.io.scene import Scene, load_scenes
 from ssgc.parse.parser import Parser
 
 KINDS = ("move", "flip", "retype", "move3d")
+# What was measured when this was written (docs/explain.md), less a margin: a regression guard.
+# Issue 16 asks for 0.9 per kind; the sink grammar cannot tell most of these changes from real
+# scenes (see "detectable" in the output), so the rates are far below it.
+FLOORS = {"move": 0.55, "flip": 0.48, "retype": 0.33, "move3d": 0.55}
 DETECTABLE = 2.0  # nats: the change lowers the best tree's log-probability at least this much
 SINK = "ssgc/data/sink/saved_scenes.yaml"
 
@@ -72,6 +76,7 @@ def run(
                 ok = d.objects == [o]
                 named += ok
             first += ok
+            print(kind, i, scene.name, "first" if ok else "missed", file=sys.stderr, flush=True)
             if not ok:
                 misses.append(scene.name)
         out[kind] = {
