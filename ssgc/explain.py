@@ -692,10 +692,6 @@ def diagnose(
     from ssgc.parse.parser import Parser
 
     parser = parser or Parser(grammar)
-    try:  # too many objects for the grammar: any of them may go, so none is named
-        parser.check_capacity(scene)
-    except SsgError as exc:
-        return Diagnosis(scene.name, [], {}, [], "; ".join(d.message for d in exc.diagnostics))
     t_end = time.perf_counter() + time_limit
     names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
     never = [o for o in range(len(scene)) if parser.capacity[scene.types[o]] == 0]
@@ -722,6 +718,10 @@ def diagnose(
         )
         if never:
             message += "; never produced by the grammar: " + ", ".join(names[o] for o in never)
+        try:  # too many objects (of types it makes): any of them may go, so none is named
+            parser.check_capacity(_without(scene, never))
+        except SsgError as exc:
+            message += "; " + "; ".join(d.message for d in exc.diagnostics)
         return Diagnosis(scene.name, never, {}, [], message)
     found.sort(key=lambda f: -f[0])
     _, drop, tree = found[0]
