@@ -414,6 +414,9 @@ def parse(
         bool,
         typer.Option("--resume", help="Continue an interrupted run with -o from its journal."),
     ] = False,
+    explain: Annotated[
+        bool, typer.Option("--explain", help="Add each scene's explanation (as ssg explain).")
+    ] = False,
     allow_outside_files: AllowOutside = False,
 ) -> None:
     """Most probable parse trees of observed scenes (MAP parsing by MILP on HiGHS).
@@ -428,7 +431,8 @@ def parse(
         )
     with lock_outputs([dest]):
         _parse_into(
-            dest, scenes, grammar, method, top, time_limit, quiet, resume, allow_outside_files
+            dest, scenes, grammar, method, top, time_limit, quiet, resume, allow_outside_files,
+            explain,
         )
 
 
@@ -442,11 +446,13 @@ def _parse_into(
     quiet: bool,
     resume: bool,
     allow_outside_files: bool,
+    explain: bool,
 ) -> None:
     """`ssg parse`'s work, once its output is checked and locked."""
+    from ssgc.cli.explain import annotate
     from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
     from ssgc.io.scene import load_scenes
-    from ssgc.parse.parser import Parser, result_to_json
+    from ssgc.parse.parser import Parser
 
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_scenes(scenes, g)
@@ -456,9 +462,8 @@ def _parse_into(
         with _progress(quiet) as progress:
             task = progress.add_task("parsing", total=len(items))
             for scene in items:
-                results.append(
-                    result_to_json(g, parser.parse(scene, top=top, time_limit=time_limit))
-                )
+                result = parser.parse(scene, top=top, time_limit=time_limit)
+                results.append(annotate(parser, scene, result, top, explain, time_limit, quiet))
                 progress.advance(task)
         with write_output(dest) as f:
             failed = write_parse_output(f, g.name, results)
@@ -470,8 +475,10 @@ def _parse_into(
                 task = progress.add_task("parsing", total=len(items))
                 progress.advance(task, journal.done)
                 for index in range(journal.done, len(items)):
-                    result = parser.parse(items[index], top=top, time_limit=time_limit)
-                    journal.append(index, result_to_json(g, result))
+                    scene = items[index]
+                    result = parser.parse(scene, top=top, time_limit=time_limit)
+                    row = annotate(parser, scene, result, top, explain, time_limit, quiet)
+                    journal.append(index, row)
                     progress.advance(task)
             with write_output(dest, kept=journal.path) as f:
                 failed = write_parse_output(f, g.name, journal.results())
@@ -766,6 +773,9 @@ def _progress(quiet: bool) -> Iterator[Progress]:
     )
     with progress:
         yield progress
+
+
+from ssgc.cli import explain as _explain  # noqa: E402, F401  (registers `ssg explain`)
 
 
 def main() -> None:

@@ -35,10 +35,18 @@ def check_references(
     return checks.findings
 
 
-def check_structure(types: list[NodeType], rules: list[Rule], root: int) -> list[Finding]:
-    """Every cycle is bounded, every type reachable (for a grammar with no other error)."""
+def check_recursion(types: list[NodeType], rules: list[Rule]) -> list[Finding]:
+    """Every cycle is bounded.  Rules with errors are left out, which can hide a cycle but
+    never make one up, so this runs on a grammar with other errors too."""
     checks = _Checks(types, None, False)
     checks.check_recursion(types, rules)
+    return checks.findings
+
+
+def check_reachable(types: list[NodeType], rules: list[Rule], root: int) -> list[Finding]:
+    """Every type is reachable (only for a grammar with no other error: a rule dropped for an
+    error would make its children look unreachable)."""
+    checks = _Checks(types, None, False)
     checks.check_reachable(types, rules, root)
     return checks.findings
 

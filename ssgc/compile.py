@@ -24,7 +24,7 @@ from pydantic import ValidationError
 
 import ssgc.laws  # noqa: F401  (registers the built-in laws)
 from ssgc import dsl
-from ssgc.checks import Finding, check_references, check_structure
+from ssgc.checks import Finding, check_reachable, check_recursion, check_references
 from ssgc.constraints.build import build_constraints
 from ssgc.errors import Diagnostic, GrammarError, SsgError, one_line
 from ssgc.geometry import IDENTITY_QUAT, quat_canonical, rpy_to_quat
@@ -91,8 +91,43 @@ def compile_text(
     try:
         doc = dsl.GrammarDoc.model_validate(data)
     except ValidationError as exc:
-        raise GrammarError(validation_diagnostics(exc, source)) from None
+        later = _errors_beyond_shape(data, exc, source, base_dir, allow_outside)
+        raise GrammarError(validation_diagnostics(exc, source) + later) from None
     return Compiler(doc, source, base_dir, allow_outside).run()
+
+
+def _errors_beyond_shape(
+    data: dict,
+    exc: ValidationError,
+    source: SourceMap,
+    base_dir: Path | None,
+    allow_outside: bool,
+) -> list[Diagnostic]:
+    """The semantic errors of the rest of a grammar whose shape is wrong in some node types,
+    so that one run reports them all (not one stage per run).
+
+    Each malformed type is checked as a terminal stub: its name stays known, so the rest gets
+    no follow-on "unknown type" errors, and warnings (which a stub could cause) are dropped.
+    A shape error outside `types` (root, grammar name) leaves nothing sound to check.
+    """
+    bad: set[str] = set()
+    for err in exc.errors(include_url=False):
+        loc = tuple(err["loc"])
+        if len(loc) < 3 or loc[0] != "types" or not isinstance(loc[1], str) or loc[2] == "[key]":
+            return []
+        bad.add(loc[1])
+    types = data.get("types")
+    if not isinstance(types, dict):
+        return []
+    stubbed = {**data, "types": {k: ({} if k in bad else v) for k, v in types.items()}}
+    try:
+        doc = dsl.GrammarDoc.model_validate(stubbed)
+        Compiler(doc, source, base_dir, allow_outside).run()
+    except ValidationError:
+        return []
+    except GrammarError as later:
+        return [d for d in later.diagnostics if d.severity != "warning"]
+    return []
 
 
 class Report:
@@ -157,11 +192,11 @@ class Compiler(Report):
         types = [self.node_type(name, spec, rules) for name, spec in self.doc.types.items()]
         root = self.ids.get(root_spec.type)
         self.add(check_references(types, rules, root, self.base_dir, self.allow_outside))
-        if not self.errors and root is not None:
-            self.add(check_structure(types, rules, root))
-        constraints = build_constraints(
-            self, types, rules, root, sound=not self.errors
-        )
+        if root is not None:
+            self.add(check_recursion(types, rules))
+            if not self.errors:
+                self.add(check_reachable(types, rules, root))
+        constraints = build_constraints(self, types, rules, root, sound=not self.errors)
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
         types_t, rules_t = tuple(types), tuple(rules)

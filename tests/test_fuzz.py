@@ -922,6 +922,17 @@ def test_fuzz_parse_sink_yaml(work: Path, data: bytes, grammar: str) -> None:
     check_parse(work, data, ".yaml", grammar)
 
 
+@fuzz(quick=25)
+@given(data=scene_json_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
+def test_fuzz_explain_json(work: Path, data: bytes, grammar: str) -> None:
+    path = write(work / "scene.json", data)
+    grammar_path = GRAMMARS / grammar
+    result, seconds = invoke(["explain", str(path), "-g", str(grammar_path), "--json"])
+    check(result, seconds, {0, 1, 2}, [path, grammar_path], data)
+    if result.exit_code in (0, 2):
+        assert json.loads(result.stdout)["scenes"], result.stdout
+
+
 def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes) -> None:
     """`ssg fit` on anything: the contract, and a fitted grammar that compiles or no file."""
     out = work / "fitted.yaml"

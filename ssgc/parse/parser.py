@@ -290,6 +290,9 @@ class _Run:
                 if not self.parses or sol.status != "infeasible":
                     self.status = sol.status
                     self.message = _why(self.scene, sol.status, sol.message)
+                if len(self.parses) < top:  # no more trees: say so (--top N asked for more)
+                    exists = "found" if self.p.has_latent else "exist"
+                    self.message = f"only {len(self.parses)} distinct tree(s) {exists}"
                 return  # infeasible after at least one parse: no more trees
             parse = self.p.read(self.problem, sol.x, sol.objective, sol.status, sol.gap)
             if not self.parses and np.isnan(self.raw_score):

@@ -1,0 +1,865 @@
+"""Why a scene scores what it scores: −log p of its best parse, split over objects and rules.
+
+Two numbers per object, for two questions (docs/explain.md):
+
+* **share** — its exact part of −log p (thesis Eq. 2.1).  Every term of the score belongs to a
+  node; a node's terms go to the observed objects of its *block* (the nodes joined to it by
+  fixed rules, which share one pose), else to the observed objects of its subtree, else to its
+  parent's owners, split equally.  So an edge's placement density goes to the object it places,
+  a latent node's terms and count/choice terms to the objects below it, and the shares sum to
+  −log p exactly.
+* **unusual** — the ranking key: how much the score would improve if only this object were
+  different.  For its pose, the best rigid move of its block (a shift, a turn), scored on every
+  edge the block touches: the edge that places it and the edges to the objects it places.  A
+  misplaced plate thus explains its misplaced-looking children (one move fixes all of them),
+  while a child's own move fixes only its edge.  Under the grammar this gain is about half a
+  χ² with 3 degrees of freedom per move (mean ≈ 1.5 nats) for any object, so objects compare.
+  Discrete terms add their surprise over their expectation (−log P − entropy, when positive).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+from scipy.stats import chi2
+
+from ssgc.errors import SsgError
+from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate, quat_to_matrix
+from ssgc.io.scene import Scene
+from ssgc.ir import Grammar, Kind
+from ssgc.laws.base import Frame
+from ssgc.laws.position_box import BoxTranslation
+from ssgc.laws.position_normal import NormalTranslation
+from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.rules import (
+    rotation_coordinates,
+    rotation_log_density,
+    sample_children,
+    translation_coordinates,
+    translation_log_density,
+)
+from ssgc.score import node_terms
+from ssgc.tree import Trees
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+MC_DRAWS = 4000  # draws per rule for expected log-densities and rotation percentiles
+IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+@dataclass
+class Reason:
+    """One score term as it bears on one object."""
+
+    rule: str  # the rule (edges) or the node type (count/choice)
+    kind: str  # position | rotation | count | choice
+    log_prob: float  # the whole term
+    share: float  # this object's part of −log p from the term
+    excess: float  # −log p of the term minus its expectation under the grammar
+    sigma: float | None  # Mahalanobis distance (Normal positions)
+    percentile: float | None  # P(a draw of the law is no more likely than this)
+    text: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "rule": self.rule,
+            "kind": self.kind,
+            "log_prob": self.log_prob,
+            "share": self.share,
+            "excess": self.excess,
+            "sigma": self.sigma,
+            "percentile": self.percentile,
+            "text": self.text,
+        }
+
+
+@dataclass
+class ObjectExplanation:
+    index: int  # position in the scene's objects
+    type: str
+    share: float
+    unusual: float
+    pose_gain: float
+    reasons: list[Reason] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        return f"{self.type} #{self.index}"
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "index": self.index,
+            "type": self.type,
+            "share": self.share,
+            "unusual": self.unusual,
+            "pose_gain": self.pose_gain,
+            "reasons": [r.to_json() for r in self.reasons],
+        }
+
+
+@dataclass
+class Explanation:
+    scene: str
+    log_prob: float
+    objects: list[ObjectExplanation]  # most unusual first
+    rules: list[dict[str, Any]]  # each rule's (or node type's) share, largest first
+    unattributed: float = 0.0  # −log p of a scene without objects (nothing to attribute it to)
+
+    @property
+    def nats_per_object(self) -> float:
+        """−log p per observed object: comparable between scenes of different sizes."""
+        return -self.log_prob / max(1, len(self.objects))
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "scene": self.scene,
+            "log_prob": self.log_prob,
+            "neg_log_prob": -self.log_prob,
+            "nats_per_object": self.nats_per_object,
+            "unattributed": self.unattributed,
+            "objects": [o.to_json() for o in self.objects],
+            "rules": self.rules,
+        }
+
+    def text(self, limit: int | None = None) -> str:
+        lines = [
+            f"scene '{self.scene}': −log p = {-self.log_prob:.3f} "
+            f"({self.nats_per_object:.3f} per object); most unusual first:"
+        ]
+        for o in self.objects[:limit]:
+            lines.append(f"  {o.label}: unusual {o.unusual:.2f}, share {o.share:.3f}")
+            for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
+                lines.append(f"    {r.text}")
+        if self.rules:
+            lines.append("rules by share of −log p:")
+            for r in self.rules[:limit]:
+                lines.append(f"  {r['rule']} ({r['kind']}, {r['terms']} term(s)): {r['share']:.3f}")
+        return "\n".join(lines)
+
+
+def explain(grammar: Grammar, scene: Scene, tree: Trees | None = None, **parse: Any) -> Explanation:
+    """Explain a scene's best parse (parsed here unless `tree` is given; `parse` goes to
+    `Parser.parse`, e.g. time_limit).  Raises `UnexplainedScene` when there is no parse; for a
+    scene no tree contains, with the diagnosis (`diagnose`) that names the objects to blame."""
+    from ssgc.parse.parser import Parser
+
+    parser = Parser(grammar)
+    if tree is None:
+        tree = best_tree(grammar, scene, parser, **parse)
+    return explain_tree(grammar, scene, tree, parser, parse.get("time_limit"))
+
+
+class UnexplainedScene(Exception):
+    """No parse; `diagnosis` (for an infeasible scene) names the objects and rules to blame."""
+
+    def __init__(self, message: str, status: str, diagnosis: Diagnosis | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+        self.diagnosis = diagnosis
+
+
+def best_tree(grammar: Grammar, scene: Scene, parser: Any = None, **parse: Any) -> Trees:
+    from ssgc.parse.parser import Parser
+
+    parser = parser or Parser(grammar)
+    result = parser.parse(scene, top=1, **parse)
+    if result.parses:
+        return result.parses[0].tree
+    if result.status != "infeasible":
+        raise UnexplainedScene(result.message, result.status)
+    d = diagnose(grammar, scene, parser, time_limit=parse.get("time_limit") or 30.0)
+    raise UnexplainedScene(d.message, result.status, d)
+
+
+def explain_tree(
+    grammar: Grammar,
+    scene: Scene,
+    tree: Trees,
+    parser: Any = None,
+    time_limit: float | None = None,
+) -> Explanation:
+    """Explain one tree of the scene (its observed nodes are the scene's objects).
+
+    With a `parser`, each object's repaired pose is also tried by parsing the scene again with
+    that one object moved (so other objects may change parent: a flipped plate whose cups had
+    to move to a far plate gets the credit for the whole mess); its pose gain is then the
+    better of the two."""
+    terms = _terms(grammar, tree)
+    obj_of = match_objects(grammar, scene, tree)
+    weights = ownership(grammar, tree, obj_of, len(scene))
+    expect = _Expectations(grammar)
+    objects = [
+        ObjectExplanation(int(o), grammar.types[scene.types[o]].name, 0.0, 0.0, 0.0)
+        for o in range(len(scene))
+    ]
+    for term in terms:
+        w = weights[term["node"]]
+        excess = -term["log_prob"] - expect.term(term)
+        text = _sentence(grammar, scene, tree, obj_of, term, expect)
+        for o in np.flatnonzero(w):
+            share = -float(w[o]) * term["log_prob"]
+            objects[o].share += share
+            objects[o].reasons.append(
+                Reason(
+                    term["rule"],
+                    term["kind"],
+                    term["log_prob"],
+                    share,
+                    excess,
+                    term.get("sigma"),
+                    term.get("percentile"),
+                    text,
+                )
+            )
+            if term["kind"] in ("count", "choice"):
+                objects[o].unusual += float(w[o]) * max(0.0, excess)
+    log_prob = float(sum(t["log_prob"] for t in terms))
+    for o, fix in pose_gains(grammar, tree, obj_of).items():
+        gain = fix.gain
+        if parser is not None and gain > 0:
+            gain = max(gain, _reparsed_gain(parser, scene, o, fix, log_prob, time_limit))
+        objects[o].pose_gain = gain
+        objects[o].unusual += gain
+    unattributed = -log_prob if len(scene) == 0 else 0.0
+    objects.sort(key=lambda o: (-o.unusual, -o.share, o.index))
+    return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed)
+
+
+def _reparsed_gain(
+    parser: Any, scene: Scene, o: int, fix: Repair, log_prob: float, time_limit: float | None
+) -> float:
+    """The best score gain over the repair's poses of object o, the scene parsed again."""
+    best = 0.0
+    for xyz_o, quat_o in fix.poses[:2]:
+        xyz, quat = scene.xyz.copy(), scene.quat.copy()
+        xyz[o], quat[o] = xyz_o, quat_o
+        moved = Scene(scene.name, scene.types, xyz, quat, metadata=scene.metadata)
+        result = parser.parse(moved, top=1, time_limit=time_limit)
+        if result.parses:
+            best = max(best, result.parses[0].score - log_prob)
+    return best
+
+
+# ------------------------------------------------------------------ terms ---
+
+
+def _terms(grammar: Grammar, tree: Trees) -> list[dict[str, Any]]:
+    """Every non-zero term of Eq. 2.1 for the tree: edges split into position and rotation."""
+    nt = node_terms(grammar, tree)
+    out: list[dict[str, Any]] = []
+    child = np.flatnonzero(tree.parent >= 0)
+    r, p = tree.rule[child], tree.parent[child]
+    lt = translation_log_density(grammar, r, tree.xyz[p], tree.quat[p], tree.xyz[child])
+    lr = rotation_log_density(grammar, r, tree.quat[p], tree.quat[child])
+    for k, i in enumerate(child):
+        rule = int(r[k])
+        name = grammar.rule_name(rule)
+        if grammar.rules[rule].translation.point is None:
+            out.append(
+                {
+                    "node": int(i),
+                    "kind": "position",
+                    "rule": name,
+                    "rid": rule,
+                    "log_prob": float(lt[k]),
+                }
+            )
+        if grammar.rules[rule].rotation.point is None:
+            out.append(
+                {
+                    "node": int(i),
+                    "kind": "rotation",
+                    "rule": name,
+                    "rid": rule,
+                    "log_prob": float(lr[k]),
+                }
+            )
+    for i in np.flatnonzero(nt.choice != 0):
+        t = grammar.types[tree.type[i]]
+        kind = "count" if t.kind == Kind.REPEAT else "choice"
+        out.append({"node": int(i), "kind": kind, "rule": t.name, "log_prob": float(nt.choice[i])})
+    # the edge terms recomputed here must be the scorer's (one definition of the score)
+    assert np.allclose(lt + lr, nt.edge[child], atol=1e-9, equal_nan=True)
+    return out
+
+
+def _rule_shares(terms: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    acc: dict[tuple[str, str], list[float]] = {}
+    for t in terms:
+        kind = "placement" if t["kind"] in ("position", "rotation") else t["kind"]
+        acc.setdefault((t["rule"], kind), []).append(-t["log_prob"])
+    rows = [
+        {"rule": rule, "kind": kind, "share": float(sum(v)), "terms": len(v)}
+        for (rule, kind), v in acc.items()
+    ]
+    return sorted(rows, key=lambda r: -r["share"])
+
+
+# -------------------------------------------------------------- ownership ---
+
+
+def match_objects(grammar: Grammar, scene: Scene, tree: Trees) -> IntArray:
+    """For each tree node, the scene object it is (-1 for latent nodes and an implicit root),
+    matched per type by pose (nodes of a parse sit exactly on their objects)."""
+    obj_of = np.full(len(tree), -1, np.int64)
+    observed = grammar.tables.type_observed[tree.type]
+    for t in np.unique(scene.types):
+        nodes = np.flatnonzero(observed & (tree.type == t))
+        objs = np.flatnonzero(scene.types == t)
+        if len(nodes) == 0:
+            continue
+        cost = np.linalg.norm(tree.xyz[nodes][:, None] - scene.xyz[objs][None], axis=2)
+        cost = cost + quat_angle(tree.quat[nodes][:, None], scene.quat[objs][None])
+        rows, cols = linear_sum_assignment(cost)
+        obj_of[nodes[rows]] = objs[cols]
+    return obj_of
+
+
+def blocks(grammar: Grammar, tree: Trees) -> IntArray:
+    """Each node's block top: nodes joined by rules fixed in translation and rotation share a
+    pose, so they are one thing that moves together."""
+    rigid = [_rigid(grammar, r) for r in range(len(grammar.rules))]
+    top = np.arange(len(tree))
+    for i in range(len(tree)):  # parents come first
+        r = tree.rule[i]
+        if r >= 0 and rigid[r]:
+            top[i] = top[tree.parent[i]]
+    return top
+
+
+def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -> FloatArray:
+    """(nodes, objects) weights, each row summing to 1 (when the scene has objects): who owns
+    each node's terms (module docstring)."""
+    n = len(tree)
+    w = np.zeros((n, n_objects))
+    if n_objects == 0:
+        return w
+    top = blocks(grammar, tree)
+    below = np.zeros((n, n_objects), bool)  # objects in each node's subtree
+    has = obj_of >= 0
+    below[np.flatnonzero(has), obj_of[has]] = True
+    for i in range(n - 1, 0, -1):
+        if tree.parent[i] >= 0:
+            below[tree.parent[i]] |= below[i]
+    in_block = np.zeros((n, n_objects), bool)
+    in_block[top[np.flatnonzero(has)], obj_of[has]] = True
+    for i in range(n):
+        own = in_block[top[i]]
+        if not own.any():
+            own = below[i]
+        if own.any():
+            w[i] = own / own.sum()
+        elif tree.parent[i] >= 0:
+            w[i] = w[tree.parent[i]]
+        else:
+            w[i] = 1.0 / n_objects
+    return w
+
+
+# ------------------------------------------------------------ pose repair ---
+
+
+@dataclass
+class Repair:
+    """Rigid moves of one object's block that raise the tree's score: the best gain, and the
+    object's pose after each move (best first; a shift alone, a turn alone, both)."""
+
+    gain: float
+    poses: list[tuple[FloatArray, FloatArray]]
+
+
+def pose_gains(grammar: Grammar, tree: Trees, obj_of: IntArray) -> dict[int, Repair]:
+    """For each object: how much the tree's score rises when its block alone is moved rigidly
+    to the best of a few candidate poses (each puts one touched edge at its law's mode)."""
+    top = blocks(grammar, tree)
+    out: dict[int, Repair] = {}
+    for b in np.unique(top[obj_of >= 0]):
+        members = np.flatnonzero(top == b)
+        moves = _block_gain(grammar, tree, members, int(b))
+        x0 = tree.xyz[b]
+        for m in members:
+            if obj_of[m] < 0:
+                continue
+            poses = [
+                (
+                    x0 + quat_rotate(turn, tree.xyz[m] - x0) + shift,
+                    quat_multiply(turn, tree.quat[m]),
+                )
+                for shift, turn, _ in moves
+            ]
+            out[int(obj_of[m])] = Repair(moves[0][2] if moves else 0.0, poses)
+    return out
+
+
+def _block_gain(
+    grammar: Grammar, tree: Trees, members: IntArray, top: int
+) -> list[tuple[FloatArray, FloatArray, float]]:
+    """Rigid moves (shift, turn, gain) of a block that raise the score, best first."""
+    inside = np.zeros(len(tree), bool)
+    inside[members] = True
+    kids = np.flatnonzero((tree.parent >= 0) & ~inside & inside[np.maximum(tree.parent, 0)])
+    edges = np.r_[[top] if tree.parent[top] >= 0 else [], kids].astype(np.int64)
+    if len(edges) == 0:
+        return []
+    shifts, turns = [np.zeros(3)], [IDENTITY]
+    x0, q0 = tree.xyz[top], tree.quat[top]
+    if tree.parent[top] >= 0:
+        p, r = tree.parent[top], int(tree.rule[top])
+        shifts.append(_mode_position(grammar, r, tree.xyz[p], tree.quat[p]) - x0)
+        mode = _mode_rotation(grammar, r, tree.quat[p])
+        if mode is not None:
+            turns.append(quat_multiply(mode, quat_conjugate(q0)))
+    for c in kids:
+        p, r = tree.parent[c], int(tree.rule[c])
+        frame = grammar.rules[r].translation.frame
+        if frame == Frame.WORLD_OFFSET:
+            shifts.append(tree.xyz[c] - _mode_u(grammar, r) - tree.xyz[p])
+        elif frame == Frame.PARENT:
+            shifts.append(
+                tree.xyz[c] - quat_rotate(tree.quat[p], _mode_u(grammar, r)) - tree.xyz[p]
+            )
+        rel = _rel_mode(grammar, r)
+        if rel is not None and grammar.rules[r].rotation.frame != Frame.WORLD:
+            want = quat_multiply(tree.quat[c], quat_conjugate(rel))  # parent rotation wanted
+            turns.append(quat_multiply(want, quat_conjugate(tree.quat[p])))
+    if len(shifts) > 2:
+        shifts.append(np.mean(shifts[1:], axis=0))
+    d = np.array(shifts)
+    rq = np.array(turns)
+    # shifts alone, turns alone, and the best turn after the best shift: (K, 3) and (K, 4)
+    shift = np.r_[d, np.zeros((len(rq), 3))]
+    turn = np.r_[np.tile(IDENTITY, (len(d), 1)), rq]
+    s = _moved_scores(grammar, tree, members, top, edges, shift, turn)
+    best_d, best_r = int(np.argmax(s[: len(d)])), len(d) + int(np.argmax(s[len(d) :]))
+    s2 = _moved_scores(grammar, tree, members, top, edges, np.tile(d[best_d], (len(rq), 1)), rq)
+    moves = [(d[best_d], IDENTITY, s[best_d]), (np.zeros(3), turn[best_r], s[best_r])]
+    moves.append((d[best_d], rq[int(np.argmax(s2))], float(np.max(s2))))
+    moves = [(a, b, float(v) - float(s[0])) for a, b, v in moves]
+    moves = [m for m in moves if np.isfinite(m[2]) and m[2] > 0]
+    return sorted(moves, key=lambda m: -m[2])
+
+
+def _moved_scores(
+    grammar: Grammar,
+    tree: Trees,
+    members: IntArray,
+    top: int,
+    edges: IntArray,
+    shift: FloatArray,
+    turn: FloatArray,
+) -> FloatArray:
+    """Score of the touched edges for K rigid moves of the block: turn about the top node's
+    position, then shift."""
+    k = len(shift)
+    xyz = np.repeat(tree.xyz[None], k, axis=0)
+    quat = np.repeat(tree.quat[None], k, axis=0)
+    x0 = tree.xyz[top]
+    for m in members:
+        xyz[:, m] = x0 + quat_rotate(turn, np.broadcast_to(tree.xyz[m] - x0, (k, 3))) + shift
+        quat[:, m] = quat_multiply(turn, np.broadcast_to(tree.quat[m], (k, 4)))
+    p = tree.parent[edges]
+    r = np.tile(tree.rule[edges], k)
+    px, pq = xyz[:, p].reshape(-1, 3), quat[:, p].reshape(-1, 4)
+    cx, cq = xyz[:, edges].reshape(-1, 3), quat[:, edges].reshape(-1, 4)
+    lp = translation_log_density(grammar, r, px, pq, cx) + rotation_log_density(grammar, r, pq, cq)
+    return np.nan_to_num(lp.reshape(k, -1).sum(axis=1), nan=-np.inf)
+
+
+def _mode_u(grammar: Grammar, r: int) -> FloatArray:
+    """The most likely position of a rule's child in the rule's own coordinates."""
+    mode = grammar.rules[r].translation.mode()
+    return np.zeros(3) if mode is None else np.array(mode, float)
+
+
+def _mode_position(grammar: Grammar, r: int, pxyz: FloatArray, pquat: FloatArray) -> FloatArray:
+    frame = grammar.rules[r].translation.frame
+    u = _mode_u(grammar, r)
+    if frame == Frame.WORLD:
+        return u
+    if frame == Frame.PARENT:
+        return pxyz + quat_rotate(pquat, u)
+    return pxyz + u
+
+
+def _rel_mode(grammar: Grammar, r: int) -> FloatArray | None:
+    """The most likely rotation of a rule's child in the rule's coordinates (None: no mode)."""
+    mode = grammar.rules[r].rotation.mode()
+    return None if mode is None else np.array(mode, float)
+
+
+def _mode_rotation(grammar: Grammar, r: int, pquat: FloatArray) -> FloatArray | None:
+    rel = _rel_mode(grammar, r)
+    if rel is None or grammar.rules[r].rotation.frame == Frame.WORLD:
+        return rel
+    return quat_multiply(pquat, rel)
+
+
+# ----------------------------------------------------- expectations, words ---
+
+
+class _Expectations:
+    """Expected log-probability of each term under the grammar, and rotation percentiles, by
+    Monte Carlo from each rule's own sampler (seeded: the same numbers every run)."""
+
+    def __init__(self, grammar: Grammar) -> None:
+        self.g = grammar
+        self.draws: dict[int, tuple[FloatArray, FloatArray]] = {}
+
+    def rule(self, r: int) -> tuple[FloatArray, FloatArray]:
+        if r not in self.draws:
+            rng = np.random.default_rng([7, r])
+            n = MC_DRAWS
+            px, pq = np.zeros((n, 3)), np.tile(IDENTITY, (n, 1))
+            xyz, quat, _ = sample_children(self.g, r, px, pq, rng)
+            rr = np.full(n, r)
+            self.draws[r] = (
+                translation_log_density(self.g, rr, px, pq, xyz),
+                rotation_log_density(self.g, rr, pq, quat),
+            )
+        return self.draws[r]
+
+    def term(self, term: dict[str, Any]) -> float:
+        """E[−log p] of the term's law."""
+        if term["kind"] in ("position", "rotation"):
+            lt, lr = self.rule(term["rid"])
+            return -float(np.mean(lt if term["kind"] == "position" else lr))
+        return _entropy(self.g, term["rule"])
+
+    def percentile(self, r: int, log_prob: float) -> float:
+        _, lr = self.rule(r)
+        return float(np.mean(lr <= log_prob + 1e-12))
+
+
+def _entropy(grammar: Grammar, type_name: str) -> float:
+    t = next(t for t in grammar.types if t.name == type_name)
+    if t.kind == Kind.REPEAT and t.count is not None:
+        p = np.asarray(t.count.probs)
+    elif t.kind == Kind.OR:
+        p = np.asarray(t.probs) / np.sum(t.probs)
+    elif t.kind == Kind.INDEPENDENT:
+        p = np.asarray(t.probs)
+        q = p[(p > 0) & (p < 1)]
+        return float(-np.sum(q * np.log(q) + (1 - q) * np.log1p(-q)))
+    else:
+        return 0.0
+    p = p[p > 0]
+    return float(-np.sum(p * np.log(p)))
+
+
+def _name(grammar: Grammar, tree: Trees, obj_of: IntArray, node: int) -> str:
+    """A node as a user knows it: the object of its block, else its type."""
+    top = blocks(grammar, tree)
+    same = np.flatnonzero((top == top[node]) & (obj_of >= 0))
+    if len(same):
+        o = same[0]
+        return f"{grammar.types[tree.type[o]].name} #{obj_of[o]}"
+    return grammar.types[tree.type[node]].name
+
+
+def _sentence(
+    grammar: Grammar,
+    scene: Scene,
+    tree: Trees,
+    obj_of: IntArray,
+    term: dict[str, Any],
+    expect: _Expectations,
+) -> str:
+    i, kind, lp = term["node"], term["kind"], term["log_prob"]
+    if kind == "position":
+        return _position_words(grammar, tree, obj_of, term)
+    if kind == "rotation":
+        return _rotation_words(grammar, tree, term, expect)
+    t = grammar.types[tree.type[i]]
+    kids = np.flatnonzero(tree.parent == i)
+    if kind == "count":
+        tail = _discrete_tail(np.asarray(t.count.probs) if t.count else np.ones(1), len(kids))
+        term["percentile"] = tail
+        return f"{t.name} holds {len(kids)} (P = {np.exp(lp):.3g}; {_pct(tail)} of counts as rare)"
+    chosen = ", ".join(grammar.types[tree.type[c]].name for c in kids) or "nothing"
+    if t.kind == Kind.OR and len(kids) == 1:
+        probs = np.asarray(t.probs) / np.sum(t.probs)
+        term["percentile"] = _discrete_tail(
+            probs, int(grammar.tables.rule_index[tree.rule[kids[0]]])
+        )
+    return f"{t.name} is a {chosen} (P = {np.exp(lp):.3g})"
+
+
+def _discrete_tail(probs: FloatArray, k: int) -> float:
+    """P(an outcome no more likely than outcome k)."""
+    if k >= len(probs):
+        return 0.0
+    return float(np.sum(probs[probs <= probs[k] + 1e-15]))
+
+
+def _pct(p: float) -> str:
+    return f"{100 * p:.2g}%"
+
+
+def _position_words(grammar: Grammar, tree: Trees, obj_of: IntArray, term: dict[str, Any]) -> str:
+    i, r = term["node"], term["rid"]
+    p = tree.parent[i]
+    u = translation_coordinates(
+        grammar, np.array([r]), tree.xyz[p][None], tree.quat[p][None], tree.xyz[i][None]
+    )[0]
+    parent = _name(grammar, tree, obj_of, int(p))
+    law = grammar.rules[r].translation
+    if isinstance(law, BoxTranslation):
+        return f"position inside the box where {parent} places it (every point equally likely)"
+    if not isinstance(law, NormalTranslation):
+        return f"position placed by {parent} ({law.key}), log p {term['log_prob']:.3g}"
+    free = law.free
+    d = float(np.linalg.norm(np.where(free, u - law.offset, 0.0)))
+    m2 = max(0.0, -2.0 * (term["log_prob"] - law.supremum()))
+    sigma = float(np.sqrt(m2))
+    term["sigma"] = sigma
+    term["percentile"] = float(chi2.sf(m2, int(free.sum())))
+    return (
+        f"position {d:.2f} m from where its parent {parent} places it ({sigma:.1f}σ, "
+        f"{_pct(term['percentile'])} of placements are farther)"
+    )
+
+
+def _rotation_words(
+    grammar: Grammar, tree: Trees, term: dict[str, Any], expect: _Expectations
+) -> str:
+    i, r = term["node"], term["rid"]
+    law = grammar.rules[r].rotation
+    if isinstance(law, RevoluteRotation):
+        return "rotation about its rule's axis, every allowed angle equally likely"
+    if law.mode() is None:
+        return "rotation: any rotation is equally likely"
+    p = tree.parent[i]
+    rel = rotation_coordinates(grammar, np.array([r]), tree.quat[p][None], tree.quat[i][None])[0]
+    mode = _rel_mode(grammar, r)
+    assert mode is not None
+    angle = float(np.degrees(quat_angle(rel, mode)))
+    up_now = quat_to_matrix(rel)[:, 2]
+    up_mode = quat_to_matrix(mode)[:, 2]
+    flipped = float(np.dot(up_now, up_mode)) < 0
+    pct = expect.percentile(r, term["log_prob"])
+    term["percentile"] = pct
+    how = "upside down, " if flipped else ""
+    return f"rotation: {how}{angle:.0f}° from the most likely, {_pct(pct)} likely"
+
+
+# ------------------------------------------------ scenes with no parse at all ---
+
+
+@dataclass
+class Diagnosis:
+    """Why no tree explains a scene: objects whose removal lets the rest parse, and why the
+    rules that could have produced each fail (`objects` empty when none was found in time)."""
+
+    scene: str
+    objects: list[int]  # the smallest set found, best first
+    reasons: dict[int, list[str]]
+    alternatives: list[list[int]]  # other sets of the same size that also work
+    message: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "objects": self.objects,
+            "reasons": {str(k): v for k, v in self.reasons.items()},
+            "alternatives": self.alternatives,
+            "message": self.message,
+        }
+
+
+def diagnose(
+    grammar: Grammar,
+    scene: Scene,
+    parser: Any = None,
+    time_limit: float = 30.0,
+    max_removed: int = 2,
+) -> Diagnosis:
+    """Find few objects whose removal makes the scene parseable (the parser as a black box:
+    every object alone, then pairs, within `time_limit` seconds), and say for each why the
+    rules that could produce it cannot.  Among several single objects that work, the one whose
+    removal leaves the most probable rest comes first."""
+    import itertools
+    import time
+
+    from ssgc.parse.parser import Parser
+
+    parser = parser or Parser(grammar)
+    t_end = time.perf_counter() + time_limit
+    names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
+    never = [o for o in range(len(scene)) if parser.capacity[scene.types[o]] == 0]
+    found: list[tuple[float, list[int], Trees]] = []
+    base = set(never)
+    for k in range(0, max_removed + 1):
+        for extra in itertools.combinations([o for o in range(len(scene)) if o not in base], k):
+            left = t_end - time.perf_counter()
+            if left <= 0:
+                break
+            drop = sorted(base | set(extra))
+            if not drop:
+                continue
+            rest = _without(scene, drop)
+            result = parser.parse(rest, top=1, time_limit=max(0.5, min(left, 10.0)))
+            if result.parses:
+                found.append((result.parses[0].score, drop, result.parses[0].tree))
+        if found:
+            break
+    if not found:
+        message = (
+            f"scene '{scene.name}': no tree of the grammar contains this scene's objects, and "
+            f"removing up to {max_removed} object(s) does not help"
+        )
+        if never:
+            message += "; never produced by the grammar: " + ", ".join(names[o] for o in never)
+        try:  # too many objects (of types it makes): any of them may go, so none is named
+            parser.check_capacity(_without(scene, never))
+        except SsgError as exc:
+            message += "; " + "; ".join(d.message for d in exc.diagnostics)
+        return Diagnosis(scene.name, never, {}, [], message)
+    found.sort(key=lambda f: -f[0])
+    _, drop, tree = found[0]
+    kept = np.setdiff1d(np.arange(len(scene)), drop)
+    reasons = {o: _why_not(grammar, scene, o, tree, kept, parser) for o in drop}
+    parts = [f"{names[o]} ({'; '.join(reasons[o][:3])})" for o in drop]
+    message = (
+        f"scene '{scene.name}': no tree of the grammar contains all its objects; without "
+        + " and ".join(names[o] for o in drop)
+        + " it parses. "
+        + " ".join(parts)
+    )
+    if len(found) > 1:
+        message += (
+            " (also parses without: "
+            + "; ".join(" and ".join(names[o] for o in f[1]) for f in found[1:6])
+            + ")"
+        )
+    return Diagnosis(scene.name, drop, reasons, [f[1] for f in found[1:]], message)
+
+
+def _without(scene: Scene, drop: list[int]) -> Scene:
+    keep = np.setdiff1d(np.arange(len(scene)), drop)
+    return Scene(
+        scene.name,
+        scene.types[keep],
+        scene.xyz[keep],
+        scene.quat[keep],
+        metadata=tuple(scene.metadata[i] for i in keep) if scene.metadata else (),
+    )
+
+
+def _why_not(
+    grammar: Grammar, scene: Scene, o: int, tree: Trees, kept: IntArray, parser: Any
+) -> list[str]:
+    """Why each rule that could produce object o fails from each node of the other objects'
+    best tree that could have fired it, closest candidates first."""
+    tb = grammar.tables
+    t = int(scene.types[o])
+    if parser.capacity[t] == 0:
+        return [f"the grammar never produces a {grammar.types[t].name}"]
+    out: list[tuple[float, str]] = []
+    kept_names = {}
+    for i in range(len(tree)):
+        same = np.flatnonzero(
+            (scene.types[kept] == tree.type[i])
+            & (np.linalg.norm(scene.xyz[kept] - tree.xyz[i], axis=1) < 1e-6)
+        )
+        kept_names[i] = (
+            f"{grammar.types[tree.type[i]].name} #{kept[same[0]]}"
+            if len(same)
+            else grammar.types[tree.type[i]].name
+        )
+    for vt, x, q in _fixed_ancestors(grammar, t, scene.xyz[o], scene.quat[o]):
+        for r in np.flatnonzero(tb.rule_child == vt):
+            if _rigid(grammar, int(r)):
+                continue
+            parents = np.flatnonzero(tree.type == tb.rule_parent[r])
+            rule = grammar.rule_name(int(r))
+            if len(parents) == 0:
+                out.append(
+                    (
+                        np.inf,
+                        f"{rule}: no {grammar.types[tb.rule_parent[r]].name} among "
+                        "the other objects' tree to fire it",
+                    )
+                )
+                continue
+            rr = np.full(len(parents), r)
+            px, pq = tree.xyz[parents], tree.quat[parents]
+            xs, qs = np.tile(x, (len(parents), 1)), np.tile(q, (len(parents), 1))
+            lt = translation_log_density(grammar, rr, px, pq, xs)
+            lr = rotation_log_density(grammar, rr, pq, qs)
+            u = translation_coordinates(grammar, rr, px, pq, xs)
+            dist = np.linalg.norm(xs - px, axis=1)
+            for k in np.argsort(dist)[:2]:
+                p = parents[k]
+                what = _failure(grammar, int(r), u[k], lt[k], lr[k], pq[k], q, tree, int(p))
+                out.append((float(dist[k]), f"{rule} from {kept_names[int(p)]}: {what}"))
+    out.sort(key=lambda x: x[0])
+    return [s for _, s in out] or [f"no rule produces a {grammar.types[t].name}"]
+
+
+def _rigid(grammar: Grammar, r: int) -> bool:
+    """A rule fixed in translation and rotation: its child moves with its parent."""
+    rule = grammar.rules[r]
+    return rule.translation.point is not None and rule.rotation.point is not None
+
+
+def _fixed_ancestors(grammar: Grammar, t: int, x: FloatArray, q: FloatArray):  # type: ignore[no-untyped-def]
+    """(type, xyz, quat) of the object and of every node that fixed rules would tie to it."""
+    tb = grammar.tables
+    todo, seen = [(t, x, q)], 0
+    while todo and seen < 64:
+        vt, vx, vq = todo.pop()
+        seen += 1
+        yield vt, vx, vq
+        for r in np.flatnonzero(tb.rule_child == vt):
+            if _rigid(grammar, int(r)):
+                rule = grammar.rules[int(r)]
+                pq = quat_multiply(vq, quat_conjugate(rule.rotation.point))
+                px = vx - quat_rotate(pq, rule.translation.point)
+                todo.append((int(tb.rule_parent[r]), px, pq))
+
+
+def _failure(
+    grammar: Grammar,
+    r: int,
+    u: FloatArray,
+    lt: float,
+    lr: float,
+    pq: FloatArray,
+    q: FloatArray,
+    tree: Trees,
+    p: int,
+) -> str:
+    axes = "xyz"
+    rule = grammar.rules[r]
+    if not np.isfinite(lt):
+        law = rule.translation
+        if isinstance(law, BoxTranslation):
+            out = np.maximum(law.box.lo - u, u - law.box.hi)
+            a = int(np.argmax(out))
+            return f"outside its box on {axes[a]} by {out[a]:.3g} m"
+        if law.point is not None:
+            off, what = u - law.point, "fixed offset"
+        elif isinstance(law, NormalTranslation):
+            off, what = np.where(law.free, 0.0, u - law.offset), "pinned axis"
+        else:
+            return f"its position has no density under {law.key}"
+        a = int(np.argmax(np.abs(off)))
+        what = what if law.point is not None else f"{what} {axes[a]}"
+        return f"{what} off by {off[a]:+.3g} m"
+    if not np.isfinite(lr):
+        rel = rotation_coordinates(grammar, np.array([r]), pq[None], q[None])[0]
+        if rule.rotation.point is not None:
+            ang = float(np.degrees(quat_angle(rel, rule.rotation.point)))
+            return f"fixed rotation off by {ang:.3g}°"
+        return "rotation outside the rule's revolute range or axis"
+    t = grammar.types[tree.type[p]]
+    held = int(np.sum(tree.parent == p))
+    if t.kind == Kind.REPEAT and t.count is not None and held >= len(t.count.probs) - 1:
+        return f"its pose is possible, but {t.name} already holds its maximum of {held}"
+    return (
+        f"its pose is possible (log p {lt + lr:.3g}); the grammar's counts or structure "
+        "cannot take it together with the rest"
+    )

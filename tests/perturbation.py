@@ -1,0 +1,100 @@
+"""The perturbation check of `ssg explain` (issue 16): on each real sink scene, change one
+object — move it 15 cm in a random horizontal direction, turn it upside down (half a turn about
+the world x axis through its position), or give it another of the dataset's types — and see
+whether the explanation ranks it first.  A scene the change makes unparseable counts as ranked
+first only if the diagnosis (`ssgc.explain.diagnose`) names exactly that object.
+
+    python tests/perturbation.py GRAMMAR [SCENES] [--limit N]   # prints one JSON object
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+
+import numpy as np
+
+from ssgc.compile import load_grammar
+from ssgc.explain import diagnose, explain_tree
+from ssgc.geometry import axis_angle_to_quat, quat_multiply
+from ssgc.io.scene import Scene, load_scenes
+from ssgc.parse.parser import Parser
+
+KINDS = ("move", "flip", "retype", "move3d")
+# What was measured when this was written (docs/explain.md), less a margin: a regression guard.
+# Issue 16 asks for 0.9 per kind; the sink grammar cannot tell most of these changes from real
+# scenes (see "detectable" in the output), so the rates are far below it.
+FLOORS = {"move": 0.55, "flip": 0.48, "retype": 0.33, "move3d": 0.55}
+DETECTABLE = 2.0  # nats: the change lowers the best tree's log-probability at least this much
+SINK = "ssgc/data/sink/saved_scenes.yaml"
+
+
+def perturb(
+    scene: Scene, kind: str, rng: np.random.Generator, types: np.ndarray
+) -> tuple[Scene, int]:
+    o = int(rng.integers(len(scene)))
+    xyz, quat, t = scene.xyz.copy(), scene.quat.copy(), scene.types.copy()
+    if kind == "move":
+        phi = rng.uniform(0, 2 * np.pi)
+        xyz[o] += 0.15 * np.array([np.cos(phi), np.sin(phi), 0.0])
+    elif kind == "move3d":  # a direction uniform on the sphere
+        v = rng.standard_normal(3)
+        xyz[o] += 0.15 * v / np.linalg.norm(v)
+    elif kind == "flip":
+        quat[o] = quat_multiply(axis_angle_to_quat(np.array([1.0, 0, 0]), np.pi), quat[o])
+    else:
+        t[o] = rng.choice(types[types != t[o]])
+    return replace(scene, xyz=xyz, quat=quat, types=t, tree=None), o
+
+
+def run(
+    grammar_path: str, scenes_path: str = SINK, limit: int | None = None, seed: int = 0
+) -> dict:
+    g = load_grammar(grammar_path)
+    scenes = load_scenes(scenes_path, g)[:limit]
+    types = np.unique(np.concatenate([s.types for s in scenes]))
+    parser = Parser(g)
+    base = [parser.parse(s, top=1) for s in scenes]
+    out: dict = {"scenes": len(scenes), "detectable_nats": DETECTABLE}
+    for k, kind in enumerate(KINDS):
+        first = unparseable = named = detectable = first_detectable = 0
+        misses = []
+        for i, scene in enumerate(scenes):
+            changed, o = perturb(scene, kind, np.random.default_rng([seed, k, i]), types)
+            result = parser.parse(changed, top=1)
+            if result.parses:
+                e = explain_tree(g, changed, result.parses[0].tree, parser)
+                ok = e.objects[0].index == o
+                drop = base[i].parses[0].score - result.parses[0].score
+                if drop >= DETECTABLE:
+                    detectable += 1
+                    first_detectable += ok
+            else:
+                unparseable += 1
+                d = diagnose(g, changed, parser, time_limit=60.0)
+                ok = d.objects == [o]
+                named += ok
+            first += ok
+            print(kind, i, scene.name, "first" if ok else "missed", file=sys.stderr, flush=True)
+            if not ok:
+                misses.append(scene.name)
+        out[kind] = {
+            "rate": first / len(scenes),
+            "ranked_first": first,
+            "unparseable": unparseable,
+            "unparseable_named_exactly": named,
+            "parsed_and_detectable": detectable,
+            "ranked_first_of_detectable": first_detectable,
+            "misses": misses,
+        }
+    return out
+
+
+if __name__ == "__main__":
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    lim = None
+    if "--limit" in sys.argv:
+        lim = int(sys.argv[sys.argv.index("--limit") + 1])
+        args.remove(str(lim))
+    print(json.dumps(run(args[0], *(args[1:2] or [SINK]), limit=lim), indent=1))
