@@ -26,6 +26,12 @@ def write_text_atomic(path: str | Path, text: str) -> None:
         f.write(text)
 
 
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """`write_text_atomic` for binary files (images): the bytes go under the text layer."""
+    with atomic_writer(path) as f:
+        f.buffer.write(data)
+
+
 @contextmanager
 def atomic_writer(path: str | Path) -> Iterator[TextIO]:
     """A text file that replaces `path` only when the block ends without an exception.
