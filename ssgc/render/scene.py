@@ -324,6 +324,7 @@ def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[i
     cols = math.ceil(math.sqrt(len(views)))
     rows = math.ceil(len(views) / cols)
     fig = Figure(figsize=(8.0 * cols + 1.6, 3.6 * rows), layout="constrained")
+    fig.get_layout_engine().set(wspace=0.1)  # room for the 3-D panel's z label
     colours = _colours(views)
     scores = [v.score[np.isfinite(v.score)] for v in views if v.score is not None]
     norm, cmap = None, colormaps["RdYlGn"]
