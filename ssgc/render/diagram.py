@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ssgc.ir import Grammar, Kind, NodeType, Rule
-from ssgc.render.scene import check_output, require_matplotlib, save_figure
+from ssgc.render.scene import check_output, plain, require_matplotlib, save_figure
 
 LAYER_GAP = 1.3  # inches between layer centres
 BOX_GAP = 0.35  # inches between boxes of a layer
@@ -139,7 +139,9 @@ def draw_diagram(grammar: Grammar, lay: Layout) -> Any:
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_axis_off()
-    ax.text(x0 + 0.2, y1 - 0.2, f"grammar '{grammar.name}'", fontsize=9, va="top", weight="bold")
+    ax.text(
+        x0 + 0.2, y1 - 0.2, plain(f"grammar '{grammar.name}'"), fontsize=9, va="top", weight="bold"
+    )
     y = {t: -lay.layer[t] * LAYER_GAP for t in lay.x}
     for t in grammar.types:
         w = lay.width[t.id]
@@ -156,7 +158,15 @@ def draw_diagram(grammar: Grammar, lay: Layout) -> Any:
                 zorder=2,
             )
         )
-        ax.text(lay.x[t.id], y[t.id] + 0.08, t.name, ha="center", va="center", fontsize=8, zorder=3)
+        ax.text(
+            lay.x[t.id],
+            y[t.id] + 0.08,
+            plain(t.name),
+            ha="center",
+            va="center",
+            fontsize=8,
+            zorder=3,
+        )
         ax.text(
             lay.x[t.id],
             y[t.id] - 0.12,

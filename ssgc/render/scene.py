@@ -31,6 +31,7 @@ from ssgc.ir import Grammar
 from ssgc.yamlio import load_located, read_text, validation_diagnostics
 
 FloatArray = NDArray[np.float64]
+MAX_COORD = 1000.0  # meters
 MAX_GRID = 64  # scenes in one picture; more would be unreadable
 FORMATS = (".png", ".svg")
 
@@ -119,7 +120,7 @@ def load_views(path: Path, n: int, grammar: Grammar | None) -> list[View]:
                 "a YAML dataset names no types: give its grammar with -g", str(path)
             )
         return [
-            _scene_view(s.name, grammar, s.types, s.xyz, s.quat)
+            _drawable(_scene_view(s.name, grammar, s.types, s.xyz, s.quat), path)
             for s in load_scenes(path, grammar)[:n]
         ]
     return _file_views(path, grammar)[:n]
@@ -137,9 +138,12 @@ def _file_views(path: Path, grammar: Grammar | None) -> list[View]:
             "not JSON: expected a scene or an `ssg parse` result", str(path), line, col
         ) from None
     if isinstance(data, dict) and "scenes" in data:
-        return _parse_views(_validated(_ParseDoc, data, text, path), grammar, path)
+        views = _parse_views(_validated(_ParseDoc, data, text, path), grammar, path)
+        return [_drawable(v, path) for v in views]
     if isinstance(data, dict) and "objects" in data:
-        return [_doc_view(_validated(SceneDoc, data, text, path), grammar, path.stem)]
+        return [
+            _drawable(_doc_view(_validated(SceneDoc, data, text, path), grammar, path.stem), path)
+        ]
     raise SceneError.single(
         "not a scene (a JSON object with `objects`) or an `ssg parse` result (with `scenes`)",
         str(path),
@@ -237,6 +241,15 @@ def _scene_view(name: str, grammar: Grammar, types: Any, xyz: Any, quat: Any) ->
     )
 
 
+def _drawable(view: View, path: Path) -> View:
+    """Coordinates a picture can hold: finite, within a kilometre of the origin."""
+    if view.xyz.size and not np.all(np.abs(view.xyz) <= MAX_COORD):
+        raise SceneError.single(
+            f"'{view.name}': a position is beyond {MAX_COORD:g} m, too far to draw", str(path)
+        )
+    return view
+
+
 def _parse_views(doc: _ParseDoc, grammar: Grammar | None, path: Path) -> list[View]:
     """The best parse of each scene that has one; its rule scores colour the edges."""
     views = []
@@ -303,6 +316,11 @@ def primitive_mesh(geometry: Any) -> tuple[FloatArray, list[list[int]]] | None:
     return None
 
 
+def plain(text: str) -> str:
+    """A user's string as matplotlib shows it literally: no mathtext, nothing unprintable."""
+    return text.encode("utf-8", "replace").decode("utf-8").replace("$", r"\$")
+
+
 def _colours(views: list[View]) -> dict[str, Any]:
     from matplotlib import colormaps
 
@@ -338,7 +356,7 @@ def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[i
         ax2 = fig.add_subplot(rows, 2 * cols, 2 * i + 2)
         _draw_view(ax3, ax2, view, geoms, colours, norm, cmap)
         axes += [ax3, ax2]
-    handles: list[Any] = [Patch(facecolor=c, alpha=0.6, label=t) for t, c in colours.items()]
+    handles: list[Any] = [Patch(facecolor=c, alpha=0.6, label=plain(t)) for t, c in colours.items()]
     if any(not np.all(v.observed) for v in views):
         handles.append(Line2D([], [], ls="", marker="s", ms=4, color="0.35", label="latent node"))
     if norm is None and any(np.any(v.parent >= 0) for v in views):
@@ -404,7 +422,7 @@ def _draw_view(
             LineCollection(segs[:, :, :2], colors=colour, linewidths=width, zorder=5)
         )
     _limits(ax3, ax2, np.vstack(points))
-    ax3.set_title(view.title, fontsize=8)
+    ax3.set_title(plain(view.title), fontsize=8)
     ax2.set_title("from above (x, y)", fontsize=8)
 
 
