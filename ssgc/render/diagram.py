@@ -5,7 +5,8 @@ probabilities, laid out in layers by the longest path from the root.
 The layout is computed here (no graphviz): recursive rules are found by a depth-first search
 and drawn as curved arrows back up; the rest is a DAG whose longest-path layering puts every
 type below all of its parents.  Within a layer, types are ordered by the mean position of their
-parents (two barycentre sweeps), which keeps most arrows short and uncrossed.
+parents (two barycentre sweeps); an arrow that skips layers passes through a waypoint in each
+layer between, so it never runs through a box.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ class Layout:
     x: dict[int, float]  # type id -> box centre (inches)
     width: dict[int, float]
     back: frozenset[int]  # rule ids that point back up (recursion)
+    route: dict[int, list[int]]  # rule id -> the waypoints of an arrow that skips layers
 
 
 def render_diagram(grammar: Grammar, output: str | Path) -> None:
@@ -56,16 +58,29 @@ def layout(grammar: Grammar) -> Layout:
     width = {
         t.id: max(len(t.name), len(_kind_line(grammar, t))) * CHAR + 0.3 for t in grammar.types
     }
-    x = _place(rows, width)
     parents: dict[int, list[int]] = {t.id: [] for t in grammar.types}
-    for r in grammar.rules:
-        if r.id not in back:
-            parents[r.child].append(r.parent)
+    route: dict[int, list[int]] = {}
+    for r in grammar.rules:  # an arrow that skips layers gets a waypoint in each layer between
+        if r.id in back:
+            continue
+        above = r.parent
+        for k in range(layer[r.parent] + 1, layer[r.child]):
+            way = len(width)
+            layer[way], width[way], parents[way] = k, 0.2, [above]
+            rows[k].append(way)
+            route.setdefault(r.id, []).append(way)
+            above = way
+        parents[r.child].append(above)
+    x = _place(rows, width)
     for _ in range(2):  # barycentre sweeps, top to bottom
         for row in rows[1:]:
-            row.sort(key=lambda t: float(np.mean([x[p] for p in parents[t]] or [0.0])))
+            row.sort(key=lambda t: _mean([x[p] for p in parents[t]], x[t]))
         x = _place(rows, width)
-    return Layout(layer, x, width, frozenset(back))
+    return Layout(layer, x, width, frozenset(back), route)
+
+
+def _mean(values: list[float], default: float) -> float:
+    return float(np.mean(values)) if values else default
 
 
 def _dfs(grammar: Grammar, children: dict[int, list[Rule]]) -> tuple[list[int], set[int]]:
@@ -201,8 +216,12 @@ def _arrow(ax: Any, grammar: Grammar, lay: Layout, r: Rule, y: dict[int, float],
         return
     start = np.array([px, y[r.parent] - BOX_HEIGHT / 2])
     end = np.array([cx, y[r.child] + BOX_HEIGHT / 2])
-    span = lay.layer[r.child] - lay.layer[r.parent]
-    rad = (0.3 if span > 1 else 0.0) + 0.15 * dup  # long arrows bend round the boxes between
+    ways = [np.array([lay.x[w], -lay.layer[w] * LAYER_GAP]) for w in lay.route.get(r.id, [])]
+    if ways:  # through its waypoints, the arrow head on the last stretch
+        line = np.array([start, *ways])
+        ax.plot(line[:, 0], line[:, 1], color="0.25", lw=0.7, zorder=1)
+        start = ways[-1]
+    rad = 0.15 * dup
     if rad:
         style["connectionstyle"] = f"arc3,rad={rad}"
     ax.annotate("", xy=tuple(end), xytext=tuple(start), arrowprops=style, zorder=1)
