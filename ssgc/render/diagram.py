@@ -192,26 +192,32 @@ def draw_diagram(grammar: Grammar, lay: Layout) -> Any:
             color="0.3",
             zorder=3,
         )
-    seen: dict[tuple[int, int], int] = {}
-    for r in grammar.rules:
-        dup = seen[(r.parent, r.child)] = seen.get((r.parent, r.child), -1) + 1
-        _arrow(ax, grammar, lay, r, y, dup)
+    pairs: dict[tuple[int, int], list[Rule]] = {}
+    for r in grammar.rules:  # several rules between two types: one arrow, their labels together
+        pairs.setdefault((r.parent, r.child), []).append(r)
+    for rules in pairs.values():
+        labels = [_rule_label(grammar, r) for r in rules]
+        if len(rules) > 1:
+            same = len(set(labels)) == 1
+            labels = [f"{labels[0]} ({len(rules)} rules)"] if same else [", ".join(labels)]
+        _arrow(ax, lay, rules[0], y, labels[0])
     return fig
 
 
-def _arrow(ax: Any, grammar: Grammar, lay: Layout, r: Rule, y: dict[int, float], dup: int) -> None:
-    label = _rule_label(grammar, r)
+def _arrow(ax: Any, lay: Layout, r: Rule, y: dict[int, float], label: str) -> None:
     style = {"arrowstyle": "-|>", "lw": 0.7, "color": "0.25", "shrinkA": 0, "shrinkB": 0}
     px, cx = lay.x[r.parent], lay.x[r.child]
     if r.id in lay.back:  # recursion: from the parent's right side round to the child's
         start = (px + lay.width[r.parent] / 2, y[r.parent])
         end = (cx + lay.width[r.child] / 2, y[r.child] + (0.12 if r.parent == r.child else 0))
         rad = 1.6 if r.parent == r.child else 0.5
-        style.update(color="#a0522d", connectionstyle=f"arc3,rad={rad + 0.2 * dup}")
+        style.update(color="#a0522d", connectionstyle=f"arc3,rad={rad}")
         if r.parent == r.child:
             start = (start[0], start[1] - 0.12)
         ax.annotate("", xy=end, xytext=start, arrowprops=style, zorder=1)
-        mid = (max(start[0], end[0]) + 0.22 + 0.1 * dup, (start[1] + end[1]) / 2)
+        mid = (max(start[0], end[0]) + 0.22, (start[1] + end[1]) / 2)
+        if r.parent == r.child:  # above the loop, clear of a neighbouring box
+            mid = (end[0] + 0.05, end[1] + 0.25)
         ax.text(*mid, label, fontsize=6, color="#a0522d", ha="left", va="center", zorder=4)
         return
     start = np.array([px, y[r.parent] - BOX_HEIGHT / 2])
@@ -221,9 +227,7 @@ def _arrow(ax: Any, grammar: Grammar, lay: Layout, r: Rule, y: dict[int, float],
         line = np.array([start, *ways])
         ax.plot(line[:, 0], line[:, 1], color="0.25", lw=0.7, zorder=1)
         start = ways[-1]
-    rad = 0.15 * dup
-    if rad:
-        style["connectionstyle"] = f"arc3,rad={rad}"
+    rad = 0.0
     ax.annotate("", xy=tuple(end), xytext=tuple(start), arrowprops=style, zorder=1)
     # the label on the arrow, 70% of the way down: a point of matplotlib's arc3 Bezier curve
     d = end - start
