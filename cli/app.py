@@ -25,6 +25,7 @@ from rich.table import Table
 
 from ssgc import __version__
 from ssgc.bench import bench_sample
+from ssgc.cli import render as render_cli
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.inspect import grammar_summary
@@ -170,6 +171,9 @@ AllowOutside = Annotated[
         help="Allow mesh and model files outside the grammar's directory.",
     ),
 ]
+
+
+app.command("render")(_command(render_cli.render))  # docs/render.md
 
 
 @app.command()
@@ -328,8 +332,13 @@ def inspect(
     grammar: GrammarArg,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of tables.")] = False,
     allow_outside_files: AllowOutside = False,
+    diagram: Annotated[
+        Path | None, typer.Option("--diagram", help="Draw the grammar to OUT.svg or OUT.png.")
+    ] = None,
 ) -> None:
     """Show the node types and rules of a grammar, and its supertree size."""
+    if diagram is not None:  # docs/render.md
+        return render_cli.diagram(grammar, diagram, allow_outside_files)
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     summary = grammar_summary(g)
     if as_json:

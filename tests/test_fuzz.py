@@ -933,6 +933,54 @@ def test_fuzz_explain_json(work: Path, data: bytes, grammar: str) -> None:
         assert json.loads(result.stdout)["scenes"], result.stdout
 
 
+parse_result_doc = mapping(
+    {
+        "scenes": st.one_of(
+            st.lists(
+                mapping(
+                    {"name": names, "status": names},
+                    {
+                        "parses": st.lists(
+                            mapping(
+                                {"tree": mapping({"nodes": st.lists(tree_node, max_size=5)})},
+                                {
+                                    "score": numbers,
+                                    "rules": st.lists(
+                                        mapping({"node": numbers}, {"log_prob": numbers}),
+                                        max_size=5,
+                                    ),
+                                },
+                            ),
+                            max_size=2,
+                        )
+                    },
+                ),
+                max_size=2,
+            ),
+            junk,
+        )
+    }
+)
+
+
+def render_inputs() -> st.SearchStrategy[bytes]:
+    return st.one_of(scene_json_inputs(), sometimes_junk(parse_result_doc).map(to_json).map(encode))
+
+
+@fuzz(quick=25)
+@given(data=render_inputs(), with_grammar=st.booleans())
+def test_fuzz_render(work: Path, data: bytes, with_grammar: bool) -> None:
+    """`ssg render` on any scene or parse result: a picture or one message, never a half file."""
+    path = write(work / "scene.json", data)
+    out = work / "picture.png"
+    out.unlink(missing_ok=True)
+    grammar = ["-g", str(GRAMMARS / "sink.yaml")] if with_grammar else []
+    result, seconds = invoke(["render", str(path), "-o", str(out), "-q", *grammar])
+    check(result, seconds, {0, 1}, [path, GRAMMARS / "sink.yaml"], data)
+    assert out.exists() == (result.exit_code == 0)
+    assert not list(work.glob(".picture.png.*"))
+
+
 def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes) -> None:
     """`ssg fit` on anything: the contract, and a fitted grammar that compiles or no file."""
     out = work / "fitted.yaml"

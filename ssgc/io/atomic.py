@@ -39,12 +39,15 @@ class TextSink:
         self._size = 0
 
     def write(self, text: str) -> int:
-        data = text.encode("utf-8")
+        self.write_bytes(text.encode("utf-8"))
+        return len(text)
+
+    def write_bytes(self, data: bytes) -> None:
+        """Binary content (pictures, GLB files) through the same blocks."""
         self._parts.append(data)
         self._size += len(data)
         if self._size >= BLOCK:
             self.flush()
-        return len(text)
 
     def flush(self) -> None:
         data = b"".join(self._parts)
@@ -61,6 +64,12 @@ def write_text_atomic(path: str | Path, text: str) -> None:
     """
     with atomic_writer(path) as f:
         f.write(text)
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """`write_text_atomic` for binary files (images): the bytes go under the text layer."""
+    with atomic_writer(path) as f:
+        f.write_bytes(data)
 
 
 @contextmanager

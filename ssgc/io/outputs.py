@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from ssgc.errors import SsgError, one_line
-from ssgc.io.atomic import TextSink, atomic_writer
+from ssgc.io.atomic import TextSink, atomic_writer, write_all, write_bytes_atomic
 
 STDOUT_NAMES = frozenset({"-", "/dev/stdout", "/dev/fd/1", "/proc/self/fd/1"})
 
@@ -199,6 +199,27 @@ def write_output(out: Output, kept: Path | None = None) -> Iterator[TextSink | A
         raise
     except OSError as exc:
         raise out.fail(exc, note) from None
+
+
+def write_output_bytes(out: Output, data: bytes) -> None:
+    """`write_output` for binary content (pictures): streams written in place, regular files
+    replaced atomically, a failed write `SsgError` naming the output."""
+    try:
+        if out.stdout:
+            sys.stdout.flush()
+            write_all(sys.stdout.fileno(), data)
+        elif out.stream:
+            fd = os.open(out.target, os.O_WRONLY | os.O_CLOEXEC)
+            try:
+                write_all(fd, data)
+            finally:
+                os.close(fd)
+        else:
+            write_bytes_atomic(out.target, data)
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        raise out.fail(exc) from None
 
 
 def write_output_text(out: Output, text: str, kept: Path | None = None) -> None:

@@ -1,0 +1,1 @@
+"""Pictures: scenes, trees and parses (`scene`), and grammar diagrams (`diagram`)."""
