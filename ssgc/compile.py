@@ -230,6 +230,7 @@ class Compiler:
             max_nesting=spec.max_nesting,
             geometry=spec.geometry,
             model=spec.model,
+            body=spec.body,
             labels=tuple(spec.labels),
             fixed=spec.fixed,
             path=loc,

@@ -10,7 +10,7 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TextIO
+from typing import BinaryIO, TextIO
 
 # mkstemp names: PREFIX + 8 characters of [a-z0-9_] + SUFFIX.  A process killed with SIGKILL (or a
 # power cut) cannot remove its temporary file, so `--resume` recognises and removes them.
@@ -46,6 +46,36 @@ def atomic_writer(path: str | Path) -> Iterator[TextIO]:
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual permissions
         with _ctrl_c_deferred():  # renamed, or still there to be removed: never both
+            os.replace(tmp, path)
+            tmp = None
+    except BaseException:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    """`write_text_atomic` for binary files (GLB scenes, cached arrays)."""
+    with atomic_binary_writer(path) as f:
+        f.write(data)
+
+
+@contextmanager
+def atomic_binary_writer(path: str | Path) -> Iterator[BinaryIO]:
+    """`atomic_writer` in binary mode."""
+    path = Path(path)
+    umask = os.umask(0)
+    os.umask(umask)
+    tmp = None
+    try:
+        with _ctrl_c_deferred():
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        with os.fdopen(fd, "wb") as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~umask)
+        with _ctrl_c_deferred():
             os.replace(tmp, path)
             tmp = None
     except BaseException:
