@@ -173,6 +173,13 @@ def sample(
         ),
     ] = False,
     allow_outside_files: AllowOutside = False,
+    export: Annotated[
+        list[str] | None,
+        typer.Option("--export", help="Also write each scene in this format (into OUTPUT/FORMAT)."),
+    ] = None,
+    settle: Annotated[
+        bool, typer.Option("--settle", help="Settle each scene in MuJoCo before writing it.")
+    ] = False,
 ) -> None:
     """Draw N scenes; write one JSON file per scene (objects, full tree, log-probability).
 
@@ -181,6 +188,7 @@ def sample(
     """
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     _make_dir(output)
+    extras = _export.SampleExtras(g, export or [], settle, output) if export or settle else None
     first: Path | None = None  # the first and last file written, for the summary
     last: Path | None = None
     count = 0
@@ -209,7 +217,10 @@ def sample(
                 name = name_of(index)
                 scene = scene_from_tree(g, trees.tree(k), name, float(logp[k]))
                 path = output / f"{name}.json"
-                write_text_atomic(path, dumps_scene(g, scene, seed=seed, index=index))
+                if extras is None:
+                    write_text_atomic(path, dumps_scene(g, scene, seed=seed, index=index))
+                else:
+                    extras.write(scene, path, seed, index)
                 first, last = first or path, path
                 count += 1
                 progress.advance(task)
@@ -224,6 +235,8 @@ def sample(
             summary += f"; kept {int(have.done.sum())} complete scene file(s)"
             if have.removed_temps:
                 summary += f", removed {have.removed_temps} temporary file(s) of a killed run"
+        if extras is not None and extras.unsettled:
+            summary += f"; {extras.unsettled} scene(s) did not settle"
         out.print(summary, markup=False, highlight=False)
 
 
@@ -612,6 +625,11 @@ def _progress(quiet: bool) -> Iterator[Progress]:
     )
     with progress:
         yield progress
+
+
+# Commands in files of their own register themselves on `app` when imported.
+from ssgc.cli import export as _export  # noqa: E402
+from ssgc.cli import settle as _settle  # noqa: E402, F401
 
 
 def main() -> None:

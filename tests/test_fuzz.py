@@ -413,6 +413,17 @@ node_type = mapping(
         "observed": sometimes_junk(st.booleans()),
         "geometry": geometry,
         "model": st.one_of(st.sampled_from(MESH_FILES), names),
+        "body": sometimes_junk(
+            mapping(
+                {},
+                {
+                    "static": sometimes_junk(st.booleans()),
+                    "mass": numbers,
+                    "density": numbers,
+                    "collision": st.one_of(st.sampled_from(["hull", "decomposition"]), names),
+                },
+            )
+        ),
         "labels": st.one_of(st.lists(names, max_size=3), junk),
         "max_nesting": st.one_of(st.integers(-1, 101), numbers),
         "fixed": st.booleans(),

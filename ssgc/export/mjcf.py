@@ -68,7 +68,9 @@ def body_xml(body: Body) -> str:
     return "\n".join(lines)
 
 
-def mjcf_text(scene: SceneBodies, meshdir: str = "meshes", floor: bool = False) -> str:
+def mjcf_text(
+    scene: SceneBodies, meshdir: str = "meshes", floor: bool = False, timestep: float = 0.001
+) -> str:
     assets = []
     for shape in used_shapes(scene):
         if shape.kind == "mesh":
@@ -80,7 +82,8 @@ def mjcf_text(scene: SceneBodies, meshdir: str = "meshes", floor: bool = False) 
         [
             f"<mujoco model={quoteattr(scene.name)}>",
             f'  <compiler angle="radian" meshdir={quoteattr(meshdir)} inertiafromgeom="false"/>',
-            '  <option timestep="0.001"/>',
+            # multiccd: several contact points between flat faces (a tray on a tray), not one
+            f'  <option timestep="{timestep!r}"><flag multiccd="enable"/></option>',
             *(["  <asset>", *assets, "  </asset>"] if assets else []),
             "  <worldbody>",
             *ground,
