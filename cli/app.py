@@ -24,8 +24,9 @@ from rich.table import Table
 
 from ssgc import __version__
 from ssgc.bench import bench_sample
+from ssgc.assets import check_assets
 from ssgc.compile import load_grammar
-from ssgc.errors import SsgError
+from ssgc.errors import GrammarError, SsgError
 from ssgc.inspect import grammar_summary
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.resume import scan_sampled
@@ -136,6 +137,9 @@ def validate(
     for path in grammars:
         try:
             g = load_grammar(path, allow_outside=allow_outside_files)
+            mesh_errors = check_assets(g)  # every mesh opened: missing or unreadable is an error
+            if mesh_errors:
+                raise GrammarError(mesh_errors)
         except SsgError as exc:
             _print_diagnostics(exc)
             failed += 1

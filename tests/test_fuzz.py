@@ -870,6 +870,36 @@ def test_fuzz_sample(work: Path, data: bytes) -> None:
     check(result, seconds, {0, 1}, [path, work / "out"], data)
 
 
+@fuzz(quick=30)
+@given(
+    data=scene_json_inputs(),
+    grammar=st.sampled_from(PARSE_GRAMMARS),
+    fmt=st.sampled_from(["dmd", "sdf", "mjcf", "glb", "usd"]),
+)
+def test_fuzz_export_json(work: Path, data: bytes, grammar: str, fmt: str) -> None:
+    path = write(work / "scene.json", data)
+    grammar_path = GRAMMARS / grammar
+    args = ["export", str(path), "-g", str(grammar_path), "-f", fmt, "-o", str(work / "out")]
+    result, seconds = invoke([*args, "-q"])
+    check(result, seconds, {0, 1}, [path, grammar_path], data)
+
+
+@fuzz(quick=30)
+@given(data=st.binary(max_size=3000), suffix=st.sampled_from([".obj", ".stl", ".ply", ".glb"]))
+def test_fuzz_mesh_file(work: Path, data: bytes, suffix: str) -> None:
+    """Any bytes as a mesh: `ssg validate` accepts the file or says why, at the mesh's line."""
+    write(work / f"m{suffix}", data)
+    path = work / "g.yaml"
+    path.write_text(
+        f"grammar: g\nroot: A\ntypes:\n  A:\n    observed: true\n"
+        f"    geometry: {{mesh: {{file: m{suffix}}}}}\n"
+    )
+    result, seconds = invoke(["validate", str(path)])
+    check(result, seconds, {0, 1}, [path], data)
+    if result.exit_code == 1:
+        assert f"{path}:6:" in result.stderr, result.stderr
+
+
 def check_parse(work: Path, data: bytes, suffix: str, grammar: str) -> None:
     path = write(work / f"scene{suffix}", data)
     grammar_path = GRAMMARS / grammar
