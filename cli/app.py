@@ -23,8 +23,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from ssgc import __version__
-from ssgc.bench import bench_sample
 from ssgc.assets import check_assets
+from ssgc.bench import bench_sample
 from ssgc.compile import load_grammar
 from ssgc.errors import GrammarError, SsgError
 from ssgc.inspect import grammar_summary

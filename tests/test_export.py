@@ -210,7 +210,10 @@ types:
     and:
       - {{child: Can, translation: {{offset: [0.1, 0, 0.07]}}}}
       - {{child: Cup, translation: {{offset: [-0.1, 0, 0.04]}}}}
-  Can: {{observed: true, geometry: {{cylinder: {{radius: 0.03, length: 0.12}}}}, body: {{mass: 0.4}}}}
+  Can:
+    observed: true
+    geometry: {{cylinder: {{radius: 0.03, length: 0.12}}}}
+    body: {{mass: 0.4}}
   Cup:
     observed: true
     geometry: {{mesh: {{file: {mesh}, scale: 2.0}}}}
@@ -259,7 +262,7 @@ def test_validate_locates_a_missing_or_unreadable_mesh(tmp_path, content, fragme
         (tmp_path / "cup2.obj").write_bytes(content)
     result = run("validate", path)
     assert result.exit_code == 1
-    assert f"{path}:15:" in result.output and fragment in result.output, result.output
+    assert f"{path}:18:" in result.output and fragment in result.output, result.output
 
 
 def test_mass_and_density_together_is_an_error() -> None:
