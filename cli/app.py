@@ -642,4 +642,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    # `python -m ssgc.cli.app`: run the importable module, on whose `app` the commands of
+    # cli/export.py and cli/settle.py registered (not this __main__ copy's).
+    from ssgc.cli.app import main as _real_main
+
+    _real_main()

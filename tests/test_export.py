@@ -269,3 +269,20 @@ def test_mass_and_density_together_is_an_error() -> None:
     text = "grammar: g\nroot: A\ntypes:\n  A: {observed: true, body: {mass: 1, density: 2}}\n"
     with pytest.raises(GrammarError, match="give mass or density, not both"):
         compile_text(text)
+
+
+def test_the_loading_snippets_of_export_md_run(tmp_path: Path, monkeypatch) -> None:
+    """Each ```python block of docs/export.md loads the file it names."""
+    text = (GRAMMARS.parent / "docs" / "export.md").read_text()
+    snippets = [b.split("```", 1)[0] for b in text.split("```python\n")[1:]]
+    assert len(snippets) == 5
+    scenes = tmp_path / "scenes"
+    assert run("sample", DIMSUM, "-n", 1, "--seed", 0, "-o", scenes, "-q").exit_code == 0
+    for fmt in ("dmd", "sdf", "mjcf", "glb", "usd"):
+        result = run("export", scenes, "-g", DIMSUM, "-f", fmt, "-o", tmp_path / "out" / fmt)
+        assert result.exit_code == 0, result.output
+    monkeypatch.chdir(tmp_path)
+    for snippet in snippets:
+        namespace: dict = {}
+        exec(snippet, namespace)
+        assert namespace.get("plant") or namespace.get("data") or namespace.get("pose") is not None
