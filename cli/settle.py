@@ -10,7 +10,7 @@ import numpy as np
 import typer
 
 from ssgc.assets import load_shapes
-from ssgc.cli.app import AllowOutside, _command, _make_dir, _progress, _safe_stem, app, out
+from ssgc.cli.app import AllowOutside, _command, _make_dir, _progress, _safe_stem, app, err, out
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.export import scene_bodies
@@ -37,7 +37,7 @@ def _summary(reports: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def _line(r: dict[str, Any]) -> str:
-    state = "settled" if r["settled"] else "NOT settled"
+    state = "settled" if r["settled"] else "not settled: did not come to rest"
     return (
         f"{r['name']}: {state}; largest displacement {1000 * r['max_displacement']:.1f} mm; "
         "penetration "
@@ -91,7 +91,9 @@ def settle_cmd(
             doc = settled_scene_json(g, scene, result, source)
             write_settled(output / f"{_safe_stem(scene.name)}.json", doc)
             reports.append(result.report())
-            if not quiet:
+            if not result.settled:  # a reason for exit code 2, quiet or not
+                err.print(_line(reports[-1]), markup=False, highlight=False)
+            elif not quiet:
                 out.print(_line(reports[-1]), markup=False, highlight=False)
             progress.advance(task)
     summary = _summary(reports)

@@ -802,7 +802,8 @@ def sink_yaml_inputs() -> st.SearchStrategy[bytes]:
 
 RUNNER = CliRunner()
 MORE = re.compile(r"^\.\.\. and \d+ more$")
-STATUS = re.compile(r"^.*: (infeasible|error): ")  # `ssg parse`: a scene it could not parse
+# `ssg parse`: a scene it could not parse; `ssg settle`: a scene that did not come to rest
+STATUS = re.compile(r"^.*: (infeasible|error|not settled): ")
 
 
 @pytest.fixture(scope="module")
@@ -882,6 +883,19 @@ def test_fuzz_export_json(work: Path, data: bytes, grammar: str, fmt: str) -> No
     args = ["export", str(path), "-g", str(grammar_path), "-f", fmt, "-o", str(work / "out")]
     result, seconds = invoke([*args, "-q"])
     check(result, seconds, {0, 1}, [path, grammar_path], data)
+
+
+@fuzz(quick=20)
+@given(data=scene_json_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
+def test_fuzz_settle_json(work: Path, data: bytes, grammar: str) -> None:
+    path = write(work / "scene.json", data)
+    grammar_path = GRAMMARS / grammar
+    args = ["settle", str(path), "-g", str(grammar_path), "-o", str(work / "out"), "-q"]
+    result, seconds = invoke([*args, "--max-time", "0.2"])
+    check(result, seconds, {0, 1, 2}, [path, grammar_path], data)
+    if result.exit_code in (0, 2):
+        for settled in (work / "out").glob("*.json"):
+            json.loads(settled.read_text(), parse_constant=pytest.fail)  # no NaN or Infinity
 
 
 @fuzz(quick=30)

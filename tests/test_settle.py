@@ -75,7 +75,7 @@ def test_too_short_a_simulation_is_reported_not_settled(dropped, tmp_path: Path)
     grammar, scenes = dropped
     result = run("settle", scenes, "-g", grammar, "-o", tmp_path / "o", "--max-time", 0.02)
     assert result.exit_code == 2, result.output
-    assert "NOT settled" in result.output
+    assert "drop_000000: not settled: did not come to rest" in result.stderr
     doc = json.loads((tmp_path / "o" / "drop_000000.json").read_text())
     assert doc["metadata"]["settle"]["settled"] is False
 

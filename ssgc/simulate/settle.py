@@ -80,7 +80,13 @@ def build_model(scene: SceneBodies, timestep: float = 0.001):  # type: ignore[no
             (Path(tmp) / rel).write_text(text, encoding="utf-8")
         xml = Path(tmp) / "scene.xml"
         xml.write_text(mjcf_text(scene, "meshes", floor=True, timestep=timestep), "utf-8")
-        return mujoco.MjModel.from_xml_path(str(xml))
+        try:
+            return mujoco.MjModel.from_xml_path(str(xml))
+        except ValueError as exc:  # e.g. a mass below MuJoCo's smallest (a grammar's numbers)
+            reason = " ".join(str(exc).split())
+            raise SsgError.single(
+                f"scene '{scene.name}': MuJoCo cannot load it: {reason}"
+            ) from None
 
 
 def penetration(model, data) -> float:  # type: ignore[no-untyped-def]
@@ -108,8 +114,10 @@ def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Se
     data.time = 0.0
     chunk = max(1, round(0.05 / options.timestep))
     still = 0.0
-    while data.time < options.max_time and still < options.still_time:
+    simulated = 0.0  # counted here: MuJoCo resets data.time when a simulation goes unstable
+    while simulated < options.max_time and still < options.still_time:
         mujoco.mj_step(model, data, nstep=chunk)
+        simulated += chunk * options.timestep
         speed = max(
             float(np.max(np.abs(data.qvel[lin]), initial=0.0)),
             LEVER * float(np.max(np.abs(data.qvel[ang]), initial=0.0)),
@@ -118,6 +126,12 @@ def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Se
     after = penetration(model, data)
     xyz = data.xpos[ids].copy()
     quat = quat_canonical(data.xquat[ids].copy())
+    bad = int(data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number) > 0
+    if bad or not (np.isfinite(xyz).all() and np.isfinite(quat).all()):
+        # MuJoCo reset an unstable simulation (objects far apart in scale, absurd poses):
+        # keep the scene as it was and say it did not settle.
+        xyz, after, still = xyz0, before, 0.0
+        quat = np.array([b.quat for b in scene.bodies]).reshape(-1, 4)
     return Settled(
         scene.name,
         bool(still >= options.still_time),
@@ -126,7 +140,7 @@ def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Se
         float(np.max(np.linalg.norm(xyz - xyz0, axis=1), initial=0.0)),
         before,
         after,
-        float(data.time),
+        simulated,
         time.perf_counter() - start,
     )
 
