@@ -24,10 +24,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from ssgc import __version__
+from ssgc.assets import check_assets
 from ssgc.bench import bench_sample
 from ssgc.cli import render as render_cli
 from ssgc.compile import load_grammar
-from ssgc.errors import SsgError
+from ssgc.errors import GrammarError, SsgError
 from ssgc.inspect import grammar_summary
 from ssgc.io.journal import journal_path
 from ssgc.io.outputs import (
@@ -188,6 +189,9 @@ def validate(
     for path in grammars:
         try:
             g = load_grammar(path, allow_outside=allow_outside_files)
+            mesh_errors = check_assets(g)  # every mesh opened: missing or unreadable is an error
+            if mesh_errors:
+                raise GrammarError(mesh_errors)
         except SsgError as exc:
             _print_diagnostics(exc)
             failed += 1
@@ -240,6 +244,13 @@ def sample(
     time_limit: Annotated[
         float | None, typer.Option(min=0.001, help="With --constraints: stop after these seconds.")
     ] = None,
+    export: Annotated[
+        list[str] | None,
+        typer.Option("--export", help="Also write each scene in this format (into OUTPUT/FORMAT)."),
+    ] = None,
+    settle: Annotated[
+        bool, typer.Option("--settle", help="Settle each scene in MuJoCo before writing it.")
+    ] = False,
 ) -> None:
     """Draw N scenes; write one JSON file per scene (objects, full tree, log-probability).
 
@@ -255,7 +266,10 @@ def sample(
         )
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     constrained = constraints is not None or (max_tries, time_limit) != (None, None)
+    if constrained and (export or settle):
+        raise SsgError.single("--export and --settle do not work with --constraints yet")
     check_directory(output)
+    extras = _export.SampleExtras(g, export or [], settle, output) if export or settle else None
     width = max(6, len(str(max(n - 1, 0))))
     with directory_lock(output):
         manifest = run_manifest(g.name, grammar, seed, n, width)
@@ -266,16 +280,30 @@ def sample(
 
             options = (constraints, method, max_tries, time_limit, resume)
             sample_constrained(
-                g, n, seed, output, quiet, options, _safe_stem(g.name),
+                g,
+                n,
+                seed,
+                output,
+                quiet,
+                options,
+                _safe_stem(g.name),
                 lambda: _write_manifest(output, manifest),
             )
             _write_manifest(output, {**manifest, "complete": True})
             return
-        _sample_into(g, output, n, seed, width, manifest, resume, quiet)
+        _sample_into(g, output, n, seed, width, manifest, resume, quiet, extras)
 
 
 def _sample_into(
-    g: Any, output: Path, n: int, seed: int, width: int, manifest: dict, resume: bool, quiet: bool
+    g: Any,
+    output: Path,
+    n: int,
+    seed: int,
+    width: int,
+    manifest: dict,
+    resume: bool,
+    quiet: bool,
+    extras: Any = None,
 ) -> None:
     """`ssg sample`'s work, once the directory is checked and locked."""
     first: Path | None = None  # the first and last file written, for the summary
@@ -306,8 +334,11 @@ def _sample_into(
                 name = name_of(index)
                 scene = scene_from_tree(g, trees.tree(k), name, float(logp[k]))
                 path = output / f"{name}.json"
-                text = dumps_scene(g, scene, seed=seed, index=index)
-                write_output_text(Output(path, path, "scene file"), text)
+                if extras is None:
+                    text = dumps_scene(g, scene, seed=seed, index=index)
+                    write_output_text(Output(path, path, "scene file"), text)
+                else:
+                    extras.write(scene, path, seed, index)
                 first, last = first or path, path
                 count += 1
                 progress.advance(task)
@@ -323,6 +354,8 @@ def _sample_into(
             summary += f"; kept {int(have.done.sum())} complete scene file(s)"
             if have.removed_temps:
                 summary += f", removed {have.removed_temps} temporary file(s) of a killed run"
+        if extras is not None and extras.unsettled:
+            summary += f"; {extras.unsettled} scene(s) did not settle"
         out.print(summary, markup=False, highlight=False)
 
 
@@ -440,7 +473,15 @@ def parse(
         )
     with lock_outputs([dest]):
         _parse_into(
-            dest, scenes, grammar, method, top, time_limit, quiet, resume, allow_outside_files,
+            dest,
+            scenes,
+            grammar,
+            method,
+            top,
+            time_limit,
+            quiet,
+            resume,
+            allow_outside_files,
             explain,
         )
 
@@ -784,7 +825,10 @@ def _progress(quiet: bool) -> Iterator[Progress]:
         yield progress
 
 
+# Commands in files of their own register themselves on `app` when imported.
 from ssgc.cli import explain as _explain  # noqa: E402, F401  (registers `ssg explain`)
+from ssgc.cli import export as _export  # noqa: E402
+from ssgc.cli import settle as _settle  # noqa: E402, F401
 
 
 def main() -> None:
@@ -816,4 +860,8 @@ def _flush_stdout(code: Any) -> Any:
 
 
 if __name__ == "__main__":
-    main()
+    # `python -m ssgc.cli.app`: run the importable module, on whose `app` the commands of
+    # cli/export.py and cli/settle.py registered (not this __main__ copy's).
+    from ssgc.cli.app import main as _real_main
+
+    _real_main()

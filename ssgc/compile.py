@@ -263,6 +263,7 @@ class Compiler(Report):
             max_nesting=spec.max_nesting,
             geometry=spec.geometry,
             model=spec.model,
+            body=spec.body,
             labels=tuple(spec.labels),
             fixed=spec.fixed,
             path=loc,

@@ -337,12 +337,30 @@ Geometry = _choice(
 )
 
 
+class Body(Strict):
+    """How a type's objects behave in simulators (docs/export.md); meaningful with geometry."""
+
+    static: bool = Field(False, description="Welded to the world in exports; never moved.")
+    mass: Positive | None = Field(None, description="Mass in kg (else from density).")
+    density: Positive | None = Field(None, description="kg/m^3; default 1000 (water).")
+    collision: Literal["hull", "decomposition"] = Field(
+        "hull", description="Mesh collision: convex hull, or convex pieces (coacd)."
+    )
+
+    @model_validator(mode="after")
+    def _mass_or_density(self) -> Body:
+        if self.mass is not None and self.density is not None:
+            raise ValueError("give mass or density, not both")
+        return self
+
+
 class NodeType(Strict):
     """One node type; its kind is whichever of and/or/independent/repeat it has (none: terminal)."""
 
     observed: bool = Field(False, description="Produces an object that appears in scenes.")
     geometry: Geometry | None = None  # type: ignore[valid-type]
     model: str | None = Field(None, description="Model file for simulators; also a dataset label.")
+    body: Body | None = Field(None, description="Static or free, mass or density, collision.")
     labels: list[Annotated[str, StringConstraints(min_length=1)]] = Field(
         default_factory=list, description="Dataset class names that mean this type."
     )

@@ -57,6 +57,7 @@ class NodeType:
     max_nesting: int | None = None
     geometry: Any = None  # the validated dsl geometry (primitive or mesh), for export
     model: str | None = None
+    body: Any = None  # the validated dsl body (static, mass or density, collision), for export
     labels: tuple[str, ...] = ()
     fixed: bool = False
     path: Loc = ()

@@ -1,0 +1,120 @@
+"""`ssg export`: scenes as files simulators and 3D tools load (docs/export.md).
+
+Also the `--export` and `--settle` options of `ssg sample`, through `SampleExtras`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from ssgc.assets import load_shapes
+from ssgc.cli.app import AllowOutside, _command, _progress, _safe_stem, app, out
+from ssgc.compile import load_grammar
+from ssgc.errors import SsgError
+from ssgc.export import FORMATS, export_files, main_file, scene_bodies
+from ssgc.export.bodies import load_export_scenes
+from ssgc.io.atomic import write_bytes_atomic, write_text_atomic
+from ssgc.io.outputs import check_directory
+from ssgc.io.scene import Scene, dumps_json, dumps_scene
+from ssgc.ir import Grammar
+
+FORMAT_HELP = "dmd (Drake directives) | sdf (SDFormat world) | mjcf (MuJoCo) | glb | usd"
+
+
+def check_format(fmt: str) -> str:
+    if fmt not in FORMATS:
+        raise SsgError.single(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
+    return fmt
+
+
+def write_files(out_dir: Path, files: dict[str, str | bytes], main: str) -> None:
+    """Write one scene's files, each atomically, the scene's own file last: a run stopped
+    half-way leaves no main file that names a missing mesh or model file."""
+    for rel in [*(r for r in files if r != main), main]:
+        path = out_dir / rel
+        check_directory(path.parent)
+        data = files[rel]
+        if isinstance(data, bytes):
+            write_bytes_atomic(path, data)
+        else:
+            write_text_atomic(path, data)
+
+
+def export_scene(g: Grammar, scene: Scene, shapes: dict[int, Any], fmt: str, out_dir: Path) -> Path:
+    bodies = scene_bodies(g, scene, shapes)
+    bodies = type(bodies)(_safe_stem(bodies.name), bodies.grammar, bodies.bodies)
+    files = export_files(bodies, fmt)
+    main = main_file(out_dir, bodies, fmt)
+    write_files(out_dir, files, main.name)
+    return main
+
+
+@app.command("export")
+@_command
+def export_cmd(
+    scenes: Annotated[
+        Path,
+        typer.Argument(
+            help="A scene JSON, a directory of them, a sink-format YAML dataset, or the output "
+            "of `ssg parse` (each scene's best parse).",
+            show_default=False,
+        ),
+    ],
+    grammar: Annotated[Path, typer.Option("-g", "--grammar", help="Grammar YAML file.")],
+    fmt: Annotated[str, typer.Option("--format", "-f", help=FORMAT_HELP)],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory.")] = Path(
+        "export"
+    ),
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress or summary.")] = False,
+    allow_outside_files: AllowOutside = False,
+) -> None:
+    """Write each scene as a file a simulator or 3D tool loads: Drake model directives, an
+    SDFormat world, MJCF, glTF binary or USD, with geometry, collision, mass and inertia from
+    the grammar (docs/export.md)."""
+    check_format(fmt)
+    check_directory(output)
+    g = load_grammar(grammar, allow_outside=allow_outside_files)
+    items = load_export_scenes(scenes, g)
+    shapes = load_shapes(g, collision=fmt != "glb")
+    written = []
+    with _progress(quiet) as progress:
+        task = progress.add_task(f"exporting ({fmt})", total=len(items))
+        for scene in items:
+            written.append(export_scene(g, scene, shapes, fmt, output))
+            progress.advance(task)
+    if not quiet:
+        out.print(
+            f"exported {len(written)} scene(s) as {fmt} to {output}", markup=False, highlight=False
+        )
+
+
+class SampleExtras:
+    """What `ssg sample --settle / --export FORMAT` does with each scene it draws: settle it
+    (the settled scene is what gets written), then write the scene file and its exports
+    (into OUTPUT/FORMAT/)."""
+
+    def __init__(self, g: Grammar, export: list[str], settle: bool, output: Path) -> None:
+        self.g = g
+        self.formats = [check_format(f) for f in export]
+        self.settle = settle
+        self.output = output
+        self.shapes = load_shapes(g) if export or settle else {}
+        self.unsettled = 0
+
+    def write(self, scene: Scene, path: Path, seed: int, index: int) -> None:
+        if self.settle:
+            from ssgc.simulate.settle import settle_scene, settled_scene_json
+
+            result = settle_scene(scene_bodies(self.g, scene, self.shapes))
+            self.unsettled += not result.settled
+            source = {"seed": seed, "index": index, "source_log_prob": scene.log_prob}
+            doc = settled_scene_json(self.g, scene, result, source)
+            write_text_atomic(path, dumps_json(doc))
+            scene = Scene(scene.name, scene.types, result.xyz, result.quat)
+        else:
+            write_text_atomic(path, dumps_scene(self.g, scene, seed=seed, index=index))
+        for fmt in self.formats:
+            export_scene(self.g, scene, self.shapes, fmt, self.output / fmt)

@@ -1,0 +1,119 @@
+"""`ssg settle`: simulate scenes to static stability (MuJoCo, headless, CPU)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+
+from ssgc.assets import load_shapes
+from ssgc.cli.app import AllowOutside, _command, _progress, _safe_stem, app, err, out
+from ssgc.compile import load_grammar
+from ssgc.errors import SsgError
+from ssgc.export import scene_bodies
+from ssgc.export.bodies import load_export_scenes
+from ssgc.io.atomic import write_text_atomic
+from ssgc.io.outputs import check_directory, check_output, write_output_text
+from ssgc.io.scene import dumps_json
+from ssgc.simulate.settle import SettleOptions, settle_scene, settled_scene_json
+
+
+def write_settled(path: Path, doc: dict[str, Any]) -> None:
+    write_text_atomic(path, dumps_json(doc))
+
+
+def _summary(reports: list[dict[str, Any]]) -> dict[str, Any]:
+    moved = np.array([r["max_displacement"] for r in reports])
+    return {
+        "scenes": len(reports),
+        "settled": sum(r["settled"] for r in reports),
+        "median_displacement": float(np.median(moved)) if len(moved) else 0.0,
+        "max_displacement": float(moved.max(initial=0.0)),
+        "max_penetration_after": max((r["penetration_after"] for r in reports), default=0.0),
+        "mean_wall_time": float(np.mean([r["wall_time"] for r in reports])) if reports else 0.0,
+    }
+
+
+def _line(r: dict[str, Any]) -> str:
+    state = "settled" if r["settled"] else "not settled: did not come to rest"
+    return (
+        f"{r['name']}: {state}; largest displacement {1000 * r['max_displacement']:.1f} mm; "
+        "penetration "
+        f"{1000 * r['penetration_before']:.2f} → {1000 * r['penetration_after']:.2f} mm; "
+        f"{r['sim_time']:.2f} s simulated in {r['wall_time']:.2f} s"
+    )
+
+
+@app.command("settle")
+@_command
+def settle_cmd(
+    scenes: Annotated[
+        Path,
+        typer.Argument(
+            help="A scene JSON, a directory of them, a sink-format YAML dataset, or the output "
+            "of `ssg parse`.",
+            show_default=False,
+        ),
+    ],
+    grammar: Annotated[Path, typer.Option("-g", "--grammar", help="Grammar YAML file.")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory.")] = Path(
+        "settled"
+    ),
+    engine: Annotated[str, typer.Option(help="Physics engine: mujoco.")] = "mujoco",
+    max_time: Annotated[
+        float, typer.Option("--max-time", min=0.01, help="Simulated seconds per scene, at most.")
+    ] = 5.0,
+    report: Annotated[
+        Path | None, typer.Option("--report", help="Also write the per-scene report as JSON.")
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Summary line only.")] = False,
+    allow_outside_files: AllowOutside = False,
+) -> None:
+    """Simulate each scene until nothing moves; write the settled scenes (same format, with
+    provenance in metadata.settle) and report per scene: settled or not, the largest
+    displacement, the deepest penetration before and after.  Exit 2 if some scene did not
+    settle."""
+    if engine != "mujoco":
+        raise SsgError.single(f"unknown engine '{engine}'; the only engine is mujoco")
+    if scenes.is_dir() and output.resolve() == scenes.resolve():
+        raise SsgError.single(
+            "the output directory is the input: settled scenes would replace "
+            "the scenes they come from; write to another -o",
+            str(output),
+        )
+    report_dest = None if report is None else check_output(report, "report", [grammar, scenes])
+    check_directory(output)
+    g = load_grammar(grammar, allow_outside=allow_outside_files)
+    items = load_export_scenes(scenes, g)
+    shapes = load_shapes(g)
+    options = SettleOptions(max_time=max_time)
+    reports = []
+    with _progress(quiet) as progress:
+        task = progress.add_task("settling", total=len(items))
+        for scene in items:
+            result = settle_scene(scene_bodies(g, scene, shapes), options)
+            source = {"source": str(scenes), "source_scene": scene.name}
+            doc = settled_scene_json(g, scene, result, source)
+            write_settled(output / f"{_safe_stem(scene.name)}.json", doc)
+            reports.append(result.report())
+            if not result.settled:  # a reason for exit code 2, quiet or not
+                err.print(_line(reports[-1]), markup=False, highlight=False)
+            elif not quiet:
+                out.print(_line(reports[-1]), markup=False, highlight=False)
+            progress.advance(task)
+    summary = _summary(reports)
+    if report_dest is not None:
+        doc = {"summary": summary, "scenes": reports}
+        write_output_text(report_dest, json.dumps(doc, indent=1) + "\n")
+    out.print(
+        f"settled {summary['settled']} of {summary['scenes']} scene(s) -> {output}; median "
+        f"displacement {1000 * summary['median_displacement']:.1f} mm, largest "
+        f"{1000 * summary['max_displacement']:.1f} mm",
+        markup=False,
+        highlight=False,
+    )
+    if summary["settled"] < summary["scenes"]:
+        raise typer.Exit(2)

@@ -1,0 +1,250 @@
+"""Each observed type's physical shape: geometry, collision geometry, mass and inertia.
+
+The grammar names a primitive or a mesh file per type (`geometry:`) and how its objects behave
+in a simulator (`body:`: static or free, a mass or a density, hull or convex decomposition).
+This module turns that into numbers once per grammar, so the exporters and the settler never
+read the grammar's YAML again.  Primitives have closed-form inertias; a mesh's mass properties
+come from trimesh (the mesh must be watertight for its volume to mean anything).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc import dsl
+from ssgc.errors import Diagnostic, GrammarError, SsgError
+from ssgc.io.atomic import write_bytes_atomic
+from ssgc.ir import Grammar, NodeType
+
+DEFAULT_DENSITY = 1000.0  # kg/m³, water: a type's body without mass or density
+MAX_MESH_BYTES = 64 * 1024 * 1024
+PRIMITIVE_SECTIONS = 32  # facets of a cylinder's or sphere's triangle mesh (GLB, USD meshes)
+
+
+@dataclass(frozen=True)
+class Shape:
+    """One type's body in its own frame (the frame of the object's pose)."""
+
+    type: str
+    kind: str  # "box", "cylinder", "sphere" or "mesh"
+    size: tuple[float, ...]  # box: full sides; cylinder: (radius, length); sphere: (radius,)
+    mesh: object  # trimesh.Trimesh: the visual surface (primitives too, as triangles)
+    collision: tuple[object, ...]  # meshes: convex pieces (trimesh); primitives: ()
+    mass: float
+    com: NDArray[np.float64]  # (3,) centre of mass in the type's frame
+    inertia: NDArray[np.float64]  # (3, 3) about the centre of mass, in the type's frame
+    static: bool
+    source: str = ""  # a mesh's file name as the grammar writes it
+
+
+def _trimesh():  # type: ignore[no-untyped-def]
+    import trimesh  # imported on use: commands that never export stay quick to start
+
+    return trimesh
+
+
+def mesh_path(grammar: Grammar, t: NodeType) -> Path:
+    return Path(grammar.file).parent / t.geometry.mesh.file
+
+
+def _load_mesh(path: Path, scale: float | list[float]) -> object:
+    """A mesh file as one triangle mesh; `ValueError` with a reason when it cannot be used."""
+    trimesh = _trimesh()
+    if not path.is_file():
+        raise ValueError("not found")
+    if path.stat().st_size > MAX_MESH_BYTES:
+        raise ValueError(f"larger than {MAX_MESH_BYTES // 2**20} MiB")
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many kinds for a bad file
+        raise ValueError(f"trimesh cannot read it ({type(exc).__name__}: {exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError("it holds no triangles")
+    mesh.apply_scale(np.broadcast_to(np.asarray(scale, dtype=float), 3))
+    return mesh
+
+
+def check_assets(grammar: Grammar, text: str | None = None) -> list[Diagnostic]:
+    """Located errors for every mesh that is missing or unreadable (for `ssg validate`).
+
+    The compiled grammar keeps document paths, not positions: the grammar text is read again
+    for line and column only when there is something to report.
+    """
+    problems = []
+    for t in grammar.types:
+        if isinstance(t.geometry, dsl.MeshG):
+            try:
+                _load_mesh(mesh_path(grammar, t), t.geometry.mesh.scale)
+            except ValueError as exc:
+                loc = (*t.path, "geometry", "mesh", "file")
+                problems.append((loc, f"mesh file '{t.geometry.mesh.file}': {exc}"))
+    if not problems:
+        return []
+    from ssgc.yamlio import load_located
+
+    if text is None:
+        text = Path(grammar.file).read_text(encoding="utf-8")
+    _, source = load_located(text, grammar.file)
+    return [source.diagnostic(loc, message) for loc, message in problems]
+
+
+def load_shapes(grammar: Grammar, collision: bool = True) -> dict[int, Shape]:
+    """The shape of every observed type with geometry, by type id.
+
+    `collision=False` skips the convex decomposition (slow) for exports that carry no
+    collision geometry.  A bad mesh is a located `GrammarError`.
+    """
+    errors = check_assets(grammar)
+    if errors:
+        raise GrammarError(errors)
+    return {
+        t.id: _shape(grammar, t, collision)
+        for t in grammar.types
+        if t.observed and t.geometry is not None
+    }
+
+
+def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
+    trimesh = _trimesh()
+    body = t.body if t.body is not None else dsl.Body()
+    g = t.geometry
+    if isinstance(g, dsl.MeshG):
+        mesh = _load_mesh(mesh_path(grammar, t), g.mesh.scale)
+        volume, com, unit_inertia = _mesh_mass_properties(mesh)
+        pieces = _collision_pieces(mesh, body.collision, t.name) if collision else ()
+        kind, size, source = "mesh", (), g.mesh.file
+    else:
+        kind, size = _primitive(g)
+        mesh = _primitive_mesh(trimesh, kind, size)
+        volume, unit_inertia = _primitive_mass_properties(kind, size)
+        com, pieces, source = np.zeros(3), (), ""
+    mass = body.mass if body.mass is not None else (body.density or DEFAULT_DENSITY) * volume
+    return Shape(
+        t.name, kind, size, mesh, pieces, float(mass), com, mass * unit_inertia, body.static, source
+    )
+
+
+def _primitive(g: object) -> tuple[str, tuple[float, ...]]:
+    if isinstance(g, dsl.BoxG):
+        return "box", tuple(float(v) for v in g.box.size)
+    if isinstance(g, dsl.CylinderG):
+        return "cylinder", (float(g.cylinder.radius), float(g.cylinder.length))
+    if isinstance(g, dsl.SphereG):
+        return "sphere", (float(g.sphere.radius),)
+    raise TypeError(f"unknown geometry {g!r}")
+
+
+def _primitive_mesh(trimesh, kind: str, size: tuple[float, ...]) -> object:  # type: ignore[no-untyped-def]
+    if kind == "box":
+        return trimesh.creation.box(extents=size)
+    if kind == "cylinder":
+        return trimesh.creation.cylinder(
+            radius=size[0], height=size[1], sections=PRIMITIVE_SECTIONS
+        )
+    return trimesh.creation.icosphere(subdivisions=3, radius=size[0])
+
+
+def _primitive_mass_properties(
+    kind: str, size: tuple[float, ...]
+) -> tuple[float, NDArray[np.float64]]:
+    """Volume and inertia per unit mass about the centre, in closed form."""
+    if kind == "box":
+        x, y, z = size
+        return x * y * z, np.diag([y * y + z * z, x * x + z * z, x * x + y * y]) / 12.0
+    if kind == "cylinder":
+        r, h = size
+        side = (3 * r * r + h * h) / 12.0
+        return np.pi * r * r * h, np.diag([side, side, r * r / 2.0])
+    r = size[0]
+    return 4.0 / 3.0 * np.pi * r**3, np.eye(3) * (2.0 / 5.0 * r * r)
+
+
+def _mesh_mass_properties(mesh: object) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """Volume, centre of mass and inertia per unit mass (about the centre of mass).
+
+    A mesh that does not enclose a volume (open, or inside out) falls back to its convex hull,
+    which always does: a simulator needs a positive mass and a valid inertia.
+    """
+    solid = mesh if mesh.is_watertight and mesh.volume > 0 else mesh.convex_hull  # type: ignore[attr-defined]
+    volume = float(solid.volume)
+    com = np.asarray(solid.center_mass, dtype=float)
+    unit = np.asarray(solid.moment_inertia, dtype=float) / (solid.density * volume)
+    return volume, com, unit
+
+
+def _collision_pieces(mesh: object, how: str, name: str) -> tuple[object, ...]:
+    """Convex pieces that stand for the mesh in collisions."""
+    if how == "hull":
+        return (mesh.convex_hull,)  # type: ignore[attr-defined]
+    try:
+        import coacd  # type: ignore[import-not-found]
+    except ImportError:
+        raise SsgError.single(
+            f"type '{name}' asks for a convex decomposition, which needs coacd: "
+            "pip install 'ssgc[sim]'"
+        ) from None
+    return _decompose(coacd, mesh)
+
+
+COACD_OPTIONS = {  # few pieces, quickly: dishes, not precision parts
+    "threshold": 0.1,
+    "max_convex_hull": 8,
+    "preprocess_mode": "off",
+    "resolution": 1000,
+    "mcts_iterations": 50,
+    "mcts_max_depth": 2,
+    "mcts_nodes": 10,
+    "seed": 0,
+}
+_DECOMPOSED: dict[str, tuple[object, ...]] = {}
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(root) / "ssgc" / "coacd"
+
+
+def _decompose(coacd, mesh) -> tuple[object, ...]:  # type: ignore[no-untyped-def]
+    """coacd's convex pieces of a mesh, each as its convex hull.
+
+    A decomposition takes seconds, so it is cached in memory and on disk (under
+    ~/.cache/ssgc/coacd, keyed by the mesh's vertices, faces and the options); a cache that
+    cannot be read or written is simply not used.
+    """
+    trimesh = _trimesh()
+    digest = hashlib.sha256(
+        np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes()
+        + np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes()
+        + repr(sorted(COACD_OPTIONS.items())).encode()
+    ).hexdigest()
+    if digest in _DECOMPOSED:
+        return _DECOMPOSED[digest]
+    file = _cache_dir() / f"{digest}.npz"
+    parts = None
+    try:
+        with np.load(file) as data:
+            parts = [(data[f"v{i}"], data[f"f{i}"]) for i in range(len(data.files) // 2)]
+    except (OSError, ValueError, KeyError):
+        pass
+    if not parts:
+        coacd.set_log_level("error")
+        found = coacd.run_coacd(coacd.Mesh(mesh.vertices, mesh.faces), **COACD_OPTIONS)
+        parts = [(np.asarray(v, dtype=float), np.asarray(f, dtype=np.int64)) for v, f in found]
+        arrays = {f"{k}{i}": a for i, (v, f) in enumerate(parts) for k, a in (("v", v), ("f", f))}
+        try:
+            file.parent.mkdir(parents=True, exist_ok=True)
+            buf = io.BytesIO()
+            np.savez(buf, **arrays)
+            write_bytes_atomic(file, buf.getvalue())
+        except OSError:
+            pass
+    pieces = tuple(trimesh.Trimesh(v, f).convex_hull for v, f in parts)
+    _DECOMPOSED[digest] = pieces
+    return pieces

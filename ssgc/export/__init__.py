@@ -1,0 +1,45 @@
+"""Scenes as files simulators and 3D tools load (docs/export.md).
+
+A scene is reduced once to bodies (`bodies.scene_bodies`); each format is one module with a
+`files(SceneBodies) -> {relative path: text or bytes}` function, registered in `FORMATS`.
+Adding a format is adding a module and a line here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from ssgc.errors import SsgError
+from ssgc.export import dmd, glb, mjcf, sdf, usd
+from ssgc.export.bodies import SceneBodies, scene_bodies
+
+Files = dict[str, str | bytes]
+FORMATS: dict[str, Callable[[SceneBodies], Files]] = {
+    "dmd": dmd.files,
+    "sdf": sdf.files,
+    "mjcf": mjcf.files,
+    "glb": glb.files,
+    "usd": usd.files,
+}
+SUFFIXES = {
+    "dmd": dmd.SUFFIX,
+    "sdf": sdf.SUFFIX,
+    "mjcf": mjcf.SUFFIX,
+    "glb": glb.SUFFIX,
+    "usd": usd.SUFFIX,
+}
+
+
+def export_files(scene: SceneBodies, fmt: str) -> Files:
+    """The files of one scene in one format, paths relative to the output directory."""
+    if fmt not in FORMATS:
+        raise SsgError.single(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
+    return FORMATS[fmt](scene)
+
+
+def main_file(out_dir: Path, scene: SceneBodies, fmt: str) -> Path:
+    return out_dir / f"{scene.name}{SUFFIXES[fmt]}"
+
+
+__all__ = ["FORMATS", "SUFFIXES", "SceneBodies", "export_files", "main_file", "scene_bodies"]

@@ -1,0 +1,84 @@
+"""Drake model directives (`.dmd.yaml`) and the SDFormat model files they name.
+
+Every type becomes one model file, `models/TYPE.sdf` (its link `body`); every object one
+`add_model` named by its id.  Free objects get `default_free_body_pose`; fixed ones an
+`add_weld` from the world.  The files are found through the package `ssgc_export`, whose
+`package.xml` is written in the output directory:
+
+    parser = Parser(plant); parser.package_map().AddPackageXml("OUT/package.xml")
+    ProcessModelDirectives(LoadModelDirectives("OUT/NAME.dmd.yaml"), plant, parser)
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from ssgc.export.bodies import Body, SceneBodies, mesh_files, used_shapes
+from ssgc.export.sdf import DRAKE_NS, link_xml
+from ssgc.geometry import quat_to_rpy
+
+SUFFIX = ".dmd.yaml"
+PACKAGE = "ssgc_export"
+PACKAGE_XML = f"""<?xml version="1.0"?>
+<package format="2">
+  <name>{PACKAGE}</name>
+  <version>0.0.0</version>
+  <description>Scenes exported by ssgc (ssg export --format dmd).</description>
+  <maintainer email="nobody@example.com">ssgc</maintainer>
+  <license>MIT</license>
+</package>
+"""
+
+
+def _list(values: np.ndarray) -> str:
+    return json.dumps([float(v) for v in values])
+
+
+def _transform(xyz: np.ndarray, quat: np.ndarray) -> str:
+    rpy_deg = np.degrees(quat_to_rpy(quat))
+    return f"{{translation: {_list(xyz)}, rotation: !Rpy {{deg: {_list(rpy_deg)}}}}}"
+
+
+def _directives(body: Body) -> list[str]:
+    model = f"package://{PACKAGE}/models/{body.type}.sdf"
+    if body.shape is None:
+        model = f"package://{PACKAGE}/models/_empty.sdf"
+    out = [f"- add_model:\n    name: {body.name}\n    file: {model}"]
+    if body.fixed:
+        out.append(
+            f"- add_weld:\n    parent: world\n    child: {body.name}::body\n"
+            f"    X_PC: {_transform(body.xyz, body.quat)}"
+        )
+    else:
+        out[0] += (
+            "\n    default_free_body_pose:\n"
+            f"      body: {{base_frame: world, {_transform(body.xyz, body.quat)[1:-1]}}}"
+        )
+    return out
+
+
+def _model_file(name: str, link: str) -> str:
+    return (
+        f'<?xml version="1.0"?>\n<sdf version="1.9" xmlns:drake="{DRAKE_NS}">\n'
+        f'  <model name="{name}">\n{link}\n  </model>\n</sdf>\n'
+    )
+
+
+def files(scene: SceneBodies) -> dict[str, str | bytes]:
+    """`NAME.dmd.yaml`, `package.xml`, `models/TYPE.sdf` and the meshes they name."""
+    lines = [f"# Drake model directives of scene '{scene.name}' (grammar '{scene.grammar}')"]
+    lines += ["directives:"]
+    for body in scene.bodies:
+        lines += _directives(body)
+    out: dict[str, str | bytes] = {
+        f"{scene.name}{SUFFIX}": "\n".join(lines) + "\n",
+        "package.xml": PACKAGE_XML,
+    }
+    for shape in used_shapes(scene):
+        out[f"models/{shape.type}.sdf"] = _model_file(shape.type, link_xml(shape, "meshes", "    "))
+    if any(b.shape is None for b in scene.bodies):
+        out["models/_empty.sdf"] = _model_file("empty", link_xml(None, "meshes", "    "))
+    out.update(mesh_files(scene, "models/meshes"))
+    return out

@@ -1,0 +1,100 @@
+"""MJCF for MuJoCo: one `<body>` per object, a `<freejoint>` on each free one.
+
+Every body carries its type's `<inertial>` (MuJoCo does not recompute it: `inertiafromgeom`
+is off), a visual geom (group 1, no contacts) and its collision geoms (group 3): primitives
+as themselves, a mesh's convex pieces as mesh assets.  Fixed bodies have no joint, so they
+are welded to the world.  `floor=True` adds a ground plane at z = 0 (for settling).
+"""
+
+from __future__ import annotations
+
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from ssgc.assets import Shape
+from ssgc.export.bodies import Body, SceneBodies, mesh_files, principal_axes, used_shapes
+from ssgc.geometry import matrix_to_quat
+
+SUFFIX = ".xml"
+# Stiff, critically damped contacts: objects at rest sink less than 1 mm into each other.
+CONTACT = 'solref="0.004 1" solimp="0.95 0.99 0.0005"'
+
+
+def _nums(values: object) -> str:
+    return " ".join(repr(float(v)) for v in np.ravel(values))
+
+
+def _primitive(shape: Shape) -> str:
+    if shape.kind == "box":
+        return f'type="box" size="{_nums(np.asarray(shape.size) / 2)}"'
+    if shape.kind == "cylinder":
+        return f'type="cylinder" size="{_nums([shape.size[0], shape.size[1] / 2])}"'
+    return f'type="sphere" size="{_nums(shape.size)}"'
+
+
+def _geoms(shape: Shape) -> list[str]:
+    if shape.kind != "mesh":
+        return [f'<geom name="{{}}_geom" {_primitive(shape)} group="3" {CONTACT}/>']
+    out = [
+        f'<geom name="{{}}_visual" type="mesh" mesh="{shape.type}" group="1" '
+        'contype="0" conaffinity="0"/>'
+    ]
+    out += [
+        f'<geom name="{{}}_collision_{k}" type="mesh" mesh="{shape.type}_collision_{k}" '
+        f'group="3" {CONTACT}/>'
+        for k in range(len(shape.collision))
+    ]
+    return out
+
+
+def _inertial(shape: Shape) -> str:
+    moments, axes = principal_axes(shape.inertia)
+    return (
+        f'<inertial pos="{_nums(shape.com)}" quat="{_nums(matrix_to_quat(axes))}" '
+        f'mass="{shape.mass!r}" diaginertia="{_nums(moments)}"/>'
+    )
+
+
+def body_xml(body: Body) -> str:
+    name = quoteattr(body.name)
+    lines = [f'    <body name={name} pos="{_nums(body.xyz)}" quat="{_nums(body.quat)}">']
+    if not body.fixed:
+        lines.append(f"      <freejoint name={name}/>")
+    if body.shape is not None:
+        lines.append(f"      {_inertial(body.shape)}")
+        lines += [f"      {g.format(body.name)}" for g in _geoms(body.shape)]
+    lines.append("    </body>")
+    return "\n".join(lines)
+
+
+def mjcf_text(
+    scene: SceneBodies, meshdir: str = "meshes", floor: bool = False, timestep: float = 0.001
+) -> str:
+    assets = []
+    for shape in used_shapes(scene):
+        if shape.kind == "mesh":
+            assets.append(f'    <mesh name="{shape.type}" file="{shape.type}.obj"/>')
+            pieces = [f"{shape.type}_collision_{k}" for k in range(len(shape.collision))]
+            assets += [f'    <mesh name="{p}" file="{p}.obj"/>' for p in pieces]
+    ground = [f'    <geom name="floor" type="plane" size="0 0 1" {CONTACT}/>'] if floor else []
+    return "\n".join(
+        [
+            f"<mujoco model={quoteattr(scene.name)}>",
+            f'  <compiler angle="radian" meshdir={quoteattr(meshdir)} inertiafromgeom="false"/>',
+            # multiccd: several contact points between flat faces (a tray on a tray), not one
+            f'  <option timestep="{timestep!r}"><flag multiccd="enable"/></option>',
+            *(["  <asset>", *assets, "  </asset>"] if assets else []),
+            "  <worldbody>",
+            *ground,
+            *(body_xml(b) for b in scene.bodies),
+            "  </worldbody>",
+            "</mujoco>",
+            "",
+        ]
+    )
+
+
+def files(scene: SceneBodies) -> dict[str, str | bytes]:
+    """`NAME.xml` and the OBJ files of its mesh assets (in `meshes/`)."""
+    return {f"{scene.name}{SUFFIX}": mjcf_text(scene), **mesh_files(scene, "meshes")}

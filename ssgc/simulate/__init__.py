@@ -1,0 +1,1 @@
+"""Physics on exported scenes: settling to static stability (`settle.py`, MuJoCo)."""

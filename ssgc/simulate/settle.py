@@ -1,0 +1,195 @@
+"""Settle a scene: simulate it in MuJoCo until nothing moves, and read the poses back.
+
+Sampled poses are only approximately physical: a plate floats a millimetre above the table,
+a cup leans into a teapot.  Thesis ch. 4 simulates tables forward to static stability before
+using them (objects then move a few centimetres).  The scene goes through the same MJCF
+exporter as `ssg export --format mjcf` (plus a floor at z = 0), headless and on the CPU.
+A scene is *settled* when every free body has been still (speed below `still_speed`, and
+angular speed times 0.1 m below it) for `still_time` seconds of simulated time.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.errors import SsgError
+from ssgc.export.bodies import SceneBodies, mesh_files
+from ssgc.export.mjcf import mjcf_text
+from ssgc.geometry import quat_canonical
+from ssgc.io.scene import Scene, scene_to_json
+from ssgc.ir import Grammar
+
+LEVER = 0.1  # m: an angular speed counts as this lever arm times it
+
+
+@dataclass(frozen=True)
+class SettleOptions:
+    max_time: float = 5.0  # s of simulated time before giving up
+    still_speed: float = 0.005  # m/s
+    still_time: float = 0.2  # s
+    timestep: float = 0.001  # s
+    separated: float = 0.0005  # m: deepest contact left by the separation phase
+    separate_steps: int = 2000
+
+
+@dataclass(frozen=True)
+class Settled:
+    name: str
+    settled: bool
+    xyz: NDArray[np.float64]  # (n, 3) every body's position after settling
+    quat: NDArray[np.float64]  # (n, 4)
+    max_displacement: float  # m, largest distance any object moved
+    penetration_before: float  # m, deepest contact before (0: none)
+    penetration_after: float
+    sim_time: float  # s simulated
+    wall_time: float  # s
+
+    def report(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "settled": self.settled,
+            "max_displacement": self.max_displacement,
+            "penetration_before": self.penetration_before,
+            "penetration_after": self.penetration_after,
+            "sim_time": round(self.sim_time, 6),
+            "wall_time": round(self.wall_time, 6),
+        }
+
+
+def _mujoco():  # type: ignore[no-untyped-def]
+    try:
+        import mujoco
+    except ImportError:
+        raise SsgError.single("settling needs MuJoCo: pip install 'ssgc[sim]'") from None
+    return mujoco
+
+
+def build_model(scene: SceneBodies, timestep: float = 0.001):  # type: ignore[no-untyped-def]
+    """The scene's MuJoCo model (with a floor), through the MJCF exporter."""
+    mujoco = _mujoco()
+    with tempfile.TemporaryDirectory(prefix="ssgc-settle-") as tmp:
+        for rel, text in mesh_files(scene, "meshes").items():
+            (Path(tmp) / rel).parent.mkdir(parents=True, exist_ok=True)
+            (Path(tmp) / rel).write_text(text, encoding="utf-8")
+        xml = Path(tmp) / "scene.xml"
+        xml.write_text(mjcf_text(scene, "meshes", floor=True, timestep=timestep), "utf-8")
+        try:
+            return mujoco.MjModel.from_xml_path(str(xml))
+        except ValueError as exc:  # e.g. a mass below MuJoCo's smallest (a grammar's numbers)
+            reason = " ".join(str(exc).split())
+            raise SsgError.single(
+                f"scene '{scene.name}': MuJoCo cannot load it: {reason}"
+            ) from None
+
+
+def penetration(model, data) -> float:  # type: ignore[no-untyped-def]
+    """The deepest contact of the current state, in meters (0 when nothing touches)."""
+    _mujoco().mj_forward(model, data)
+    if data.ncon == 0:
+        return 0.0
+    return float(max(0.0, -np.min(data.contact.dist[: data.ncon])))
+
+
+def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Settled:
+    options = options or SettleOptions()
+    mujoco = _mujoco()
+    start = time.perf_counter()
+    model = build_model(scene, options.timestep)
+    data = mujoco.MjData(model)
+    before = penetration(model, data)
+    ids = [model.body(b.name).id for b in scene.bodies]
+    xyz0 = data.xpos[ids].copy()
+    free = model.jnt_type == mujoco.mjtJoint.mjJNT_FREE
+    dofs = model.jnt_dofadr[free]
+    lin = np.concatenate([dofs + k for k in range(3)])
+    ang = np.concatenate([dofs + k for k in range(3, 6)])
+    _separate(mujoco, model, data, options)
+    data.time = 0.0
+    chunk = max(1, round(0.05 / options.timestep))
+    still = 0.0
+    simulated = 0.0  # counted here: MuJoCo resets data.time when a simulation goes unstable
+    while simulated < options.max_time and still < options.still_time:
+        mujoco.mj_step(model, data, nstep=chunk)
+        simulated += chunk * options.timestep
+        speed = max(
+            float(np.max(np.abs(data.qvel[lin]), initial=0.0)),
+            LEVER * float(np.max(np.abs(data.qvel[ang]), initial=0.0)),
+        )
+        still = still + chunk * options.timestep if speed < options.still_speed else 0.0
+    after = penetration(model, data)
+    xyz = data.xpos[ids].copy()
+    quat = quat_canonical(data.xquat[ids].copy())
+    bad = int(data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number) > 0
+    if bad or not (np.isfinite(xyz).all() and np.isfinite(quat).all()):
+        # MuJoCo reset an unstable simulation (objects far apart in scale, absurd poses):
+        # keep the scene as it was and say it did not settle.
+        xyz, after, still = xyz0, before, 0.0
+        quat = np.array([b.quat for b in scene.bodies]).reshape(-1, 4)
+    return Settled(
+        scene.name,
+        bool(still >= options.still_time),
+        xyz,
+        quat,
+        float(np.max(np.linalg.norm(xyz - xyz0, axis=1), initial=0.0)),
+        before,
+        after,
+        simulated,
+        time.perf_counter() - start,
+    )
+
+
+def _separate(mujoco, model, data, options: SettleOptions) -> None:  # type: ignore[no-untyped-def]
+    """Push interpenetrating objects apart before the real simulation starts.
+
+    A sampled scene can have a cup half inside a teapot; simulated as it is, the contact
+    force launches the cup across the room.  So first, without gravity, every step's
+    velocity is thrown away: each step moves the objects a little along the contact forces,
+    a projection onto non-penetration rather than an explosion.  It stops once the deepest
+    contact is under `options.separated` (or after `options.separate_steps` steps).
+    """
+    gravity = model.opt.gravity.copy()
+    model.opt.gravity[:] = 0.0
+    try:
+        for step in range(options.separate_steps):
+            if step % 10 == 0 and penetration(model, data) <= options.separated:
+                break
+            mujoco.mj_step(model, data)
+            data.qvel[:] = 0.0
+    finally:
+        model.opt.gravity[:] = gravity
+        data.qvel[:] = 0.0
+
+
+def provenance(result: Settled, source: dict[str, Any]) -> dict[str, Any]:
+    """What a settled scene file records about how it was made."""
+    mujoco = _mujoco()
+    return {
+        "engine": "mujoco",
+        "engine_version": mujoco.__version__,
+        **{k: v for k, v in source.items() if v is not None},
+        **{k: v for k, v in result.report().items() if k != "name"},
+    }
+
+
+def settled_scene_json(
+    grammar: Grammar, scene: Scene, result: Settled, source: dict[str, Any]
+) -> dict[str, Any]:
+    """The settled scene in the scene format: the same objects at their new poses.
+
+    The tree and log-probability are dropped (they describe the poses before settling); the
+    scene's `metadata.settle` records the engine, the source and the report.
+    """
+    moved = Scene(scene.name, scene.types, result.xyz, result.quat, scene.metadata)
+    doc = scene_to_json(grammar, moved)
+    for obj, meta in zip(doc["objects"], scene.metadata, strict=False):
+        if meta:
+            obj["metadata"] = meta
+    doc["metadata"] = {**scene.extra, "settle": provenance(result, source)}
+    return doc

@@ -1,0 +1,288 @@
+"""Exports load in their real consumers, with every object where the scene puts it.
+
+Each format is read back by the tool it is for (pydrake from the `drake` wheel, MuJoCo,
+trimesh, usd-core: the `test` extra) and every object's position and rotation is compared
+with the scene JSON.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import GRAMMARS
+from typer.testing import CliRunner
+
+from ssgc.assets import load_shapes
+from ssgc.cli.app import app
+from ssgc.compile import compile_text, load_grammar
+from ssgc.errors import GrammarError
+from ssgc.geometry import quat_to_matrix
+
+runner = CliRunner()
+DIMSUM = GRAMMARS / "dimsum_table.yaml"
+N_SCENES = 3
+TOL = 1e-6
+
+
+def run(*args: object):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Sampled dimsum tables, with every format exported by `ssg sample --export`."""
+    root = tmp_path_factory.mktemp("export")
+    formats = [a for f in ("dmd", "sdf", "mjcf", "glb", "usd") for a in ("--export", f)]
+    result = run("sample", DIMSUM, "-n", N_SCENES, "--seed", 3, "-o", root, "-q", *formats)
+    assert result.exit_code == 0, result.output
+    return root
+
+
+def expected(root: Path, name: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Object id -> (position, rotation matrix) from the scene JSON."""
+    doc = json.loads((root / f"{name}.json").read_text())
+    return {
+        f"{o['type']}_{i}": (np.array(o["pose"]["xyz"]), quat_to_matrix(o["pose"]["quat_wxyz"]))
+        for i, o in enumerate(doc["objects"])
+    }
+
+
+def assert_same_poses(got: dict, want: dict) -> None:
+    assert set(got) == set(want)
+    for name, (xyz, rot) in want.items():
+        np.testing.assert_allclose(got[name][0], xyz, atol=TOL, err_msg=name)
+        np.testing.assert_allclose(got[name][1], rot, atol=TOL, err_msg=name)
+
+
+def scene_names(root: Path) -> list[str]:
+    names = sorted(p.stem for p in root.glob("*.json"))
+    assert len(names) == N_SCENES
+    return names
+
+
+def drake_poses(plant, names) -> dict:  # type: ignore[no-untyped-def]
+    context = plant.CreateDefaultContext()
+    poses = {}
+    for name in names:
+        body = plant.GetBodyByName("body", plant.GetModelInstanceByName(name))
+        pose = plant.EvalBodyPoseInWorld(context, body)
+        poses[name] = (pose.translation(), pose.rotation().matrix())
+    return poses
+
+
+def test_drake_model_directives_load_into_a_plant(exported: Path) -> None:
+    from pydrake.multibody.parsing import LoadModelDirectives, Parser, ProcessModelDirectives
+    from pydrake.multibody.plant import MultibodyPlant
+
+    for name in scene_names(exported):
+        plant = MultibodyPlant(0.0)
+        parser = Parser(plant)
+        parser.package_map().AddPackageXml(str(exported / "dmd" / "package.xml"))
+        directives = LoadModelDirectives(str(exported / "dmd" / f"{name}.dmd.yaml"))
+        ProcessModelDirectives(directives, plant, parser)
+        plant.Finalize()
+        want = expected(exported, name)
+        assert_same_poses(drake_poses(plant, want), want)
+        # Fixed objects are welded (no floating base), free ones float.
+        for body_name in want:
+            body = plant.GetBodyByName("body", plant.GetModelInstanceByName(body_name))
+            assert body.is_floating_base_body() == (not body_name.startswith("Table")), body_name
+            assert body.default_mass() > 0
+
+
+def test_sdformat_world_loads_in_drakes_parser(exported: Path) -> None:
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    for name in scene_names(exported):
+        plant = MultibodyPlant(0.0)
+        Parser(plant).AddModels(str(exported / "sdf" / f"{name}.sdf"))
+        plant.Finalize()
+        want = expected(exported, name)
+        assert_same_poses(drake_poses(plant, want), want)
+
+
+def test_mjcf_compiles_in_mujoco_with_free_joints(exported: Path) -> None:
+    import mujoco
+
+    for name in scene_names(exported):
+        model = mujoco.MjModel.from_xml_path(str(exported / "mjcf" / f"{name}.xml"))
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        want = expected(exported, name)
+        got = {
+            model.body(i).name: (data.xpos[i].copy(), data.xmat[i].reshape(3, 3).copy())
+            for i in range(1, model.nbody)
+        }
+        assert_same_poses(got, want)
+        free = {model.body(model.jnt_bodyid[j]).name for j in range(model.njnt)}
+        assert free == {n for n in want if not n.startswith("Table")}
+        assert model.jnt_type.tolist() == [mujoco.mjtJoint.mjJNT_FREE] * model.njnt
+
+
+def test_glb_nodes_are_named_by_object_id_with_their_poses(exported: Path) -> None:
+    import trimesh
+
+    for name in scene_names(exported):
+        scene = trimesh.load(str(exported / "glb" / f"{name}.glb"))
+        want = expected(exported, name)
+        got = {}
+        for node in want:
+            matrix, geometry = scene.graph.get(node)
+            got[node] = (matrix[:3, 3], matrix[:3, :3])
+            assert geometry in scene.geometry
+        assert_same_poses(got, want)
+
+
+def test_usd_has_one_xform_per_object_with_its_pose(exported: Path) -> None:
+    from pxr import Usd, UsdGeom, UsdPhysics
+
+    for name in scene_names(exported):
+        stage = Usd.Stage.Open(str(exported / "usd" / f"{name}.usda"))
+        want = expected(exported, name)
+        got = {}
+        for prim in stage.GetPrimAtPath("/World").GetChildren():
+            m = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(0))
+            got[prim.GetName()] = (m[3, :3], m[:3, :3].T)  # USD: row vectors
+            rigid = prim.HasAPI(UsdPhysics.RigidBodyAPI)
+            assert rigid == (not prim.GetName().startswith("Table"))
+            assert len(prim.GetChildren()) == 1  # its geometry
+        assert_same_poses(got, want)
+
+
+def test_export_of_a_parse_result_and_a_directory(tmp_path: Path) -> None:
+    """`ssg export` reads a directory of scenes and `ssg parse` output alike."""
+    grammar = GRAMMARS / "sink.yaml"
+    scenes = tmp_path / "scenes"
+    assert run("sample", grammar, "-n", 2, "-o", scenes, "-q").exit_code == 0
+    trees = [json.loads(p.read_text())["tree"] for p in sorted(scenes.glob("*.json"))]
+    parsed = {
+        "grammar": "sink",
+        "scenes": [
+            {"name": f"p{i}", "status": "optimal", "parses": [{"tree": t}]}
+            for i, t in enumerate(trees)
+        ],
+    }
+    (tmp_path / "parsed.json").write_text(json.dumps(parsed))
+    for source in (scenes, tmp_path / "parsed.json"):
+        out = tmp_path / "out" / source.name
+        result = run("export", source, "-g", grammar, "-f", "mjcf", "-o", out, "-q")
+        assert result.exit_code == 0, result.output
+        assert len(list(out.glob("*.xml"))) == 2
+    import mujoco
+
+    for i, p in enumerate(sorted(scenes.glob("*.json"))):
+        model = mujoco.MjModel.from_xml_path(str(tmp_path / "out" / "parsed.json" / f"p{i}.xml"))
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        objects = json.loads(p.read_text())["objects"]
+        for k, o in enumerate(objects):
+            xpos = data.xpos[model.body(f"{o['type']}_{k}").id]
+            np.testing.assert_allclose(xpos, o["pose"]["xyz"], atol=TOL)
+
+
+def test_unknown_format_and_unwritable_output_are_messages(tmp_path: Path) -> None:
+    scenes = tmp_path / "s"
+    assert run("sample", GRAMMARS / "gmm.yaml", "-n", 1, "-o", scenes, "-q").exit_code == 0
+    result = run("export", scenes, "-g", GRAMMARS / "gmm.yaml", "-f", "obj", "-o", tmp_path / "o")
+    assert result.exit_code == 1
+    assert "unknown export format 'obj'; choose one of dmd, sdf, mjcf, glb, usd" in result.output
+    (tmp_path / "file").write_text("")
+    result = run(
+        "export", scenes, "-g", GRAMMARS / "gmm.yaml", "-f", "glb", "-o", tmp_path / "file"
+    )
+    assert result.exit_code == 1 and "Traceback" not in result.output
+
+
+# ------------------------------------------------------------- geometry and mass ---
+
+SHAPES = """
+grammar: shapes
+root: Tray
+types:
+  Tray:
+    observed: true
+    geometry: {{box: {{size: [0.4, 0.3, 0.02]}}}}
+    body: {{static: true}}
+    and:
+      - {{child: Can, translation: {{offset: [0.1, 0, 0.07]}}}}
+      - {{child: Cup, translation: {{offset: [-0.1, 0, 0.04]}}}}
+  Can:
+    observed: true
+    geometry: {{cylinder: {{radius: 0.03, length: 0.12}}}}
+    body: {{mass: 0.4}}
+  Cup:
+    observed: true
+    geometry: {{mesh: {{file: {mesh}, scale: 2.0}}}}
+    body: {{density: 500}}
+"""
+
+
+def shapes_grammar(tmp_path: Path, mesh: str = "cup.obj") -> Path:
+    import trimesh
+
+    trimesh.creation.box(extents=[0.1, 0.2, 0.05]).export(tmp_path / "cup.obj")
+    path = tmp_path / "g.yaml"
+    path.write_text(SHAPES.format(mesh=mesh))
+    return path
+
+
+def test_mass_and_inertia_from_primitives_and_meshes(tmp_path: Path) -> None:
+    g = load_grammar(shapes_grammar(tmp_path))
+    shapes = {s.type: s for s in load_shapes(g).values()}
+    tray, can, cup = shapes["Tray"], shapes["Can"], shapes["Cup"]
+    assert tray.static and not can.static
+    assert tray.mass == pytest.approx(1000 * 0.4 * 0.3 * 0.02)
+    np.testing.assert_allclose(
+        np.diag(tray.inertia),
+        tray.mass / 12 * np.array([0.3**2 + 0.02**2, 0.4**2 + 0.02**2, 0.4**2 + 0.3**2]),
+    )
+    assert can.mass == 0.4
+    np.testing.assert_allclose(np.diag(can.inertia)[2], 0.4 * 0.03**2 / 2)
+    # The mesh scaled by 2: a 0.2 x 0.4 x 0.1 box of density 500.
+    assert cup.mass == pytest.approx(500 * 0.2 * 0.4 * 0.1)
+    np.testing.assert_allclose(np.diag(cup.inertia)[0], cup.mass / 12 * (0.4**2 + 0.1**2))
+    assert len(cup.collision) == 1 and cup.collision[0].is_convex
+
+
+@pytest.mark.parametrize(
+    ("content", "fragment"),
+    [
+        (None, "mesh file 'cup2.obj': not found"),
+        (b"\x00\x01garbage", "mesh file 'cup2.obj': "),
+        (b"", "mesh file 'cup2.obj': "),
+    ],
+)
+def test_validate_locates_a_missing_or_unreadable_mesh(tmp_path, content, fragment) -> None:
+    path = shapes_grammar(tmp_path, "cup2.obj")
+    if content is not None:
+        (tmp_path / "cup2.obj").write_bytes(content)
+    result = run("validate", path)
+    assert result.exit_code == 1
+    assert f"{path}:18:" in result.output and fragment in result.output, result.output
+
+
+def test_mass_and_density_together_is_an_error() -> None:
+    text = "grammar: g\nroot: A\ntypes:\n  A: {observed: true, body: {mass: 1, density: 2}}\n"
+    with pytest.raises(GrammarError, match="give mass or density, not both"):
+        compile_text(text)
+
+
+def test_the_loading_snippets_of_export_md_run(tmp_path: Path, monkeypatch) -> None:
+    """Each ```python block of docs/export.md loads the file it names."""
+    text = (GRAMMARS.parent / "docs" / "export.md").read_text()
+    snippets = [b.split("```", 1)[0] for b in text.split("```python\n")[1:]]
+    assert len(snippets) == 5
+    scenes = tmp_path / "scenes"
+    assert run("sample", DIMSUM, "-n", 1, "--seed", 0, "-o", scenes, "-q").exit_code == 0
+    for fmt in ("dmd", "sdf", "mjcf", "glb", "usd"):
+        result = run("export", scenes, "-g", DIMSUM, "-f", fmt, "-o", tmp_path / "out" / fmt)
+        assert result.exit_code == 0, result.output
+    monkeypatch.chdir(tmp_path)
+    for snippet in snippets:
+        namespace: dict = {}
+        exec(snippet, namespace)
+        assert namespace.get("plant") or namespace.get("data") or namespace.get("pose") is not None

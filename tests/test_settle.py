@@ -1,0 +1,120 @@
+"""`ssg settle`: scenes simulated in MuJoCo to rest, written back as scenes with provenance."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import GRAMMARS
+from typer.testing import CliRunner
+
+from ssgc.cli.app import app
+from ssgc.compile import load_grammar
+from ssgc.io.scene import read_scene_file
+
+runner = CliRunner()
+
+# A fixed tray (top at z = 0.01), a box 1 cm above it, a ball 2 cm into it.
+GRAMMAR = """
+grammar: drop
+root: Tray
+types:
+  Tray:
+    observed: true
+    geometry: {box: {size: [1.0, 1.0, 0.02]}}
+    body: {static: true}
+    and:
+      - {child: Block, translation: {offset: [0.2, 0, 0.06]}}
+      - {child: Ball, translation: {offset: [-0.2, 0, 0.02]}}
+  Block: {observed: true, geometry: {box: {size: [0.1, 0.1, 0.08]}}, body: {mass: 0.5}}
+  Ball: {observed: true, geometry: {sphere: {radius: 0.03}}, body: {density: 800}}
+"""
+
+
+def run(*args: object):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture
+def dropped(tmp_path: Path) -> tuple[Path, Path]:
+    grammar = tmp_path / "drop.yaml"
+    grammar.write_text(GRAMMAR)
+    result = run("sample", grammar, "-n", 1, "-o", tmp_path / "scenes", "-q")
+    assert result.exit_code == 0, result.output
+    return grammar, tmp_path / "scenes"
+
+
+def test_settling_drops_the_block_and_lifts_the_ball(dropped, tmp_path: Path) -> None:
+    grammar, scenes = dropped
+    out, report = tmp_path / "settled", tmp_path / "report.json"
+    result = run("settle", scenes, "-g", grammar, "-o", out, "--report", report)
+    assert result.exit_code == 0, result.output
+    assert "settled 1 of 1 scene(s)" in result.output
+    (r,) = json.loads(report.read_text())["scenes"]
+    assert r["settled"]
+    assert r["penetration_before"] == pytest.approx(0.02, abs=1e-3)  # the ball, into the tray
+    assert r["penetration_after"] <= 1e-3
+    g = load_grammar(grammar)
+    scene = read_scene_file(out / "drop_000000.json", g)
+    before = read_scene_file(scenes / "drop_000000.json", g)
+    np.testing.assert_array_equal(scene.xyz[0], before.xyz[0])  # the fixed tray stays
+    # Resting on the tray's top (z = 0.01): the block's centre at 0.05, the ball's at 0.04.
+    np.testing.assert_allclose(scene.xyz[1], [0.2, 0.0, 0.05], atol=1.5e-3)
+    np.testing.assert_allclose(scene.xyz[2], [-0.2, 0.0, 0.04], atol=1.5e-3)
+    assert r["max_displacement"] == pytest.approx(0.02, abs=2e-3)
+    doc = json.loads((out / "drop_000000.json").read_text())
+    assert "tree" not in doc and "log_prob" not in doc  # they describe the unsettled poses
+    settle = doc["metadata"]["settle"]
+    assert settle["engine"] == "mujoco" and settle["source_scene"] == "drop_000000"
+    assert settle["settled"] is True
+
+
+def test_too_short_a_simulation_is_reported_not_settled(dropped, tmp_path: Path) -> None:
+    grammar, scenes = dropped
+    result = run("settle", scenes, "-g", grammar, "-o", tmp_path / "o", "--max-time", 0.02)
+    assert result.exit_code == 2, result.output
+    assert "drop_000000: not settled: did not come to rest" in result.stderr
+    doc = json.loads((tmp_path / "o" / "drop_000000.json").read_text())
+    assert doc["metadata"]["settle"]["settled"] is False
+
+
+def test_sample_settle_writes_settled_scenes(tmp_path: Path) -> None:
+    grammar = tmp_path / "drop.yaml"
+    grammar.write_text(GRAMMAR)
+    result = run("sample", grammar, "-n", 2, "-o", tmp_path / "s", "-q", "--settle")
+    assert result.exit_code == 0, result.output
+    for path in sorted((tmp_path / "s").glob("*.json")):
+        doc = json.loads(path.read_text())
+        assert doc["metadata"]["settle"]["settled"] is True
+        assert doc["metadata"]["settle"]["index"] == int(path.stem[-1])
+        assert doc["objects"][1]["pose"]["xyz"][2] == pytest.approx(0.05, abs=1.5e-3)
+
+
+def test_unknown_engine_is_a_message(dropped, tmp_path: Path) -> None:
+    grammar, scenes = dropped
+    result = run("settle", scenes, "-g", grammar, "--engine", "bullet", "-o", tmp_path / "o")
+    assert result.exit_code == 1
+    assert "unknown engine 'bullet'" in result.output
+
+
+def test_dimsum_scene_settles(tmp_path: Path) -> None:
+    """A sampled dimsum table with meshes and a convex decomposition settles in MuJoCo."""
+    scenes = tmp_path / "s"
+    assert run("sample", GRAMMARS / "dimsum_table.yaml", "-n", 1, "-o", scenes, "-q").exit_code == 0
+    report = tmp_path / "r.json"
+    result = run(
+        "settle",
+        scenes,
+        "-g",
+        GRAMMARS / "dimsum_table.yaml",
+        "-o",
+        tmp_path / "o",
+        "--report",
+        report,
+    )
+    assert result.exit_code == 0, result.output
+    (r,) = json.loads(report.read_text())["scenes"]
+    assert r["settled"] and r["penetration_after"] <= 1e-3
+    assert r["max_displacement"] < 0.05
