@@ -11,6 +11,7 @@ from bruteforce import enumerate_parses
 from conftest import GRAMMARS
 
 from ssgc.compile import compile_text
+from ssgc.fit.em import FitJournal, FitOptions, GrammarSource, fit_grammar, fit_header
 from ssgc.fit.mstep import FitSettings, Ties, m_step
 from ssgc.fit.posterior import McmcSettings, posterior_e_step, posterior_scores, sample_posterior
 from ssgc.io.scene import scene_from_tree
@@ -114,3 +115,22 @@ def test_an_e_step_at_the_truth_of_the_sink_gives_the_true_tree_estimates():
     mle, fitted, _ = _e_step_estimates(text, 200, 1, samples=100, burn_in=50)
     for name in ("DishBin", "ObjectsOnPlate", "ObjectsInBowl"):
         assert abs(_p(fitted, name) - _p(mle, name)) < 0.06, name
+
+
+def test_an_mcmc_fit_resumed_from_its_journal_is_the_same_with_any_jobs(tmp_path):
+    g = compile_text(NEST)
+    trees, logp = sample_trees(g, 12, 11)
+    scenes = [scene_from_tree(g, trees.tree(i), f"s{i}", float(logp[i])) for i in range(12)]
+
+    def run(path, iterations, jobs, resume):
+        opts = FitOptions(iterations=iterations, estep="mcmc", samples=10, tol=0, jobs=jobs)
+        with FitJournal(path, fit_header(NEST, tmp_path, scenes, opts), resume) as journal:
+            return fit_grammar(NEST, GrammarSource("<nest>"), scenes, opts, journal)
+
+    whole = run(tmp_path / "a.jsonl", 2, 1, False)
+    first = run(tmp_path / "b.jsonl", 1, 2, False)
+    resumed = run(tmp_path / "b.jsonl", 2, 1, True)
+    assert resumed.iterations[0] == first.iterations[0]  # read back, its seconds included
+    assert resumed.text == whole.text
+    assert resumed.iterations[1]["posterior"] == whole.iterations[1]["posterior"]
+    assert whole.text != NEST
