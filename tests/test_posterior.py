@@ -113,8 +113,10 @@ def test_an_e_step_at_the_truth_gives_the_true_tree_estimates():
 def test_an_e_step_at_the_truth_of_the_sink_gives_the_true_tree_estimates():
     text = (GRAMMARS / "sink.yaml").read_text()
     mle, fitted, _ = _e_step_estimates(text, 200, 1, samples=100, burn_in=50)
-    for name in ("DishBin", "ObjectsOnPlate", "ObjectsInBowl"):
-        assert abs(_p(fitted, name) - _p(mle, name)) < 0.06, name
+    # measured: 0.297/0.301, 0.550/0.539, 0.505/0.484 (without the c! factor: 0.346, 0.422,
+    # 0.363); the spread across draws is 0.006, 0.015, 0.024
+    for name, tol in (("DishBin", 0.02), ("ObjectsOnPlate", 0.05), ("ObjectsInBowl", 0.06)):
+        assert abs(_p(fitted, name) - _p(mle, name)) < tol, name
 
 
 def test_an_mcmc_fit_resumed_from_its_journal_is_the_same_with_any_jobs(tmp_path):
