@@ -186,7 +186,10 @@ def fit_grammar(
                 on_scene()
         trees, weights, report = _weigh(journal.scenes, journal.iteration)
         if options.estep == "mcmc":
-            trees, weights, report["posterior"] = _posterior(grammar, journal, options, ties)
+            sampled = _posterior(grammar, journal, options, ties, deadline)
+            if sampled is None:  # resumed, the journalled parses give the same chains
+                return _out_of_time(current, journal.reports)
+            trees, weights, report["posterior"] = sampled
             report["trees"] = len(weights)
         updates = m_step(grammar, trees, weights, options.settings, ties)
         try:
@@ -343,14 +346,21 @@ def _weigh(
 
 
 def _posterior(
-    grammar: Grammar, journal: FitJournal, options: FitOptions, ties: Ties
-) -> tuple[Trees, np.ndarray, dict[str, Any]]:
+    grammar: Grammar, journal: FitJournal, options: FitOptions, ties: Ties, deadline: float | None
+) -> tuple[Trees, np.ndarray, dict[str, Any]] | None:
     """The MCMC E-step (`ssgc.fit.posterior`), from the journalled top-N parses: a function of
     the journal and the seed, so `--resume` and `--jobs` do not change it."""
     scene_trees = [[_tree_from_json(t) for t in r["trees"]] for r in journal.scenes if r["trees"]]
     mcmc = McmcSettings(samples=options.samples)
     return posterior_e_step(
-        grammar, scene_trees, mcmc, options.settings, ties, options.seed, journal.iteration
+        grammar,
+        scene_trees,
+        mcmc,
+        options.settings,
+        ties,
+        options.seed,
+        journal.iteration,
+        deadline=deadline,
     )
 
 

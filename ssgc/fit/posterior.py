@@ -24,6 +24,7 @@ Seeds are per (seed, iteration, scene), so results do not depend on `--jobs` or 
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from itertools import product
@@ -105,9 +106,9 @@ class Derivations:
                     for sub, obj in self._chain(self.g.rules[r].child, r, obs, depth - 1):
                         out.append(([(t, rule, -1), *_shift(sub, 1)], obj + 1))
             return out
+        if not all(_is_same(self.g, q) for q in rules):
+            return []
         for r in rules:  # AND: one child holds the object, the others are empty
-            if not all(_is_same(self.g, q) for q in rules):
-                return []
             rest = [self._empty(self.g.rules[q].child, q, depth - 1) for q in rules if q != r]
             for sub, obj in self._chain(self.g.rules[r].child, r, obs, depth - 1):
                 for combo in product(*rest):
@@ -208,7 +209,8 @@ class _Chain:
             for r in g.types[int(rest.type[p])].rules:
                 for nodes, _ in derivations.of(r, obs_type):
                     if p == home and r == tree.rule[a] and _template_structure(nodes) == unit:
-                        self.stay = len(out)
+                        # two look-alike derivations: recompute the key whatever is chosen
+                        self.stay = len(out) if self.stay == -1 else -2
                     out.append(_attach(rest, int(p), nodes, tree.xyz[o], tree.quat[o]))
         return out
 
@@ -255,8 +257,10 @@ def sample_posterior(
     seed: int,
     iteration: int,
     top_signatures: list[set[bytes]] | None = None,
-) -> Posterior:
-    """Run every scene's chain from its start tree; keep `samples` rounds after `burn_in`."""
+    deadline: float | None = None,
+) -> Posterior | None:
+    """Run every scene's chain from its start tree; keep `samples` rounds after `burn_in`.
+    None if `deadline` (a `time.monotonic()` value) passes first."""
     derivations = Derivations(grammar)
     chains = [
         _Chain(grammar, t, np.random.default_rng([seed, iteration, i]))
@@ -266,6 +270,8 @@ def sample_posterior(
     examples: list[dict[bytes, Trees]] = [{} for _ in chains]
     draws: list[Trees] = []
     for rnd in range(settings.burn_in + settings.samples):
+        if deadline is not None and time.monotonic() >= deadline:
+            return None
         _round(grammar, chains, derivations)
         if rnd < settings.burn_in:
             continue
@@ -352,17 +358,22 @@ def posterior_e_step(
     seed: int,
     iteration: int,
     spread_draws: int = 20,
-) -> tuple[Trees, NDArray[np.float64], dict[str, Any]]:
+    deadline: float | None = None,
+) -> tuple[Trees, NDArray[np.float64], dict[str, Any]] | None:
     """The sampled trees and weights for the M-step, and what the report says about them.
 
     `scene_trees[i]` are scene i's top-N parses, best first (the chain starts at the best).
-    The report has the mean share of the sampled posterior that the top-N trees carry, the
-    scenes where it is below one half, and each discrete parameter's spread across draws.
+    None if `deadline` passed before the chains finished.  The report has the mean share of
+    the sampled posterior that the top-N trees carry, the scenes where it is below one half,
+    and each discrete parameter's spread across draws.
     """
     from ssgc.fit.mstep import m_step  # the public entry; imported here to keep imports light
 
     tops = [{tree_signature(grammar, t) for t in trees} for trees in scene_trees]
-    post = sample_posterior(grammar, [t[0] for t in scene_trees], settings, seed, iteration, tops)
+    starts = [t[0] for t in scene_trees]
+    post = sample_posterior(grammar, starts, settings, seed, iteration, tops, deadline)
+    if post is None:
+        return None
     picks = np.unique(np.linspace(0, len(post.draws) - 1, min(spread_draws, len(post.draws))))
     per_draw = [
         m_step(grammar, post.draws[int(k)], np.ones(len(scene_trees)), fit_settings, ties)
