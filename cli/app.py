@@ -14,6 +14,7 @@ import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -593,6 +594,13 @@ def bench_parse_cmd(
             out.print(f"{key:>22}: {value}", markup=False, highlight=False)
 
 
+class EStep(StrEnum):
+    """`ssg fit --estep` (docs/fitting.md section 1)."""
+
+    topn = "topn"
+    mcmc = "mcmc"
+
+
 @app.command()
 @_command
 def fit(
@@ -614,6 +622,12 @@ def fit(
     ] = 10,
     method: Annotated[str, typer.Option(help="Parsing method: auto | ip | micp.")] = "auto",
     seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
+    estep: Annotated[
+        EStep, typer.Option(help="topn: weigh the top-N parses; mcmc: sample the posterior.")
+    ] = EStep.topn,
+    samples: Annotated[
+        int, typer.Option(min=1, help="--estep mcmc: sampled rounds per scene.")
+    ] = 100,
     pseudocount: Annotated[
         float,
         typer.Option(
@@ -698,6 +712,8 @@ def fit(
         seed=seed,
         tol=tol,
         jobs=jobs,
+        estep=estep.value,
+        samples=samples,
         settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
     )
     header = fit_header(text, scenes, items, options)
@@ -776,6 +792,8 @@ def _print_iteration(r: dict[str, Any], quiet: bool, resumed: bool = False) -> N
     err.print(line, markup=False, highlight=False)
     for s in r.get("skipped", []):
         err.print(f"  skipped {s}", markup=False, highlight=False)
+    if "warning" in r.get("posterior", {}):
+        err.print(f"  warning: {r['posterior']['warning']}", markup=False, highlight=False)
 
 
 @app.command("schema", hidden=True)

@@ -34,6 +34,7 @@ from ssgc.compile import compile_text
 from ssgc.errors import SsgError
 from ssgc.fit.estep import parse_scenes
 from ssgc.fit.mstep import FitSettings, Ties, m_step
+from ssgc.fit.posterior import McmcSettings, posterior_e_step
 from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
 from ssgc.io.journal import Journal, scenes_digest
 from ssgc.io.scene import Scene
@@ -56,6 +57,8 @@ class FitOptions:
     seed: int = 0
     tol: float = 1e-4  # nats per scene: stop when the log-evidence improves less
     jobs: int = 1  # worker processes for the E-step's parsing (the result is the same)
+    estep: str = "topn"  # "topn": softmax over the top-N parses; "mcmc": posterior samples
+    samples: int = 100  # --estep mcmc: rounds kept per scene chain (ssgc.fit.posterior)
     settings: FitSettings = field(default_factory=FitSettings)
 
 
@@ -132,6 +135,8 @@ def fit_header(
         "method": options.method,
         "seed": options.seed,
         "settings": asdict(options.settings),
+        "estep": options.estep,
+        "samples": options.samples,
     }
 
 
@@ -180,6 +185,12 @@ def fit_grammar(
             if on_scene is not None:
                 on_scene()
         trees, weights, report = _weigh(journal.scenes, journal.iteration)
+        if options.estep == "mcmc":
+            sampled = _posterior(grammar, journal, options, ties, deadline)
+            if sampled is None:  # resumed, the journalled parses give the same chains
+                return _out_of_time(current, journal.reports)
+            trees, weights, report["posterior"] = sampled
+            report["trees"] = len(weights)
         updates = m_step(grammar, trees, weights, options.settings, ties)
         try:
             current = apply_updates(current, updates, source.file)
@@ -330,6 +341,25 @@ def _weigh(
         "skipped": skipped,
     }
     return Trees.concatenate(batches), np.concatenate(weights), report
+
+
+def _posterior(
+    grammar: Grammar, journal: FitJournal, options: FitOptions, ties: Ties, deadline: float | None
+) -> tuple[Trees, np.ndarray, dict[str, Any]] | None:
+    """The MCMC E-step (`ssgc.fit.posterior`), from the journalled top-N parses: a function of
+    the journal and the seed, so `--resume` and `--jobs` do not change it."""
+    scene_trees = [[_tree_from_json(t) for t in r["trees"]] for r in journal.scenes if r["trees"]]
+    mcmc = McmcSettings(samples=options.samples)
+    return posterior_e_step(
+        grammar,
+        scene_trees,
+        mcmc,
+        options.settings,
+        ties,
+        options.seed,
+        journal.iteration,
+        deadline=deadline,
+    )
 
 
 def _tree_from_json(t: dict[str, list[Any]]) -> Trees:
