@@ -158,6 +158,8 @@ def _geometry_radii(path: Path) -> dict[str, float]:
             out[name] = g["cylinder"]["radius"]
         elif "sphere" in g:
             out[name] = g["sphere"]["radius"]
+    for spec in (doc.get("constraints") or {}).values():  # radii a constraint gives override
+        out.update((spec.get("clearance") or {}).get("radius") or {})
     return out
 
 
@@ -352,6 +354,7 @@ constraints:
   apart: {clearance: {types: [Teapot, ServingBowl, SteamerBottom], exempt_ancestors: true}}
 """,
         "easy.yaml",
+        base_dir=GRAMMARS,  # the dishes' meshes (keep-out radii) are read from grammars/dimsum
     )
     cs = list(g.constraints)
     plain = _plain_rejection(g, cs, 40_000, 11)

@@ -816,3 +816,59 @@ def test_fuzz_output_paths(
         assert {p: p.read_bytes() for p in inputs.values()} == input_bytes, shown
     for directory in (base, base / "dir"):
         assert not leftovers(directory), (leftovers(directory), shown)
+
+
+# ------------------------------------- the outputs of the commands that came later ---
+# `ssg render`, `ssg inspect --diagram`, `ssg explain -o`, `ssg export` and `ssg settle` go
+# through the same checks (ssgc/io/outputs.py): the same cases, one test per command.
+
+
+@pytest.mark.usefixtures("devices_unchanged")
+def test_pictures_to_devices_and_stdout(scene: Path, tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    null = run("render", scene, "-o", "/dev/null", "-q")
+    assert null.exit_code == 0, null.output
+    full = run("render", scene, "-o", "/dev/full", "-q")
+    assert full.exit_code == 1 and "No space left on device" in full.output
+    no_bug(full.output)
+    piped = ssg("render", scene, "-o", "-", "-q", capture_output=True)
+    assert piped.returncode == 0 and piped.stdout.startswith(b"\x89PNG"), piped.stderr
+    diagram = run("inspect", GMM, "--diagram", "/dev/null")
+    assert diagram.exit_code == 0, diagram.output
+    onto_input = run("render", scene, "-o", scene)
+    assert onto_input.exit_code == 1 and json.loads(scene.read_text())["objects"]
+    folder = tmp_path / "a_dir.png"
+    folder.mkdir()
+    assert run("render", scene, "-o", folder).exit_code == 1 and folder.is_dir()
+
+
+@pytest.mark.usefixtures("devices_unchanged")
+def test_explain_output_checked_first(scene: Path, tmp_path: Path) -> None:
+    before = scene.read_bytes()
+    onto_input = run("explain", scene, "-g", GMM, "-o", scene)
+    assert onto_input.exit_code == 1 and scene.read_bytes() == before
+    full = run("explain", scene, "-g", GMM, "-o", "/dev/full")
+    assert full.exit_code == 1 and "No space left on device" in full.output
+    no_bug(full.output)
+    assert run("explain", scene, "-g", GMM, "-o", "/dev/null").exit_code == 0
+
+
+def test_export_and_settle_directories_checked_first(data: Path, tmp_path: Path) -> None:
+    a_file = tmp_path / "file"
+    a_file.write_text("keep")
+    for args in (
+        ("export", data, "-g", GMM, "--format", "glb", "-o", a_file),
+        ("export", data, "-g", GMM, "--format", "glb", "-o", "/dev/null"),
+        ("settle", data, "-g", GMM, "-o", a_file),
+        ("settle", data, "-g", GMM, "-o", data),
+    ):
+        before = {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()}
+        result = run(*args)
+        assert result.exit_code == 1, (args, result.output)
+        no_bug(result.output)
+        assert a_file.read_text() == "keep"
+        assert {p.name: p.read_bytes() for p in data.iterdir() if p.is_file()} == before
+    report = run(
+        "settle", data, "-g", GMM, "-o", tmp_path / "s", "--report", tmp_path / "no/r.json"
+    )
+    assert report.exit_code == 1 and not (tmp_path / "s").exists(), report.output

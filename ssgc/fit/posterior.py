@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import gammaln
 
-from ssgc.ir import Grammar, Kind, RKind, TKind
+from ssgc.ir import Grammar, Kind
 from ssgc.parse.parser import tree_signature
 from ssgc.score import score_trees
 from ssgc.tree import Trees
@@ -66,12 +66,14 @@ class Posterior:
 
 
 def _is_same(grammar: Grammar, rule: int) -> bool:
+    """A rule that puts its child exactly at its parent's pose (`same` in both parts)."""
     r = grammar.rules[rule]
+    t, q = r.translation.point, r.rotation.point
     return (
-        r.translation.kind == TKind.FIXED
-        and r.rotation.kind == RKind.FIXED
-        and bool(np.allclose(r.translation.offset, 0.0))
-        and bool(np.allclose(np.abs(r.rotation.offset[0]), 1.0))
+        t is not None
+        and q is not None
+        and bool(np.allclose(t, 0.0))
+        and bool(np.allclose(np.abs(q[0]), 1.0))
     )
 
 
