@@ -52,6 +52,19 @@ class Trees:
             n_scenes=1,
         )
 
+    def first(self, keep: int) -> Trees:
+        """The first `keep` trees (their nodes come first, so no index changes)."""
+        end = int(self.offsets[keep])
+        return Trees(
+            self.scene[:end],
+            self.type[:end],
+            self.parent[:end],
+            self.rule[:end],
+            self.xyz[:end],
+            self.quat[:end],
+            keep,
+        )
+
     @staticmethod
     def concatenate(batches: list[Trees]) -> Trees:
         """Join batches into one, renumbering trees and parent indices."""

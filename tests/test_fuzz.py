@@ -922,7 +922,7 @@ def test_fuzz_sample_constrained(work: Path, data: bytes, names: str) -> None:
 def test_fuzz_export_json(work: Path, data: bytes, grammar: str, fmt: str) -> None:
     path = write(work / "scene.json", data)
     grammar_path = GRAMMARS / grammar
-    args = ["export", str(path), "-g", str(grammar_path), "-f", fmt, "-o", str(work / "out")]
+    args = ["export", str(path), "-g", str(grammar_path), "-f", fmt, "-o", str(work / "exported")]
     result, seconds = invoke([*args, "-q"])
     check(result, seconds, {0, 1}, [path, grammar_path], data)
 
@@ -932,11 +932,11 @@ def test_fuzz_export_json(work: Path, data: bytes, grammar: str, fmt: str) -> No
 def test_fuzz_settle_json(work: Path, data: bytes, grammar: str) -> None:
     path = write(work / "scene.json", data)
     grammar_path = GRAMMARS / grammar
-    args = ["settle", str(path), "-g", str(grammar_path), "-o", str(work / "out"), "-q"]
+    args = ["settle", str(path), "-g", str(grammar_path), "-o", str(work / "settled"), "-q"]
     result, seconds = invoke([*args, "--max-time", "0.2"])
     check(result, seconds, {0, 1, 2}, [path, grammar_path], data)
     if result.exit_code in (0, 2):
-        for settled in (work / "out").glob("*.json"):
+        for settled in (work / "settled").glob("*.json"):
             json.loads(settled.read_text(), parse_constant=pytest.fail)  # no NaN or Infinity
 
 
@@ -965,13 +965,13 @@ def check_parse(work: Path, data: bytes, suffix: str, grammar: str) -> None:
         assert json.loads(result.stdout)["scenes"], result.stdout
 
 
-@fuzz(quick=80)
+@fuzz(quick=40)
 @given(data=scene_json_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
 def test_fuzz_parse_json(work: Path, data: bytes, grammar: str) -> None:
     check_parse(work, data, ".json", grammar)
 
 
-@fuzz(quick=60)
+@fuzz(quick=30)
 @given(data=sink_yaml_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
 def test_fuzz_parse_sink_yaml(work: Path, data: bytes, grammar: str) -> None:
     check_parse(work, data, ".yaml", grammar)
@@ -1049,7 +1049,7 @@ def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes) -> None:
         assert not out.exists()
 
 
-@fuzz(quick=25)
+@fuzz(quick=8)
 @given(data=grammar_inputs())
 def test_fuzz_fit_grammar(work: Path, data: bytes) -> None:
     """Fuzzed grammars fitted to scenes they sampled themselves (when they can sample)."""
@@ -1068,7 +1068,7 @@ def test_fuzz_fit_dataset(work: Path, data: bytes, grammar: str) -> None:
     check_fit(work, write(work / "dataset.json", data), GRAMMARS / grammar, data)
 
 
-@fuzz(quick=25)
+@fuzz(quick=12)
 @given(data=sink_yaml_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
 def test_fuzz_fit_sink_yaml(work: Path, data: bytes, grammar: str) -> None:
     """Sink-format datasets, as `parse` gets them: the third form of `ssg fit`'s dataset."""

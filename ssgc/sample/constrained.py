@@ -173,16 +173,7 @@ def _block(index: int, outcomes: list[Outcome], want: int) -> Block:
     names = outcomes[0].margins.keys()
     margins = {k: np.concatenate([o.margins[k] for o in outcomes])[:want] for k in names}
     if trees.n_scenes > want:
-        end = int(trees.offsets[want])
-        trees = Trees(
-            trees.scene[:end],
-            trees.type[:end],
-            trees.parent[:end],
-            trees.rule[:end],
-            trees.xyz[:end],
-            trees.quat[:end],
-            want,
-        )
+        trees = trees.first(want)
     return Block(index, trees, logp, margins)
 
 

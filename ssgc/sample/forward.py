@@ -41,7 +41,7 @@ def sample_trees(grammar: Grammar, n: int, seed: int) -> tuple[Trees, NDArray[np
         trees, logp = sample_chunk(grammar, chunk_rng(seed, chunk))
         keep = min(CHUNK, n - chunk * CHUNK)
         if keep < CHUNK:
-            trees = trees.tree(0) if keep == 1 else _first_trees(trees, keep)
+            trees = trees.tree(0) if keep == 1 else trees.first(keep)
             logp = logp[:keep]
         batches.append(trees)
         logps.append(logp)
@@ -210,19 +210,6 @@ def _group_by_scene(scene, ntype, parent, rule, xyz, quat, size):  # type: ignor
         xyz=np.concatenate(xyz)[order],
         quat=np.concatenate(quat)[order],
         n_scenes=size,
-    )
-
-
-def _first_trees(trees: Trees, keep: int) -> Trees:
-    end = int(trees.offsets[keep])
-    return Trees(
-        trees.scene[:end],
-        trees.type[:end],
-        trees.parent[:end],
-        trees.rule[:end],
-        trees.xyz[:end],
-        trees.quat[:end],
-        keep,
     )
 
 
