@@ -56,7 +56,10 @@ class InsideBox(Constraint):
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "inside_box"
 
-    def margin(self, batch: Any) -> FloatArray:
+    def _gaps(self, batch: Any) -> tuple[NDArray[np.int64], Any, Any, NDArray[np.float64]]:
+        """(nodes, frame rotations, whether each node has its frame, the six signed distances
+        of each node to the box's faces, inset by its keep-out radius in x and y; NaN where a
+        bound is absent)."""
         nodes = _selected(batch, self.types)
         p, q, ok = frame_of(batch, nodes, self.frame)
         local = quat_rotate(quat_conjugate(q), batch.xyz[nodes] - p)
@@ -64,6 +67,10 @@ class InsideBox(Constraint):
         inset = np.stack([r, r, np.zeros_like(r)], axis=1)
         with np.errstate(invalid="ignore"):
             gaps = np.concatenate([local - inset - self.lo, self.hi - inset - local], axis=1)
+        return nodes, q, ok, gaps
+
+    def margin(self, batch: Any) -> FloatArray:
+        nodes, _, ok, gaps = self._gaps(batch)
         gaps = np.where(np.isnan(gaps), np.inf, gaps)
         value = np.where(ok, gaps.min(axis=1, initial=np.inf), -np.inf)
         return per_scene_min(batch.scene[nodes], value, batch.n_scenes)
@@ -71,13 +78,7 @@ class InsideBox(Constraint):
     def gradient(self, batch: Any) -> tuple[FloatArray, FloatArray]:
         """(margins, d margin / d xyz of every node): the gradient of each tree's margin with
         respect to node positions (rotations held), nonzero at its closest node and frame."""
-        nodes = _selected(batch, self.types)
-        p, q, ok = frame_of(batch, nodes, self.frame)
-        local = quat_rotate(quat_conjugate(q), batch.xyz[nodes] - p)
-        r = self.radius[batch.type[nodes]]
-        inset = np.stack([r, r, np.zeros_like(r)], axis=1)
-        with np.errstate(invalid="ignore"):
-            gaps = np.concatenate([local - inset - self.lo, self.hi - inset - local], axis=1)
+        nodes, q, ok, gaps = self._gaps(batch)
         gaps = np.where(np.isnan(gaps) | ~ok[:, None], np.inf, gaps)
         face = np.argmin(gaps, axis=1)
         value = gaps[np.arange(len(nodes)), face]
