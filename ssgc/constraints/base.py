@@ -35,6 +35,15 @@ class Constraint:
     kind: ClassVar[str] = ""  # "structure" or "pose"
     word: ClassVar[str] = ""  # its key in the grammar file
     rank: ClassVar[int] = 1  # evaluation order among pose constraints: likely rejecters first
+    # A pose constraint cheap enough to judge partial trees after every depth of poses
+    # (`ssgc.sample.staged.pose_stage`); costly ones are judged once per candidate.
+    progressive: ClassVar[bool] = True
+
+    def reads(self, n_types: int) -> NDArray[np.bool_]:
+        """Per type: whether a node of that type can change this constraint's margin (the
+        pose sampler re-judges a partial tree only when such a node got its pose)."""
+        types = getattr(self, "types", None)
+        return types if types is not None and len(types) == n_types else np.ones(n_types, bool)
 
     def margin(self, batch: Any) -> FloatArray:  # pragma: no cover - abstract
         """(n_scenes,) margins: >= 0 holds; +inf when there is nothing to check."""

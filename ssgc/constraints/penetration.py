@@ -31,6 +31,7 @@ class NonPenetration(Constraint):
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "non_penetration"
     rank: ClassVar[int] = 2  # one FCL call per close pair: last, on the fewest candidates
+    progressive: ClassVar[bool] = False  # judged once per candidate, after all its poses
     screened: list[int] = field(default_factory=lambda: [0, 0], compare=False)
 
     def margin(self, batch: Any) -> FloatArray:

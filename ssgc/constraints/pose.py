@@ -61,6 +61,8 @@ class InsideBox(Constraint):
         of each node to the box's faces, inset by its keep-out radius in x and y; NaN where a
         bound is absent)."""
         nodes = _selected(batch, self.types)
+        if getattr(batch, "fresh", None) is not None:
+            nodes = nodes[batch.fresh[nodes]]
         p, q, ok = frame_of(batch, nodes, self.frame)
         local = quat_rotate(quat_conjugate(q), batch.xyz[nodes] - p)
         r = self.radius[batch.type[nodes]]
@@ -138,7 +140,12 @@ class Clearance(Constraint):
         return i[keep], j[keep]
 
     def margin(self, batch: Any) -> FloatArray:
+        """Per tree, the smallest gap; with `batch.fresh`, over the pairs with a fresh node."""
         i, j = self.typed_pairs(batch)
+        fresh = getattr(batch, "fresh", None)
+        if fresh is not None:
+            new = fresh[i] | fresh[j]
+            i, j = i[new], j[new]
         x, y = batch.xyz[:, 0], batch.xyz[:, 1]  # 1-D gathers are much cheaper than 2-D
         r = self.radius[batch.type]
         gap = np.hypot(x[i] - x[j], y[i] - y[j]) - r[i] - r[j]

@@ -224,6 +224,69 @@ def draw_poses(
         logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
 
 
+def pose_stage(
+    grammar: Grammar,
+    nodes: Nodes,
+    constraints: list[Constraint],
+    alive: NDArray[np.bool_],
+    rng: np.random.Generator,
+    logp: FloatArray,
+    stats: _Stats,
+) -> None:
+    """Draw the poses of the candidates `alive` depth by depth, judging the pose constraints
+    on the partial trees after each depth that posed nodes they read; `alive` is updated in
+    place.  A pose margin is a minimum over nodes or pairs, so the nodes posed so far can only
+    lower it when more are added: a partial tree that fails is a candidate that fails, and
+    the deeper nodes of a candidate already rejected are never drawn (in the dimsum table,
+    two stacks' bottom trays that overlap reject the candidate before any tray above them
+    gets a pose).  Constraints whose evaluation is costly (`progressive` False: FCL) are
+    judged once, after the last depth."""
+    which = np.flatnonzero(nodes.parent >= 0)
+    order = which[np.lexsort((nodes.rule[which], nodes.depth[which]))]
+    if not len(order):
+        return
+    n_rules = len(grammar.rules) + 1
+    key = nodes.depth[order] * n_rules + nodes.rule[order]
+    cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+    depth_of_cut = nodes.depth[order[cuts[:-1]]]
+    early = [c for c in constraints if c.progressive]
+    reads = {c.name: c.reads(len(grammar.types)) for c in early}
+    start = 0
+    while start < len(cuts) - 1:
+        d = depth_of_cut[start]
+        stop = start
+        while stop < len(cuts) - 1 and depth_of_cut[stop] == d:
+            stop += 1
+        posed = []
+        for a, b in zip(cuts[start:stop], cuts[start + 1 : stop + 1], strict=True):
+            idx = order[a:b]
+            idx = idx[alive[nodes.scene[idx]]]
+            if not len(idx):
+                continue
+            par = nodes.parent[idx]
+            xyz, quat, lp = sample_children(
+                grammar, int(nodes.rule[idx[0]]), nodes.xyz[par], nodes.quat[par], rng
+            )
+            nodes.xyz[idx], nodes.quat[idx] = xyz, quat
+            logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
+            posed.append(idx)
+        start = stop
+        if not posed or not early:
+            continue
+        new = np.concatenate(posed)
+        for c in early:
+            touched = np.zeros(len(alive), bool)
+            touched[nodes.scene[new[reads[c.name][nodes.type[new]]]]] = True
+            among = touched & alive
+            if not np.any(among):
+                continue
+            margin = c.margin(view(nodes, among, int(d)))
+            alive &= stats.judge(c, margin, among)
+    for c in constraints:
+        if not c.progressive and np.any(alive):
+            alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
+
+
 @dataclass
 class View:
     """The nodes of some candidates, renumbered, in the shape constraints read."""
@@ -235,13 +298,21 @@ class View:
     quat: FloatArray
     n_scenes: int
     index: IntArray  # position of each node in the store
+    # Nodes posed since the view's trees were last judged (None: all).  Their trees passed
+    # on the older nodes, so a constraint may judge only the terms that involve a fresh node.
+    fresh: NDArray[np.bool_] | None = None
 
 
-def view(nodes: Nodes, keep_scene: NDArray[np.bool_]) -> View:
-    idx = np.flatnonzero(keep_scene[nodes.scene])
+def view(nodes: Nodes, keep_scene: NDArray[np.bool_], upto: int | None = None) -> View:
+    """The nodes of the candidates `keep_scene` (only those at depth <= `upto` if given)."""
+    keep = keep_scene[nodes.scene]
+    if upto is not None:
+        keep &= nodes.depth <= upto
+    idx = np.flatnonzero(keep)
     new = np.full(len(nodes.type), -1, np.int64)
     new[idx] = np.arange(len(idx))
     par = nodes.parent[idx]
+    assert nodes.xyz is not None and nodes.quat is not None
     return View(
         scene=nodes.scene[idx],
         type=nodes.type[idx],
@@ -250,6 +321,7 @@ def view(nodes: Nodes, keep_scene: NDArray[np.bool_]) -> View:
         quat=nodes.quat[idx],
         n_scenes=nodes.n_scenes,
         index=idx,
+        fresh=None if upto is None else nodes.depth[idx] == upto,
     )
 
 
@@ -424,12 +496,10 @@ def rejection_batch(
     alive = watch.alive
     pending = nodes.extend_kept(levels, alive, pending)
     _check(deadline)
-    # 2. its poses, and the pose constraints on the partial trees
+    # 2. its poses, depth by depth, and the pose constraints on the partial trees
     nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
     nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
-    draw_poses(grammar, nodes, np.arange(len(nodes.type)), rng, logp)
-    for c in pose:
-        alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
+    pose_stage(grammar, nodes, pose, alive, rng, logp, stats)
     _check(deadline)
     # 3. the rest of each surviving tree, with poses; every pose constraint on it
     pending = nodes.compact(alive, pending)
@@ -439,7 +509,7 @@ def rejection_batch(
     for c in constraints:
         m = c.margin(full)
         if c.kind != "structure":
-            alive &= stats.judge(c, m, alive, first=False)
+            alive &= stats.judge(c, m, alive)
         margins[c.name] = m
     trees = _as_trees(nodes, alive)
     kept = np.flatnonzero(alive)
@@ -459,6 +529,7 @@ class _Stats:
         self.evaluated = dict.fromkeys(names, 0)
         self.rejected = dict.fromkeys(names, 0)
         self.best = dict.fromkeys(names, -np.inf)
+        self.seen: dict[str, NDArray[np.bool_]] = {}
 
     def count(self, name: str, margin: FloatArray) -> None:
         """Candidates judged by `name` with these margins (negative: rejected)."""
@@ -469,18 +540,20 @@ class _Stats:
             self.best[name] = max(self.best[name], float(margin[bad].max()))
 
     def judge(
-        self, c: Constraint, margin: FloatArray, alive: NDArray[np.bool_], first: bool = True
+        self, c: Constraint, margin: FloatArray, among: NDArray[np.bool_]
     ) -> NDArray[np.bool_]:
-        """Which candidates `c` lets through; a candidate counts as evaluated the `first` time
-        `c` sees it (pose constraints see the partial trees, then the complete ones)."""
+        """Which candidates `c` lets through (`margin` >= 0).  Pose constraints judge a
+        candidate several times (partial trees, then the complete one): it counts as evaluated
+        the first time, as rejected the time it fails."""
         ok = margin >= 0
-        bad = alive & ~ok
-        if first:
-            self.evaluated[c.name] += int(alive.sum())
-        self.rejected[c.name] += int(bad.sum())
+        bad = among & ~ok
+        seen = self.seen.setdefault(c.name, np.zeros(len(among), bool))
+        self.evaluated[c.name] += int(np.count_nonzero(among & ~seen))
+        seen |= among
+        self.rejected[c.name] += int(np.count_nonzero(bad))
         if np.any(bad):
             self.best[c.name] = max(self.best[c.name], float(margin[bad].max()))
-        return ok
+        return ok | ~among
 
 
 def _as_trees(nodes: Nodes, keep: NDArray[np.bool_]) -> Trees:
