@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import GRAMMARS
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from ruamel.yaml import YAML
 from scipy import stats
 from typer.testing import CliRunner
@@ -460,3 +462,72 @@ def test_parse_accepts_a_grammar_with_constraints(tmp_path: Path) -> None:
     result = RUNNER.invoke(app, ["parse", str(scene), "-g", grammar, "-q"])
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["scenes"][0]["status"] == "optimal"
+
+
+def test_restricted_count_proposal_keeps_the_law() -> None:
+    """A `children` bound on the one `repeat` node of its type is drawn from the count law
+    restricted to the bound (a proposal, not a change of law): the scenes still follow plain
+    rejection's law, and the proposal is used only where it is exact."""
+    from ssgc.sample.staged import count_proposals
+
+    head = (GRAMMARS / "dimsum_table.yaml").read_text().split("\nconstraints:")[0]
+    g = compile_text(
+        head
+        + """
+constraints:
+  stacks: {children: {of: SharedSteamers, min: 2, max: 4}}
+  apart: {clearance: {types: [Teapot, SteamerBottom], exempt_ancestors: true}}
+""",
+        "stacks.yaml",
+        base_dir=GRAMMARS,
+    )
+    cs = list(g.constraints)
+    assert count_proposals(g, cs) == {g.type_id("SharedSteamers"): (2, 4)}
+    plain = _plain_rejection(g, cs, 30_000, 21)
+    staged = Trees.concatenate([b.trees for b in sample_blocks(g, cs, plain.n_scenes, 22)])
+    assert plain.n_scenes > 1000
+    names = ["SteamerBottom", "Teapot", "ServingBowl"]
+    ca, cb = _counts(g, plain, names), _counts(g, staged, names)
+    stacks = g.type_id("SharedSteamers")
+    pa = np.bincount(plain.scene[plain.type[np.maximum(plain.parent, 0)] == stacks])
+    pb = np.bincount(staged.scene[staged.type[np.maximum(staged.parent, 0)] == stacks])
+    pvalues = [_same_law(ca[:, k], cb[:, k]) for k in range(len(names))] + [_same_law(pa, pb)]
+    assert min(pvalues) > 1e-3 / (len(names) + 1), pvalues
+    # where the bound does not decide the tree's fate alone, the count is drawn as usual
+    loose = compile_text(
+        head + "\nconstraints:\n  any: {children: {of: SharedSteamers, min: 0, max: 4}}\n",
+        "loose.yaml",
+        base_dir=GRAMMARS,
+    )
+    assert count_proposals(loose, list(loose.constraints)) == {}
+    trays = compile_text(  # a stack has several SteamerBottom nodes: not a single node
+        head + "\nconstraints:\n  lids: {children: {of: SteamerBottom, min: 1}}\n",
+        "trays.yaml",
+        base_dir=GRAMMARS,
+    )
+    assert count_proposals(trays, list(trays.constraints)) == {}
+
+
+@given(
+    probs=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=8).filter(lambda p: sum(p) > 0),
+    lo=st.integers(0, 8),
+    width=st.integers(0, 8),
+)
+@settings(max_examples=40, deadline=None)
+def test_restricted_counts_stay_in_range_and_follow_the_law(
+    probs: list[float], lo: int, width: int
+) -> None:
+    from ssgc.sample.forward import _restricted_counts
+
+    p = np.asarray(probs)
+    hi = lo + width
+    k = np.arange(len(p))
+    inside = (k >= lo) & (k <= hi)
+    counts = _restricted_counts(p, lo, hi, np.random.default_rng(0), 4000)
+    if p[inside].sum() <= 0:
+        assert np.all(counts == 0)
+        return
+    assert np.all(p[counts] > 0) and np.all((counts >= lo) & (counts <= hi))
+    want = np.where(inside, p, 0) / p[inside].sum()
+    got = np.bincount(counts, minlength=len(p)) / len(counts)
+    assert np.max(np.abs(got - want)) < 0.05

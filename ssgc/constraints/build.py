@@ -169,7 +169,9 @@ class _Builder:
         what = f"the number of children of '{s.of}' nodes"
         if not self.bounds(s, loc, possible, what):
             return None
-        return Children(name, loc, of=of, child=child, lo=s.min, hi=s.max)
+        nodes = self.count_range(lambda tt: int(tt == of))
+        single = nodes is not None and nodes[1] <= 1
+        return Children(name, loc, of=of, child=child, lo=s.min, hi=s.max, single=single)
 
     # ---------------------------------------------------------------- radii ---
 

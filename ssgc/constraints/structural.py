@@ -73,6 +73,7 @@ class Children(Constraint):
     child: int | None = None
     lo: int = 0
     hi: int | None = None
+    single: bool = False  # no tree of the grammar has two `of` nodes
     kind: ClassVar[str] = "structure"
     word: ClassVar[str] = "children"
 

@@ -12,9 +12,13 @@ Methods are registered in `METHODS` by name; each is one function drawing one at
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing
+import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -82,6 +86,15 @@ class Tally:
     rejected: dict[str, int] = field(default_factory=dict)
     best: dict[str, float] = field(default_factory=dict)
 
+    def merge(self, other: Tally) -> None:
+        """Add another tally (a block drawn by another process)."""
+        self.drawn += other.drawn
+        self.kept += other.kept
+        for k in other.evaluated:
+            self.evaluated[k] = self.evaluated.get(k, 0) + other.evaluated[k]
+            self.rejected[k] = self.rejected.get(k, 0) + other.rejected[k]
+            self.best[k] = max(self.best.get(k, -np.inf), other.best[k])
+
     def add(self, o: Outcome) -> None:
         self.drawn += o.drawn
         self.kept += o.trees.n_scenes
@@ -126,45 +139,144 @@ def sample_blocks(
     time_limit: float | None = None,
     tally: Tally | None = None,
     progress: Callable[[int], None] | None = None,
+    jobs: int = 1,
+    blocks: Iterable[int] | None = None,
 ) -> Iterator[Block]:
-    """Yield the blocks of scenes 0..n-1, in order.  Raises `Unmet` when `max_tries`
-    candidates or `time_limit` seconds are spent first (tries are checked between attempts,
-    time also between an attempt's stages); the scenes found by then are yielded first, as a
-    last, shorter block."""
-    draw = METHODS[method]
+    """Yield the blocks of scenes 0..n-1 (or only the blocks numbered in `blocks`, e.g. those
+    `--resume` still needs), in order.  With `jobs` > 1, blocks are drawn by that many forked
+    processes; a block's scenes are the same for any `jobs`.
+
+    Raises `Unmet` when `max_tries` candidates (counted over all processes) or `time_limit`
+    seconds are spent first (tries are checked between attempts, time also between an
+    attempt's stages); the scenes found by then in the first unfinished block are yielded
+    first, as a last, shorter block, after every block before it."""
     tally = tally if tally is not None else Tally()
     deadline = None if time_limit is None else time.monotonic() + time_limit
-    for b in range((n + BLOCK - 1) // BLOCK):
-        want = min(BLOCK, n - b * BLOCK)
-        got: list[Outcome] = []
-        have = 0
-        k = 0
-        while have < want:
-            limit = None
-            if max_tries is not None and tally.drawn >= max_tries:
-                limit = f"--max-tries {max_tries:,} candidates"
-            elif deadline is not None and time.monotonic() > deadline:
-                limit = f"--time-limit {time_limit:g} s"
-            if limit is not None:
-                if have:  # the scenes found are final: scene b*BLOCK + j never changes
-                    yield _block(b, got, have)
-                raise _unmet(grammar, tally, n, limit)
-            rng = np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, b, k + 1, TAG])
-            try:
-                o = draw(grammar, constraints, attempt_size(k), rng, deadline)
-            except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
-                if have:
-                    yield _block(b, got, have)
-                raise _unmet(grammar, tally, n, f"--time-limit {time_limit:g} s") from None
-            tally.add(o)
-            take = min(o.trees.n_scenes, want - have)
-            if o.trees.n_scenes:
-                got.append(o)
-            if progress is not None and take:
-                progress(take)
-            have += take
-            k += 1
-        yield _block(b, got, want)
+    todo = list(range((n + BLOCK - 1) // BLOCK) if blocks is None else blocks)
+    limits = _Limits(max_tries, time_limit, deadline, _counter(jobs > 1 and len(todo) > 1))
+    work = _BlockWork(grammar, constraints, n, seed, method, limits)
+    for done in _map_blocks(work, todo, jobs):
+        tally.merge(done.tally)
+        if done.block is not None:
+            if progress is not None:
+                progress(done.block.trees.n_scenes)
+            yield done.block
+        if done.limit is not None:
+            raise _unmet(grammar, tally, n, done.limit)
+
+
+@dataclass
+class _Limits:
+    max_tries: int | None
+    time_limit: float | None
+    deadline: float | None
+    drawn: Any  # candidates drawn by every process: a shared multiprocessing.Value or a _Count
+
+    def hit(self) -> str | None:
+        if self.max_tries is not None and self.drawn.value >= self.max_tries:
+            return f"--max-tries {self.max_tries:,} candidates"
+        if self.deadline is not None and time.monotonic() > self.deadline:
+            return self.out_of_time()
+        return None
+
+    def out_of_time(self) -> str:
+        return f"--time-limit {self.time_limit:g} s"
+
+
+class _Count:
+    """A candidate counter for one process (the shape of a multiprocessing.Value)."""
+
+    def __init__(self) -> None:
+        self.value = 0
+
+    def get_lock(self) -> contextlib.nullcontext[None]:
+        return contextlib.nullcontext()
+
+
+def _counter(shared: bool) -> Any:
+    if shared:
+        return multiprocessing.get_context("fork").Value("q", 0)
+    return _Count()
+
+
+@dataclass
+class _BlockWork:
+    grammar: Grammar
+    constraints: list[Constraint]
+    n: int
+    seed: int
+    method: str
+    limits: _Limits
+
+
+@dataclass
+class _Done:
+    """A block's result: its scenes (None if it found none), what the constraints did, and
+    the limit that stopped it (None if it is complete)."""
+
+    block: Block | None
+    tally: Tally
+    limit: str | None
+
+
+def _draw_block(work: _BlockWork, b: int) -> _Done:
+    """Scenes b*BLOCK ... of the run, by attempts k = 0, 1, ... seeded by (seed, b, k)."""
+    draw = METHODS[work.method]
+    limits = work.limits
+    want = min(BLOCK, work.n - b * BLOCK)
+    tally = Tally()
+    got: list[Outcome] = []
+    have = 0
+    k = 0
+    limit = None
+    while have < want:
+        limit = limits.hit()
+        if limit is not None:
+            break
+        rng = np.random.default_rng([int(work.seed) & 0xFFFFFFFFFFFFFFFF, b, k + 1, TAG])
+        try:
+            o = draw(work.grammar, work.constraints, attempt_size(k), rng, limits.deadline)
+        except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
+            limit = limits.out_of_time()
+            break
+        with limits.drawn.get_lock():
+            limits.drawn.value += o.drawn
+        tally.add(o)
+        if o.trees.n_scenes:
+            got.append(o)
+        have += o.trees.n_scenes
+        k += 1
+    block = _block(b, got, min(have, want)) if have else None
+    return _Done(block, tally, limit if have < want else None)
+
+
+_work: _BlockWork | None = None  # what forked workers draw with
+
+
+def _map_blocks(work: _BlockWork, todo: list[int], jobs: int) -> Iterator[_Done]:
+    """`_draw_block` over `todo`, in order; by forked workers when `jobs` > 1.  The caller may
+    stop iterating at any point (the workers are then stopped)."""
+    global _work
+    if jobs <= 1 or len(todo) <= 1:
+        for b in todo:
+            yield _draw_block(work, b)
+        return
+    _work = work
+    context = multiprocessing.get_context("fork")
+    try:
+        with context.Pool(min(jobs, len(todo)), initializer=_worker_setup) as pool:
+            yield from pool.imap(_draw_in_worker, todo, chunksize=1)
+    finally:
+        _work = None
+
+
+def _draw_in_worker(b: int) -> _Done:
+    assert _work is not None, "workers are forked after the work is set"
+    return _draw_block(_work, b)
+
+
+def _worker_setup() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
 
 
 def _block(index: int, outcomes: list[Outcome], want: int) -> Block:

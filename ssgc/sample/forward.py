@@ -125,10 +125,14 @@ def _choose_rules(
     nest: NDArray[np.int64],
     rng: np.random.Generator,
     budget: int | None = None,
+    counts_in: dict[int, tuple[int, int | None]] | None = None,
 ) -> tuple[list[tuple[int, NDArray[np.int64]]], NDArray[np.float64]]:
     """Which rules fire at each frontier node: [(rule id, frontier positions)], log-probs.
 
     More than `budget` children in all is an error, found before they take any memory.
+    `counts_in` {type: (lo, hi)} draws the count of those `repeat` types from their law
+    restricted to [lo, hi] (the constrained sampler's proposal, `ssgc.sample.staged`); the
+    log-probabilities stay those of the unrestricted law.
     """
     tb = grammar.tables
     fires: list[tuple[int, NDArray[np.int64]]] = []
@@ -174,12 +178,28 @@ def _choose_rules(
             spend(int(np.count_nonzero(fire)))
             fires += [(int(r), sel[fire[:, k]]) for k, r in enumerate(rules)]
         else:  # REPEAT
-            counts = node.count.sample(rng, len(sel))
+            if counts_in is not None and t in counts_in:
+                counts = _restricted_counts(node.count.probs, *counts_in[t], rng, len(sel))
+            else:
+                counts = node.count.sample(rng, len(sel))
             counts[blocked[:, 0]] = 0
             logp[sel] = np.where(blocked[:, 0], 0.0, node.count.log_prob(counts))
             spend(int(counts.sum()))
             fires.append((int(rules[0]), np.repeat(sel, counts)))
     return [(r, w) for r, w in fires if len(w)], logp
+
+
+def _restricted_counts(
+    probs: NDArray[np.float64], lo: int, hi: int | None, rng: np.random.Generator, n: int
+) -> NDArray[np.int64]:
+    """`n` counts of the law `probs` (P(count = k) = probs[k]) conditioned on lo <= k <= hi."""
+    k = np.arange(len(probs))
+    weights = np.where((k >= lo) & (k <= (len(probs) if hi is None else hi)), probs, 0.0)
+    cum = np.cumsum(weights)
+    if cum[-1] <= 0:  # no count in range (validation refuses such bounds): all rejected
+        return np.zeros(n, np.int64)
+    u = rng.random(n) * cum[-1]
+    return np.minimum(np.searchsorted(cum, u, side="right"), len(probs) - 1).astype(np.int64)
 
 
 def blocked_rules(

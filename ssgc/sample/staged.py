@@ -127,13 +127,14 @@ def grow(
     logp: FloatArray,
     watch: Watch | None = None,
     levels: list[dict[str, NDArray]] | None = None,  # type: ignore[type-arg]
+    counts_in: dict[int, tuple[int, int | None]] | None = None,
 ) -> IntArray:
     """Expand the nodes `start` level by level, only nodes whose type is in `expand`; with
     `poses`, children get poses drawn by their rules (the store must have poses).  Adds the
     log-probability of every choice and pose to `logp` (per scene).  A `watch` sees every
     level and may kill candidates (their nodes stop growing).  Returns the nodes left
     unexpanded (pending).  With `levels`, the new nodes are put there, not in the store
-    (for `Nodes.extend_kept`)."""
+    (for `Nodes.extend_kept`).  `counts_in` restricts `repeat` counts (`count_proposals`)."""
     tb = grammar.tables
     kind = tb.type_kind
     f_id = start
@@ -152,6 +153,7 @@ def grow(
     keep_levels = levels is not None
     levels = levels if levels is not None else []
     next_id = len(nodes.type)
+    nest_step = nesting_steps(grammar)
     for _ in range(MAX_LEVELS):
         nonterminal = kind[f["type"]] != Kind.TERMINAL
         live = nonterminal & expand[f["type"]]
@@ -165,33 +167,33 @@ def grow(
         if watch is not None:
             watch.select(live)
         budget = MAX_CHUNK_NODES - next_id  # memory bound, as in forward sampling
-        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng, budget)
+        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng, budget, counts_in)
         logp += np.bincount(f["scene"], lp, minlength=len(logp))
-        parts: dict[str, list[NDArray]] = {k: [] for k in (*f, "parent", "rule", "at")}  # type: ignore[type-arg]
-        for rid, where in fires:
-            child = int(tb.rule_child[rid])
-            nest = f["nest"][where]
-            if tb.nesting_slot[child] >= 0:
-                nest = nest.copy()
-                nest[:, tb.nesting_slot[child]] += 1
-            if poses:
-                xyz, quat, lp_pose = sample_children(
-                    grammar, rid, f["xyz"][where], f["quat"][where], rng
-                )
-                logp += np.bincount(f["scene"][where], lp_pose, minlength=len(logp))
-                parts["xyz"].append(xyz)
-                parts["quat"].append(quat)
-            parts["scene"].append(f["scene"][where])
-            parts["type"].append(np.full(len(where), child, np.int64))
-            parts["nest"].append(nest)
-            parts["depth"].append(f["depth"][where] + 1)
-            parts["parent"].append(f_id[where])
-            parts["rule"].append(np.full(len(where), rid, np.int64))
-            parts["at"].append(where)
         if not fires:
             break
-        level = {k: np.concatenate(v) for k, v in parts.items()}
-        at = level.pop("at")
+        # The children as arrays over the level: everything follows from the frontier
+        # position `at` of each child's parent and the rule that made it.
+        at = np.concatenate([where for _, where in fires])
+        rid = np.repeat([r for r, _ in fires], [len(where) for _, where in fires])
+        child = tb.rule_child[rid]
+        level = {
+            "scene": f["scene"][at],
+            "type": child,
+            "nest": f["nest"][at] + nest_step[child],
+            "depth": f["depth"][at] + 1,
+            "parent": f_id[at],
+            "rule": rid,
+        }
+        if poses:
+            xyz, quat = [], []
+            for r, where in fires:
+                c_xyz, c_quat, lp_pose = sample_children(
+                    grammar, r, f["xyz"][where], f["quat"][where], rng
+                )
+                logp += np.bincount(f["scene"][where], lp_pose, minlength=len(logp))
+                xyz.append(c_xyz)
+                quat.append(c_quat)
+            level["xyz"], level["quat"] = np.concatenate(xyz), np.concatenate(quat)
         levels.append(level)
         f_id = next_id + np.arange(len(at))
         next_id += len(at)
@@ -201,6 +203,15 @@ def grow(
     if not keep_levels:
         nodes.extend(levels)
     return np.concatenate(pending) if pending else np.zeros(0, np.int64)
+
+
+def nesting_steps(grammar: Grammar) -> IntArray:
+    """(types, bounded types): what a child of each type adds to the nesting counters."""
+    tb = grammar.tables
+    step = np.zeros((len(grammar.types), tb.nesting_max.shape[0]), np.int64)
+    bounded = np.flatnonzero(tb.nesting_slot >= 0)
+    step[bounded, tb.nesting_slot[bounded]] = 1
+    return step
 
 
 def draw_poses(
@@ -349,6 +360,35 @@ def relevant_types(grammar: Grammar, constraints: list[Constraint]) -> NDArray[n
     return out
 
 
+def count_proposals(
+    grammar: Grammar, constraints: list[Constraint]
+) -> dict[int, tuple[int, int | None]]:
+    """`repeat` types whose count can be drawn from its law restricted to a constraint's
+    range, without changing which trees the sampler returns or their law.
+
+    A `children` constraint on the one `of` node a tree can have (`single`), with `min` >= 1,
+    rejects every tree without that node; if the node is a `repeat` of the counted child
+    type, its number of children is its count.  So every accepted tree has the node with a
+    count in [min, max], and drawing the count from P(count | min <= count <= max) instead of
+    P(count) multiplies the probability of each such tree by the same constant
+    1 / P(min <= count <= max): the accepted trees keep the law P(T | constraints), and the
+    candidates the count alone would reject are never drawn (docs/constraints.md)."""
+    out: dict[int, tuple[int, int | None]] = {}
+    for c in constraints:
+        if not isinstance(c, Children) or not c.single or c.lo < 1:
+            continue
+        node = grammar.types[c.of]
+        if node.kind != Kind.REPEAT or node.count is None:
+            continue
+        if c.child is not None and grammar.rules[node.rules[0]].child != c.child:
+            continue
+        lo, hi = out.get(c.of, (0, None))
+        lo = max(lo, c.lo)
+        hi = c.hi if hi is None else (hi if c.hi is None else min(hi, c.hi))
+        out[c.of] = (lo, hi)
+    return out
+
+
 def _named(c: Constraint) -> list[int]:
     return [
         int(v) for v in (getattr(c, a, None) for a in ("type_id", "of", "child")) if v is not None
@@ -491,7 +531,10 @@ def rejection_batch(
     watch = Watch(grammar, constraints, size, stats)
     relevant = relevant_types(grammar, constraints)
     levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
-    pending = grow(grammar, nodes, np.arange(size), relevant, False, rng, logp, watch, levels)
+    restricted = count_proposals(grammar, constraints)
+    pending = grow(
+        grammar, nodes, np.arange(size), relevant, False, rng, logp, watch, levels, restricted
+    )
     watch.finish()
     alive = watch.alive
     pending = nodes.extend_kept(levels, alive, pending)
