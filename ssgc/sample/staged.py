@@ -285,14 +285,19 @@ def pose_stage(
         if not posed or not early:
             continue
         new = np.concatenate(posed)
+        touched = {}
         for c in early:
-            touched = np.zeros(len(alive), bool)
-            touched[nodes.scene[new[reads[c.name][nodes.type[new]]]]] = True
-            among = touched & alive
-            if not np.any(among):
-                continue
-            margin = c.margin(view(nodes, among, int(d)))
-            alive &= stats.judge(c, margin, among)
+            t = np.zeros(len(alive), bool)
+            t[nodes.scene[new[reads[c.name][nodes.type[new]]]]] = True
+            touched[c.name] = t
+        among = np.logical_or.reduce(list(touched.values())) & alive
+        if not np.any(among):
+            continue
+        partial = view(nodes, among, int(d))  # one view for every constraint at this depth
+        for c in early:
+            judged = touched[c.name] & alive
+            if np.any(judged):
+                alive &= stats.judge(c, c.margin(partial), judged)
     for c in constraints:
         if not c.progressive and np.any(alive):
             alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
@@ -314,8 +319,14 @@ class View:
     fresh: NDArray[np.bool_] | None = None
 
 
-def view(nodes: Nodes, keep_scene: NDArray[np.bool_], upto: int | None = None) -> View:
-    """The nodes of the candidates `keep_scene` (only those at depth <= `upto` if given)."""
+def view(
+    nodes: Nodes,
+    keep_scene: NDArray[np.bool_],
+    upto: int | None = None,
+    fresh: NDArray[np.bool_] | None = None,
+) -> View:
+    """The nodes of the candidates `keep_scene` (only those at depth <= `upto` if given, the
+    ones at depth `upto` fresh); `fresh` (per node of the store) marks fresh nodes instead."""
     keep = keep_scene[nodes.scene]
     if upto is not None:
         keep &= nodes.depth <= upto
@@ -332,7 +343,11 @@ def view(nodes: Nodes, keep_scene: NDArray[np.bool_], upto: int | None = None) -
         quat=nodes.quat[idx],
         n_scenes=nodes.n_scenes,
         index=idx,
-        fresh=None if upto is None else nodes.depth[idx] == upto,
+        fresh=fresh[idx]
+        if fresh is not None
+        else None
+        if upto is None
+        else nodes.depth[idx] == upto,
     )
 
 
@@ -544,16 +559,18 @@ def rejection_batch(
     nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
     pose_stage(grammar, nodes, pose, alive, rng, logp, stats)
     _check(deadline)
-    # 3. the rest of each surviving tree, with poses; every pose constraint on it
+    # 3. the rest of each surviving tree, with poses; every pose constraint on the terms
+    # with a node of the rest (the partial tree passed on the others), then each kept
+    # tree's margins in full
     pending = nodes.compact(alive, pending)
+    grown_from = len(nodes.type)
     grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), True, rng, logp)
+    if np.any(alive) and len(nodes.type) > grown_from:
+        rest = view(nodes, alive, fresh=np.arange(len(nodes.type)) >= grown_from)
+        for c in pose:
+            alive &= stats.judge(c, c.margin(rest), alive)
     full = view(nodes, alive)
-    margins = {}
-    for c in constraints:
-        m = c.margin(full)
-        if c.kind != "structure":
-            alive &= stats.judge(c, m, alive)
-        margins[c.name] = m
+    margins = {c.name: c.margin(full) for c in constraints}
     trees = _as_trees(nodes, alive)
     kept = np.flatnonzero(alive)
     return Outcome(
