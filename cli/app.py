@@ -408,13 +408,16 @@ def bench_sample_cmd(
         str | None,
         typer.Option(help="Valid scenes/s under: all, or NAME,NAME (-n defaults to 1,000 then)."),
     ] = None,
+    jobs: Annotated[
+        int, typer.Option("--jobs", "-j", min=1, help="With --constraints: processes sampling.")
+    ] = 1,
 ) -> None:
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
     if constraints is not None:
         from ssgc.bench import bench_constrained
 
         g = load_grammar(grammar)
-        result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed)
+        result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed, jobs)
     else:
         result = bench_sample(load_grammar(grammar), n, seed)
     if as_json:

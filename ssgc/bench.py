@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import platform
+import resource
 import time
 from typing import Any
 
@@ -135,11 +137,15 @@ def _linearity(size: np.ndarray, seconds: np.ndarray) -> dict[str, float]:
     }
 
 
-def bench_constrained(grammar: Grammar, names: str, n: int, seed: int) -> dict[str, Any]:
+def bench_constrained(
+    grammar: Grammar, names: str, n: int, seed: int, jobs: int = 1
+) -> dict[str, Any]:
     """Valid scenes per second under constraints, and where the candidates were rejected.
 
-    `n` valid scenes are drawn (after a warm-up of one small run); the acceptance rate of a
-    constraint is the share of the candidates it judged that it let through.
+    `n` valid scenes are drawn (after a warm-up of one small run) by `jobs` processes; the
+    acceptance rate of a constraint is the share of the candidates it judged that it let
+    through.  Wall-clock rates depend on what else the machine runs: the CPU time of this
+    process and its workers, and the load average, are reported next to them.
     """
     from ssgc.sample.constrained import METHODS, Tally, sample_blocks, select
 
@@ -148,13 +154,17 @@ def bench_constrained(grammar: Grammar, names: str, n: int, seed: int) -> dict[s
     rows = {}
     for method in METHODS:
         tally = Tally()
+        cpu0 = _cpu_seconds()
         t0 = time.perf_counter()
-        for _ in sample_blocks(grammar, chosen, n, seed, method, tally=tally):
+        for _ in sample_blocks(grammar, chosen, n, seed, method, tally=tally, jobs=jobs):
             pass
         seconds = time.perf_counter() - t0
+        cpu = _cpu_seconds() - cpu0
         rows[method] = {
             "valid_scenes_per_second": round(n / seconds, 1),
+            "valid_scenes_per_cpu_second": round(n / cpu, 1) if cpu > 0 else None,
             "seconds": round(seconds, 3),
+            "cpu_seconds": round(cpu, 3),
             "candidates": tally.drawn,
             "candidates_per_second": round(tally.drawn / seconds, 1),
             "acceptance_rate": tally.kept / tally.drawn if tally.drawn else None,
@@ -174,7 +184,17 @@ def bench_constrained(grammar: Grammar, names: str, n: int, seed: int) -> dict[s
         "constraints": [c.name for c in chosen],
         "scenes": n,
         "seed": seed,
+        "jobs": jobs,
         "methods": rows,
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "cpus": os.cpu_count(),
         "python": platform.python_version(),
         "machine": platform.machine(),
     }
+
+
+def _cpu_seconds() -> float:
+    """CPU time of this process and of its finished (waited-for) worker processes."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime

@@ -1,7 +1,7 @@
 """`ssg sample --constraints`: scenes of P(T | constraints), reproducibly, by a chosen method.
 
 Seeding: scenes are made in blocks of `BLOCK`; block b draws its candidates in attempts
-k = 0, 1, ... of growing size (`attempt_size(k)`), attempt k with the generator
+k = 0, 1, ... sized by the block's own draws so far (`attempt_size`), attempt k with the generator
 ``default_rng([seed, b, k + 1, TAG])``, and scene b*BLOCK + j is the j-th candidate of block
 b that satisfies the constraints.  So scene i depends only on the seed and i (and the
 method), never on how many scenes were asked for, or on any time or try limit.
@@ -40,8 +40,26 @@ METHODS: dict[str, Method] = {"rejection": rejection_batch}
 EXACT = {"rejection": True}
 
 
-def attempt_size(k: int) -> int:
-    return min(LARGEST_ATTEMPT, FIRST_ATTEMPT << min(k, 16))
+def attempt_size(
+    k: int,
+    drawn: int = 0,
+    kept: int = 0,
+    first: int = FIRST_ATTEMPT,
+    largest: int = LARGEST_ATTEMPT,
+) -> int:
+    """Candidates of a block's attempt k, after `drawn` candidates gave `kept` scenes in it.
+
+    The first attempt is small (a constraint that most candidates meet needs no more); the
+    next ones aim at the rest of a whole block at the acceptance seen so far (plus a quarter),
+    at most 16 times the first per step and `largest` in all.  The size depends on the
+    block's own draws and never on how many scenes were asked for, so scene i still depends
+    only on the seed and i; aiming at the block's end wastes less of the last attempt than
+    doubling does (at 0.2% acceptance, about half of it)."""
+    if k == 0 or drawn == 0:
+        return first
+    need = max(BLOCK - kept, 1)
+    aim = int(np.ceil(1.25 * need * drawn / max(kept, 1)))
+    return int(min(largest, first << min(4 * k, 16), max(first, aim)))
 
 
 def select(grammar: Grammar, names: str | None) -> list[Constraint]:
@@ -235,7 +253,8 @@ def _draw_block(work: _BlockWork, b: int) -> _Done:
             break
         rng = np.random.default_rng([int(work.seed) & 0xFFFFFFFFFFFFFFFF, b, k + 1, TAG])
         try:
-            o = draw(work.grammar, work.constraints, attempt_size(k), rng, limits.deadline)
+            size = attempt_size(k, tally.drawn, have)
+            o = draw(work.grammar, work.constraints, size, rng, limits.deadline)
         except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
             limit = limits.out_of_time()
             break

@@ -161,14 +161,8 @@ def _choose_rules(
             spend(int(blocked.size - np.count_nonzero(blocked)))
             fires += [(int(r), sel[~blocked[:, k]]) for k, r in enumerate(rules)]
         elif node.kind == Kind.OR:
-            weights = np.where(blocked, 0.0, node.probs)
-            total = weights.sum(axis=1)
-            cum = np.cumsum(weights, axis=1)
-            u = rng.random(len(sel)) * total
-            choice = np.minimum((cum <= u[:, None]).sum(axis=1), len(rules) - 1)
-            live = total > 0
-            with np.errstate(divide="ignore"):
-                logp[sel[live]] = np.log(weights[live, choice[live]] / total[live])
+            choice, live, lp = _choose_or(node.probs, blocked, rng)
+            logp[sel] = lp
             spend(int(np.count_nonzero(live)))
             fires += [(int(r), sel[live & (choice == k)]) for k, r in enumerate(rules)]
         elif node.kind == Kind.INDEPENDENT:
@@ -187,6 +181,39 @@ def _choose_rules(
             spend(int(counts.sum()))
             fires.append((int(rules[0]), np.repeat(sel, counts)))
     return [(r, w) for r, w in fires if len(w)], logp
+
+
+def _choose_or(
+    probs: NDArray[np.float64], blocked: NDArray[np.bool_], rng: np.random.Generator
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.float64]]:
+    """One rule per node of an `or` type, with its blocked rules' weights set to 0: (choice,
+    whether any rule was left, log-probability).  Nodes with no blocked rule (most of them)
+    share one cumulative sum; the result is the same as one row of weights per node."""
+    n, m = blocked.shape
+    u = rng.random(n)
+    choice = np.zeros(n, np.int64)
+    lp = np.zeros(n)
+    live = np.ones(n, bool)
+    partial = blocked.any(axis=1)
+    free = np.flatnonzero(~partial)
+    if len(free):
+        cum = np.cumsum(probs)
+        uu = u[free] * cum[-1]
+        choice[free] = np.minimum((cum <= uu[:, None]).sum(axis=1), m - 1)
+        with np.errstate(divide="ignore"):
+            lp[free] = np.log(probs / cum[-1])[choice[free]]
+    some = np.flatnonzero(partial)
+    if len(some):
+        weights = np.where(blocked[some], 0.0, probs)
+        total = weights.sum(axis=1)
+        cum2 = np.cumsum(weights, axis=1)
+        uu = u[some] * total
+        c = np.minimum((cum2 <= uu[:, None]).sum(axis=1), m - 1)
+        ok = total > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lp[some] = np.where(ok, np.log(weights[np.arange(len(some)), c] / total), 0.0)
+        choice[some], live[some] = c, ok
+    return choice, live, lp
 
 
 def _restricted_counts(
