@@ -252,6 +252,12 @@ def sample(
     settle: Annotated[
         bool, typer.Option("--settle", help="Settle each scene in MuJoCo before writing it.")
     ] = False,
+    jobs: Annotated[
+        int,
+        typer.Option(
+            "--jobs", "-j", min=1, help="With --constraints: processes drawing (same scenes)."
+        ),
+    ] = 1,
 ) -> None:
     """Draw N scenes; write one JSON file per scene (objects, full tree, log-probability).
 
@@ -267,8 +273,6 @@ def sample(
         )
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     constrained = constraints is not None or (max_tries, time_limit) != (None, None)
-    if constrained and (export or settle):
-        raise SsgError.single("--export and --settle do not work with --constraints yet")
     check_directory(output)
     extras = _export.SampleExtras(g, export or [], settle, output) if export or settle else None
     width = max(6, len(str(max(n - 1, 0))))
@@ -277,9 +281,11 @@ def sample(
         manifest.update(constraints=constraints, method=method if constrained else None)
         prepare_sample_dir(output, manifest, resume, overwrite)
         if constrained:
-            from ssgc.cli.constrained import sample_constrained
+            from ssgc.cli.constrained import ConstrainedOptions, sample_constrained
 
-            options = (constraints, method, max_tries, time_limit, resume)
+            options = ConstrainedOptions(
+                constraints, method, max_tries, time_limit, resume, jobs, extras
+            )
             sample_constrained(
                 g,
                 n,

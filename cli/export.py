@@ -104,17 +104,23 @@ class SampleExtras:
         self.shapes = load_shapes(g) if export or settle else {}
         self.unsettled = 0
 
-    def write(self, scene: Scene, path: Path, seed: int, index: int) -> None:
+    def write(
+        self, scene: Scene, path: Path, seed: int, index: int, metadata: dict | None = None
+    ) -> None:
+        """`metadata` (constrained sampling's method and margins) goes into the scene file;
+        a settled scene keeps it under `metadata.settle` (it describes the poses before
+        settling)."""
         if self.settle:
             from ssgc.simulate.settle import settle_scene, settled_scene_json
 
             result = settle_scene(scene_bodies(self.g, scene, self.shapes))
             self.unsettled += not result.settled
             source = {"seed": seed, "index": index, "source_log_prob": scene.log_prob}
-            doc = settled_scene_json(self.g, scene, result, source)
+            doc = settled_scene_json(self.g, scene, result, {**source, **(metadata or {})})
             write_text_atomic(path, dumps_json(doc))
             scene = Scene(scene.name, scene.types, result.xyz, result.quat)
         else:
-            write_text_atomic(path, dumps_scene(self.g, scene, seed=seed, index=index))
+            text = dumps_scene(self.g, scene, seed=seed, index=index, metadata=metadata)
+            write_text_atomic(path, text)
         for fmt in self.formats:
             export_scene(self.g, scene, self.shapes, fmt, self.output / fmt)

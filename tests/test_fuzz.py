@@ -904,11 +904,15 @@ def test_fuzz_sample(work: Path, data: bytes) -> None:
 
 
 @fuzz(quick=40)
-@given(data=grammar_inputs(), names=st.sampled_from(["all", "all", "a,b", "", ","]))
-def test_fuzz_sample_constrained(work: Path, data: bytes, names: str) -> None:
+@given(
+    data=grammar_inputs(),
+    names=st.sampled_from(["all", "all", "a,b", "", ","]),
+    more=st.sampled_from([[], ["-j", "2"], ["--resume"], ["-j", "2", "--resume"]]),
+)
+def test_fuzz_sample_constrained(work: Path, data: bytes, names: str, more: list[str]) -> None:
     path = write(work / "grammar.yaml", data)
     out = work / "out_constrained"
-    args = ["sample", str(path), "-n", "2", "-o", str(out), "-q", "--constraints", names]
+    args = ["sample", str(path), "-n", "2", "-o", str(out), "-q", "--constraints", names, *more]
     result, seconds = invoke([*args, "--max-tries", "3000", "--time-limit", "20"])
     check(result, seconds, {0, 1, 2}, [path, out], data)
 
