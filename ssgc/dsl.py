@@ -495,7 +495,7 @@ class NonPenetrationSpec(Strict):
     non_penetration: NonPenetrationC
 
 
-ConstraintSpec = _choice(
+_CHOICES["constraint"] = [
     (CountSpec, "count"),
     (ChainSpec, "longest_chain"),
     (ChildrenSpec, "children"),
@@ -503,8 +503,8 @@ ConstraintSpec = _choice(
     (ClearanceSpec, "clearance"),
     (UprightSpec, "upright"),
     (NonPenetrationSpec, "non_penetration"),
-    what="constraint",
-)
+]
+ConstraintSpec = _choice(*_CHOICES["constraint"], what="constraint")
 ConstraintName = Annotated[
     str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_-]*$", max_length=200)
 ]
@@ -538,7 +538,9 @@ class GrammarDoc(Strict):
 
 def add_choice(part: str, model: Any, word: str) -> None:
     """Let a rule's `part` ("translation" or "rotation") be written `{word: ...}`, validated by
-    `model`: how a law registered in `ssgc.laws` outside this module joins the language."""
+    `model`: how a law registered in `ssgc.laws` outside this module joins the language.
+    With `part` "constraint", a constraint kind (`ssgc.constraints.base.register`) joins the
+    `constraints:` section the same way."""
     _CHOICES[part].append((model, word))
     _rebuild(part)
 
@@ -550,6 +552,15 @@ def remove_choice(part: str, word: str) -> None:
 
 def _rebuild(part: str) -> None:
     """Rebuild the rule's union for `part`, then every model that holds a rule."""
+    if part == "constraint":
+        union = _choice(*_CHOICES[part], what="constraint")
+        field = GrammarDoc.model_fields["constraints"]
+        GrammarDoc.model_fields["constraints"] = FieldInfo.from_annotated_attribute(
+            dict[ConstraintName, union],  # type: ignore[valid-type]
+            FieldInfo.merge_field_infos(field),
+        )
+        GrammarDoc.model_rebuild(force=True)
+        return
     union = _choice(*_CHOICES[part], what=f"{part} rule")
     Rule.model_fields[part] = FieldInfo.from_annotated_attribute(union, "same")
     for model in (Rule, Repeat, NodeType, GrammarDoc):

@@ -8,6 +8,7 @@ constraints on level-major arrays without reordering them.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
@@ -48,6 +49,51 @@ class Constraint:
     def margin(self, batch: Any) -> FloatArray:  # pragma: no cover - abstract
         """(n_scenes,) margins: >= 0 holds; +inf when there is nothing to check."""
         raise NotImplementedError
+
+
+# ------------------------------------------------------------------ kinds ---
+
+# A kind's builder: (the builder context of `ssgc.constraints.build`, the constraint's name,
+# its validated `{word: ...}` body, its location) -> the constraint, or None after reporting
+# an error through the context.
+Builder = Callable[[Any, str, Any, Loc], "Constraint | None"]
+_KINDS: dict[str, Builder] = {}
+_ADDED: set[str] = set()
+
+
+def register(word: str, spec: Any = None) -> Callable[[Builder], Builder]:
+    """Decorator on a builder function: make the constraint kind `word` known, as
+    `ssgc.laws.base.register` does for laws.  `spec` is the pydantic model of the whole
+    entry `{word: {...}}` for a kind the grammar language does not have yet: it joins the
+    `constraints:` section's union (`ssgc.dsl.add_choice`).  Adding a kind is one module: its
+    model, its `Constraint` subclass and its registered builder."""
+
+    def add(build: Builder) -> Builder:
+        if word in _KINDS:
+            raise ValueError(f"the constraint word '{word}' already names a kind")
+        if spec is not None:
+            from ssgc import dsl
+
+            dsl.add_choice("constraint", spec, word)
+            _ADDED.add(word)
+        _KINDS[word] = build
+        return build
+
+    return add
+
+
+def unregister(word: str) -> None:
+    """Forget a registered kind and the document shape it added (for tests)."""
+    _KINDS.pop(word, None)
+    if word in _ADDED:
+        from ssgc import dsl
+
+        _ADDED.discard(word)
+        dsl.remove_choice("constraint", word)
+
+
+def builder_for(word: str) -> Builder:
+    return _KINDS[word]
 
 
 def satisfied(margins: FloatArray) -> NDArray[np.bool_]:

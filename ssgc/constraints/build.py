@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ssgc import dsl
-from ssgc.constraints.base import Constraint, Loc, pair_table, type_mask
+from ssgc.constraints.base import Constraint, Loc, builder_for, pair_table, register, type_mask
 from ssgc.constraints.penetration import NonPenetration
 from ssgc.constraints.pose import Clearance, InsideBox, Upright
 from ssgc.constraints.shapes import ShapeError, bounding_radius, collision_shape, keep_out_radius
@@ -98,19 +98,9 @@ class _Builder:
     # ----------------------------------------------------------------- build ---
 
     def build(self, name: str, spec: Any, loc: Loc) -> Constraint | None:
-        if isinstance(spec, dsl.CountSpec):
-            return self.count(name, spec.count, (*loc, "count"))
-        if isinstance(spec, dsl.ChainSpec):
-            return self.chain(name, spec.longest_chain, (*loc, "longest_chain"))
-        if isinstance(spec, dsl.ChildrenSpec):
-            return self.children(name, spec.children, (*loc, "children"))
-        if isinstance(spec, dsl.InsideBoxSpec):
-            return self.inside_box(name, spec.inside_box, (*loc, "inside_box"))
-        if isinstance(spec, dsl.ClearanceSpec):
-            return self.clearance(name, spec.clearance, (*loc, "clearance"))
-        if isinstance(spec, dsl.UprightSpec):
-            return self.upright(name, spec.upright, (*loc, "upright"))
-        return self.non_penetration(name, spec.non_penetration, (*loc, "non_penetration"))
+        """The registered builder of the entry's one key (`ssgc.constraints.base.register`)."""
+        word = next(iter(type(spec).model_fields))
+        return builder_for(word)(self, name, getattr(spec, word), (*loc, word))
 
     def bounds(self, spec: Any, loc: Loc, possible: tuple[int, int] | None, what: str) -> bool:
         """min <= max, and [min, max] meets what the grammar can produce."""
@@ -385,3 +375,39 @@ class _Builder:
 
 class _TooBig(Exception):
     pass
+
+
+# The kinds ssgc has; a new kind registers its own builder the same way, in its own module.
+@register("count")
+def _count(b: _Builder, name: str, spec: Any, loc: Loc) -> Constraint | None:
+    return b.count(name, spec, loc)
+
+
+@register("longest_chain")
+def _chain(b: _Builder, name: str, spec: Any, loc: Loc) -> Constraint | None:
+    return b.chain(name, spec, loc)
+
+
+@register("children")
+def _children(b: _Builder, name: str, spec: Any, loc: Loc) -> Constraint | None:
+    return b.children(name, spec, loc)
+
+
+@register("inside_box")
+def _inside_box(b: _Builder, name: str, spec: Any, loc: Loc) -> Constraint | None:
+    return b.inside_box(name, spec, loc)
+
+
+@register("clearance")
+def _clearance(b: _Builder, name: str, spec: Any, loc: Loc) -> Constraint | None:
+    return b.clearance(name, spec, loc)
+
+
+@register("upright")
+def _upright(b: _Builder, name: str, spec: Any, loc: Loc) -> Constraint | None:
+    return b.upright(name, spec, loc)
+
+
+@register("non_penetration")
+def _non_penetration(b: _Builder, name: str, spec: Any, loc: Loc) -> Constraint | None:
+    return b.non_penetration(name, spec, loc)

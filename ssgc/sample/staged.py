@@ -369,10 +369,17 @@ def relevant_types(grammar: Grammar, constraints: list[Constraint]) -> NDArray[n
     out = np.zeros(len(grammar.types), bool)
     for c in constraints:
         if c.kind == "structure":
-            for t in _named(c):
+            named = _named(c) if _watched(c) else np.flatnonzero(c.reads(len(grammar.types)))
+            for t in named:
                 out[t] = True
                 out |= reach[:, t]
     return out
+
+
+def _watched(c: Constraint) -> bool:
+    """Structural kinds whose statistic `Watch` keeps level by level; other (registered)
+    structural kinds are judged once the structure stage is over."""
+    return isinstance(c, Count | LongestChain | Children)
 
 
 def count_proposals(
@@ -421,7 +428,7 @@ class Watch:
         self.alive = np.ones(n, bool)
         self.items = []
         for c in constraints:
-            if c.kind != "structure":
+            if not _watched(c):
                 continue
             if isinstance(c, Children):
                 opens = reach[:, c.of].copy()
@@ -553,6 +560,9 @@ def rejection_batch(
     watch.finish()
     alive = watch.alive
     pending = nodes.extend_kept(levels, alive, pending)
+    for c in constraints:  # registered structural kinds that Watch does not follow
+        if c.kind == "structure" and not _watched(c) and np.any(alive):
+            alive &= stats.judge(c, c.margin(nodes), alive)
     _check(deadline)
     # 2. its poses, depth by depth, and the pose constraints on the partial trees
     nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
