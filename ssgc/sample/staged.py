@@ -41,6 +41,10 @@ from ssgc.tree import Trees
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
+# The pose stage judges partial trees after every depth of poses while judging pays: once a
+# judgement rejects fewer than this share of the candidates it judged, the following depths
+# are posed first and judged together.  (Cost only: the verdicts are the same either way.)
+SKIP_BELOW = 0.05
 
 
 @dataclass
@@ -262,6 +266,9 @@ def pose_stage(
     depth_of_cut = nodes.depth[order[cuts[:-1]]]
     early = [c for c in constraints if c.progressive]
     reads = {c.name: c.reads(len(grammar.types)) for c in early}
+    touched = {c.name: np.zeros(len(alive), bool) for c in early}
+    since = -1  # nodes deeper than this were posed after the last judgement
+    rate = 1.0  # share of the judged candidates the last judgement rejected
     start = 0
     while start < len(cuts) - 1:
         d = depth_of_cut[start]
@@ -282,22 +289,29 @@ def pose_stage(
             logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
             posed.append(idx)
         start = stop
-        if not posed or not early:
+        if not early:
             continue
-        new = np.concatenate(posed)
-        touched = {}
-        for c in early:
-            t = np.zeros(len(alive), bool)
-            t[nodes.scene[new[reads[c.name][nodes.type[new]]]]] = True
-            touched[c.name] = t
+        if posed:
+            new = np.concatenate(posed)
+            for c in early:
+                touched[c.name][nodes.scene[new[reads[c.name][nodes.type[new]]]]] = True
+        # Judging costs a pass over the partial trees: after a judgement that rejected few,
+        # the next depths are posed first and judged together (always after the last one).
+        if rate < SKIP_BELOW and start < len(cuts) - 1:
+            continue
         among = np.logical_or.reduce(list(touched.values())) & alive
         if not np.any(among):
             continue
-        partial = view(nodes, among, int(d))  # one view for every constraint at this depth
+        fresh = nodes.depth > since
+        partial = view(nodes, among, int(d), fresh)  # one view for every constraint
+        before = int(np.count_nonzero(among))
         for c in early:
             judged = touched[c.name] & alive
             if np.any(judged):
                 alive &= stats.judge(c, c.margin(partial), judged)
+            touched[c.name][:] = False
+        rate = 1.0 - np.count_nonzero(among & alive) / before
+        since = int(d)
     for c in constraints:
         if not c.progressive and np.any(alive):
             alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
