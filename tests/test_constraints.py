@@ -466,9 +466,10 @@ def test_parse_accepts_a_grammar_with_constraints(tmp_path: Path) -> None:
 
 def test_restricted_count_proposal_keeps_the_law() -> None:
     """A `children` bound on the one `repeat` node of its type is drawn from the count law
-    restricted to the bound (a proposal, not a change of law): the scenes still follow plain
-    rejection's law, and the proposal is used only where it is exact."""
-    from ssgc.sample.staged import count_proposals
+    restricted to the bound, and the `independent` rule that makes that node always fires
+    (proposals, not changes of law): the scenes still follow plain rejection's law, and the
+    proposals are used only where they are exact."""
+    from ssgc.sample.staged import count_proposals, forced_rules
 
     head = (GRAMMARS / "dimsum_table.yaml").read_text().split("\nconstraints:")[0]
     g = compile_text(
@@ -483,6 +484,10 @@ constraints:
     )
     cs = list(g.constraints)
     assert count_proposals(g, cs) == {g.type_id("SharedSteamers"): (2, 4)}
+    # and the SharedStuff -> SharedSteamers rule (p = 0.8) always fires: every kept tree has it
+    (rid,) = forced_rules(g, cs)
+    rule = g.rules[rid]
+    assert (rule.parent, rule.child) == (g.type_id("SharedStuff"), g.type_id("SharedSteamers"))
     plain = _plain_rejection(g, cs, 30_000, 21)
     staged = Trees.concatenate([b.trees for b in sample_blocks(g, cs, plain.n_scenes, 22)])
     assert plain.n_scenes > 1000
@@ -500,12 +505,14 @@ constraints:
         base_dir=GRAMMARS,
     )
     assert count_proposals(loose, list(loose.constraints)) == {}
+    assert forced_rules(loose, list(loose.constraints)) == frozenset()
     trays = compile_text(  # a stack has several SteamerBottom nodes: not a single node
         head + "\nconstraints:\n  lids: {children: {of: SteamerBottom, min: 1}}\n",
         "trays.yaml",
         base_dir=GRAMMARS,
     )
     assert count_proposals(trays, list(trays.constraints)) == {}
+    assert forced_rules(trays, list(trays.constraints)) == frozenset()
 
 
 @given(

@@ -126,13 +126,15 @@ def _choose_rules(
     rng: np.random.Generator,
     budget: int | None = None,
     counts_in: dict[int, tuple[int, int | None]] | None = None,
+    forced: frozenset[int] = frozenset(),
 ) -> tuple[list[tuple[int, NDArray[np.int64]]], NDArray[np.float64]]:
     """Which rules fire at each frontier node: [(rule id, frontier positions)], log-probs.
 
     More than `budget` children in all is an error, found before they take any memory.
     `counts_in` {type: (lo, hi)} draws the count of those `repeat` types from their law
     restricted to [lo, hi] (the constrained sampler's proposal, `ssgc.sample.staged`); the
-    log-probabilities stay those of the unrestricted law.
+    log-probabilities stay those of the unrestricted law.  Likewise the `independent` rules in
+    `forced` always fire (where not blocked), with their log-probability log p.
     """
     tb = grammar.tables
     fires: list[tuple[int, NDArray[np.int64]]] = []
@@ -166,7 +168,10 @@ def _choose_rules(
             spend(int(np.count_nonzero(live)))
             fires += [(int(r), sel[live & (choice == k)]) for k, r in enumerate(rules)]
         elif node.kind == Kind.INDEPENDENT:
-            fire = (rng.random((len(sel), len(rules))) < node.probs) & ~blocked
+            fire = rng.random((len(sel), len(rules))) < node.probs
+            if forced:
+                fire |= np.isin(rules, list(forced))
+            fire &= ~blocked
             term = np.where(fire, tb.type_logp[t, : len(rules)], tb.type_log1mp[t, : len(rules)])
             logp[sel] = np.sum(np.where(blocked, 0.0, term), axis=1)
             spend(int(np.count_nonzero(fire)))

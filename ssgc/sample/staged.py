@@ -132,13 +132,15 @@ def grow(
     watch: Watch | None = None,
     levels: list[dict[str, NDArray]] | None = None,  # type: ignore[type-arg]
     counts_in: dict[int, tuple[int, int | None]] | None = None,
+    forced: frozenset[int] = frozenset(),
 ) -> IntArray:
     """Expand the nodes `start` level by level, only nodes whose type is in `expand`; with
     `poses`, children get poses drawn by their rules (the store must have poses).  Adds the
     log-probability of every choice and pose to `logp` (per scene).  A `watch` sees every
     level and may kill candidates (their nodes stop growing).  Returns the nodes left
     unexpanded (pending).  With `levels`, the new nodes are put there, not in the store
-    (for `Nodes.extend_kept`).  `counts_in` restricts `repeat` counts (`count_proposals`)."""
+    (for `Nodes.extend_kept`).  `counts_in` restricts `repeat` counts (`count_proposals`),
+    `forced` makes `independent` rules fire (`forced_rules`)."""
     tb = grammar.tables
     kind = tb.type_kind
     f_id = start
@@ -171,7 +173,7 @@ def grow(
         if watch is not None:
             watch.select(live)
         budget = MAX_CHUNK_NODES - next_id  # memory bound, as in forward sampling
-        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng, budget, counts_in)
+        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng, budget, counts_in, forced)
         logp += np.bincount(f["scene"], lp, minlength=len(logp))
         if not fires:
             break
@@ -425,6 +427,37 @@ def count_proposals(
     return out
 
 
+def forced_rules(grammar: Grammar, constraints: list[Constraint]) -> frozenset[int]:
+    """`independent` rules that can be made to fire without changing the law of the trees
+    the sampler returns.
+
+    A `children` constraint with `min` >= 1 on a type X of which no tree has two nodes
+    (`single`) rejects every tree without an X node.  If X is produced by one rule only, whose
+    parent is an `and` (always fires) or an `independent` (fires with probability p), and so on
+    up to the root, every accepted tree fires each `independent` rule of that chain exactly
+    once: making them fire always multiplies the probability of every accepted tree by the
+    same constant 1 / prod(p) (docs/constraints.md)."""
+    producers: dict[int, list[int]] = {}
+    for rid, r in enumerate(grammar.rules):
+        producers.setdefault(r.child, []).append(rid)
+    out: set[int] = set()
+    for c in constraints:
+        if not isinstance(c, Children) or not c.single or c.lo < 1:
+            continue
+        t = c.of
+        while t != grammar.root and len(producers.get(t, [])) == 1:
+            rid = producers[t][0]
+            parent = grammar.types[grammar.rules[rid].parent]
+            if parent.kind == Kind.INDEPENDENT:
+                if not parent.probs[list(parent.rules).index(rid)] > 0:
+                    break
+                out.add(rid)
+            elif parent.kind != Kind.AND:
+                break
+            t = grammar.rules[rid].parent
+    return frozenset(out)
+
+
 def _named(c: Constraint) -> list[int]:
     return [
         int(v) for v in (getattr(c, a, None) for a in ("type_id", "of", "child")) if v is not None
@@ -568,8 +601,19 @@ def rejection_batch(
     relevant = relevant_types(grammar, constraints)
     levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
     restricted = count_proposals(grammar, constraints)
+    forced = forced_rules(grammar, constraints)
     pending = grow(
-        grammar, nodes, np.arange(size), relevant, False, rng, logp, watch, levels, restricted
+        grammar,
+        nodes,
+        np.arange(size),
+        relevant,
+        False,
+        rng,
+        logp,
+        watch,
+        levels,
+        restricted,
+        forced,
     )
     watch.finish()
     alive = watch.alive
