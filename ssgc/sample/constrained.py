@@ -51,7 +51,7 @@ def attempt_size(
 
     The first attempt is small (a constraint that most candidates meet needs no more); the
     next ones aim at the rest of a whole block at the acceptance seen so far (plus a quarter),
-    at most 16 times the first per step and `largest` in all.  The size depends on the
+    at most 16**k times the first and `largest` in all.  The size depends on the
     block's own draws and never on how many scenes were asked for, so scene i still depends
     only on the seed and i; aiming at the block's end wastes less of the last attempt than
     doubling does (at 0.2% acceptance, about half of it)."""
@@ -173,13 +173,19 @@ def sample_blocks(
     todo = list(range((n + BLOCK - 1) // BLOCK) if blocks is None else blocks)
     limits = _Limits(max_tries, time_limit, deadline, _counter(jobs > 1 and len(todo) > 1))
     work = _BlockWork(grammar, constraints, n, seed, method, limits)
-    for done in _map_blocks(work, todo, jobs):
+    results = _map_blocks(work, todo, jobs)
+    for done in results:
         tally.merge(done.tally)
         if done.block is not None:
             if progress is not None:
                 progress(done.block.trees.n_scenes)
             yield done.block
         if done.limit is not None:
+            # The blocks after it stop at the same (shared) limit: their candidates count in
+            # the report, their scenes are not written (the files stay a prefix of the run).
+            for later in results:
+                tally.merge(later.tally)
+                tally.kept -= later.block.trees.n_scenes if later.block is not None else 0
             raise _unmet(grammar, tally, n, done.limit)
 
 
