@@ -136,3 +136,14 @@ def test_unmet_constraints_exit_2_with_a_report(tmp_path: Path, limit: tuple[str
     assert "Traceback" not in result.output
     # nothing half-written: no scene file, no temporary file, no manifest of a run with none
     assert not out.exists() or not list(out.iterdir())
+
+
+def test_unmet_with_jobs_counts_every_process(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    args = ["sample", str(_impossible(tmp_path)), "-n", str(2 * BLOCK + 1), "--constraints"]
+    result = RUNNER.invoke(app, [*args, "all", "-j", "2", "--max-tries", "1500", "-o", str(out)])
+    assert result.exit_code == 2, result.output
+    head = result.stderr.splitlines()[1]  # after the "sampling under ..." line
+    drawn = int(head.split(" after ")[1].split(" candidates")[0].replace(",", ""))
+    assert drawn >= 2 * 1024  # both first blocks' first attempts (1,024 each) are counted
+    assert not out.exists() or not list(out.iterdir())
