@@ -307,9 +307,13 @@ def pose_stage(
         fresh = nodes.depth > since
         partial = view(nodes, among, int(d), fresh)  # one view for every constraint
         before = int(np.count_nonzero(among))
+        fresh_here = partial.fresh
+        assert fresh_here is not None
         for c in early:
             judged = touched[c.name] & alive
             if np.any(judged):
+                # trees an earlier constraint just rejected are not looked at again
+                partial.fresh = fresh_here & alive[partial.scene]
                 alive &= stats.judge(c, c.margin(partial), judged)
             touched[c.name][:] = False
         rate = 1.0 - np.count_nonzero(among & alive) / before
