@@ -105,7 +105,12 @@ class SampleExtras:
         self.unsettled = 0
 
     def write(
-        self, scene: Scene, path: Path, seed: int, index: int, metadata: dict | None = None
+        self,
+        scene: Scene,
+        path: Path,
+        seed: int,
+        index: int,
+        metadata: dict[str, Any] | None = None,
     ) -> None:
         """`metadata` (constrained sampling's method and margins) goes into the scene file;
         a settled scene keeps it under `metadata.settle` (it describes the poses before
