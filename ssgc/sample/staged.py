@@ -6,17 +6,20 @@ accept/reject decision for each candidate, but draws as little of the candidate 
 
 1. **Structure of the relevant part.**  Only nodes of types from which a structurally
    constrained type can be reached are expanded (no poses).  Other nodes stay *pending*: they
-   can never add or remove a constrained node, so the structural margins are final.
+   can never add or remove a constrained node, so the structural margins are final.  Two exact
+   proposals make fewer candidates fail here (`count_proposals`, `forced_rules`).
 2. **Poses of that part**, for the candidates whose structure passed, drawn from the
-   grammar's own rules.  Pose margins are minima over nodes or pairs, so they can only fall
-   when more nodes are added: a partial tree that already violates one is rejected.
+   grammar's own rules depth by depth (`pose_stage`).  Pose margins are minima over nodes or
+   pairs, so they can only fall when more nodes are added: a partial tree that already
+   violates one is rejected, judged on the terms with a freshly posed node.
 3. **The rest**: pending nodes of the survivors are expanded with poses (forward sampling
-   from them), and every pose constraint is evaluated on the complete tree.
+   from them), and every pose constraint judges the terms with a node of the rest.
 
 Every random choice of a candidate is drawn from the grammar's law given what was drawn
-before (subtrees are independent given their root's pose, so the order does not matter), and
-a candidate is kept iff its complete tree satisfies every constraint: the kept candidates are
-i.i.d. draws of P(T | C).  A rejected structure is never reused with new poses: that would
+before (subtrees are independent given their root's pose, so the order does not matter),
+except the proposals, which multiply the probability of every accepted tree by one constant;
+and a candidate is kept iff its complete tree satisfies every constraint: the kept candidates
+are i.i.d. draws of P(T | C).  A rejected structure is never reused with new poses: that would
 sample structures by P(S) instead of P(S) P(poses ok | S) (thesis 2.7.3; docs/constraints.md).
 
 Everything is vectorised over a batch of candidates; the Python loops run over tree levels,
@@ -25,7 +28,6 @@ types and rules.
 
 from __future__ import annotations
 
-import itertools
 import time
 from dataclasses import dataclass
 
@@ -218,27 +220,6 @@ def nesting_steps(grammar: Grammar) -> IntArray:
     bounded = np.flatnonzero(tb.nesting_slot >= 0)
     step[bounded, tb.nesting_slot[bounded]] = 1
     return step
-
-
-def draw_poses(
-    grammar: Grammar, nodes: Nodes, which: IntArray, rng: np.random.Generator, logp: FloatArray
-) -> None:
-    """Draw the poses of the non-root nodes `which` (whole trees, parents included), depth by
-    depth and rule by rule, from the grammar's rules."""
-    which = which[nodes.parent[which] >= 0]
-    order = which[np.lexsort((nodes.rule[which], nodes.depth[which]))]
-    if not len(order):
-        return
-    key = nodes.depth[order] * (len(grammar.rules) + 1) + nodes.rule[order]
-    cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
-    for a, b in itertools.pairwise(cuts):
-        idx = order[a:b]
-        par = nodes.parent[idx]
-        xyz, quat, lp = sample_children(
-            grammar, int(nodes.rule[idx[0]]), nodes.xyz[par], nodes.quat[par], rng
-        )
-        nodes.xyz[idx], nodes.quat[idx] = xyz, quat
-        logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
 
 
 def pose_stage(
