@@ -11,7 +11,7 @@ from typing import Annotated, Any
 import typer
 
 from ssgc.assets import load_shapes
-from ssgc.cli.app import AllowOutside, _command, _progress, _safe_stem, app, out
+from ssgc.cli.app import AllowOutside, _command, _progress, app, out
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.export import FORMATS, export_files, main_file, scene_bodies
@@ -20,6 +20,7 @@ from ssgc.io.atomic import write_bytes_atomic, write_text_atomic
 from ssgc.io.outputs import check_directory
 from ssgc.io.scene import Scene, dumps_json, dumps_scene
 from ssgc.ir import Grammar
+from ssgc.sample.run import scene_stem
 
 FORMAT_HELP = "dmd (Drake directives) | sdf (SDFormat world) | mjcf (MuJoCo) | glb | usd"
 
@@ -45,7 +46,7 @@ def write_files(out_dir: Path, files: dict[str, str | bytes], main: str) -> None
 
 def export_scene(g: Grammar, scene: Scene, shapes: dict[int, Any], fmt: str, out_dir: Path) -> Path:
     bodies = scene_bodies(g, scene, shapes)
-    bodies = type(bodies)(_safe_stem(bodies.name), bodies.grammar, bodies.bodies)
+    bodies = type(bodies)(scene_stem(bodies.name), bodies.grammar, bodies.bodies)
     files = export_files(bodies, fmt)
     main = main_file(out_dir, bodies, fmt)
     write_files(out_dir, files, main.name)
@@ -104,7 +105,11 @@ class SampleExtras:
         self.shapes = load_shapes(g) if export or settle else {}
         self.unsettled = 0
 
-    def write(self, scene: Scene, path: Path, seed: int, index: int) -> None:
+    def write(
+        self, scene: Scene, path: Path, seed: int, index: int, metadata: dict | None = None
+    ) -> None:
+        """A `ssgc.sample.run.SceneWriter` (`metadata` is only for constrained sampling, which
+        these options do not support yet)."""
         if self.settle:
             from ssgc.simulate.settle import settle_scene, settled_scene_json
 

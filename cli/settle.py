@@ -10,7 +10,7 @@ import numpy as np
 import typer
 
 from ssgc.assets import load_shapes
-from ssgc.cli.app import AllowOutside, _command, _progress, _safe_stem, app, err, out
+from ssgc.cli.app import AllowOutside, _command, _progress, app, err, out
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.export import scene_bodies
@@ -18,6 +18,7 @@ from ssgc.export.bodies import load_export_scenes
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.outputs import check_directory, check_output, write_output_text
 from ssgc.io.scene import dumps_json
+from ssgc.sample.run import scene_stem
 from ssgc.simulate.settle import SettleOptions, settle_scene, settled_scene_json
 
 
@@ -97,7 +98,7 @@ def settle_cmd(
             result = settle_scene(scene_bodies(g, scene, shapes), options)
             source = {"source": str(scenes), "source_scene": scene.name}
             doc = settled_scene_json(g, scene, result, source)
-            write_settled(output / f"{_safe_stem(scene.name)}.json", doc)
+            write_settled(output / f"{scene_stem(scene.name)}.json", doc)
             reports.append(result.report())
             if not result.settled:  # a reason for exit code 2, quiet or not
                 err.print(_line(reports[-1]), markup=False, highlight=False)

@@ -50,13 +50,18 @@ def load_grammar(path: str | Path, allow_outside: bool = False) -> Grammar:
     `allow_outside`: a grammar from elsewhere cannot point ssgc at arbitrary files.
     """
     path = Path(path)
+    text = read_grammar_text(path)
+    return compile_text(text, str(path), base_dir=path.parent, allow_outside=allow_outside)
+
+
+def read_grammar_text(path: Path) -> str:
+    """A grammar file's text; not found, not UTF-8 or NUL bytes are grammar errors."""
     try:
-        text = read_text(path, MAX_GRAMMAR_BYTES, "grammar file")
+        return read_text(path, MAX_GRAMMAR_BYTES, "grammar file")
     except GrammarError:
         raise
-    except SsgError as exc:  # not found, not UTF-8, NUL bytes: still a grammar error
+    except SsgError as exc:
         raise GrammarError(exc.diagnostics) from None
-    return compile_text(text, str(path), base_dir=path.parent, allow_outside=allow_outside)
 
 
 def compile_text(
