@@ -1,4 +1,4 @@
-"""`ssg sample`: draw scenes into a directory, one JSON file per scene (docs/sampling.md).
+"""`ssg sample`: draw scenes into a directory, one JSON file per scene (docs/scenes.md).
 
 The loop (chunks, resume, names, manifest) is `ssgc.sample.run.sample_to_directory`; this
 module reads the flags, draws the progress bar and prints the summary.
@@ -98,10 +98,12 @@ def sample(
             progress=lambda k: progress.advance(task, k),
         )
     if not quiet:
-        out.print(_summary(g.name, seed, run, plan, extras), markup=False, highlight=False)
+        unsettled = 0 if extras is None else extras.unsettled
+        out.print(_summary(g.name, seed, run, plan, unsettled), markup=False, highlight=False)
 
 
-def _summary(name: str, seed: int, run: SampleRun, plan: Plan, extras: object) -> str:
+def _summary(name: str, seed: int, run: SampleRun, plan: Plan, unsettled: int) -> str:
+    """The closing line: how many scenes went where, and what a resume kept."""
     if plan.constrained:
         tally = plan.tally
         rate = tally.kept / tally.drawn if tally.drawn else 0.0
@@ -120,7 +122,6 @@ def _summary(name: str, seed: int, run: SampleRun, plan: Plan, extras: object) -
         summary += f"; kept {run.kept} complete scene file(s)"
         if run.removed_temps:
             summary += f", removed {run.removed_temps} temporary file(s) of a killed run"
-    unsettled = getattr(extras, "unsettled", 0)
     if unsettled:
         summary += f"; {unsettled} scene(s) did not settle"
     return summary

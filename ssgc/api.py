@@ -201,9 +201,9 @@ class Grammar:
         quaternions); a mistake raises `ssgc.errors.SceneError`."""
         objs = []
         for o in objects:
-            pose: dict[str, Any] = {"xyz": [float(v) for v in o[1]]}
+            pose: dict[str, Any] = {"xyz": _numbers(o[1])}
             if len(o) > 2:
-                pose["quat_wxyz"] = [float(v) for v in o[2]]
+                pose["quat_wxyz"] = _numbers(o[2])
             objs.append({"type": o[0], "pose": pose})
         doc = {"format": scene_io.FORMAT, "name": name, "objects": objs}
         return Scene(self, scene_io.parse_scene_text(json.dumps(doc), "<python>", self.ir, name))
@@ -419,6 +419,11 @@ class FitResult:
     def log_evidence(self) -> list[float]:
         """Per iteration: the log-evidence estimate of the grammar it started from."""
         return [float(r["log_evidence"]) for r in self.iterations]
+
+
+def _numbers(values: Iterable[Any]) -> list[Any]:
+    """Numbers as JSON holds them (numpy's as Python's); what they are is checked as in a file."""
+    return [v.item() if isinstance(v, np.generic) else v for v in values]
 
 
 def _render(doc: dict[str, Any], path: str | Path, grammar: Grammar) -> Path:

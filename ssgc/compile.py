@@ -27,7 +27,7 @@ from ssgc import dsl
 from ssgc.checks import Finding, check_reachable, check_recursion, check_references
 from ssgc.constraints.build import build_constraints
 from ssgc.errors import Diagnostic, GrammarError, SsgError, one_line
-from ssgc.geometry import IDENTITY_QUAT, quat_canonical, rpy_to_quat
+from ssgc.geometry import IDENTITY_QUAT, QUAT_NORM_TOL, quat_canonical, rpy_to_quat
 from ssgc.ir import Grammar, Kind, Loc, NodeType, Rule, build_tables
 from ssgc.laws.base import PoseLaw, frozen, law_for
 from ssgc.laws.counts import RepeatCount
@@ -39,7 +39,6 @@ from ssgc.yamlio import (
     validation_diagnostics,
 )
 
-QUAT_NORM_TOL = 1e-3
 MAX_SUGGESTIONS = 50  # "did you mean" for the first unknown type names only
 
 

@@ -9,17 +9,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 from conftest import GRAMMARS, ROOT
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 import ssgc
 from ssgc.api import Grammar, load_grammar
 from ssgc.cli.app import app
-from ssgc.errors import SceneError
 
 runner = CliRunner()
 
@@ -107,30 +103,3 @@ def test_an_infeasible_scene_is_a_status_and_explain_names_the_culprit(gmm: Gram
     with pytest.raises(UnexplainedScene) as caught:
         gmm.explain(scene)
     assert caught.value.status == "infeasible"
-
-
-@settings(
-    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
-@given(
-    objects=st.lists(
-        st.tuples(
-            st.sampled_from(["Root", "Point", "Nope", ""]),
-            st.lists(
-                st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=0, max_size=4
-            ),
-            st.lists(st.floats(-2, 2, width=32), min_size=3, max_size=5),
-        ),
-        max_size=4,
-    )
-)
-def test_a_scene_from_any_python_data_is_a_scene_or_a_located_error(
-    gmm: Grammar, objects: list[tuple[str, list[float], list[float]]]
-) -> None:
-    try:
-        scene = gmm.scene(objects)
-    except SceneError as exc:
-        assert str(exc) and all(d.file == "<python>" for d in exc.diagnostics)
-        return
-    assert len(scene) == len(objects)
-    assert np.all(np.isfinite(scene.xyz)) and np.allclose(np.linalg.norm(scene.quat, axis=1), 1)

@@ -11,7 +11,6 @@ The `ssg sample` command and the Python API (`ssgc.api.Grammar.sample`) both cal
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +25,7 @@ from ssgc.io.resume import (
     scan_sampled,
     write_manifest,
 )
-from ssgc.io.scene import Scene, dumps_scene, scene_from_tree
+from ssgc.io.scene import Scene, dumps_scene, scene_from_tree, scene_stem
 from ssgc.ir import Grammar
 from ssgc.sample import forward
 from ssgc.sample.constrained import (
@@ -42,12 +41,6 @@ from ssgc.sample.constrained import (
 # What a run does with each scene it draws: (scene, its file, seed, index, metadata).
 SceneWriter = Callable[[Scene, Path, int, int, dict[str, Any] | None], None]
 Progress = Callable[[int], None]  # called with the number of scenes just finished
-
-
-def scene_stem(name: str) -> str:
-    """A grammar name as a file-name stem: never a path, never hidden."""
-    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).lstrip(".")
-    return stem or "scene"
 
 
 def index_width(n: int) -> int:
