@@ -14,6 +14,7 @@ import typer
 from ssgc.cli.app import AllowOutside, GrammarArg, _command, _progress, app, err, out
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
+from ssgc.sample.constrained import METHODS
 from ssgc.sample.run import Plan, SampleRun, plan_sampling, sample_to_directory
 
 
@@ -46,7 +47,9 @@ def sample(
         str | None,
         typer.Option(help="Sample under constraints: all, or NAME,NAME (docs/constraints.md)."),
     ] = None,
-    method: Annotated[str, typer.Option(help="With --constraints: auto | rejection.")] = "auto",
+    method: Annotated[
+        str, typer.Option(help=f"With --constraints: auto | {' | '.join(METHODS)}.")
+    ] = "auto",
     max_tries: Annotated[
         int | None, typer.Option(min=1, help="With --constraints: stop after this many candidates.")
     ] = None,
