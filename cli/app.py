@@ -8,7 +8,6 @@ reported in one paragraph (set SSG_DEBUG=1 for the traceback), still never a raw
 from __future__ import annotations
 
 import os
-import re
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -24,9 +23,6 @@ from ssgc import __version__
 from ssgc.cli import render as render_cli
 from ssgc.errors import SsgError
 from ssgc.io.outputs import ENVIRONMENT_ERRNOS, Output
-
-# `ssg sample` draws its chunks through these names (cli/sample.py), where tests count them.
-from ssgc.sample.forward import CHUNK, sample_chunk  # noqa: F401
 
 app = typer.Typer(
     name="ssg",
@@ -173,8 +169,10 @@ def _note_discarded(journal: Any, quiet: bool) -> None:
 
 
 def _check_method(method: str, solver: str) -> None:
-    if method not in ("auto", "ip", "micp"):
-        raise SsgError.single(f"--method must be auto, ip or micp, got '{method}'")
+    from ssgc.parse.parser import METHODS
+
+    if method not in METHODS:
+        raise SsgError.single(f"--method must be {_one_of(METHODS)}, got '{method}'")
     if solver == "scip":
         raise SsgError.single(
             "--solver scip is not available in this build; HiGHS (the default) solves every "
@@ -184,10 +182,9 @@ def _check_method(method: str, solver: str) -> None:
         raise SsgError.single(f"--solver must be highs or scip, got '{solver}'")
 
 
-def _safe_stem(name: str) -> str:
-    """A grammar name as a file-name stem: never a path, never hidden."""
-    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).lstrip(".")
-    return stem or "scene"
+def _one_of(names: tuple[str, ...]) -> str:
+    """`a, b or c`, for messages."""
+    return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0]
 
 
 @contextmanager

@@ -6,50 +6,22 @@ Also the `--export` and `--settle` options of `ssg sample`, through `SampleExtra
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
 from ssgc.assets import load_shapes
-from ssgc.cli.app import AllowOutside, _command, _progress, _safe_stem, app, out
+from ssgc.cli.app import AllowOutside, _command, _progress, app, out
 from ssgc.compile import load_grammar
-from ssgc.errors import SsgError
-from ssgc.export import FORMATS, export_files, main_file, scene_bodies
+from ssgc.export import check_format, scene_bodies
 from ssgc.export.bodies import load_export_scenes
-from ssgc.io.atomic import write_bytes_atomic, write_text_atomic
+from ssgc.export.write import export_scene
+from ssgc.io.atomic import write_text_atomic
 from ssgc.io.outputs import check_directory
 from ssgc.io.scene import Scene, dumps_json, dumps_scene
 from ssgc.ir import Grammar
 
 FORMAT_HELP = "dmd (Drake directives) | sdf (SDFormat world) | mjcf (MuJoCo) | glb | usd"
-
-
-def check_format(fmt: str) -> str:
-    if fmt not in FORMATS:
-        raise SsgError.single(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
-    return fmt
-
-
-def write_files(out_dir: Path, files: dict[str, str | bytes], main: str) -> None:
-    """Write one scene's files, each atomically, the scene's own file last: a run stopped
-    half-way leaves no main file that names a missing mesh or model file."""
-    for rel in [*(r for r in files if r != main), main]:
-        path = out_dir / rel
-        check_directory(path.parent)
-        data = files[rel]
-        if isinstance(data, bytes):
-            write_bytes_atomic(path, data)
-        else:
-            write_text_atomic(path, data)
-
-
-def export_scene(g: Grammar, scene: Scene, shapes: dict[int, Any], fmt: str, out_dir: Path) -> Path:
-    bodies = scene_bodies(g, scene, shapes)
-    bodies = type(bodies)(_safe_stem(bodies.name), bodies.grammar, bodies.bodies)
-    files = export_files(bodies, fmt)
-    main = main_file(out_dir, bodies, fmt)
-    write_files(out_dir, files, main.name)
-    return main
 
 
 @app.command("export")
@@ -105,16 +77,11 @@ class SampleExtras:
         self.unsettled = 0
 
     def write(
-        self,
-        scene: Scene,
-        path: Path,
-        seed: int,
-        index: int,
-        metadata: dict[str, Any] | None = None,
+        self, scene: Scene, path: Path, seed: int, index: int, metadata: dict | None = None
     ) -> None:
-        """`metadata` (constrained sampling's method and margins) goes into the scene file;
-        a settled scene keeps it under `metadata.settle` (it describes the poses before
-        settling)."""
+        """A `ssgc.sample.run.SceneWriter`.  `metadata` (constrained sampling's method and
+        margins) goes into the scene file; a settled scene keeps it under `metadata.settle`
+        (it describes the poses before settling)."""
         if self.settle:
             from ssgc.simulate.settle import settle_scene, settled_scene_json
 

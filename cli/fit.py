@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import tempfile
-from collections.abc import Iterator
-from contextlib import contextmanager
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
@@ -22,8 +19,7 @@ from ssgc.cli.app import (
     err,
 )
 from ssgc.errors import SsgError
-from ssgc.io.journal import journal_path
-from ssgc.io.outputs import Output, check_output, lock_outputs, write_output_text
+from ssgc.io.outputs import check_output, lock_outputs, write_output_text
 
 
 class EStep(StrEnum):
@@ -115,6 +111,7 @@ def fit(
         GrammarSource,
         fit_grammar,
         fit_header,
+        fit_journal_file,
         report_json,
     )
     from ssgc.fit.metrics import compare_by_mmd
@@ -151,7 +148,7 @@ def fit(
     header = fit_header(text, scenes, items, options)
     with (
         lock_outputs([dest, report_dest]),
-        _fit_journal_path(dest) as journal_file,
+        fit_journal_file(None if dest.stream else dest.target) as journal_file,
         FitJournal(journal_file, header, resume) as journal,
     ):
         _note_discarded(journal, quiet)
@@ -188,17 +185,6 @@ def fit(
             journal.delete()
     if not quiet:
         _summary(dest, f"{result.message}; wrote {dest.name}")
-
-
-@contextmanager
-def _fit_journal_path(dest: Output) -> Iterator[Path]:
-    """The fit journal's place: next to the output file, or, for a stream (which cannot be
-    resumed), in a temporary directory removed at the end."""
-    if not dest.stream:
-        yield journal_path(dest.target)
-        return
-    with tempfile.TemporaryDirectory(prefix="ssg-fit-") as tmp:
-        yield Path(tmp) / "fit.partial.jsonl"
 
 
 def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:

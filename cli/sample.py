@@ -1,20 +1,20 @@
-"""`ssg sample`: draw scenes into a directory, one JSON file per scene (docs/sampling.md)."""
+"""`ssg sample`: draw scenes into a directory, one JSON file per scene (docs/scenes.md).
+
+The loop (chunks, resume, names, manifest) is `ssgc.sample.run.sample_to_directory`; this
+module reads the flags, draws the progress bar and prints the summary.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
-import ssgc.cli.app as cli_app
-from ssgc.cli.app import AllowOutside, GrammarArg, _command, _progress, _safe_stem, app, out
+from ssgc.cli.app import AllowOutside, GrammarArg, _command, _progress, app, err, out
 from ssgc.compile import load_grammar
-from ssgc.errors import SsgError
-from ssgc.io.outputs import Output, check_directory, directory_lock, write_output_text
-from ssgc.io.resume import prepare_sample_dir, run_manifest, scan_sampled, write_manifest
-from ssgc.io.scene import dumps_scene, scene_from_tree
-from ssgc.sample.forward import CHUNK, chunk_rng
+from ssgc.sample.constrained import METHODS
+from ssgc.sample.run import Plan, SampleRun, plan_sampling, sample_to_directory
 
 
 @app.command()
@@ -46,7 +46,9 @@ def sample(
         str | None,
         typer.Option(help="Sample under constraints: all, or NAME,NAME (docs/constraints.md)."),
     ] = None,
-    method: Annotated[str, typer.Option(help="With --constraints: auto | rejection.")] = "auto",
+    method: Annotated[
+        str, typer.Option(help=f"With --constraints: auto | {' | '.join(METHODS)}.")
+    ] = "auto",
     max_tries: Annotated[
         int | None, typer.Option(min=1, help="With --constraints: stop after this many candidates.")
     ] = None,
@@ -75,114 +77,61 @@ def sample(
     With --constraints, scenes follow the grammar conditioned on them; when --max-tries or
     --time-limit run out first, the exit code is 2 and the scenes found so far are kept.
     """
-    if resume and overwrite:
-        raise SsgError.single(
-            "--resume keeps a run's scenes and --overwrite deletes them: give one"
-        )
     g = load_grammar(grammar, allow_outside=allow_outside_files)
-    constrained = constraints is not None or (max_tries, time_limit) != (None, None)
-    check_directory(output)
+    plan = plan_sampling(g, constraints, method, max_tries, time_limit, jobs)
     extras = None
     if export or settle:
         from ssgc.cli.export import SampleExtras
 
         extras = SampleExtras(g, export or [], settle, output)
-    width = max(6, len(str(max(n - 1, 0))))
-    with directory_lock(output):
-        manifest = run_manifest(g.name, grammar, seed, n, width)
-        manifest.update(constraints=constraints, method=method if constrained else None)
-        prepare_sample_dir(output, manifest, resume, overwrite)
-        if constrained:
-            from ssgc.cli.constrained import ConstrainedOptions, sample_constrained
-
-            options = ConstrainedOptions(
-                constraints, method, max_tries, time_limit, resume, jobs, extras
-            )
-            sample_constrained(
-                g,
-                n,
-                seed,
-                output,
-                quiet,
-                options,
-                _safe_stem(g.name),
-                lambda: _write_manifest(output, manifest),
-            )
-            _write_manifest(output, {**manifest, "complete": True})
-            return
-        _sample_into(g, output, n, seed, width, manifest, resume, quiet, extras)
-
-
-def _sample_into(
-    g: Any,
-    output: Path,
-    n: int,
-    seed: int,
-    width: int,
-    manifest: dict,
-    resume: bool,
-    quiet: bool,
-    extras: Any = None,
-) -> None:
-    """`ssg sample`'s work, once the directory is checked and locked."""
-    first: Path | None = None  # the first and last file written, for the summary
-    last: Path | None = None
-    count = 0
-    stem = _safe_stem(g.name)
-
-    def name_of(index: int) -> str:
-        return f"{stem}_{index:0{width}d}"
-
-    have = scan_sampled(output, stem, name_of, n, g.name, seed) if resume else None
-    _write_manifest(output, manifest)
+    if plan.constrained and not quiet:
+        kinds = ", ".join(f"{c.name} ({c.kind})" for c in plan.constraints)
+        jobs_note = f", {jobs} processes" if jobs > 1 else ""
+        err.print(
+            f"sampling under {kinds} by {plan.method}{jobs_note}", markup=False, highlight=False
+        )
     with _progress(quiet) as progress:
-        task = progress.add_task("sampling", total=n)
-        for chunk in range((n + CHUNK - 1) // CHUNK):
-            lo, hi = chunk * CHUNK, min(n, (chunk + 1) * CHUNK)
-            if have is not None and have.done[lo:hi].all():
-                progress.advance(task, hi - lo)
-                continue  # nothing missing: the chunk is not even drawn
-            # looked up on cli.app, where tests count the chunks drawn
-            trees, logp = cli_app.sample_chunk(g, chunk_rng(seed, chunk))
-            if have is not None:
-                have.check_same_draws(lo, logp[: hi - lo], name_of)
-            for index in range(lo, hi):
-                k = index - lo
-                if have is not None and have.done[index]:
-                    progress.advance(task)
-                    continue
-                name = name_of(index)
-                scene = scene_from_tree(g, trees.tree(k), name, float(logp[k]))
-                path = output / f"{name}.json"
-                if extras is None:
-                    text = dumps_scene(g, scene, seed=seed, index=index)
-                    write_output_text(Output(path, path, "scene file"), text)
-                else:
-                    extras.write(scene, path, seed, index)
-                first, last = first or path, path
-                count += 1
-                progress.advance(task)
-    _write_manifest(output, {**manifest, "complete": True})
+        task = progress.add_task(
+            "sampling (constrained)" if plan.constrained else "sampling", total=n
+        )
+        run = sample_to_directory(
+            g,
+            grammar,
+            output,
+            n,
+            seed,
+            plan,
+            resume,
+            overwrite,
+            write=None if extras is None else extras.write,
+            progress=lambda k: progress.advance(task, k),
+        )
     if not quiet:
+        unsettled = 0 if extras is None else extras.unsettled
+        out.print(_summary(g.name, seed, run, plan, unsettled), markup=False, highlight=False)
+
+
+def _summary(name: str, seed: int, run: SampleRun, plan: Plan, unsettled: int) -> str:
+    """The closing line: how many scenes went where, and what a resume kept."""
+    if plan.constrained:
+        tally = plan.tally
+        rate = tally.kept / tally.drawn if tally.drawn else 0.0
+        summary = (
+            f"wrote {run.written} scene(s) of grammar '{name}' (seed {seed}, {plan.method}) to "
+            f"{run.directory}; {tally.drawn:,} candidates, {rate:.3%} accepted"
+        )
+    else:
+        first, last = run.first, run.last
         where = (
             f"{first} … {last.name}"
-            if first is not None and last is not None and count > 1
-            else str(first or output)
+            if first is not None and last is not None and run.written > 1
+            else str(first or run.directory)
         )
-        summary = f"wrote {count} scene(s) of grammar '{g.name}' (seed {seed}) to {where}"
-        if have is not None:
-            summary += f"; kept {int(have.done.sum())} complete scene file(s)"
-            if have.removed_temps:
-                summary += f", removed {have.removed_temps} temporary file(s) of a killed run"
-        if extras is not None and extras.unsettled:
-            summary += f"; {extras.unsettled} scene(s) did not settle"
-        out.print(summary, markup=False, highlight=False)
-
-
-def _write_manifest(directory: Path, manifest: dict) -> None:
-    try:
-        write_manifest(directory, manifest)
-    except OSError as exc:
-        raise SsgError.single(
-            f"cannot write the manifest: {exc.strerror}", str(directory)
-        ) from None
+        summary = f"wrote {run.written} scene(s) of grammar '{name}' (seed {seed}) to {where}"
+    if run.resumed:
+        summary += f"; kept {run.kept} complete scene file(s)"
+        if run.removed_temps:
+            summary += f", removed {run.removed_temps} temporary file(s) of a killed run"
+    if unsettled:
+        summary += f"; {unsettled} scene(s) did not settle"
+    return summary

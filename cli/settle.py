@@ -6,35 +6,22 @@ import json
 from pathlib import Path
 from typing import Annotated, Any
 
-import numpy as np
 import typer
 
 from ssgc.assets import load_shapes
-from ssgc.cli.app import AllowOutside, _command, _progress, _safe_stem, app, err, out
+from ssgc.cli.app import AllowOutside, _command, _progress, app, err, out
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.export import scene_bodies
 from ssgc.export.bodies import load_export_scenes
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.outputs import check_directory, check_output, write_output_text
-from ssgc.io.scene import dumps_json
-from ssgc.simulate.settle import SettleOptions, settle_scene, settled_scene_json
+from ssgc.io.scene import dumps_json, scene_stem
+from ssgc.simulate.settle import SettleOptions, settle_scene, settle_summary, settled_scene_json
 
 
 def write_settled(path: Path, doc: dict[str, Any]) -> None:
     write_text_atomic(path, dumps_json(doc))
-
-
-def _summary(reports: list[dict[str, Any]]) -> dict[str, Any]:
-    moved = np.array([r["max_displacement"] for r in reports])
-    return {
-        "scenes": len(reports),
-        "settled": sum(r["settled"] for r in reports),
-        "median_displacement": float(np.median(moved)) if len(moved) else 0.0,
-        "max_displacement": float(moved.max(initial=0.0)),
-        "max_penetration_after": max((r["penetration_after"] for r in reports), default=0.0),
-        "mean_wall_time": float(np.mean([r["wall_time"] for r in reports])) if reports else 0.0,
-    }
 
 
 def _line(r: dict[str, Any]) -> str:
@@ -97,14 +84,14 @@ def settle_cmd(
             result = settle_scene(scene_bodies(g, scene, shapes), options)
             source = {"source": str(scenes), "source_scene": scene.name}
             doc = settled_scene_json(g, scene, result, source)
-            write_settled(output / f"{_safe_stem(scene.name)}.json", doc)
+            write_settled(output / f"{scene_stem(scene.name)}.json", doc)
             reports.append(result.report())
             if not result.settled:  # a reason for exit code 2, quiet or not
                 err.print(_line(reports[-1]), markup=False, highlight=False)
             elif not quiet:
                 out.print(_line(reports[-1]), markup=False, highlight=False)
             progress.advance(task)
-    summary = _summary(reports)
+    summary = settle_summary(reports)
     if report_dest is not None:
         doc = {"summary": summary, "scenes": reports}
         write_output_text(report_dest, json.dumps(doc, indent=1) + "\n")

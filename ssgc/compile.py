@@ -27,7 +27,7 @@ from ssgc import dsl
 from ssgc.checks import Finding, check_reachable, check_recursion, check_references
 from ssgc.constraints.build import build_constraints
 from ssgc.errors import Diagnostic, GrammarError, SsgError, one_line
-from ssgc.geometry import IDENTITY_QUAT, quat_canonical, rpy_to_quat
+from ssgc.geometry import IDENTITY_QUAT, QUAT_NORM_TOL, quat_canonical, rpy_to_quat
 from ssgc.ir import Grammar, Kind, Loc, NodeType, Rule, build_tables
 from ssgc.laws.base import PoseLaw, frozen, law_for
 from ssgc.laws.counts import RepeatCount
@@ -39,7 +39,6 @@ from ssgc.yamlio import (
     validation_diagnostics,
 )
 
-QUAT_NORM_TOL = 1e-3
 MAX_SUGGESTIONS = 50  # "did you mean" for the first unknown type names only
 
 
@@ -50,13 +49,18 @@ def load_grammar(path: str | Path, allow_outside: bool = False) -> Grammar:
     `allow_outside`: a grammar from elsewhere cannot point ssgc at arbitrary files.
     """
     path = Path(path)
+    text = read_grammar_text(path)
+    return compile_text(text, str(path), base_dir=path.parent, allow_outside=allow_outside)
+
+
+def read_grammar_text(path: Path) -> str:
+    """A grammar file's text; not found, not UTF-8 or NUL bytes are grammar errors."""
     try:
-        text = read_text(path, MAX_GRAMMAR_BYTES, "grammar file")
+        return read_text(path, MAX_GRAMMAR_BYTES, "grammar file")
     except GrammarError:
         raise
-    except SsgError as exc:  # not found, not UTF-8, NUL bytes: still a grammar error
+    except SsgError as exc:
         raise GrammarError(exc.diagnostics) from None
-    return compile_text(text, str(path), base_dir=path.parent, allow_outside=allow_outside)
 
 
 def compile_text(

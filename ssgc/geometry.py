@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "IDENTITY_QUAT",
+    "QUAT_NORM_TOL",
     "axis_angle_to_quat",
     "is_unit_quat",
     "matrix_to_quat",
@@ -45,6 +46,9 @@ FloatArray = NDArray[np.float64]
 
 IDENTITY_QUAT: FloatArray = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float64)
 IDENTITY_QUAT.setflags(write=False)
+# How far the norm of a quaternion a user wrote (in a grammar or a scene file) may be from 1:
+# printed values keep a few digits, so "unit" means unit to about three of them.
+QUAT_NORM_TOL = 1e-3
 
 
 # --------------------------------------------------------------------------- input checks

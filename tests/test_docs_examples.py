@@ -273,7 +273,7 @@ def test_sampled_scene_is_what_ssg_sample_writes() -> None:
     data = json.loads(block.text)
     g = grammar_for(block)
     assert data["grammar"] == g.name and data["index"] < 256
-    # Exactly what `ssg sample` does for scene `index` of chunk 0 (cli/app.py).
+    # Exactly what `ssg sample` does for scene `index` of chunk 0 (ssgc/sample/run.py).
     trees, logp = sample_chunk(g, chunk_rng(data["seed"], 0))
     i = data["index"]
     scene = scene_from_tree(g, trees.tree(i), data["name"], float(logp[i]))

@@ -5,7 +5,8 @@ Generated inputs go through the real command line, in process (typer's `CliRunne
 
 - grammar files for `ssg validate`, `ssg inspect` and `ssg sample -n 2`;
 - JSON scenes and sink-format YAML datasets for `ssg parse SCENES -g GRAMMAR`, with the
-  `sink` and `singles_pairs_dependency` grammars.
+  `sink` and `singles_pairs_dependency` grammars;
+- and, through the Python API, objects given as Python data (`ssgc.api.Grammar.scene`).
 
 Inputs are mutations of the real files (the bundled grammars, sampled scenes, the sink
 dataset), documents built from the file formats with hostile values put in (wrong types,
@@ -27,6 +28,7 @@ Profiles (docs/robustness.md): the quick one runs with the test suite; the long 
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import math
@@ -1361,3 +1363,39 @@ def test_messages_and_tables_are_printed_as_they_are(work: Path) -> None:
     path = write(work / "g.yaml", b'grammar: "a\\e[31m"\nroot: R\ntypes: {R: {}}\n')
     result = run_ok(["validate", str(path)], b"", [path], {1})
     assert "1:10: error: the grammar name must be one line of printable text" in result.stderr
+
+
+# ------------------------------------------------------------- the Python API ---
+
+
+@fuzz(quick=40)
+@given(
+    objects=st.lists(
+        st.tuples(
+            st.sampled_from(["Root", "Point", "Nope", "", "P\u00f6int\n", "Root "]),
+            st.lists(st.floats(width=64) | st.integers(-(10**400), 10**400), max_size=4),
+            st.lists(st.floats(-2, 2) | st.just(0.0), min_size=3, max_size=5),
+        ),
+        max_size=4,
+    )
+)
+def test_fuzz_api_scene_from_python_data(objects: list[tuple[str, list, list]]) -> None:
+    """`Grammar.scene` checks Python data as a scene file is checked: a scene, or a
+    `SceneError` whose every diagnostic is located in `<python>`."""
+    from ssgc.errors import SceneError
+
+    g = _api_gmm()
+    try:
+        scene = g.scene(objects)
+    except SceneError as exc:
+        assert exc.diagnostics and all(d.file == "<python>" and d.message for d in exc.diagnostics)
+        return
+    assert len(scene) == len(objects) and scene.types == [o[0] for o in objects]
+    assert np.all(np.isfinite(scene.xyz)) and np.allclose(np.linalg.norm(scene.quat, axis=1), 1)
+
+
+@functools.cache
+def _api_gmm() -> Any:
+    from ssgc.api import load_grammar
+
+    return load_grammar(GRAMMARS / "gmm.yaml")

@@ -23,6 +23,7 @@ from conftest import GRAMMARS, SINK_DATA
 from typer.testing import CliRunner
 
 import ssgc.cli.app as cli
+import ssgc.sample.forward as forward
 from ssgc.compile import load_grammar
 from ssgc.io.atomic import temp_target
 from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
@@ -165,13 +166,13 @@ def test_sample_resume_draws_only_the_chunks_with_missing_scenes(
             name = f"sink_{i:06d}.json"
             (out / name).write_bytes((reference / name).read_bytes())
     drawn: list[int] = []
-    real = cli.sample_chunk
+    real = forward.sample_chunk
 
-    def counting(grammar: Any, rng: Any, size: int = cli.CHUNK) -> Any:
+    def counting(grammar: Any, rng: Any, size: int = forward.CHUNK) -> Any:
         drawn.append(1)
         return real(grammar, rng, size)
 
-    monkeypatch.setattr(cli, "sample_chunk", counting)
+    monkeypatch.setattr(forward, "sample_chunk", counting)
     result = run("sample", SINK, "-n", 600, "-o", out, "--resume")
     assert result.exit_code == 0, result.output
     assert len(drawn) == 1

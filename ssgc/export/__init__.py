@@ -31,15 +31,28 @@ SUFFIXES = {
 }
 
 
-def export_files(scene: SceneBodies, fmt: str) -> Files:
-    """The files of one scene in one format, paths relative to the output directory."""
+def check_format(fmt: str) -> str:
+    """`fmt` if it names a format, else the user's mistake."""
     if fmt not in FORMATS:
         raise SsgError.single(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
-    return FORMATS[fmt](scene)
+    return fmt
+
+
+def export_files(scene: SceneBodies, fmt: str) -> Files:
+    """The files of one scene in one format, paths relative to the output directory."""
+    return FORMATS[check_format(fmt)](scene)
 
 
 def main_file(out_dir: Path, scene: SceneBodies, fmt: str) -> Path:
     return out_dir / f"{scene.name}{SUFFIXES[fmt]}"
 
 
-__all__ = ["FORMATS", "SUFFIXES", "SceneBodies", "export_files", "main_file", "scene_bodies"]
+__all__ = [
+    "FORMATS",
+    "SUFFIXES",
+    "SceneBodies",
+    "check_format",
+    "export_files",
+    "main_file",
+    "scene_bodies",
+]

@@ -21,8 +21,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,7 +38,7 @@ from ssgc.fit.estep import parse_scenes
 from ssgc.fit.mstep import FitSettings, Ties, m_step
 from ssgc.fit.posterior import McmcSettings, posterior_e_step
 from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
-from ssgc.io.journal import Journal, scenes_digest
+from ssgc.io.journal import Journal, journal_path, scenes_digest
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
 from ssgc.parse.parser import PROPOSAL_SHARE, Parser, SceneParses
@@ -119,6 +121,18 @@ class FitJournal(Journal):
 
     def __enter__(self) -> FitJournal:
         return self
+
+
+@contextmanager
+def fit_journal_file(next_to: Path | None) -> Iterator[Path]:
+    """Where a fit keeps its journal: next to the fitted grammar's file (so `--resume` finds
+    it), or, without such a file (standard output, the Python API), in a temporary directory
+    removed at the end."""
+    if next_to is not None:
+        yield journal_path(next_to)
+        return
+    with tempfile.TemporaryDirectory(prefix="ssg-fit-") as tmp:
+        yield Path(tmp) / "fit.partial.jsonl"
 
 
 def fit_header(

@@ -34,13 +34,12 @@ from pydantic import (
 
 from ssgc.dsl import Finite, Strict, Vec3, Vec4
 from ssgc.errors import Diagnostic, SceneError, SsgError, one_line
-from ssgc.geometry import quat_canonical, rpy_to_quat
+from ssgc.geometry import QUAT_NORM_TOL, quat_canonical, rpy_to_quat
 from ssgc.ir import Grammar
 from ssgc.tree import Trees
 from ssgc.yamlio import SourceMap, load_located, read_text, validation_diagnostics
 
 MAX_SCENE_BYTES = 256 * 1024 * 1024
-QUAT_NORM_TOL = 1e-3
 FORMAT = "ssgc.scene/1"
 
 
@@ -183,6 +182,12 @@ def tree_to_json(grammar: Grammar, tree: Trees) -> dict[str, Any]:
             for i in range(len(tree))
         ]
     }
+
+
+def scene_stem(name: str) -> str:
+    """A grammar's or a scene's name as a file-name stem: never a path, never hidden."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).lstrip(".")
+    return stem or "scene"
 
 
 def dumps_json(doc: Any) -> str:

@@ -101,6 +101,17 @@ def render_file(
     return len(views)
 
 
+def render_document(data: Any, output: str | Path, grammar: Grammar | None = None) -> int:
+    """Draw a scene or parse-result document held in memory (the Python API's `.render`, whose
+    `.to_json()` is the document `ssg render` would read from a file); returns how many scenes
+    were drawn."""
+    out, fmt = check_output(Path(output))
+    require_matplotlib()
+    views = document_views(data, grammar, Path("<memory>"))[:MAX_GRID]
+    save_figure(draw_views(views, geometry_of(grammar)), out, fmt)
+    return len(views)
+
+
 # ------------------------------------------------------------------ reading ---
 
 
@@ -140,6 +151,15 @@ def _file_views(path: Path, grammar: Grammar | None) -> list[View]:
         raise SceneError.single(
             "not JSON: expected a scene or an `ssg parse` result", str(path), line, col
         ) from None
+    return document_views(data, grammar, path, text)
+
+
+def document_views(
+    data: Any, grammar: Grammar | None, path: Path, text: str | None = None
+) -> list[View]:
+    """The views of one JSON document: a scene (with its tree, when it has one) or an
+    `ssg parse` result (the best parse of each scene).  `text` locates mistakes in a file."""
+    text = json.dumps(data) if text is None else text
     if isinstance(data, dict) and "scenes" in data:
         views = _parse_views(_validated(_ParseDoc, data, text, path), grammar, path)
         return [_drawable(v, path) for v in views]

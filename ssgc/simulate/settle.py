@@ -193,3 +193,17 @@ def settled_scene_json(
             obj["metadata"] = meta
     doc["metadata"] = {**scene.extra, "settle": provenance(result, source)}
     return doc
+
+
+def settle_summary(reports: list[dict[str, Any]]) -> dict[str, Any]:
+    """A run's figures from its scenes' reports (`Settled.report`): how many settled, how far
+    things moved, how deep they still overlap, how long it took."""
+    moved = np.array([r["max_displacement"] for r in reports])
+    return {
+        "scenes": len(reports),
+        "settled": sum(r["settled"] for r in reports),
+        "median_displacement": float(np.median(moved)) if len(moved) else 0.0,
+        "max_displacement": float(moved.max(initial=0.0)),
+        "max_penetration_after": max((r["penetration_after"] for r in reports), default=0.0),
+        "mean_wall_time": float(np.mean([r["wall_time"] for r in reports])) if reports else 0.0,
+    }

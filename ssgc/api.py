@@ -1,0 +1,434 @@
+"""The Python API, for notebooks and scripts (docs/api.md): grammars, scenes, trees, parses.
+
+A thin facade: every call is one of the functions the `ssg` commands call —
+`ssgc.compile` to load, `ssgc.sample.run.draw_scenes` to sample (forward or under
+constraints), `ssgc.parse.parser.Parser` to parse, `ssgc.explain` to explain, `ssgc.fit.em` to
+fit, `ssgc.io.scene` for the JSON documents and `ssgc.render` for pictures.  The objects here
+only carry the grammar along, so that a scene can say its types' names, write its JSON and
+draw itself.  `.to_json()` gives the same document the command line writes (a scene file of
+`ssg sample`, one scene of `ssg parse`'s output), and `.render(path)` draws what `ssg render`
+draws from that document.
+
+Heavy parts (the parser, the fitter, matplotlib) are imported when first used.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc import ir
+from ssgc.compile import compile_text, read_grammar_text
+from ssgc.io import scene as scene_io
+from ssgc.tree import Trees
+
+if TYPE_CHECKING:
+    from ssgc.explain import Explanation
+    from ssgc.fit.em import GrammarSource
+    from ssgc.parse.parser import Parser, SceneParses
+
+__all__ = [
+    "FitResult",
+    "Grammar",
+    "Parse",
+    "ParseResult",
+    "Scene",
+    "Tree",
+    "explain",
+    "fit",
+    "load_grammar",
+    "load_scenes",
+    "parse",
+]
+
+
+def load_grammar(path: str | Path, allow_outside: bool = False) -> Grammar:
+    """Read and compile a grammar file; a mistake raises `ssgc.errors.GrammarError`, whose
+    message lists every problem as FILE:LINE:COL (as `ssg validate` prints them).  Mesh and
+    model files must lie in the grammar's directory unless `allow_outside`."""
+    path = Path(path)
+    text = read_grammar_text(path)
+    compiled = compile_text(text, str(path), base_dir=path.parent, allow_outside=allow_outside)
+    return Grammar(compiled, text, path, allow_outside)
+
+
+def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
+    """Scenes from a JSON scene file, a directory of them, or a sink-format YAML dataset."""
+    return [Scene(grammar, s) for s in scene_io.load_scenes(path, grammar.ir)]
+
+
+def parse(
+    grammar: Grammar,
+    scene: Scene,
+    top: int = 1,
+    method: str = "auto",
+    time_limit: float | None = None,
+) -> ParseResult:
+    """The `top` most probable distinct parse trees of `scene` (as `ssg parse`): `method` is
+    auto, ip or micp (docs/parsing.md), `time_limit` in seconds.  A scene the grammar cannot
+    produce is not an exception: the result's `status` says `infeasible`."""
+    result = grammar.parser(method).parse(scene.data, top=top, time_limit=time_limit)
+    return ParseResult(grammar, result)
+
+
+def explain(grammar: Grammar, scene: Scene, time_limit: float | None = None) -> Explanation:
+    """Why `scene` scores what it scores (as `ssg explain`): its best parse's −log p split over
+    objects and rules, most unusual object first.  `.text()` says it in words, `.to_json()`
+    is `ssg explain --json`'s entry.  Raises `ssgc.explain.UnexplainedScene` (with the
+    diagnosis naming the objects to blame) when no tree of the grammar contains the scene."""
+    from ssgc.explain import best_tree, explain_tree
+
+    parser = grammar.parser("auto")
+    tree = best_tree(grammar.ir, scene.data, parser, time_limit=time_limit)
+    return explain_tree(grammar.ir, scene.data, tree, parser, time_limit)
+
+
+def fit(
+    grammar: Grammar,
+    dataset: Sequence[Scene] | str | Path,
+    iterations: int = 10,
+    top: int = 10,
+    method: str = "auto",
+    seed: int = 0,
+    tol: float = 1e-4,
+    estep: str = "topn",
+    samples: int = 100,
+    pseudocount: float = 0.01,
+    min_variance: float = 1e-6,
+    jobs: int = 1,
+    time_limit: float | None = None,
+) -> FitResult:
+    """Fit the grammar's parameters to a dataset by approximate EM (as `ssg fit`, whose flags
+    these are; docs/fitting.md).  `dataset` is a list of scenes or a path `load_scenes`
+    reads.  The grammar itself is not changed: the result holds the fitted grammar, its YAML
+    text (the original with only the fitted numbers changed) and one report per iteration."""
+    from ssgc.fit.em import (
+        FitJournal,
+        FitOptions,
+        fit_grammar,
+        fit_header,
+        fit_journal_file,
+    )
+    from ssgc.fit.mstep import FitSettings
+
+    if isinstance(dataset, str | Path):
+        where, scenes = Path(dataset), load_scenes(dataset, grammar)
+    else:
+        where, scenes = Path("<scenes>"), list(dataset)
+    if not scenes:
+        from ssgc.errors import SsgError
+
+        raise SsgError.single("the dataset has no scenes", str(where))
+    items = [s.data for s in scenes]
+    options = FitOptions(
+        iterations=iterations,
+        top=top,
+        method=method,
+        seed=seed,
+        tol=tol,
+        jobs=jobs,
+        estep=estep,
+        samples=samples,
+        settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
+    )
+    source = grammar.source(str(where))
+    header = fit_header(grammar.text, where, items, options)
+    with fit_journal_file(None) as path, FitJournal(path, header, resume=False) as journal:
+        result = fit_grammar(grammar.text, source, items, options, journal, time_limit)
+    fitted = compile_text(result.text, source.file, source.base_dir, source.allow_outside)
+    return FitResult(
+        Grammar(fitted, result.text, grammar.path, grammar.allow_outside),
+        result.iterations,
+        result.status,
+        result.message,
+    )
+
+
+class Grammar:
+    """A compiled grammar (`ir`, an `ssgc.ir.Grammar`) with the text and file it came from."""
+
+    def __init__(
+        self, compiled: ir.Grammar, text: str, path: Path | None = None, allow_outside: bool = False
+    ) -> None:
+        self.ir = compiled
+        self.text = text
+        self.path = path
+        self.allow_outside = allow_outside
+        self._parsers: dict[str, Parser] = {}
+
+    @property
+    def name(self) -> str:
+        return self.ir.name
+
+    @property
+    def types(self) -> list[str]:
+        """Node type names, in file order."""
+        return [t.name for t in self.ir.types]
+
+    def __repr__(self) -> str:
+        return f"<Grammar '{self.name}': {len(self.ir.types)} types, {len(self.ir.rules)} rules>"
+
+    def sample(
+        self,
+        n: int = 1,
+        seed: int = 0,
+        constraints: str | None = None,
+        method: str = "auto",
+        max_tries: int | None = None,
+        time_limit: float | None = None,
+    ) -> list[Scene]:
+        """Draw `n` scenes, each with its tree and log-probability: exactly the scenes
+        `ssg sample -n N --seed SEED` writes (scene i depends only on the seed and i).  With
+        `constraints` (`all`, or `NAME,NAME`) they follow the grammar conditioned on them
+        (docs/constraints.md); `max_tries` and `time_limit` bound that search, and when they
+        run out first `ssgc.sample.constrained.Unmet` is raised."""
+        from ssgc.sample.run import draw_scenes, plan_sampling
+
+        if n < 0:
+            raise ValueError(f"number of scenes must be >= 0, got {n}")
+        plan = plan_sampling(self.ir, constraints, method, max_tries, time_limit)
+        return [Scene(self, d.scene, d.metadata) for d in draw_scenes(self.ir, n, seed, plan)]
+
+    def scene(self, objects: Iterable[Sequence[Any]], name: str = "scene") -> Scene:
+        """A scene from Python data: `(type, xyz)` or `(type, xyz, quat_wxyz)` per object,
+        checked as a scene file is (types the grammar observes, finite poses, unit
+        quaternions); a mistake raises `ssgc.errors.SceneError`."""
+        objs = []
+        for o in objects:
+            pose: dict[str, Any] = {"xyz": _numbers(o[1])}
+            if len(o) > 2:
+                pose["quat_wxyz"] = _numbers(o[2])
+            objs.append({"type": o[0], "pose": pose})
+        doc = {"format": scene_io.FORMAT, "name": name, "objects": objs}
+        return Scene(self, scene_io.parse_scene_text(json.dumps(doc), "<python>", self.ir, name))
+
+    def parse(
+        self, scene: Scene, top: int = 1, method: str = "auto", time_limit: float | None = None
+    ) -> ParseResult:
+        """`ssgc.parse(self, scene, ...)`."""
+        return parse(self, scene, top, method, time_limit)
+
+    def explain(self, scene: Scene, time_limit: float | None = None) -> Explanation:
+        """`ssgc.explain(self, scene, ...)`."""
+        return explain(self, scene, time_limit)
+
+    def fit(self, dataset: Sequence[Scene] | str | Path, **options: Any) -> FitResult:
+        """`ssgc.fit(self, dataset, ...)`."""
+        return fit(self, dataset, **options)
+
+    def parser(self, method: str = "auto") -> Parser:
+        """The grammar's parser for `method`, built once (its supertree is reused)."""
+        from ssgc.parse.parser import Parser
+
+        if method not in self._parsers:
+            self._parsers[method] = Parser(self.ir, method=method)
+        return self._parsers[method]
+
+    def source(self, dataset: str = "<dataset>") -> GrammarSource:
+        """Where the text came from, so that a fit compiles each iteration like the original."""
+        from ssgc.fit.em import GrammarSource
+
+        file = str(self.path) if self.path is not None else self.ir.file
+        base = self.path.parent if self.path is not None else None
+        return GrammarSource(file, base, self.allow_outside, dataset)
+
+
+@dataclass(frozen=True, eq=False)
+class Tree:
+    """One scene tree: its nodes (latent and observed) with types, parents, rules and poses."""
+
+    grammar: Grammar
+    trees: Trees  # a batch of one tree
+
+    def __len__(self) -> int:
+        return len(self.trees)
+
+    def __repr__(self) -> str:
+        return f"<Tree: {len(self)} nodes>"
+
+    @property
+    def types(self) -> list[str]:
+        return [self.grammar.ir.types[t].name for t in self.trees.type]
+
+    @property
+    def parent(self) -> NDArray[np.int64]:
+        return self.trees.parent
+
+    @property
+    def log_prob(self) -> float:
+        """log p(tree) under the grammar (thesis Eq. 2.1), as the scorer computes it."""
+        from ssgc.score import score_trees
+
+        return float(score_trees(self.grammar.ir, self.trees)[0])
+
+    def scene(self, name: str = "scene") -> Scene:
+        """The tree's observed nodes as a scene (which keeps the tree)."""
+        data = scene_io.scene_from_tree(self.grammar.ir, self.trees, name, self.log_prob)
+        return Scene(self.grammar, data)
+
+    def to_json(self) -> dict[str, Any]:
+        """{"nodes": [...]}, the `tree` of a scene file: parents first."""
+        return scene_io.tree_to_json(self.grammar.ir, self.trees)
+
+    def render(self, path: str | Path) -> Path:
+        """Draw the tree (3-D and from above) into a .png or .svg file."""
+        return _render(self.scene("tree").to_json(), path, self.grammar)
+
+    def same_as(self, other: Tree) -> bool:
+        """The same tree up to the order of siblings (the test `ssg bench parse` uses)."""
+        from ssgc.parse.parser import tree_signature
+
+        g = self.grammar.ir
+        return tree_signature(g, self.trees) == tree_signature(g, other.trees)
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Observed objects (types and poses); a sampled scene also has its tree and log-prob."""
+
+    grammar: Grammar
+    data: scene_io.Scene
+    metadata: dict[str, Any] | None = None  # constrained sampling: its method and margins
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def __repr__(self) -> str:
+        tree = "" if self.data.tree is None else f", a tree of {len(self.data.tree)} nodes"
+        return f"<Scene '{self.name}': {len(self)} objects{tree}>"
+
+    @property
+    def name(self) -> str:
+        return self.data.name
+
+    @property
+    def types(self) -> list[str]:
+        return [self.grammar.ir.types[t].name for t in self.data.types]
+
+    @property
+    def xyz(self) -> NDArray[np.float64]:
+        return self.data.xyz
+
+    @property
+    def quat(self) -> NDArray[np.float64]:
+        """Rotations as unit quaternions, w first (docs/conventions.md)."""
+        return self.data.quat
+
+    @property
+    def log_prob(self) -> float | None:
+        return self.data.log_prob
+
+    @property
+    def tree(self) -> Tree | None:
+        return None if self.data.tree is None else Tree(self.grammar, self.data.tree)
+
+    def to_json(self) -> dict[str, Any]:
+        """The scene file `ssg sample` writes (without its seed and index)."""
+        return scene_io.scene_to_json(self.grammar.ir, self.data, metadata=self.metadata)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the scene as a JSON file every `ssg` command reads (atomically)."""
+        from ssgc.io.outputs import check_output, write_output_text
+
+        out = check_output(path, "scene file")
+        text = scene_io.dumps_json(self.to_json())
+        write_output_text(out, text)
+        return Path(path)
+
+    def render(self, path: str | Path) -> Path:
+        """Draw the scene (with its tree, when it has one) into a .png or .svg file."""
+        return _render(self.to_json(), path, self.grammar)
+
+
+@dataclass(frozen=True, eq=False)
+class Parse:
+    """One parse tree of a scene, with its score (log p) and certificate."""
+
+    tree: Tree
+    score: float
+    status: str  # optimal, or time_limit (nothing certain)
+    gap: float  # latent poses (micp): score bound − score; NaN when there is no bound
+
+    def __repr__(self) -> str:
+        return f"<Parse: log p {self.score:.4f}, {self.status}, {len(self.tree)} nodes>"
+
+
+@dataclass(frozen=True, eq=False)
+class ParseResult:
+    """A scene's parses, best first, and how the search ended (as in `ssg parse`'s output)."""
+
+    grammar: Grammar
+    result: SceneParses
+
+    def __repr__(self) -> str:
+        return (
+            f"<ParseResult '{self.result.name}': {self.status}, {len(self.result.parses)} parse(s)>"
+        )
+
+    @property
+    def status(self) -> str:
+        """optimal, infeasible (no tree of the grammar contains the scene), time_limit, error."""
+        return self.result.status
+
+    @property
+    def message(self) -> str:
+        return self.result.message
+
+    @property
+    def parses(self) -> list[Parse]:
+        return [
+            Parse(Tree(self.grammar, p.tree), p.score, p.status, p.gap) for p in self.result.parses
+        ]
+
+    @property
+    def best(self) -> Parse | None:
+        parses = self.parses
+        return parses[0] if parses else None
+
+    def to_json(self) -> dict[str, Any]:
+        """This scene's entry of `ssg parse`'s output (`scenes[i]`)."""
+        from ssgc.parse.parser import result_to_json
+
+        return result_to_json(self.grammar.ir, self.result)
+
+    def render(self, path: str | Path) -> Path:
+        """Draw the best parse, its edges coloured by their rule's log-probability."""
+        doc = {"grammar": self.grammar.name, "scenes": [self.to_json()]}
+        return _render(doc, path, self.grammar)
+
+
+@dataclass
+class FitResult:
+    """What `ssgc.fit` returns: the fitted grammar and how the fit went."""
+
+    grammar: Grammar  # the fitted grammar (its `.text` is the YAML `ssg fit -o` would write)
+    iterations: list[dict[str, Any]] = field(default_factory=list)  # one report each
+    status: str = ""  # converged, iterations (the limit was reached) or time_limit
+    message: str = ""
+
+    def __repr__(self) -> str:
+        return f"<FitResult: {self.status}, {len(self.iterations)} iteration(s)>"
+
+    @property
+    def log_evidence(self) -> list[float]:
+        """Per iteration: the log-evidence estimate of the grammar it started from."""
+        return [float(r["log_evidence"]) for r in self.iterations]
+
+
+def _numbers(values: Iterable[Any]) -> list[Any]:
+    """Numbers as JSON holds them (numpy's as Python's); what they are is checked as in a file."""
+    return [v.item() if isinstance(v, np.generic) else v for v in values]
+
+
+def _render(doc: dict[str, Any], path: str | Path, grammar: Grammar) -> Path:
+    from ssgc.render.scene import render_document
+
+    with np.errstate(all="ignore"):  # as in `ssg`: matplotlib's 3-D projection overflows harmlessly
+        render_document(doc, path, grammar.ir)
+    return Path(path)

@@ -1,0 +1,277 @@
+"""Scenes drawn in order and named, in memory or into a directory: `ssg sample`'s loop.
+
+Both ways of sampling (forward, `ssgc.sample.forward`; under constraints,
+`ssgc.sample.constrained`) draw scene i from the seed and i alone, so a run is a sequence of
+numbered scenes, each named `STEM_INDEX` (the grammar's name made a safe file stem, the index
+zero-padded to `index_width(n)`).  `draw_scenes` yields them; `sample_to_directory` writes
+them one JSON file each, under the directory's lock and manifest (`ssgc.io.resume`), and with
+`resume` keeps the complete files of an interrupted run and draws only the chunks missing one.
+The `ssg sample` command and the Python API (`ssgc.api.Grammar.sample`) both call these.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ssgc.errors import Diagnostic, SsgError
+from ssgc.io.outputs import Output, check_directory, directory_lock, write_output_text
+from ssgc.io.resume import (
+    SampledScenes,
+    prepare_sample_dir,
+    run_manifest,
+    scan_sampled,
+    write_manifest,
+)
+from ssgc.io.scene import Scene, dumps_scene, scene_from_tree, scene_stem
+from ssgc.ir import Grammar
+from ssgc.sample import forward
+from ssgc.sample.constrained import (
+    BLOCK,
+    Tally,
+    Unmet,
+    choose_method,
+    sample_blocks,
+    scene_metadata,
+    select,
+)
+
+# What a run does with each scene it draws: (scene, its file, seed, index, metadata).
+SceneWriter = Callable[[Scene, Path, int, int, dict[str, Any] | None], None]
+Progress = Callable[[int], None]  # called with the number of scenes just finished
+
+
+def index_width(n: int) -> int:
+    """Digits of the zero-padded index in scene names: at least 6, so names sort by index."""
+    return max(6, len(str(max(n - 1, 0))))
+
+
+@dataclass(frozen=True)
+class Drawn:
+    """Scene `index` of a run, and what its file records about how it was sampled."""
+
+    index: int
+    scene: Scene
+    metadata: dict[str, Any] | None = None
+
+
+@dataclass
+class Plan:
+    """How a run samples: forward, or under the chosen constraints by a method.  `asked` is
+    the options as given (`--constraints`, `--method`), which the run's manifest records."""
+
+    constraints: list[Any] = field(default_factory=list)
+    method: str | None = None  # the method chosen (never `auto`); None: forward sampling
+    asked: tuple[str | None, str | None] = (None, None)
+    max_tries: int | None = None
+    time_limit: float | None = None
+    jobs: int = 1  # processes drawing constrained blocks (the same scenes for any number)
+    tally: Tally = field(default_factory=Tally)
+
+    @property
+    def constrained(self) -> bool:
+        return self.method is not None
+
+
+def plan_sampling(
+    grammar: Grammar,
+    constraints: str | None = None,
+    method: str = "auto",
+    max_tries: int | None = None,
+    time_limit: float | None = None,
+    jobs: int = 1,
+) -> Plan:
+    """Check the sampling options: `constraints` is `all` or `NAME,NAME`; a try or time
+    limit only bounds constrained sampling, so it needs constraints."""
+    if constraints is None:
+        if (max_tries, time_limit) != (None, None):
+            raise SsgError.single("--max-tries and --time-limit need --constraints (all, or names)")
+        return Plan()
+    chosen = select(grammar, constraints)
+    chosen_method = choose_method(method, chosen)
+    return Plan(chosen, chosen_method, (constraints, method), max_tries, time_limit, jobs)
+
+
+def draw_scenes(
+    grammar: Grammar,
+    n: int,
+    seed: int,
+    plan: Plan | None = None,
+    have: SampledScenes | None = None,
+    progress: Progress | None = None,
+) -> Iterator[Drawn]:
+    """Scenes 0..n-1 in order, named as `ssg sample` names them.  With `have` (a resumed
+    run's complete files), the scenes it holds are skipped, and chunks without a missing scene
+    are not even drawn.  Constrained sampling raises `Unmet` when its try or time budget runs
+    out, after yielding the scenes found by then."""
+    plan = plan or Plan()
+    stem, width = scene_stem(grammar.name), index_width(n)
+
+    def name_of(index: int) -> str:
+        return f"{stem}_{index:0{width}d}"
+
+    if plan.constrained:
+        yield from _constrained(grammar, n, seed, plan, name_of, have, progress)
+    else:
+        yield from _forward(grammar, n, seed, name_of, have, progress)
+
+
+def _forward(
+    grammar: Grammar,
+    n: int,
+    seed: int,
+    name_of: Callable[[int], str],
+    have: SampledScenes | None,
+    progress: Progress | None,
+) -> Iterator[Drawn]:
+    step = progress or (lambda k: None)
+    for chunk in range((n + forward.CHUNK - 1) // forward.CHUNK):
+        lo, hi = chunk * forward.CHUNK, min(n, (chunk + 1) * forward.CHUNK)
+        if have is not None and have.done[lo:hi].all():
+            step(hi - lo)
+            continue  # nothing missing: the chunk is not even drawn
+        trees, logp = forward.sample_chunk(grammar, forward.chunk_rng(seed, chunk))
+        if have is not None:
+            have.check_same_draws(lo, logp[: hi - lo], name_of)
+        for index in range(lo, hi):
+            k = index - lo
+            if have is None or not have.done[index]:
+                scene = scene_from_tree(grammar, trees.tree(k), name_of(index), float(logp[k]))
+                yield Drawn(index, scene)
+            step(1)
+
+
+def _constrained(
+    grammar: Grammar,
+    n: int,
+    seed: int,
+    plan: Plan,
+    name_of: Callable[[int], str],
+    have: SampledScenes | None,
+    progress: Progress | None,
+) -> Iterator[Drawn]:
+    assert plan.method is not None
+    step = progress or (lambda k: None)
+    names = [c.name for c in plan.constraints]
+    every = range((n + BLOCK - 1) // BLOCK)
+    todo = [b for b in every if have is None or not have.done[b * BLOCK : (b + 1) * BLOCK].all()]
+    skipped = set(every) - set(todo)  # blocks whose scenes a resumed run all has
+    step(sum(min(n, (b + 1) * BLOCK) - b * BLOCK for b in skipped))
+    blocks = sample_blocks(
+        grammar,
+        plan.constraints,
+        n,
+        seed,
+        plan.method,
+        plan.max_tries,
+        plan.time_limit,
+        plan.tally,
+        None,
+        plan.jobs,
+        todo,
+    )
+    for block in blocks:
+        first = block.index * BLOCK
+        if have is not None:
+            have.check_same_draws(first, block.logp, name_of)
+        for k in range(block.trees.n_scenes):
+            index = first + k
+            if have is None or not have.done[index]:
+                tree = block.trees.tree(k)
+                scene = scene_from_tree(grammar, tree, name_of(index), float(block.logp[k]))
+                yield Drawn(index, scene, scene_metadata(plan.method, names, block.margins, k))
+            step(1)
+
+
+@dataclass
+class SampleRun:
+    """What `sample_to_directory` did, for the summary line."""
+
+    directory: Path
+    written: int = 0
+    first: Path | None = None  # the first and last file written
+    last: Path | None = None
+    resumed: bool = False  # an interrupted run was continued
+    kept: int = 0  # complete scene files of that run, kept
+    removed_temps: int = 0  # temporary files of a killed run, deleted (resume)
+
+
+def sample_to_directory(
+    grammar: Grammar,
+    grammar_file: Path,
+    output: Path,
+    n: int,
+    seed: int = 0,
+    plan: Plan | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    write: SceneWriter | None = None,
+    progress: Progress | None = None,
+) -> SampleRun:
+    """Write scenes 0..n-1 into `output`, one JSON file each, under the directory's lock.
+
+    The directory's manifest records the run; a directory holding another run's scenes is
+    refused unless `overwrite`, and `resume` keeps the complete files of this same run.
+    `write` replaces the plain scene file (`ssg sample --settle`,
+    `--export`).  Constrained sampling writes the manifest before its first scene, so a run
+    that finds none leaves the directory as it was, and on `Unmet` keeps the scenes found.
+    """
+    if resume and overwrite:
+        raise SsgError.single(
+            "--resume keeps a run's scenes and --overwrite deletes them: give one"
+        )
+    plan = plan or Plan()
+    check_directory(output)
+    write = write or _scene_file_writer(grammar)
+    with directory_lock(output):
+        manifest = run_manifest(grammar.name, grammar_file, seed, n, index_width(n))
+        manifest.update(constraints=plan.asked[0], method=plan.asked[1])
+        prepare_sample_dir(output, manifest, resume, overwrite)
+        have = None
+        if resume:
+            stem, width = scene_stem(grammar.name), index_width(n)
+            have = scan_sampled(
+                output, stem, lambda i: f"{stem}_{i:0{width}d}", n, grammar.name, seed
+            )
+        run = SampleRun(output)
+        if have is not None:
+            run.resumed, run.kept = True, int(have.done.sum())
+            run.removed_temps = have.removed_temps
+        if not plan.constrained:
+            _write_manifest(output, manifest)
+        try:
+            for drawn in draw_scenes(grammar, n, seed, plan, have, progress):
+                if plan.constrained and not run.written:
+                    _write_manifest(output, manifest)
+                path = output / f"{drawn.scene.name}.json"
+                write(drawn.scene, path, seed, drawn.index, drawn.metadata)
+                run.first, run.last = run.first or path, path
+                run.written += 1
+        except Unmet as exc:
+            if run.written:
+                note = f"kept the {run.written} complete scene file(s) found"
+                exc.diagnostics.append(Diagnostic(note, str(output)))
+            raise
+        _write_manifest(output, {**manifest, "complete": True})
+    return run
+
+
+def _scene_file_writer(grammar: Grammar) -> SceneWriter:
+    def write(
+        scene: Scene, path: Path, seed: int, index: int, metadata: dict[str, Any] | None
+    ) -> None:
+        text = dumps_scene(grammar, scene, seed=seed, index=index, metadata=metadata)
+        write_output_text(Output(path, path, "scene file"), text)
+
+    return write
+
+
+def _write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
+    try:
+        write_manifest(directory, manifest)
+    except OSError as exc:
+        raise SsgError.single(
+            f"cannot write the manifest: {exc.strerror}", str(directory)
+        ) from None

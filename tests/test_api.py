@@ -1,0 +1,105 @@
+"""The Python API (ssgc/api.py, docs/api.md): its examples run, and it gives what the commands
+give (the same scenes as `ssg sample`, the same parse as `ssg parse`)."""
+
+from __future__ import annotations
+
+import doctest
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import GRAMMARS, ROOT
+from typer.testing import CliRunner
+
+import ssgc
+from ssgc.api import Grammar, load_grammar
+from ssgc.cli.app import app
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def gmm() -> Grammar:
+    return load_grammar(GRAMMARS / "gmm.yaml")
+
+
+def test_the_examples_of_docs_api_md_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("matplotlib")
+    monkeypatch.chdir(ROOT)  # the examples name the bundled grammars from the repository root
+    result = doctest.testfile(
+        str(ROOT / "docs" / "api.md"),
+        module_relative=False,
+        optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE,
+        verbose=False,
+    )
+    assert result.attempted > 20
+    assert result.failed == 0
+
+
+def test_import_ssgc_loads_nothing_else() -> None:
+    code = (
+        "import sys, ssgc; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('ssgc', 'numpy', 'scipy', 'matplotlib', 'pydantic', 'typer') and m != 'ssgc'))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_the_callable_modules_stay_modules(gmm: Grammar) -> None:
+    import ssgc.parse.parser as parser_module  # bound before ssgc.parse is ever called
+
+    assert ssgc.parse.parser is parser_module
+    scene = gmm.sample(1, seed=2)[0]
+    assert ssgc.parse(gmm, scene).status == "optimal"
+    assert callable(ssgc.fit) and callable(ssgc.explain)
+    assert ssgc.explain.explain is not None  # the module's own function is still there
+
+
+def test_sampled_scenes_are_the_files_ssg_sample_writes(gmm: Grammar, tmp_path: Path) -> None:
+    out = tmp_path / "scenes"
+    args = ["sample", str(GRAMMARS / "gmm.yaml"), "-n", "5", "--seed", "7", "-o", str(out), "-q"]
+    assert runner.invoke(app, args).exit_code == 0
+    for scene in gmm.sample(5, seed=7):
+        doc = json.loads((out / f"{scene.name}.json").read_text())
+        del doc["seed"], doc["index"]
+        assert doc == json.loads(json.dumps(scene.to_json()))
+
+
+def test_a_parse_is_the_entry_ssg_parse_prints(gmm: Grammar, tmp_path: Path) -> None:
+    scene = gmm.sample(1, seed=3)[0]
+    path = scene.save(tmp_path / "scene.json")
+    result = runner.invoke(
+        app, ["parse", str(path), "-g", str(GRAMMARS / "gmm.yaml"), "--top", "2"]
+    )
+    assert result.exit_code == 0, result.output
+    printed = json.loads(result.stdout)["scenes"][0]
+    mine = gmm.parse(scene, top=2).to_json()
+    for doc in (printed, mine):
+        del doc["timing"]
+    assert printed == json.loads(json.dumps(mine))
+
+
+def test_a_scene_made_from_python_data_parses_like_the_sampled_one(gmm: Grammar) -> None:
+    sampled = gmm.sample(1, seed=4)[0]
+    mine = gmm.scene(list(zip(sampled.types, sampled.xyz, sampled.quat, strict=True)))
+    assert mine.tree is None and mine.types == sampled.types
+    a, b = gmm.parse(mine).best, gmm.parse(sampled).best
+    assert a is not None and b is not None
+    assert a.score == pytest.approx(b.score, abs=1e-9) and a.tree.same_as(b.tree)
+    assert a.tree.log_prob == pytest.approx(a.score, abs=1e-6)
+
+
+def test_an_infeasible_scene_is_a_status_and_explain_names_the_culprit(gmm: Grammar) -> None:
+    from ssgc.explain import UnexplainedScene
+
+    # the grammar makes exactly one Point: no tree contains two
+    scene = gmm.scene([("Root", [0, 0, 0]), ("Point", [1, 0, 0]), ("Point", [0, 1, 0])])
+    result = gmm.parse(scene)
+    assert result.status == "infeasible" and result.best is None
+    assert "2 Point (at most 1)" in result.message
+    with pytest.raises(UnexplainedScene) as caught:
+        gmm.explain(scene)
+    assert caught.value.status == "infeasible"
