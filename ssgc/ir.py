@@ -61,6 +61,10 @@ class NodeType:
     labels: tuple[str, ...] = ()
     fixed: bool = False
     path: Loc = ()
+    # "" for a type of the document; else what the observation model added it for
+    # (`ssgc.observation`): "scene" (the new root), "node" (an observed root's own node),
+    # "clutter" (the clutter set and its placement)
+    synthetic: str = ""
 
 
 @dataclass(frozen=True)
