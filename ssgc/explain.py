@@ -35,6 +35,7 @@ from ssgc.laws.base import Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.position_normal import NormalTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.observation import unexplained_objects
 from ssgc.rules import (
     rotation_coordinates,
     rotation_log_density,
@@ -85,6 +86,7 @@ class ObjectExplanation:
     unusual: float
     pose_gain: float
     reasons: list[Reason] = field(default_factory=list)
+    unexplained: bool = False  # the best parse leaves it to clutter (`observation: clutter`)
 
     @property
     def label(self) -> str:
@@ -97,6 +99,7 @@ class ObjectExplanation:
             "share": self.share,
             "unusual": self.unusual,
             "pose_gain": self.pose_gain,
+            "unexplained": self.unexplained,
             "reasons": [r.to_json() for r in self.reasons],
         }
 
@@ -131,7 +134,8 @@ class Explanation:
             f"({self.nats_per_object:.3f} per object); most unusual first:"
         ]
         for o in self.objects[:limit]:
-            lines.append(f"  {o.label}: unusual {o.unusual:.2f}, share {o.share:.3f}")
+            clutter = " UNEXPLAINED (clutter)," if o.unexplained else ""
+            lines.append(f"  {o.label}:{clutter} unusual {o.unusual:.2f}, share {o.share:.3f}")
             for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
                 lines.append(f"    {r.text}")
         if self.rules:
@@ -224,8 +228,11 @@ def explain_tree(
             gain = max(gain, _reparsed_gain(parser, scene, o, fix, log_prob, time_limit))
         objects[o].pose_gain = gain
         objects[o].unusual += gain
+    for o in unexplained_objects(grammar, scene, tree):
+        objects[o].unexplained = True
     unattributed = -log_prob if len(scene) == 0 else 0.0
-    objects.sort(key=lambda o: (-o.unusual, -o.share, o.index))
+    # what the grammar leaves unexplained comes first, then the most unusual
+    objects.sort(key=lambda o: (not o.unexplained, -o.unusual, -o.share, o.index))
     return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed)
 
 

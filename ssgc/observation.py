@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from math import lgamma, log
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,7 +46,6 @@ from ssgc.distributions.bingham import Bingham
 from ssgc.distributions.discrete import CountLaw
 from ssgc.distributions.normal import Normal
 from ssgc.distributions.uniform import UniformBox
-from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind, Loc, NodeType, Rule
 from ssgc.laws.base import Frame, PoseLaw, frozen
 from ssgc.laws.counts import ProbsCount
@@ -56,7 +55,10 @@ from ssgc.laws.position_normal import NormalTranslation, Spread
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION, BinghamRotation, Form
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.laws.rotation_uniform import UniformRotation
-from ssgc.tree import Trees
+
+if TYPE_CHECKING:
+    from ssgc.io.scene import Scene
+    from ssgc.tree import Trees
 
 LOC: Loc = ("observation",)
 SCENE, CLUTTER = "~scene", "~clutter"
