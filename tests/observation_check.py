@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ssgc.compile import compile_text, load_grammar
-from ssgc.explain import match_objects
+from ssgc.explain import blocks, match_objects
 from ssgc.geometry import axis_angle_to_quat, quat_multiply
 from ssgc.io.scene import Scene, load_scenes
 from ssgc.ir import Grammar
@@ -58,27 +58,28 @@ def jitter(scene: Scene, rng: np.random.Generator, metres: float, degrees: float
 
 def structure(g: Grammar, scene: Scene, tree: Trees) -> list[tuple[int, tuple[str, ...]]]:
     """For each object of the scene (in scene order): the object it hangs under (-1: none)
-    and the names of the document's types on the way.  Nodes the observation model adds are
-    left out, and an observed root's own node (`~node:NAME`) stands for that object."""
+    and the names of the document's types on the way.  An object's node stands for the nodes
+    of its block (joined by fixed rules: in `sink`, `Bowl` and the bowl object are one block);
+    nodes the observation model adds are left out, and an observed root's own node
+    (`~node:NAME`) stands for that object."""
     obj_of = match_objects(g, scene, tree)
-    node_of = [int(np.flatnonzero(obj_of == i)[0]) for i in range(len(scene))]
-    object_of = {int(node): i for i, node in enumerate(node_of)}
-    for node in range(len(tree.type)):  # the root's own node stands for the root object
-        t = g.types[int(tree.type[node])]
+    top = blocks(g, tree)
+    owner = {int(top[n]): int(o) for n, o in enumerate(obj_of) if o >= 0}
+    for n in range(len(tree.type)):
+        t = g.types[int(tree.type[n])]
         if t.synthetic == "node":
             twin = g.type_ids[t.name.split(":", 1)[1]]
-            for i in np.flatnonzero(scene.types == twin):
-                object_of.setdefault(node, int(i))
+            owner[int(top[n])] = int(np.flatnonzero(scene.types == twin)[0])
     out = []
-    for node in node_of:
+    for i in range(len(scene)):
+        node = int(np.flatnonzero(obj_of == i)[0])
         chain: list[str] = []
-        a = int(tree.parent[node])
-        while a >= 0 and a not in object_of:
+        a = node
+        while a >= 0 and owner.get(int(top[a]), i) == i:
             if not g.types[int(tree.type[a])].synthetic:
                 chain.append(g.types[int(tree.type[a])].name)
             a = int(tree.parent[a])
-        above = object_of.get(a, -1)
-        out.append((-1 if above == object_of.get(int(node)) else above, tuple(chain)))
+        out.append((owner[int(top[a])] if a >= 0 else -1, tuple(chain)))
     return out
 
 
