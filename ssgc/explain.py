@@ -25,16 +25,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
-from scipy.stats import chi2
 
 from ssgc.errors import SsgError
-from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate, quat_to_matrix
+from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.laws.base import Frame
-from ssgc.laws.position_box import BoxTranslation
-from ssgc.laws.position_normal import NormalTranslation
-from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.laws.base import Context, Deviation, Frame, percent
 from ssgc.observation import unexplained_objects
 from ssgc.rules import (
     rotation_coordinates,
@@ -579,13 +575,15 @@ def _sentence(
     if kind == "position":
         return _position_words(grammar, tree, obj_of, term)
     if kind == "rotation":
-        return _rotation_words(grammar, tree, term, expect)
+        return _rotation_words(grammar, tree, obj_of, term, expect)
     t = grammar.types[tree.type[i]]
     kids = np.flatnonzero(tree.parent == i)
     if kind == "count":
         tail = _discrete_tail(np.asarray(t.count.probs) if t.count else np.ones(1), len(kids))
         term["percentile"] = tail
-        return f"{t.name} holds {len(kids)} (P = {np.exp(lp):.3g}; {_pct(tail)} of counts as rare)"
+        return (
+            f"{t.name} holds {len(kids)} (P = {np.exp(lp):.3g}; {percent(tail)} of counts as rare)"
+        )
     chosen = ", ".join(grammar.types[tree.type[c]].name for c in kids) or "nothing"
     if t.kind == Kind.OR and len(kids) == 1:
         probs = np.asarray(t.probs) / np.sum(t.probs)
@@ -602,55 +600,33 @@ def _discrete_tail(probs: FloatArray, k: int) -> float:
     return float(np.sum(probs[probs <= probs[k] + 1e-15]))
 
 
-def _pct(p: float) -> str:
-    return f"{100 * p:.2g}%"
-
-
 def _position_words(grammar: Grammar, tree: Trees, obj_of: IntArray, term: dict[str, Any]) -> str:
     i, r = term["node"], term["rid"]
     p = tree.parent[i]
     u = translation_coordinates(
         grammar, np.array([r]), tree.xyz[p][None], tree.quat[p][None], tree.xyz[i][None]
     )[0]
-    parent = _name(grammar, tree, obj_of, int(p))
-    law = grammar.rules[r].translation
-    if isinstance(law, BoxTranslation):
-        return f"position inside the box where {parent} places it (every point equally likely)"
-    if not isinstance(law, NormalTranslation):
-        return f"position placed by {parent} ({law.key}), log p {term['log_prob']:.3g}"
-    free = law.free
-    d = float(np.linalg.norm(np.where(free, u - law.offset, 0.0)))
-    m2 = max(0.0, -2.0 * (term["log_prob"] - law.supremum()))
-    sigma = float(np.sqrt(m2))
-    term["sigma"] = sigma
-    term["percentile"] = float(chi2.sf(m2, int(free.sum())))
-    return (
-        f"position {d:.2f} m from where its parent {parent} places it ({sigma:.1f}σ, "
-        f"{_pct(term['percentile'])} of placements are farther)"
-    )
+    ctx = Context(_name(grammar, tree, obj_of, int(p)), lambda lp: float("nan"))
+    return _worded(grammar.rules[r].translation.describe_deviation(u, term["log_prob"], ctx), term)
 
 
 def _rotation_words(
-    grammar: Grammar, tree: Trees, term: dict[str, Any], expect: _Expectations
+    grammar: Grammar, tree: Trees, obj_of: IntArray, term: dict[str, Any], expect: _Expectations
 ) -> str:
     i, r = term["node"], term["rid"]
-    law = grammar.rules[r].rotation
-    if isinstance(law, RevoluteRotation):
-        return "rotation about its rule's axis, every allowed angle equally likely"
-    if law.mode() is None:
-        return "rotation: any rotation is equally likely"
     p = tree.parent[i]
     rel = rotation_coordinates(grammar, np.array([r]), tree.quat[p][None], tree.quat[i][None])[0]
-    mode = _rel_mode(grammar, r)
-    assert mode is not None
-    angle = float(np.degrees(quat_angle(rel, mode)))
-    up_now = quat_to_matrix(rel)[:, 2]
-    up_mode = quat_to_matrix(mode)[:, 2]
-    flipped = float(np.dot(up_now, up_mode)) < 0
-    pct = expect.percentile(r, term["log_prob"])
-    term["percentile"] = pct
-    how = "upside down, " if flipped else ""
-    return f"rotation: {how}{angle:.0f}° from the most likely, {_pct(pct)} likely"
+    ctx = Context(_name(grammar, tree, obj_of, int(p)), lambda lp: expect.percentile(r, lp))
+    return _worded(grammar.rules[r].rotation.describe_deviation(rel, term["log_prob"], ctx), term)
+
+
+def _worded(d: Deviation, term: dict[str, Any]) -> str:
+    """The law's words for a term; its sigma and percentile join the term."""
+    if d.sigma is not None:
+        term["sigma"] = d.sigma
+    if d.percentile is not None:
+        term["percentile"] = d.percentile
+    return d.text
 
 
 # ------------------------------------------------ scenes with no parse at all ---
@@ -839,29 +815,12 @@ def _failure(
     tree: Trees,
     p: int,
 ) -> str:
-    axes = "xyz"
     rule = grammar.rules[r]
     if not np.isfinite(lt):
-        law = rule.translation
-        if isinstance(law, BoxTranslation):
-            out = np.maximum(law.box.lo - u, u - law.box.hi)
-            a = int(np.argmax(out))
-            return f"outside its box on {axes[a]} by {out[a]:.3g} m"
-        if law.point is not None:
-            off, what = u - law.point, "fixed offset"
-        elif isinstance(law, NormalTranslation):
-            off, what = np.where(law.free, 0.0, u - law.offset), "pinned axis"
-        else:
-            return f"its position has no density under {law.key}"
-        a = int(np.argmax(np.abs(off)))
-        what = what if law.point is not None else f"{what} {axes[a]}"
-        return f"{what} off by {off[a]:+.3g} m"
+        return rule.translation.describe_violation(u)
     if not np.isfinite(lr):
         rel = rotation_coordinates(grammar, np.array([r]), pq[None], q[None])[0]
-        if rule.rotation.point is not None:
-            ang = float(np.degrees(quat_angle(rel, rule.rotation.point)))
-            return f"fixed rotation off by {ang:.3g}°"
-        return "rotation outside the rule's revolute range or axis"
+        return rule.rotation.describe_violation(rel)
     t = grammar.types[tree.type[p]]
     held = int(np.sum(tree.parent == p))
     if t.kind == Kind.REPEAT and t.count is not None and held >= len(t.count.probs) - 1:
