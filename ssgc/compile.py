@@ -217,6 +217,7 @@ class Compiler(Report):
             warnings=tuple(self.warnings),
             type_ids=seen.ids,
             constraints=constraints,
+            observation=self.doc.observation,
         )
 
     # ----------------------------------------------------------------- node types ---

@@ -19,6 +19,7 @@ Two numbers per object, for two questions (docs/explain.md):
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -717,7 +718,34 @@ def diagnose(
             + "; ".join(" and ".join(names[o] for o in f[1]) for f in found[1:6])
             + ")"
         )
+    message += _hint(grammar, [r for o in drop for r in reasons[o]])
     return Diagnosis(scene.name, drop, reasons, [f[1] for f in found[1:]], message)
+
+
+SMALL_M, SMALL_DEG = 0.05, 10.0  # offsets a sensor's error could explain
+
+
+def _hint(grammar: Grammar, reasons: list[str]) -> str:
+    """What in the grammar language would let such a scene parse, when the grammar lacks it:
+    sensor noise for small offsets from exact placements, clutter for unknown objects."""
+    spec = grammar.observation
+    hints = []
+    small = False
+    for r in reasons:
+        m = re.search(r"(pinned axis \w|fixed offset) off by ([-+0-9.e]+) m", r)
+        d = re.search(r"fixed rotation off by ([0-9.e+-]+)°", r)
+        small |= bool(m and abs(float(m.group(2))) <= SMALL_M)
+        small |= bool(d and float(d.group(1)) <= SMALL_DEG)
+    if small and (spec is None or not spec.noise):
+        hints.append(
+            "poses from a sensor are never exact: an `observation: noise` section tolerates "
+            "such offsets"
+        )
+    if any("never produces" in r for r in reasons) and (spec is None or spec.clutter is None):
+        hints.append("an `observation: clutter` section lets objects stay unexplained")
+    if not hints:
+        return ""
+    return " Hint: " + "; ".join(hints) + " (docs/grammar.md, section 9)."
 
 
 def _without(scene: Scene, drop: list[int]) -> Scene:
@@ -747,10 +775,11 @@ def _why_not(
             (scene.types[kept] == tree.type[i])
             & (np.linalg.norm(scene.xyz[kept] - tree.xyz[i], axis=1) < 1e-6)
         )
+        x, y, z = tree.xyz[i]
         kept_names[i] = (
             f"{grammar.types[tree.type[i]].name} #{kept[same[0]]}"
             if len(same)
-            else grammar.types[tree.type[i]].name
+            else f"{grammar.types[tree.type[i]].name} at ({x:.2f}, {y:.2f}, {z:.2f})"
         )
     for vt, x, q in _fixed_ancestors(grammar, t, scene.xyz[o], scene.quat[o]):
         for r in np.flatnonzero(tb.rule_child == vt):

@@ -123,6 +123,7 @@ class Grammar:
     warnings: tuple[Diagnostic, ...] = ()
     type_ids: dict[str, int] = field(default_factory=dict)
     constraints: tuple[Any, ...] = ()  # ssgc.constraints.Constraint, in file order
+    observation: Any = None  # the validated `observation` section (ssgc.observation), if any
 
     def type_id(self, name: str) -> int:
         return self.type_ids[name]

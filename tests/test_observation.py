@@ -219,3 +219,16 @@ def test_real_sink_scenes_with_noise_and_clutter():
     assert noise["same_tree"] >= 78, noise["differ"]
     clutter = clutter_check()
     assert clutter["sponge_flagged_alone"] == 80, clutter["wrong"]
+
+
+def test_the_diagnosis_hints_at_noise_and_clutter():
+    g = compile_text(DINNER + "  Sponge: {observed: true}\n")
+    scene = dinner_scene(g)
+    with pytest.raises(UnexplainedScene) as info:
+        explain(g, moved(scene, 4, [0.0, 0.0, 0.01]))
+    assert "`observation: noise`" in info.value.diagnosis.message
+    sponge = replace(scene, types=np.r_[scene.types[:5], g.type_ids["Sponge"]])
+    with pytest.raises(UnexplainedScene) as info:
+        explain(g, sponge)
+    assert "`observation: clutter`" in info.value.diagnosis.message
+    assert "`observation: noise`" not in info.value.diagnosis.message
