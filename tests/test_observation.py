@@ -232,3 +232,18 @@ def test_the_diagnosis_hints_at_noise_and_clutter():
         explain(g, sponge)
     assert "`observation: clutter`" in info.value.diagnosis.message
     assert "`observation: noise`" not in info.value.diagnosis.message
+
+
+def test_render_marks_clutter_objects():
+    from ssgc.render.scene import View, unexplained
+
+    view = View(
+        "s",
+        "s",
+        ("~scene", "Table", "~clutter", "~clutter:object", "Sponge", "Plate"),
+        np.zeros((6, 3)),
+        np.tile([1.0, 0, 0, 0], (6, 1)),
+        np.array([False, True, False, False, True, True]),
+        np.array([-1, 0, 0, 2, 3, 1]),
+    )
+    assert unexplained(view).tolist() == [False, False, False, False, True, False]
