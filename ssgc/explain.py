@@ -558,10 +558,14 @@ def _name(grammar: Grammar, tree: Trees, obj_of: IntArray, node: int) -> str:
     """A node as a user knows it: the object of its block, else its type."""
     top = blocks(grammar, tree)
     same = np.flatnonzero((top == top[node]) & (obj_of >= 0))
+    t = grammar.types[tree.type[node]]
+    if not len(same) and t.synthetic == "node":  # an observed root's own node: that object
+        twin = grammar.type_ids[t.name.split(":", 1)[1]]
+        same = np.flatnonzero((tree.type == twin) & (obj_of >= 0))
     if len(same):
         o = same[0]
         return f"{grammar.types[tree.type[o]].name} #{obj_of[o]}"
-    return grammar.types[tree.type[node]].name
+    return t.name
 
 
 def _sentence(

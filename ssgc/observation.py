@@ -278,7 +278,7 @@ def _observe_root(g: Observed, noise: Noise) -> None:
     pose, and the observed object is a noisy child of that node (under a new root)."""
     old = g.types[g.root]
     node = _new_type(g, NODE_PREFIX + old.name, "node", old.kind, old.rules, old.probs)
-    node = dataclasses.replace(node, count=old.count, max_nesting=None)
+    node = dataclasses.replace(node, count=old.count, fixed=old.fixed, path=old.path)
     g.types[node.id] = node
     for rid in old.rules:
         g.rules[rid] = dataclasses.replace(g.rules[rid], parent=node.id)

@@ -18,6 +18,7 @@ from ssgc.cli.app import app
 from ssgc.compile import compile_text
 from ssgc.errors import GrammarError
 from ssgc.explain import UnexplainedScene, explain
+from ssgc.fit.em import parameter_ties
 from ssgc.io.scene import Scene, scene_from_tree
 from ssgc.laws.position_normal import NormalTranslation
 from ssgc.laws.rotation_bingham import BinghamRotation
@@ -125,8 +126,13 @@ def _mug_plates(g, scene: Scene, tree) -> list[int]:
 
 def test_an_observed_root_with_noise_gets_its_own_node():
     text = DINNER.replace("  Table:\n", "  Table:\n    observed: true\n", 1)
-    g = compile_text(text + "observation:\n  noise:\n    default: {position: 0.003}\n")
+    text += "observation:\n  noise:\n    default: {position: 0.003}\n"
+    g = compile_text(text, "dinner.yaml")
     names = [t.name for t in g.types]
+    # its node holds the root's rules and count law where the document wrote them (ssg fit)
+    node = g.types[g.type_ids["~node:Table"]]
+    assert node.path == ("types", "Table") and node.count is not None
+    parameter_ties(g, text, "dinner.yaml")  # every fitted parameter has its place
     assert g.types[g.root].name == "~scene" and "~node:Table" in names
     assert g.types[g.type_ids["Table"]].observed and not g.types[g.type_ids["Table"]].rules
     # a sampled scene: the observed table is off the root pose by the noise, and it parses
