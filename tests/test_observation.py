@@ -3,6 +3,7 @@ on observed poses and clutter objects (issue 16, item 4)."""
 
 from __future__ import annotations
 
+import json
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -253,3 +254,19 @@ def test_render_marks_clutter_objects():
         np.array([-1, 0, 0, 2, 3, 1]),
     )
     assert unexplained(view).tolist() == [False, False, False, False, True, False]
+
+
+def test_parse_cli_lists_the_unexplained_objects(tmp_path: Path):
+    g = with_section(CLUTTER)
+    scene = dinner_scene(g)
+    grammar, path, out = tmp_path / "g.yaml", tmp_path / "scene.json", tmp_path / "out.json"
+    grammar.write_text(DINNER + CLUTTER)
+    objects = [
+        {"type": g.types[int(t)].name, "pose": {"xyz": list(x), "quat_wxyz": list(q)}}
+        for t, x, q in zip(scene.types, scene.xyz, scene.quat, strict=True)
+    ]
+    objects.append({"type": "Sponge", "pose": {"xyz": [0.2, 0.2, 0.8]}})
+    path.write_text(json.dumps({"grammar": "dinner", "objects": objects}))
+    result = CliRunner().invoke(app, ["parse", str(path), "-g", str(grammar), "-o", str(out), "-q"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(out.read_text())["scenes"][0]["parses"][0]["unexplained"] == [6]
