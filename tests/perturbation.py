@@ -78,6 +78,7 @@ def run(
         for i, scene in enumerate(scenes):
             changed, o = perturb(scene, kind, np.random.default_rng([seed, k, i]), types)
             result = parser.parse(changed, top=1)
+            mine = 0.0
             if result.parses:
                 e = explain_tree(g, changed, result.parses[0].tree, parser)
                 ok = e.objects[0].index == o
@@ -93,7 +94,16 @@ def run(
                 ok = d.objects == [o]
                 named += ok
             first += ok
-            print(kind, i, scene.name, "first" if ok else "missed", file=sys.stderr, flush=True)
+            detail = f"unusual {mine:.2f} natural {natural[i]:.2f}" if result.parses else ""
+            print(
+                kind,
+                i,
+                scene.name,
+                "first" if ok else "missed",
+                detail,
+                file=sys.stderr,
+                flush=True,
+            )
             if not ok:
                 misses.append(scene.name)
         out[kind] = {
