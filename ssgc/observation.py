@@ -183,13 +183,11 @@ def _widen(g: Observed, noise: dict[int, Noise], root: int) -> None:
     n_types = len(g.types)
     fixed = [r for r in g.rules if _is_fixed(r)]
     into_noisy = [r for r in fixed if noise.get(r.child)]
-    other = [r for r in fixed if not noise.get(r.child)]
-    comp = _components(n_types, other)
-    anchored = {comp[t] for t in noise}
     # A fixed rule into a noisy observed child keeps the child's pose tied to its parent's
-    # unless the parent's side has an observation of its own: then two observed poses are
-    # joined, and the noise must be on that rule.
-    loose = {r.id for r in into_noisy if comp[r.parent] in anchored}
+    # unless the parent's pose is always an observed pose already: then two observed poses
+    # are joined, and the noise must be on that rule.
+    tied = _tied_types(g, {r.id for r in into_noisy})
+    loose = {r.id for r in into_noisy if tied[r.parent]}
     comp = _components(n_types, [r for r in fixed if r.id not in loose])
     members: dict[int, list[Noise]] = {}
     for t, n in noise.items():
@@ -206,6 +204,30 @@ def _widen(g: Observed, noise: dict[int, Noise], root: int) -> None:
                 translation=_noisy_translation(r.translation, child, parent),
                 rotation=_noisy_rotation(r.rotation, child, parent),
             )
+
+
+def _tied_types(g: Observed, loose_candidates: set[int]) -> list[bool]:
+    """Which types always share their pose with an observed node: observed types, and types
+    that every rule producing them places by a fixed rule from such a type (rules in
+    `loose_candidates` do not count: they may get noise).  Type-level and sound: an `or`
+    above two kinds of object does not make either kind tied to the other."""
+    into: dict[int, list[Rule]] = {}
+    for r in g.rules:
+        into.setdefault(r.child, []).append(r)
+    state: dict[int, bool] = {}
+
+    def tied(t: int) -> bool:
+        if t in state:
+            return state[t]
+        state[t] = False  # a cycle does not tie anything
+        rules = into.get(t, [])
+        state[t] = g.types[t].observed or (
+            bool(rules)
+            and all(_is_fixed(r) and r.id not in loose_candidates and tied(r.parent) for r in rules)
+        )
+        return state[t]
+
+    return [tied(t) for t in range(len(g.types))]
 
 
 def _noisy_translation(law: PoseLaw, child: Noise, parent: Noise) -> PoseLaw:

@@ -270,3 +270,26 @@ def test_parse_cli_lists_the_unexplained_objects(tmp_path: Path):
     result = CliRunner().invoke(app, ["parse", str(path), "-g", str(grammar), "-o", str(out), "-q"])
     assert result.exit_code == 0, result.output
     assert json.loads(out.read_text())["scenes"][0]["parses"][0]["unexplained"] == [6]
+
+
+def test_noise_on_some_types_keeps_every_block_observed():
+    """Noise on the mugs only: the fixed rule into a mug stays fixed (its `or` parent's pose is
+    the mug's own), even though the plates' side of the same `or` is observed exactly."""
+    text = (
+        "grammar: g\nroot: Bin\ntypes:\n  Bin:\n    observed: true\n    repeat:\n"
+        "      count: {probs: [0, 0.5, 0.5]}\n      rule:\n        child: Thing\n"
+        "        translation: {world_normal: {mean: [0, 0, 0], variance: 0.01}}\n"
+        "        rotation: {world_bingham: {concentration: 10}}\n"
+        "  Thing:\n    or:\n      - child: Plate\n      - child: Mug\n"
+        "  Plate: {observed: true}\n  Mug: {observed: true}\n"
+        "observation:\n  noise:\n    Mug: {position: 0.005}\n"
+    )
+    g = compile_text(text)
+    into = {g.types[r.child].name: r for r in g.rules}
+    assert into["Mug"].translation.point is not None  # still one block with Thing
+    assert into["Thing"].translation.normal.cov[0, 0] == pytest.approx(0.01 + 0.005**2)
+    trees, logp = sample_trees(g, 4, 1)
+    parser = Parser(g)
+    for i in range(4):
+        best = parser.parse(scene_from_tree(g, trees.tree(i), f"s{i}")).parses[0]
+        assert best.score >= logp[i] - 1e-6
