@@ -99,9 +99,11 @@ def annotate(
     quiet: bool,
 ) -> dict[str, Any]:
     """`ssg parse`'s JSON of one scene, with the diagnosis of an infeasible scene (its message
-    names the objects and rules that rule it out), the explanation with --explain, and a note
-    when fewer than --top distinct trees exist."""
+    names the objects and rules that rule it out), the explanation with --explain, the objects
+    each parse leaves to clutter (`observation: clutter`), and a note when fewer than --top
+    distinct trees exist."""
     from ssgc.explain import diagnose, explain_tree
+    from ssgc.observation import unexplained_objects
     from ssgc.parse.parser import result_to_json
 
     g = parser.grammar
@@ -111,6 +113,9 @@ def annotate(
         row["message"] = d.message
         row["diagnosis"] = d.to_json()
     elif result.parses:
+        if g.observation is not None and g.observation.clutter is not None:
+            for parse, p in zip(row["parses"], result.parses, strict=True):
+                parse["unexplained"] = unexplained_objects(g, scene, p.tree)
         if explain_it:
             e = explain_tree(g, scene, result.parses[0].tree, parser, time_limit)
             row["explanation"] = e.to_json()

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from pydantic import ValidationError
 
 import ssgc.laws  # noqa: F401  (registers the built-in laws)
-from ssgc import dsl
+from ssgc import dsl, observation
 from ssgc.checks import Finding, check_reachable, check_recursion, check_references
 from ssgc.constraints.build import build_constraints
 from ssgc.errors import Diagnostic, GrammarError, SsgError, one_line
@@ -203,19 +203,25 @@ class Compiler(Report):
         constraints = build_constraints(self, types, rules, root, sound=not self.errors)
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
-        types_t, rules_t = tuple(types), tuple(rules)
+        seen = observation.apply(
+            self.doc.observation, types, rules, self.ids[root_spec.type], self.ids, self
+        )
+        if self.errors:
+            raise GrammarError(self.errors + self.warnings)
+        types_t, rules_t = tuple(seen.types), tuple(seen.rules)
         return Grammar(
             name=self.doc.grammar,
             file=self.source.file,
             types=types_t,
             rules=rules_t,
-            root=self.ids[root_spec.type],
+            root=seen.root,
             root_xyz=frozen(root_spec.pose.xyz),
             root_quat=frozen(root_quat),
             tables=build_tables(types_t, rules_t),
             warnings=tuple(self.warnings),
-            type_ids=dict(self.ids),
+            type_ids=seen.ids,
             constraints=constraints,
+            observation=self.doc.observation,
         )
 
     # ----------------------------------------------------------------- node types ---

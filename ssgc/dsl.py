@@ -515,6 +515,40 @@ class Root(Strict):
     pose: Pose = Field(default_factory=Pose)
 
 
+class NoiseSpec(Strict):
+    """Sensor noise of one observed type: the standard deviation of each position coordinate
+    and of the rotation angle about each axis (docs/grammar.md, section 9)."""
+
+    position: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = Field(
+        0.0, description="Standard deviation of each position coordinate, in metres."
+    )
+    rotation_deg: Annotated[float, Field(ge=0, le=90, allow_inf_nan=False)] = Field(
+        0.0, description="Standard deviation of the rotation about each axis, in degrees."
+    )
+
+
+class ClutterSpec(Strict):
+    """Objects the grammar does not explain: a Poisson number per type, uniform over a box."""
+
+    region: BoxParams = Field(description="World box where clutter objects lie.")
+    rates: dict[TypeName, Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)]] = Field(
+        min_length=1, description="Expected number of clutter objects per scene, per type."
+    )
+    max: Annotated[int, Field(ge=1, le=10)] = Field(
+        3, description="At most this many clutter objects in a scene."
+    )
+
+
+class ObservationSpec(Strict):
+    """How scenes are observed: pose noise per observed type, and clutter."""
+
+    noise: dict[TypeName, NoiseSpec] = Field(
+        default_factory=dict,
+        description="Per observed type (or `default` for all others): its pose noise.",
+    )
+    clutter: ClutterSpec | None = None
+
+
 class GrammarDoc(Strict):
     """A spatial scene grammar (thesis Ch. 2.3)."""
 
@@ -526,6 +560,9 @@ class GrammarDoc(Strict):
     types: dict[TypeName, NodeType] = Field(min_length=1)
     constraints: dict[ConstraintName, ConstraintSpec] = Field(  # type: ignore[valid-type]
         default_factory=dict, description="Named scene constraints (docs/constraints.md)."
+    )
+    observation: ObservationSpec | None = Field(
+        None, description="Sensor noise and clutter (docs/grammar.md, section 9)."
     )
 
     @property

@@ -19,22 +19,20 @@ Two numbers per object, for two questions (docs/explain.md):
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
-from scipy.stats import chi2
 
 from ssgc.errors import SsgError
-from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate, quat_to_matrix
+from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.laws.base import Frame
-from ssgc.laws.position_box import BoxTranslation
-from ssgc.laws.position_normal import NormalTranslation
-from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.laws.base import Context, Deviation, Frame, percent
+from ssgc.observation import unexplained_objects
 from ssgc.rules import (
     rotation_coordinates,
     rotation_log_density,
@@ -85,6 +83,7 @@ class ObjectExplanation:
     unusual: float
     pose_gain: float
     reasons: list[Reason] = field(default_factory=list)
+    unexplained: bool = False  # the best parse leaves it to clutter (`observation: clutter`)
 
     @property
     def label(self) -> str:
@@ -97,6 +96,7 @@ class ObjectExplanation:
             "share": self.share,
             "unusual": self.unusual,
             "pose_gain": self.pose_gain,
+            "unexplained": self.unexplained,
             "reasons": [r.to_json() for r in self.reasons],
         }
 
@@ -131,7 +131,8 @@ class Explanation:
             f"({self.nats_per_object:.3f} per object); most unusual first:"
         ]
         for o in self.objects[:limit]:
-            lines.append(f"  {o.label}: unusual {o.unusual:.2f}, share {o.share:.3f}")
+            clutter = " UNEXPLAINED (clutter)," if o.unexplained else ""
+            lines.append(f"  {o.label}:{clutter} unusual {o.unusual:.2f}, share {o.share:.3f}")
             for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
                 lines.append(f"    {r.text}")
         if self.rules:
@@ -224,8 +225,11 @@ def explain_tree(
             gain = max(gain, _reparsed_gain(parser, scene, o, fix, log_prob, time_limit))
         objects[o].pose_gain = gain
         objects[o].unusual += gain
+    for o in unexplained_objects(grammar, scene, tree):
+        objects[o].unexplained = True
     unattributed = -log_prob if len(scene) == 0 else 0.0
-    objects.sort(key=lambda o: (-o.unusual, -o.share, o.index))
+    # what the grammar leaves unexplained comes first, then the most unusual
+    objects.sort(key=lambda o: (not o.unexplained, -o.unusual, -o.share, o.index))
     return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed)
 
 
@@ -554,10 +558,14 @@ def _name(grammar: Grammar, tree: Trees, obj_of: IntArray, node: int) -> str:
     """A node as a user knows it: the object of its block, else its type."""
     top = blocks(grammar, tree)
     same = np.flatnonzero((top == top[node]) & (obj_of >= 0))
+    t = grammar.types[tree.type[node]]
+    if not len(same) and t.synthetic == "node":  # an observed root's own node: that object
+        twin = grammar.type_ids[t.name.split(":", 1)[1]]
+        same = np.flatnonzero((tree.type == twin) & (obj_of >= 0))
     if len(same):
         o = same[0]
         return f"{grammar.types[tree.type[o]].name} #{obj_of[o]}"
-    return grammar.types[tree.type[node]].name
+    return t.name
 
 
 def _sentence(
@@ -572,13 +580,15 @@ def _sentence(
     if kind == "position":
         return _position_words(grammar, tree, obj_of, term)
     if kind == "rotation":
-        return _rotation_words(grammar, tree, term, expect)
+        return _rotation_words(grammar, tree, obj_of, term, expect)
     t = grammar.types[tree.type[i]]
     kids = np.flatnonzero(tree.parent == i)
     if kind == "count":
         tail = _discrete_tail(np.asarray(t.count.probs) if t.count else np.ones(1), len(kids))
         term["percentile"] = tail
-        return f"{t.name} holds {len(kids)} (P = {np.exp(lp):.3g}; {_pct(tail)} of counts as rare)"
+        return (
+            f"{t.name} holds {len(kids)} (P = {np.exp(lp):.3g}; {percent(tail)} of counts as rare)"
+        )
     chosen = ", ".join(grammar.types[tree.type[c]].name for c in kids) or "nothing"
     if t.kind == Kind.OR and len(kids) == 1:
         probs = np.asarray(t.probs) / np.sum(t.probs)
@@ -595,55 +605,33 @@ def _discrete_tail(probs: FloatArray, k: int) -> float:
     return float(np.sum(probs[probs <= probs[k] + 1e-15]))
 
 
-def _pct(p: float) -> str:
-    return f"{100 * p:.2g}%"
-
-
 def _position_words(grammar: Grammar, tree: Trees, obj_of: IntArray, term: dict[str, Any]) -> str:
     i, r = term["node"], term["rid"]
     p = tree.parent[i]
     u = translation_coordinates(
         grammar, np.array([r]), tree.xyz[p][None], tree.quat[p][None], tree.xyz[i][None]
     )[0]
-    parent = _name(grammar, tree, obj_of, int(p))
-    law = grammar.rules[r].translation
-    if isinstance(law, BoxTranslation):
-        return f"position inside the box where {parent} places it (every point equally likely)"
-    if not isinstance(law, NormalTranslation):
-        return f"position placed by {parent} ({law.key}), log p {term['log_prob']:.3g}"
-    free = law.free
-    d = float(np.linalg.norm(np.where(free, u - law.offset, 0.0)))
-    m2 = max(0.0, -2.0 * (term["log_prob"] - law.supremum()))
-    sigma = float(np.sqrt(m2))
-    term["sigma"] = sigma
-    term["percentile"] = float(chi2.sf(m2, int(free.sum())))
-    return (
-        f"position {d:.2f} m from where its parent {parent} places it ({sigma:.1f}σ, "
-        f"{_pct(term['percentile'])} of placements are farther)"
-    )
+    ctx = Context(_name(grammar, tree, obj_of, int(p)), lambda lp: float("nan"))
+    return _worded(grammar.rules[r].translation.describe_deviation(u, term["log_prob"], ctx), term)
 
 
 def _rotation_words(
-    grammar: Grammar, tree: Trees, term: dict[str, Any], expect: _Expectations
+    grammar: Grammar, tree: Trees, obj_of: IntArray, term: dict[str, Any], expect: _Expectations
 ) -> str:
     i, r = term["node"], term["rid"]
-    law = grammar.rules[r].rotation
-    if isinstance(law, RevoluteRotation):
-        return "rotation about its rule's axis, every allowed angle equally likely"
-    if law.mode() is None:
-        return "rotation: any rotation is equally likely"
     p = tree.parent[i]
     rel = rotation_coordinates(grammar, np.array([r]), tree.quat[p][None], tree.quat[i][None])[0]
-    mode = _rel_mode(grammar, r)
-    assert mode is not None
-    angle = float(np.degrees(quat_angle(rel, mode)))
-    up_now = quat_to_matrix(rel)[:, 2]
-    up_mode = quat_to_matrix(mode)[:, 2]
-    flipped = float(np.dot(up_now, up_mode)) < 0
-    pct = expect.percentile(r, term["log_prob"])
-    term["percentile"] = pct
-    how = "upside down, " if flipped else ""
-    return f"rotation: {how}{angle:.0f}° from the most likely, {_pct(pct)} likely"
+    ctx = Context(_name(grammar, tree, obj_of, int(p)), lambda lp: expect.percentile(r, lp))
+    return _worded(grammar.rules[r].rotation.describe_deviation(rel, term["log_prob"], ctx), term)
+
+
+def _worded(d: Deviation, term: dict[str, Any]) -> str:
+    """The law's words for a term; its sigma and percentile join the term."""
+    if d.sigma is not None:
+        term["sigma"] = d.sigma
+    if d.percentile is not None:
+        term["percentile"] = d.percentile
+    return d.text
 
 
 # ------------------------------------------------ scenes with no parse at all ---
@@ -734,7 +722,34 @@ def diagnose(
             + "; ".join(" and ".join(names[o] for o in f[1]) for f in found[1:6])
             + ")"
         )
+    message += _hint(grammar, [r for o in drop for r in reasons[o]])
     return Diagnosis(scene.name, drop, reasons, [f[1] for f in found[1:]], message)
+
+
+SMALL_M, SMALL_DEG = 0.05, 10.0  # offsets a sensor's error could explain
+
+
+def _hint(grammar: Grammar, reasons: list[str]) -> str:
+    """What in the grammar language would let such a scene parse, when the grammar lacks it:
+    sensor noise for small offsets from exact placements, clutter for unknown objects."""
+    spec = grammar.observation
+    hints = []
+    small = False
+    for r in reasons:
+        m = re.search(r"(pinned axis \w|fixed offset) off by ([-+0-9.e]+) m", r)
+        d = re.search(r"fixed rotation off by ([0-9.e+-]+)°", r)
+        small |= bool(m and abs(float(m.group(2))) <= SMALL_M)
+        small |= bool(d and float(d.group(1)) <= SMALL_DEG)
+    if small and (spec is None or not spec.noise):
+        hints.append(
+            "poses from a sensor are never exact: an `observation: noise` section tolerates "
+            "such offsets"
+        )
+    if any("never produces" in r for r in reasons) and (spec is None or spec.clutter is None):
+        hints.append("an `observation: clutter` section lets objects stay unexplained")
+    if not hints:
+        return ""
+    return " Hint: " + "; ".join(hints) + " (docs/grammar.md, section 9)."
 
 
 def _without(scene: Scene, drop: list[int]) -> Scene:
@@ -764,10 +779,11 @@ def _why_not(
             (scene.types[kept] == tree.type[i])
             & (np.linalg.norm(scene.xyz[kept] - tree.xyz[i], axis=1) < 1e-6)
         )
+        x, y, z = tree.xyz[i]
         kept_names[i] = (
             f"{grammar.types[tree.type[i]].name} #{kept[same[0]]}"
             if len(same)
-            else grammar.types[tree.type[i]].name
+            else f"{grammar.types[tree.type[i]].name} at ({x:.2f}, {y:.2f}, {z:.2f})"
         )
     for vt, x, q in _fixed_ancestors(grammar, t, scene.xyz[o], scene.quat[o]):
         for r in np.flatnonzero(tb.rule_child == vt):
@@ -832,29 +848,12 @@ def _failure(
     tree: Trees,
     p: int,
 ) -> str:
-    axes = "xyz"
     rule = grammar.rules[r]
     if not np.isfinite(lt):
-        law = rule.translation
-        if isinstance(law, BoxTranslation):
-            out = np.maximum(law.box.lo - u, u - law.box.hi)
-            a = int(np.argmax(out))
-            return f"outside its box on {axes[a]} by {out[a]:.3g} m"
-        if law.point is not None:
-            off, what = u - law.point, "fixed offset"
-        elif isinstance(law, NormalTranslation):
-            off, what = np.where(law.free, 0.0, u - law.offset), "pinned axis"
-        else:
-            return f"its position has no density under {law.key}"
-        a = int(np.argmax(np.abs(off)))
-        what = what if law.point is not None else f"{what} {axes[a]}"
-        return f"{what} off by {off[a]:+.3g} m"
+        return rule.translation.describe_violation(u)
     if not np.isfinite(lr):
         rel = rotation_coordinates(grammar, np.array([r]), pq[None], q[None])[0]
-        if rule.rotation.point is not None:
-            ang = float(np.degrees(quat_angle(rel, rule.rotation.point)))
-            return f"fixed rotation off by {ang:.3g}°"
-        return "rotation outside the rule's revolute range or axis"
+        return rule.rotation.describe_violation(rel)
     t = grammar.types[tree.type[p]]
     held = int(np.sum(tree.parent == p))
     if t.kind == Kind.REPEAT and t.count is not None and held >= len(t.count.probs) - 1:

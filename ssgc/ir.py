@@ -61,6 +61,10 @@ class NodeType:
     labels: tuple[str, ...] = ()
     fixed: bool = False
     path: Loc = ()
+    # "" for a type of the document; else what the observation model added it for
+    # (`ssgc.observation`): "scene" (the new root), "node" (an observed root's own node),
+    # "clutter" (the clutter set and its placement)
+    synthetic: str = ""
 
 
 @dataclass(frozen=True)
@@ -119,6 +123,7 @@ class Grammar:
     warnings: tuple[Diagnostic, ...] = ()
     type_ids: dict[str, int] = field(default_factory=dict)
     constraints: tuple[Any, ...] = ()  # ssgc.constraints.Constraint, in file order
+    observation: Any = None  # the validated `observation` section (ssgc.observation), if any
 
     def type_id(self, name: str) -> int:
         return self.type_ids[name]

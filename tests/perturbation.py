@@ -4,7 +4,7 @@ the world x axis through its position), or give it another of the dataset's type
 whether the explanation ranks it first.  A scene the change makes unparseable counts as ranked
 first only if the diagnosis (`ssgc.explain.diagnose`) names exactly that object.
 
-    python tests/perturbation.py GRAMMAR [SCENES] [--limit N]   # prints one JSON object
+    python tests/perturbation.py GRAMMAR [SCENES] [--limit N] [--kinds move,flip,retype]
 """
 
 from __future__ import annotations
@@ -49,23 +49,41 @@ def perturb(
 
 
 def run(
-    grammar_path: str, scenes_path: str = SINK, limit: int | None = None, seed: int = 0
+    grammar_path: str,
+    scenes_path: str = SINK,
+    limit: int | None = None,
+    seed: int = 0,
+    kinds: tuple[str, ...] = KINDS,
 ) -> dict:
     g = load_grammar(grammar_path)
     scenes = load_scenes(scenes_path, g)[:limit]
     types = np.unique(np.concatenate([s.types for s in scenes]))
     parser = Parser(g)
     base = [parser.parse(s, top=1) for s in scenes]
-    out: dict = {"scenes": len(scenes), "detectable_nats": DETECTABLE}
+    # the most unusual object of each unchanged scene: how unusual real objects already are
+    natural = [
+        explain_tree(g, s, b.parses[0].tree, parser).objects[0].unusual if b.parses else 0.0
+        for s, b in zip(scenes, base, strict=True)
+    ]
+    out: dict = {
+        "scenes": len(scenes),
+        "detectable_nats": DETECTABLE,
+        "natural_max_unusual_median": float(np.median(natural)),
+    }
     for k, kind in enumerate(KINDS):
-        first = unparseable = named = detectable = first_detectable = 0
+        if kind not in kinds:
+            continue
+        first = unparseable = named = detectable = first_detectable = above_natural = 0
         misses = []
         for i, scene in enumerate(scenes):
             changed, o = perturb(scene, kind, np.random.default_rng([seed, k, i]), types)
             result = parser.parse(changed, top=1)
+            mine = 0.0
             if result.parses:
                 e = explain_tree(g, changed, result.parses[0].tree, parser)
                 ok = e.objects[0].index == o
+                mine = next(x.unusual for x in e.objects if x.index == o)
+                above_natural += mine > natural[i]
                 drop = base[i].parses[0].score - result.parses[0].score
                 if drop >= DETECTABLE:
                     detectable += 1
@@ -76,7 +94,16 @@ def run(
                 ok = d.objects == [o]
                 named += ok
             first += ok
-            print(kind, i, scene.name, "first" if ok else "missed", file=sys.stderr, flush=True)
+            detail = f"unusual {mine:.2f} natural {natural[i]:.2f}" if result.parses else ""
+            print(
+                kind,
+                i,
+                scene.name,
+                "first" if ok else "missed",
+                detail,
+                file=sys.stderr,
+                flush=True,
+            )
             if not ok:
                 misses.append(scene.name)
         out[kind] = {
@@ -86,6 +113,7 @@ def run(
             "unparseable_named_exactly": named,
             "parsed_and_detectable": detectable,
             "ranked_first_of_detectable": first_detectable,
+            "changed_above_natural_max": above_natural,
             "misses": misses,
         }
     return out
@@ -93,8 +121,13 @@ def run(
 
 if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
-    lim = None
+    lim, chosen = None, KINDS
     if "--limit" in sys.argv:
         lim = int(sys.argv[sys.argv.index("--limit") + 1])
         args.remove(str(lim))
-    print(json.dumps(run(args[0], *(args[1:2] or [SINK]), limit=lim), indent=1))
+    if "--kinds" in sys.argv:
+        given = sys.argv[sys.argv.index("--kinds") + 1]
+        args.remove(given)
+        chosen = tuple(given.split(","))
+    out = run(args[0], *(args[1:2] or [SINK]), limit=lim, kinds=chosen)
+    print(json.dumps(out, indent=1))

@@ -461,6 +461,25 @@ constraint = one_of_keys(
         "non_penetration": mapping({"types": type_list}, {"margin": numbers, "exempt": exempt}),
     }
 )
+noise_spec = mapping({}, {"position": numbers, "rotation_deg": numbers})
+observation = mapping(
+    {},
+    {
+        "noise": st.one_of(
+            st.dictionaries(
+                st.one_of(type_names, st.just("default")), sometimes_junk(noise_spec), max_size=3
+            ),
+            junk,
+        ),
+        "clutter": mapping(
+            {
+                "region": mapping({"min": box_corner, "max": box_corner}, {}),
+                "rates": st.one_of(st.dictionaries(type_names, numbers, max_size=3), junk),
+            },
+            {"max": bound},
+        ),
+    },
+)
 grammar_doc = mapping(
     {
         "grammar": sometimes_junk(names),
@@ -474,6 +493,7 @@ grammar_doc = mapping(
         "constraints": st.one_of(
             st.dictionaries(names, sometimes_junk(constraint), max_size=3), junk
         ),
+        "observation": sometimes_junk(observation),
     },
 )
 

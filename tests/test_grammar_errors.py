@@ -227,7 +227,8 @@ CASES = [
     pytest.param(
         "grammar: g\nroot: Root\ntypes: {Root: {}}\nversion: 2\n",
         "version",
-        "unknown key 'version'; expected one of: constraints, description, grammar, root, types",
+        "unknown key 'version'; expected one of: constraints, description, grammar, "
+        "observation, root, types",
         id="unknown-top-level-key",
     ),
     pytest.param(

@@ -5,7 +5,8 @@ offset in the parent's frame (independent axes, density Π exp(-|u - mean| / b) 
 written in this file only, as a law module would be; the tests check that the whole pipeline
 takes it: the grammar language accepts it (and reports its mistakes where they are), the
 sampler's log-density equals the scorer's, `ssg inspect` describes it, the parser recovers a
-sampled tree, and the M-step fits it and writes the fit back into the YAML.
+sampled tree, the M-step fits it and writes the fit back into the YAML, and `ssg explain`
+words its deviations the law's own way.
 """
 
 from __future__ import annotations
@@ -20,12 +21,15 @@ from pydantic import Field
 from ssgc import dsl
 from ssgc.compile import compile_text
 from ssgc.errors import GrammarError
+from ssgc.explain import explain
 from ssgc.fit.mstep import FitSettings, m_step
 from ssgc.fit.writeback import apply_updates
 from ssgc.inspect import grammar_summary
 from ssgc.io.scene import scene_from_tree
 from ssgc.laws.base import (
     Columns,
+    Context,
+    Deviation,
     FloatArray,
     Frame,
     Loc,
@@ -92,6 +96,10 @@ class ParentLaplaceOffset(TranslationLaw):
 
     def describe(self) -> str:
         return f"{self.key} mean {self.mean.tolist()} scale {self.scale:g}"
+
+    def describe_deviation(self, u: FloatArray, log_prob: float, ctx: Context) -> Deviation:
+        scales = float(np.abs(u - self.mean).sum() / self.scale)
+        return Deviation(f"position {scales:.1f} Laplace scales from where {ctx.parent} puts it")
 
 
 @pytest.fixture(autouse=True)
@@ -166,3 +174,12 @@ def test_m_step_fits_it_and_writes_it_back() -> None:
     np.testing.assert_allclose(law.mean, [0.3, -0.1, 0.75], atol=0.01)
     assert law.scale == pytest.approx(0.05, rel=0.1)
     assert "# the new law" in apply_updates(GRAMMAR, updates)
+
+
+def test_explain_uses_the_laws_own_words() -> None:
+    grammar = compile_text(GRAMMAR)
+    trees, _ = sample_trees(grammar, 1, seed=2)
+    e = explain(grammar, scene_from_tree(grammar, trees.tree(0), "s"))
+    cup = next(o for o in e.objects if o.type == "Cup")
+    words = [r.text for r in cup.reasons if r.kind == "position"]
+    assert len(words) == 1 and "Laplace scales from where Table #0 puts it" in words[0]

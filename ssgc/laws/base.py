@@ -23,7 +23,7 @@ are densities w.r.t. the volume measure on SO(3) of total volume π².
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any, ClassVar, Protocol, dataclass_transform
@@ -66,10 +66,34 @@ class FitSettings(Protocol):
 
 
 @dataclass(frozen=True)
+class Deviation:
+    """How far a value is from what its law expects, in words (`ssg explain`)."""
+
+    text: str  # a phrase: "position 0.31 m from where Plate #1 places it (4.2σ, ...)"
+    sigma: float | None = None  # a Mahalanobis distance, where the law has one
+    percentile: float | None = None  # P(a draw of the law is no more likely)
+
+
+@dataclass(frozen=True)
+class Context:
+    """What a law needs beside the value to put its deviation in words: who placed the node,
+    and the share of the law's own draws no more likely than a log-density (Monte Carlo,
+    `ssgc.explain`)."""
+
+    parent: str
+    percentile: Callable[[float], float]
+
+
+@dataclass(frozen=True)
 class Orientation:
     """A fitted rotation (unit quaternion, wxyz), written back in the form the user used."""
 
     quat_wxyz: tuple[float, float, float, float]
+
+
+def percent(p: float) -> str:
+    """A probability as a user reads it: 0.0068 -> "0.68%"."""
+    return f"{100 * p:.2g}%"
 
 
 def frozen(a: object, dtype: Any = None) -> NDArray[Any]:
@@ -158,6 +182,15 @@ class PoseLaw:
     def describe(self) -> str:
         """One line for `ssg inspect`."""
         return self.key
+
+    def describe_deviation(self, u: FloatArray, log_prob: float, ctx: Context) -> Deviation:
+        """`u` (this law's coordinates of one value, of log-density `log_prob`) in words: how
+        far from what the law expects, and how rare.  Each law says it its own way."""
+        return Deviation(f"{self.part} placed by {ctx.parent} ({self.key}), log p {log_prob:.3g}")
+
+    def describe_violation(self, u: FloatArray) -> str:
+        """Why `u` has no density under this law (a pinned axis off by 1 cm, ...)."""
+        return f"its {self.part} has no density under {self.key}"
 
 
 class TranslationLaw(PoseLaw):

@@ -69,6 +69,11 @@ class FixedTranslation(_PointMass, TranslationLaw):
     def describe(self) -> str:
         return "same" if not np.any(self.offset) else f"offset {np.round(self.offset, 4).tolist()}"
 
+    def describe_violation(self, u: FloatArray) -> str:
+        off = u - self.offset
+        a = int(np.argmax(np.abs(off)))
+        return f"fixed offset off by {off[a]:+.3g} m"
+
 
 @register
 class FixedRotation(_PointMass, RotationLaw):
@@ -91,6 +96,10 @@ class FixedRotation(_PointMass, RotationLaw):
     @classmethod
     def density(cls, cols: Columns, u: FloatArray) -> FloatArray:
         return np.where(quat_angle(u, cols["offset"]) <= ROT_TOL, 0.0, -np.inf)
+
+    def describe_violation(self, u: FloatArray) -> str:
+        angle = float(np.degrees(quat_angle(u, self.offset)))
+        return f"fixed rotation off by {angle:.3g}°"
 
     def describe(self) -> str:
         if self.offset[0] >= 1 - 1e-12:

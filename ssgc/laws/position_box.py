@@ -16,6 +16,8 @@ from ssgc.distributions.uniform import UniformBox
 from ssgc.laws.base import (
     POS_TOL,
     Columns,
+    Context,
+    Deviation,
     FloatArray,
     Frame,
     Loc,
@@ -66,6 +68,16 @@ class BoxTranslation(TranslationLaw):
 
     def supremum(self) -> float:
         return self.box.log_density
+
+    def describe_deviation(self, u: FloatArray, log_prob: float, ctx: Context) -> Deviation:
+        return Deviation(
+            f"position inside the box where {ctx.parent} places it (every point equally likely)"
+        )
+
+    def describe_violation(self, u: FloatArray) -> str:
+        out = np.maximum(self.box.lo - u, u - self.box.hi)
+        a = int(np.argmax(out))
+        return f"outside its box on {'xyz'[a]} by {out[a]:.3g} m"
 
     def describe(self) -> str:
         lo, hi = np.round(self.box.lo, 4).tolist(), np.round(self.box.hi, 4).tolist()

@@ -11,12 +11,15 @@ from enum import Enum
 from typing import Any, ClassVar
 
 import numpy as np
+from scipy.stats import chi2
 
 from ssgc import dsl
 from ssgc.distributions.normal import Normal
 from ssgc.laws.base import (
     POS_TOL,
     Columns,
+    Context,
+    Deviation,
     FitSettings,
     FloatArray,
     Frame,
@@ -24,6 +27,7 @@ from ssgc.laws.base import (
     Lowering,
     TranslationLaw,
     frozen,
+    percent,
     register,
 )
 
@@ -161,6 +165,23 @@ class NormalTranslation(TranslationLaw):
             f"{self.key} mean {np.round(self.offset, 4).tolist()} "
             f"var {np.round(self.normal.variance, 5).tolist()}{pin}"
         )
+
+    def describe_deviation(self, u: FloatArray, log_prob: float, ctx: Context) -> Deviation:
+        """Distance from the mean over the free axes, and how many draws land farther (χ²)."""
+        d = float(np.linalg.norm(np.where(self.free, u - self.offset, 0.0)))
+        m2 = max(0.0, -2.0 * (log_prob - self.supremum()))
+        sigma, farther = float(np.sqrt(m2)), float(chi2.sf(m2, int(self.free.sum())))
+        return Deviation(
+            f"position {d:.2f} m from where its parent {ctx.parent} places it ({sigma:.1f}σ, "
+            f"{percent(farther)} of placements are farther)",
+            sigma,
+            farther,
+        )
+
+    def describe_violation(self, u: FloatArray) -> str:
+        off = np.where(self.free, 0.0, u - self.offset)
+        a = int(np.argmax(np.abs(off)))
+        return f"pinned axis {'xyz'[a]} off by {off[a]:+.3g} m"
 
 
 def _covariance(

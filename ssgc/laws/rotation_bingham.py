@@ -16,10 +16,12 @@ import numpy as np
 
 from ssgc import dsl
 from ssgc.distributions.bingham import ORTHOGONALITY_TOL, Bingham
-from ssgc.geometry import IDENTITY_QUAT
+from ssgc.geometry import IDENTITY_QUAT, quat_angle, quat_to_matrix
 from ssgc.laws.base import (
     LOG_2,
     Columns,
+    Context,
+    Deviation,
     FitSettings,
     FloatArray,
     Frame,
@@ -27,6 +29,7 @@ from ssgc.laws.base import (
     Lowering,
     Orientation,
     RotationLaw,
+    percent,
     register,
 )
 
@@ -111,6 +114,29 @@ class BinghamRotation(RotationLaw):
         mode, conc = Bingham.fit_about_mode(u, w, self.bingham.mode, isotropic, cap)
         value: float | list[float] = float(conc[0]) if isotropic else [float(c) for c in conc]
         return {"mode": Orientation(tuple(float(x) for x in mode)), "concentration": value}
+
+    def nearest_mode(self, u: FloatArray) -> FloatArray:
+        """The most likely rotation closest to `u`: its projection on the top eigenspace of
+        the quadratic form (the mode itself, or the circle of modes of a free turn)."""
+        w, v = np.linalg.eigh(self.quadratic())
+        top = v[:, w >= w.max() - 1e-9 * max(1.0, abs(w).max())]
+        q = top @ (top.T @ u)
+        n = float(np.linalg.norm(q))
+        return self.mode() if n < 1e-9 else q / n
+
+    def describe_deviation(self, u: FloatArray, log_prob: float, ctx: Context) -> Deviation:
+        """The angle to the nearest most likely rotation; "upside down" when the body z axis
+        points away from that rotation's; the share of draws no more likely."""
+        near = self.nearest_mode(u)
+        angle = float(np.degrees(quat_angle(u, near)))
+        flipped = float(np.dot(quat_to_matrix(u)[:, 2], quat_to_matrix(near)[:, 2])) < 0
+        likely = ctx.percentile(log_prob)
+        how = "upside down, " if flipped else ""
+        return Deviation(
+            f"rotation: {how}{angle:.0f}° from the most likely, {percent(likely)} likely",
+            None,
+            likely,
+        )
 
     def describe(self) -> str:
         conc = np.round(self.bingham.concentration, 3).tolist()

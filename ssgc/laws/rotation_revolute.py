@@ -16,6 +16,8 @@ from ssgc.geometry import axis_angle_to_quat
 from ssgc.laws.base import (
     ROT_TOL,
     Columns,
+    Context,
+    Deviation,
     FloatArray,
     Frame,
     Loc,
@@ -90,6 +92,12 @@ class RevoluteRotation(RotationLaw):
 
     def supremum(self) -> float:
         return -float(np.log(self.revolute.hi - self.revolute.lo))
+
+    def describe_deviation(self, u: FloatArray, log_prob: float, ctx: Context) -> Deviation:
+        return Deviation("rotation about its rule's axis, every allowed angle equally likely")
+
+    def describe_violation(self, u: FloatArray) -> str:
+        return "rotation outside the rule's revolute range or axis"
 
     def describe(self) -> str:
         return (

@@ -12,7 +12,17 @@ import numpy as np
 
 from ssgc.distributions.uniform import UNIFORM_SO3_LOG_DENSITY
 from ssgc.geometry import random_quat
-from ssgc.laws.base import Columns, FloatArray, Frame, Loc, Lowering, RotationLaw, register
+from ssgc.laws.base import (
+    Columns,
+    Context,
+    Deviation,
+    FloatArray,
+    Frame,
+    Loc,
+    Lowering,
+    RotationLaw,
+    register,
+)
 
 
 @register
@@ -32,3 +42,6 @@ class UniformRotation(RotationLaw):
 
     def supremum(self) -> float:
         return UNIFORM_SO3_LOG_DENSITY
+
+    def describe_deviation(self, u: FloatArray, log_prob: float, ctx: Context) -> Deviation:
+        return Deviation("rotation: any rotation is equally likely")

@@ -382,6 +382,12 @@ def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[i
     handles: list[Any] = [Patch(facecolor=c, alpha=0.6, label=plain(t)) for t, c in colours.items()]
     if any(not np.all(v.observed) for v in views):
         handles.append(Line2D([], [], ls="", marker="s", ms=4, color="0.35", label="latent node"))
+    if any(np.any(unexplained(v)) for v in views):
+        handles.append(
+            Line2D(
+                [], [], ls="", marker="x", ms=7, mew=2, color="red", label="unexplained (clutter)"
+            )
+        )
     if norm is None and any(np.any(v.parent >= 0) for v in views):
         handles.append(Line2D([], [], color="0.2", label="tree edge"))
     fig.legend(handles=handles, loc="outside right upper", fontsize=7, frameon=False)
@@ -427,6 +433,10 @@ def _draw_view(
         except QhullError:  # a shape seen exactly edge-on from above
             hull = verts[:, :2]
         ax2.add_patch(Polygon(hull, closed=True, fc=colour, ec=colour, alpha=alpha, lw=0.8))
+    clutter = unexplained(view)
+    if np.any(clutter):
+        ax3.scatter(*view.xyz[clutter].T, color="red", marker="x", s=60, depthshade=False)
+        ax2.scatter(*view.xyz[clutter, :2].T, color="red", marker="x", s=60, zorder=6)
     latent = ~view.observed
     if np.any(latent):
         ax3.scatter(*view.xyz[latent].T, color="0.35", marker="s", s=8, depthshade=False)
@@ -447,6 +457,13 @@ def _draw_view(
     _limits(ax3, ax2, np.vstack(points))
     ax3.set_title(plain(view.title), fontsize=8)
     ax2.set_title("from above (x, y)", fontsize=8)
+
+
+def unexplained(view: View) -> NDArray[np.bool_]:
+    """Objects a tree leaves to clutter: their parent is the observation model's clutter node
+    (`~clutter:object`, docs/grammar.md section 9)."""
+    parent_type = np.array((*view.types, ""), dtype=object)[view.parent]
+    return view.observed & (view.parent >= 0) & (parent_type == "~clutter:object")
 
 
 def _holds_others(view: View, i: int, local: FloatArray, rot: FloatArray) -> bool:

@@ -1,0 +1,456 @@
+"""The observation model: sensor noise on observed poses, and clutter (issue 16, item 4).
+
+The grammar of a document describes the true scene; a perception system reports each object's
+pose with some error and adds objects no grammar explains.  A grammar's `observation` section
+(docs/grammar.md, section 9) says how much, and this module turns the compiled grammar into
+the grammar *of what is observed*, so that the sampler, the scorer and the parser need no
+change:
+
+- **Noise** (per observed type: a standard deviation of each position coordinate, and of the
+  rotation angle about each axis).  Every rule between two observed poses gets the law of the
+  *observed* relative pose: its own law convolved with the noise of both ends.  A Normal's
+  covariance grows by the noise variance (a pinned axis becomes a Normal of the noise's
+  spread), a fixed offset becomes a Normal about it, a Bingham's concentration c about each
+  axis becomes c·k/(c + k) with k = 2/σ² the noise's own, a fixed rotation a Bingham about it
+  and a full revolute joint a Bingham that keeps the turn free and the axis tilted by the
+  noise.  The noise of the parent's end adds its rotation's lever arm (|mean offset|·σ_rot)
+  to a parent-frame translation.  This is the exact marginal P(o | rest) for an edge whose
+  parent pose is exact (the root, or a type without noise) and a first-order one otherwise
+  (siblings' shared parent error is treated as independent).  An observed root with noise
+  gets its own node at the grammar's root pose (type `~node:NAME`), of which the observed
+  object is a noisy child.
+- **Clutter**: a new root (type `~scene`, at the grammar's root pose) holds the grammar's root
+  by a fixed rule and a set `~clutter` of at most `max` clutter objects: their number Poisson
+  with the total rate (truncated), each one of a type chosen in proportion to its rate,
+  uniform in a world box and in rotation.  An object the best parse puts there is
+  *unexplained*.  Clutter types are the grammar's observed terminal types or new names.
+
+Laws this module creates are `fixed` (`ssg fit` keeps them as written: it fits the laws of a
+grammar without noise).  Scores of a grammar with noise are densities over the observed poses:
+a pinned axis or a fixed offset with noise contributes a log-density instead of 0, so scores
+compare between grammars with the same observation model only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from math import lgamma, log
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc import dsl
+from ssgc.distributions.bingham import Bingham
+from ssgc.distributions.discrete import CountLaw
+from ssgc.distributions.normal import Normal
+from ssgc.distributions.uniform import UniformBox
+from ssgc.ir import Grammar, Kind, Loc, NodeType, Rule
+from ssgc.laws.base import Frame, PoseLaw, frozen
+from ssgc.laws.counts import ProbsCount
+from ssgc.laws.fixed import FixedRotation, FixedTranslation
+from ssgc.laws.position_box import BoxTranslation
+from ssgc.laws.position_normal import NormalTranslation, Spread
+from ssgc.laws.rotation_bingham import MAX_CONCENTRATION, BinghamRotation, Form
+from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.laws.rotation_uniform import UniformRotation
+
+if TYPE_CHECKING:
+    from ssgc.io.scene import Scene
+    from ssgc.tree import Trees
+
+LOC: Loc = ("observation",)
+SCENE, CLUTTER = "~scene", "~clutter"
+NODE_PREFIX, CLUTTER_PREFIX = "~node:", "~clutter:"
+
+
+class Report(Protocol):
+    def error(self, loc: Loc, message: str) -> None: ...
+
+    def warn(self, loc: Loc, message: str) -> None: ...
+
+
+@dataclass(frozen=True)
+class Noise:
+    """One type's noise: σ of each position coordinate (m), of each rotation angle (rad)."""
+
+    position: float = 0.0
+    rotation: float = 0.0
+
+    def __bool__(self) -> bool:
+        return self.position > 0 or self.rotation > 0
+
+    @staticmethod
+    def worst(noises: list[Noise]) -> Noise:
+        return Noise(
+            max([n.position for n in noises], default=0.0),
+            max([n.rotation for n in noises], default=0.0),
+        )
+
+
+@dataclass
+class Observed:
+    """The grammar's parts as the observation model leaves them."""
+
+    types: list[NodeType]
+    rules: list[Rule]
+    root: int
+    ids: dict[str, int]
+
+
+def apply(
+    spec: dsl.ObservationSpec | None,
+    types: list[NodeType],
+    rules: list[Rule],
+    root: int,
+    ids: dict[str, int],
+    report: Report,
+) -> Observed:
+    """The grammar of observed scenes (module docstring); unchanged without `observation`."""
+    out = Observed(list(types), list(rules), root, dict(ids))
+    if spec is None:
+        return out
+    noise = _noise_of_types(spec, out, report)
+    if any(noise.values()):
+        _widen(out, noise, root)
+        if noise.get(root):
+            _observe_root(out, noise[root])
+    if spec.clutter is not None:
+        _add_clutter(spec.clutter, out, report)
+    return out
+
+
+# ------------------------------------------------------------------------- noise ---
+
+
+def _noise_of_types(spec: dsl.ObservationSpec, g: Observed, report: Report) -> dict[int, Noise]:
+    """Each observed type's noise (its own entry, else `default`), checked and located."""
+    default = spec.noise.get("default")
+    own: dict[int, Noise] = {}
+    for name, n in spec.noise.items():
+        loc = (*LOC, "noise", name)
+        if name == "default" and name not in g.ids:
+            continue
+        tid = g.ids.get(name)
+        if tid is None or not g.types[tid].observed:
+            what = "not a type of this grammar" if tid is None else "not an observed type"
+            report.error(loc, f"noise of '{name}': {what} (noise is on observed poses)")
+            continue
+        own[tid] = _noise(n, loc, report)
+    base = _noise(default, (*LOC, "noise", "default"), report) if default else Noise()
+    return {t.id: own.get(t.id, base) for t in g.types if t.observed}
+
+
+def _noise(n: dsl.NoiseSpec, loc: Loc, report: Report) -> Noise:
+    rotation = np.deg2rad(n.rotation_deg)
+    if rotation > 0 and 2.0 / rotation**2 > MAX_CONCENTRATION:
+        least = np.rad2deg(np.sqrt(2.0 / MAX_CONCENTRATION))
+        report.error(
+            (*loc, "rotation_deg"),
+            f"rotation noise must be 0 or at least {least:.2f}° (a Bingham concentration "
+            f"of at most {MAX_CONCENTRATION:g}), got {n.rotation_deg:g}°",
+        )
+        rotation = 0.0
+    return Noise(float(n.position), float(rotation))
+
+
+def _is_fixed(rule: Rule) -> bool:
+    return rule.translation.point is not None and rule.rotation.point is not None
+
+
+def _components(n_types: int, joins: list[Rule]) -> list[int]:
+    """Connected components of the types joined by `joins` (union-find): the types that
+    share one pose, as far as type-level analysis tells."""
+    parent = list(range(n_types))
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for r in joins:
+        parent[find(r.parent)] = find(r.child)
+    return [find(a) for a in range(n_types)]
+
+
+def _widen(g: Observed, noise: dict[int, Noise], root: int) -> None:
+    """Replace each rule between observed poses by the law of the observed relative pose.
+
+    The root's own node is at the grammar's root pose exactly (`_observe_root`), so the root
+    type's noise does not reach the rules it fires."""
+    n_types = len(g.types)
+    fixed = [r for r in g.rules if _is_fixed(r)]
+    into_noisy = [r for r in fixed if noise.get(r.child)]
+    # A fixed rule into a noisy observed child keeps the child's pose tied to its parent's
+    # unless the parent's pose is always an observed pose already: then two observed poses
+    # are joined, and the noise must be on that rule.
+    tied = _tied_types(g, {r.id for r in into_noisy})
+    loose = {r.id for r in into_noisy if tied[r.parent]}
+    comp = _components(n_types, [r for r in fixed if r.id not in loose])
+    members: dict[int, list[Noise]] = {}
+    for t, n in noise.items():
+        if t != root:
+            members.setdefault(comp[t], []).append(n)
+    block = [Noise.worst(members.get(comp[t], [])) for t in range(n_types)]
+    for r in g.rules:
+        if _is_fixed(r) and r.id not in loose:
+            continue
+        child, parent = block[r.child], block[r.parent]
+        if child or parent:
+            g.rules[r.id] = dataclasses.replace(
+                r,
+                translation=_noisy_translation(r.translation, child, parent),
+                rotation=_noisy_rotation(r.rotation, child, parent),
+            )
+
+
+def _tied_types(g: Observed, loose_candidates: set[int]) -> list[bool]:
+    """Which types always share their pose with an observed node: observed types, and types
+    that every rule producing them places by a fixed rule from such a type (rules in
+    `loose_candidates` do not count: they may get noise).  Type-level and sound: an `or`
+    above two kinds of object does not make either kind tied to the other."""
+    into: dict[int, list[Rule]] = {}
+    for r in g.rules:
+        into.setdefault(r.child, []).append(r)
+    state: dict[int, bool] = {}
+
+    def tied(t: int) -> bool:
+        if t in state:
+            return state[t]
+        state[t] = False  # a cycle does not tie anything
+        rules = into.get(t, [])
+        state[t] = g.types[t].observed or (
+            bool(rules)
+            and all(_is_fixed(r) and r.id not in loose_candidates and tied(r.parent) for r in rules)
+        )
+        return state[t]
+
+    return [tied(t) for t in range(len(g.types))]
+
+
+def _noisy_translation(law: PoseLaw, child: Noise, parent: Noise) -> PoseLaw:
+    """`law` convolved with the position noise of the relative pose it places."""
+    if law.frame == Frame.WORLD:
+        var = child.position**2
+    else:
+        var = child.position**2 + parent.position**2
+    if law.frame == Frame.PARENT and isinstance(law, NormalTranslation | FixedTranslation):
+        var += (float(np.linalg.norm(law.offset)) * parent.rotation) ** 2
+    if var <= 0:
+        return law
+    if isinstance(law, FixedTranslation):
+        cov = np.zeros((3, 3))
+        key, spread = "parent_normal_offset", Spread.ISOTROPIC
+    elif isinstance(law, NormalTranslation):
+        cov = np.zeros((3, 3))
+        free = np.flatnonzero(law.free)
+        cov[np.ix_(free, free)] = law.normal.cov
+        key, spread = law.key, law.spread
+    else:  # a box is a support, uniform: its edges stay sharp (docs/grammar.md, section 9)
+        return law
+    return NormalTranslation(
+        key=key,
+        frame=law.frame,
+        path=law.path,
+        fixed=True,
+        offset=law.offset,
+        free=frozen(np.ones(3, bool)),
+        normal=Normal(np.asarray(law.offset, float), cov + var * np.eye(3)),
+        spread=spread,
+    )
+
+
+def _noisy_rotation(law: PoseLaw, child: Noise, parent: Noise) -> PoseLaw:
+    """`law` with its concentration combined with the rotation noise's (module docstring)."""
+    var = child.rotation**2 + (parent.rotation**2 if law.frame != Frame.WORLD else 0.0)
+    if var <= 0 or isinstance(law, UniformRotation):
+        return law
+    k = 2.0 / var  # the concentration of a Bingham whose angle about an axis has variance var
+    if isinstance(law, FixedRotation):
+        bingham = Bingham.from_mode(law.offset, min(k, MAX_CONCENTRATION))
+        key = "parent_bingham"
+    elif isinstance(law, BinghamRotation):
+        c = np.asarray(law.bingham.concentration, float)
+        combined = np.minimum(c * k / (c + k), MAX_CONCENTRATION)
+        bingham, key = Bingham(law.bingham.M, -combined), law.key
+    elif isinstance(law, RevoluteRotation) and law.revolute.is_full_circle:
+        bingham, key = _revolute_bingham(law.axis, min(k, MAX_CONCENTRATION)), "parent_bingham"
+    else:  # a revolute range keeps its axis exact
+        return law
+    return BinghamRotation(
+        key=key, frame=law.frame, path=law.path, fixed=True, bingham=bingham, form=Form.RAW
+    )
+
+
+def _revolute_bingham(axis: np.ndarray, k: float) -> Bingham:
+    """A Bingham free along the turns about `axis` ({(cos φ/2, sin φ/2 · axis)}, a plane of
+    quaternions) and of concentration k across it: the axis tilts by the noise."""
+    plane = np.zeros((4, 2))
+    plane[0, 0] = 1.0
+    plane[1:, 1] = axis / np.linalg.norm(axis)
+    full, _ = np.linalg.qr(np.hstack([plane, np.eye(4)]))
+    m = np.column_stack([plane, full[:, 2:4]])
+    return Bingham(m, [0.0, 0.0, -k, -k])
+
+
+def _observe_root(g: Observed, noise: Noise) -> None:
+    """An observed root with noise: its rules move to its own node `~node:NAME` at the root
+    pose, and the observed object is a noisy child of that node (under a new root)."""
+    old = g.types[g.root]
+    node = _new_type(g, NODE_PREFIX + old.name, "node", old.kind, old.rules, old.probs)
+    node = dataclasses.replace(node, count=old.count, fixed=old.fixed, path=old.path)
+    g.types[node.id] = node
+    for rid in old.rules:
+        g.rules[rid] = dataclasses.replace(g.rules[rid], parent=node.id)
+    g.types[old.id] = dataclasses.replace(
+        old, kind=Kind.TERMINAL, rules=(), probs=frozen(np.zeros(0)), count=None
+    )
+    scene = _scene_root(g, hold=False)
+    _add_rule(g, scene, node.id, _same_t(), _same_r())
+    exact = Noise()
+    _add_rule(
+        g,
+        scene,
+        old.id,
+        _noisy_translation(_same_t(), noise, exact),
+        _noisy_rotation(_same_r(), noise, exact),
+    )
+
+
+# ----------------------------------------------------------------------- clutter ---
+
+
+def _add_clutter(spec: dsl.ClutterSpec, g: Observed, report: Report) -> None:
+    """The set `~clutter` under the scene root (module docstring)."""
+    loc = (*LOC, "clutter")
+    lo, hi = np.asarray(spec.region.min, float), np.asarray(spec.region.max, float)
+    if np.any(hi <= lo):
+        report.error((*loc, "region", "max"), "the clutter region needs max > min on every axis")
+        return
+    kinds: list[int] = []
+    for name, _rate in spec.rates.items():
+        tid = _clutter_type(name, g, (*loc, "rates", name), report)
+        if tid is not None:
+            kinds.append(tid)
+    if len(kinds) != len(spec.rates):
+        return
+    rates = np.array(list(spec.rates.values()), float)
+    total = float(rates.sum())
+    counts = np.arange(spec.max + 1)
+    log_poisson = counts * log(total) - np.array([lgamma(n + 1) for n in counts])
+    probs = np.exp(log_poisson - log_poisson.max())
+    count = ProbsCount(law=CountLaw(probs / probs.sum()), path=(*loc, "max"))
+    scene = _scene_root(g)
+    one = _new_type(g, CLUTTER_PREFIX + "object", "clutter", Kind.OR, (), rates / total)
+    for tid in kinds:
+        _add_rule(g, one.id, tid, _same_t(), _same_r())
+    clutter = _new_type(g, CLUTTER, "clutter", Kind.REPEAT, (), np.ones(0))
+    g.types[clutter.id] = dataclasses.replace(clutter, count=count)
+    box = BoxTranslation(
+        key="world_box",
+        frame=Frame.WORLD,
+        path=(*loc, "region"),
+        fixed=True,
+        box=UniformBox(lo, hi),
+    )
+    uniform = UniformRotation(key="uniform", frame=Frame.WORLD, path=(*loc, "region"), fixed=True)
+    _add_rule(g, clutter.id, one.id, box, uniform)
+    _add_rule(g, scene, clutter.id, _same_t(), _same_r())
+
+
+def _clutter_type(name: str, g: Observed, loc: Loc, report: Report) -> int | None:
+    """The type a clutter rate names: an observed terminal type, or a new one."""
+    tid = g.ids.get(name)
+    if tid is None:
+        return _new_type(g, name, "", Kind.TERMINAL, (), np.zeros(0), observed=True).id
+    t = g.types[tid]
+    if not t.observed or t.rules:
+        what = "is not observed" if not t.observed else "has rules of its own"
+        report.error(loc, f"clutter of type '{name}': the type {what}; clutter objects are leaves")
+        return None
+    return tid
+
+
+# ----------------------------------------------------------------------- helpers ---
+
+
+def _scene_root(g: Observed, hold: bool = True) -> int:
+    """The `~scene` root (made on first use), holding the grammar's root by a fixed rule
+    (unless not `hold`: an observed root with noise is held by a noisy rule instead)."""
+    if SCENE in g.ids:
+        return g.ids[SCENE]
+    old = g.root
+    scene = _new_type(g, SCENE, "scene", Kind.AND, (), np.ones(0))
+    g.root = scene.id
+    if hold:
+        _add_rule(g, scene.id, old, _same_t(), _same_r())
+    return scene.id
+
+
+def _new_type(
+    g: Observed,
+    name: str,
+    role: str,
+    kind: Kind,
+    rules: tuple[int, ...],
+    probs: np.ndarray,
+    observed: bool = False,
+) -> NodeType:
+    t = NodeType(
+        id=len(g.types),
+        name=name,
+        kind=kind,
+        observed=observed,
+        rules=tuple(rules),
+        probs=frozen(probs),
+        fixed=True,
+        path=LOC,
+        synthetic=role,
+    )
+    g.types.append(t)
+    g.ids[name] = t.id
+    return t
+
+
+def _add_rule(g: Observed, parent: int, child: int, t: PoseLaw, r: PoseLaw) -> None:
+    p = g.types[parent]
+    rule = Rule(len(g.rules), parent, len(p.rules), child, t, r, LOC)  # type: ignore[arg-type]
+    g.rules.append(rule)
+    probs = p.probs
+    if p.kind in (Kind.AND, Kind.REPEAT):
+        probs = np.ones(len(p.rules) + 1)
+    g.types[parent] = dataclasses.replace(p, rules=(*p.rules, rule.id), probs=frozen(probs))
+
+
+def _same_t() -> FixedTranslation:
+    return FixedTranslation(key="same", frame=Frame.PARENT, path=LOC, offset=frozen(np.zeros(3)))
+
+
+def _same_r() -> FixedRotation:
+    return FixedRotation(
+        key="same", frame=Frame.PARENT, path=LOC, offset=frozen([1.0, 0.0, 0.0, 0.0])
+    )
+
+
+# -------------------------------------------------------------------- reading trees ---
+
+
+def clutter_nodes(grammar: Grammar, tree: Trees) -> NDArray[np.bool_]:
+    """Which nodes of a tree are clutter objects (placed by the clutter set)."""
+    role = np.array([t.synthetic for t in grammar.types])
+    parent_type = tree.type[np.maximum(tree.parent, 0)]
+    return (
+        (tree.parent >= 0)
+        & (role[parent_type] == "clutter")
+        & grammar.tables.type_observed[tree.type]
+    )
+
+
+def unexplained_objects(grammar: Grammar, scene: Scene, tree: Trees) -> list[int]:
+    """The scene's objects that `tree` leaves to clutter (their indices, in scene order)."""
+    from ssgc.explain import match_objects  # explain reads this module's results
+
+    obj_of = match_objects(grammar, scene, tree)
+    return sorted(int(o) for o in obj_of[clutter_nodes(grammar, tree) & (obj_of >= 0)])

@@ -1,0 +1,295 @@
+"""The observation model (`observation:` in a grammar; docs/grammar.md section 9): sensor noise
+on observed poses and clutter objects (issue 16, item 4)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_explain import DINNER, dinner_scene, moved
+from typer.testing import CliRunner
+
+from ssgc.cli.app import app
+from ssgc.compile import compile_text
+from ssgc.errors import GrammarError
+from ssgc.explain import UnexplainedScene, explain
+from ssgc.fit.em import parameter_ties
+from ssgc.io.scene import Scene, scene_from_tree
+from ssgc.laws.position_normal import NormalTranslation
+from ssgc.laws.rotation_bingham import BinghamRotation
+from ssgc.observation import unexplained_objects
+from ssgc.parse.parser import Parser
+from ssgc.sample.forward import sample_trees
+from ssgc.score import score_trees
+
+NOISE = (
+    "observation:\n  noise:\n    Plate: {position: 0.004, rotation_deg: 2}\n"
+    "    Mug: {position: 0.005}\n"
+)
+CLUTTER = (
+    "observation:\n  clutter:\n    region: {min: [-1, -1, 0], max: [1, 1, 1.5]}\n"
+    "    rates: {Sponge: 0.2, Mug: 0.1}\n"
+)
+
+
+def with_section(section: str, text: str = DINNER) -> object:
+    return compile_text(text + section, "dinner.yaml")
+
+
+def errors_of(section: str) -> list[str]:
+    with pytest.raises(GrammarError) as info:
+        with_section(section)
+    return [str(d) for d in info.value.diagnostics]
+
+
+def test_without_observation_the_grammar_is_unchanged():
+    g, again = compile_text(DINNER), with_section("observation: {}\n")
+    assert [t.name for t in g.types] == [t.name for t in again.types]
+    for a, b in zip(g.rules, again.rules, strict=True):
+        assert (
+            a.translation is b.translation or a.translation.describe() == b.translation.describe()
+        )
+        assert a.rotation.describe() == b.rotation.describe()
+    assert all(not t.synthetic for t in again.types)
+
+
+def test_noise_widens_the_laws_between_observed_poses():
+    g = with_section(NOISE)
+    table_plate, plate_mug = g.rules
+    # Table (latent, exact) -> Plate: the pinned z gets the plate's noise; x, y add it
+    t = table_plate.translation
+    assert isinstance(t, NormalTranslation) and t.free.all()
+    assert np.allclose(np.diag(t.normal.cov), [0.25 + 0.004**2, 0.25 + 0.004**2, 0.004**2])
+    assert t.fixed  # `ssg fit` keeps the laws the observation model made
+    # Plate -> Mug, parent frame: both ends' noise, plus the plate's turn on the 2 cm lever
+    lever = (0.02 * np.deg2rad(2.0)) ** 2
+    expect = 0.004**2 + 0.005**2 + lever
+    m = plate_mug.translation
+    assert np.allclose(np.diag(m.normal.cov), [0.0004 + expect, 0.0004 + expect, expect])
+    # world-frame Bingham of a plate: its concentration combined with the noise's, c k / (c + k)
+    k = 2.0 / np.deg2rad(2.0) ** 2
+    r = table_plate.rotation
+    assert isinstance(r, BinghamRotation)
+    assert np.allclose(np.sort(r.bingham.concentration)[::-1][:2], 50 * k / (50 + k))
+
+
+@settings(max_examples=10, deadline=None)
+@given(sigma=st.floats(0.001, 0.05), deg=st.floats(1.0, 20.0))
+def test_a_fixed_offset_with_noise_is_a_normal_about_it(sigma, deg):
+    """A fixed rule between two observed poses becomes the law of the noise itself: a Normal
+    of the two ends' variance about the offset, a Bingham of their angle variance."""
+    text = (
+        "grammar: lamp\nroot: Table\ntypes:\n  Table:\n    observed: true\n    and:\n"
+        "      - child: Lamp\n        translation: {offset: [0, 0, 0.5]}\n"
+        "        rotation: {offset: {rpy_deg: [0, 0, 90]}}\n  Lamp: {observed: true}\n"
+        f"observation:\n  noise:\n    Lamp: {{position: {sigma}, rotation_deg: {deg}}}\n"
+    )
+    g = compile_text(text)
+    rule = next(r for r in g.rules if g.types[r.child].name == "Lamp")
+    cov = rule.translation.normal.cov
+    assert np.allclose(cov, sigma**2 * np.eye(3))
+    assert np.allclose(rule.translation.offset, [0, 0, 0.5])
+    conc = rule.rotation.bingham.concentration
+    assert np.allclose(np.sort(conc)[1:], min(2.0 / np.deg2rad(deg) ** 2, 1e4))
+
+
+def test_a_lifted_mug_parses_with_noise_and_keeps_its_tree():
+    exact, noisy = compile_text(DINNER), with_section(NOISE)
+    scene = dinner_scene(exact)
+    lifted = moved(scene, 4, [0.0, 0.0, 0.01])
+    with pytest.raises(UnexplainedScene):
+        explain(exact, lifted)
+    truth = Parser(exact).parse(scene).parses[0].tree
+    result = Parser(noisy).parse(lifted)
+    assert result.status == "optimal"
+    tree = result.parses[0].tree
+    # each mug under the same plate as in the exact parse of the unlifted scene
+    assert _mug_plates(exact, scene, truth) == _mug_plates(noisy, lifted, tree)
+
+
+def _mug_plates(g, scene: Scene, tree) -> list[int]:
+    from ssgc.explain import match_objects
+
+    obj_of = match_objects(g, scene, tree)
+    mugs = np.flatnonzero(g.tables.type_observed[tree.type] & (tree.parent >= 0))
+    return sorted(
+        (int(obj_of[n]), int(obj_of[tree.parent[n]]))
+        for n in mugs
+        if g.types[int(tree.type[n])].name == "Mug"
+    )
+
+
+def test_an_observed_root_with_noise_gets_its_own_node():
+    text = DINNER.replace("  Table:\n", "  Table:\n    observed: true\n", 1)
+    text += "observation:\n  noise:\n    default: {position: 0.003}\n"
+    g = compile_text(text, "dinner.yaml")
+    names = [t.name for t in g.types]
+    # its node holds the root's rules and count law where the document wrote them (ssg fit)
+    node = g.types[g.type_ids["~node:Table"]]
+    assert node.path == ("types", "Table") and node.count is not None
+    parameter_ties(g, text, "dinner.yaml")  # every fitted parameter has its place
+    assert g.types[g.root].name == "~scene" and "~node:Table" in names
+    assert g.types[g.type_ids["Table"]].observed and not g.types[g.type_ids["Table"]].rules
+    # a sampled scene: the observed table is off the root pose by the noise, and it parses
+    trees, logp = sample_trees(g, 3, 0)
+    table = trees.type == g.type_ids["Table"]
+    assert np.all(np.linalg.norm(trees.xyz[table], axis=1) > 0)
+    assert np.allclose(score_trees(g, trees), logp)
+    parser = Parser(g)
+    for i in range(3):
+        scene = scene_from_tree(g, trees.tree(i), f"s{i}")
+        best = parser.parse(scene).parses[0]
+        assert best.score >= logp[i] - 1e-6
+
+
+def test_clutter_flags_the_object_the_grammar_does_not_make():
+    g = with_section(CLUTTER)
+    scene = dinner_scene(g)
+    sponge = Scene(
+        "sponge",
+        np.r_[scene.types, g.type_ids["Sponge"]],
+        np.r_[scene.xyz, [[0.2, 0.2, 0.8]]],
+        np.r_[scene.quat, [[1.0, 0, 0, 0]]],
+    )
+    e = explain(g, sponge)
+    assert e.objects[0].index == 6 and e.objects[0].unexplained
+    assert [o.index for o in e.objects if o.unexplained] == [6]
+    assert "UNEXPLAINED" in e.text().splitlines()[1]
+    # a mug far from every plate: the clutter explains it better than a 1 m placement
+    far = moved(scene, 5, [0.0, 0.6, 0.0])
+    tree = Parser(g).parse(far).parses[0].tree
+    assert unexplained_objects(g, far, tree) == [5]
+
+
+def test_without_clutter_the_extra_object_is_named():
+    g = with_section("observation:\n  noise: {}\n", DINNER + "  Sponge: {observed: true}\n")
+    scene = dinner_scene(g)
+    sponge = replace(scene, types=np.r_[scene.types[:5], g.type_ids["Sponge"]])
+    with pytest.raises(UnexplainedScene) as info:
+        explain(g, sponge)
+    assert info.value.diagnosis.objects == [5]
+
+
+@pytest.mark.parametrize(
+    "section, words",
+    [
+        ("observation:\n  noise:\n    Fork: {position: 0.01}\n", "not a type of this grammar"),
+        ("observation:\n  noise:\n    Table: {position: 0.01}\n", "not an observed type"),
+        ("observation:\n  noise:\n    Mug: {rotation_deg: 0.1}\n", "at least 0.81°"),
+        ("observation:\n  noise:\n    Mug: {position: -1}\n", "greater than or equal to 0"),
+        ("observation:\n  noise:\n    Mug: {sigma: 1}\n", "unknown key 'sigma'"),
+        (
+            "observation:\n  clutter:\n    region: {min: [0, 0, 0], max: [1, 1, 1]}\n"
+            "    rates: {Plate: 0.1}\n",
+            "has rules of its own",
+        ),
+        (
+            "observation:\n  clutter:\n    region: {min: [0, 0, 0], max: [1, 1, 0]}\n"
+            "    rates: {Sponge: 0.1}\n",
+            "max > min",
+        ),
+    ],
+)
+def test_observation_mistakes_are_located(section, words):
+    errors = errors_of(section)
+    assert any(words in e for e in errors), errors
+    assert all(e.startswith("dinner.yaml:") and e.split(":")[1].isdigit() for e in errors)
+
+
+def test_validate_cli_names_the_place(tmp_path: Path):
+    path = tmp_path / "g.yaml"
+    path.write_text(DINNER + "observation:\n  noise:\n    Fork: {position: 0.01}\n")
+    out = CliRunner().invoke(app, ["validate", str(path)])
+    assert (out.exit_code not in (0, None) and out.exception is None) or isinstance(
+        out.exception, SystemExit
+    )
+    assert f"{path}:" in out.output and "Fork" in out.output
+
+
+@pytest.mark.slow
+def test_real_sink_scenes_with_noise_and_clutter():
+    """Issue 16, "Done means": the 80 sink scenes jittered by 5 mm and 2° parse with noise and
+    keep their trees (but for near-ties of the exact grammar); one sponge per scene is the one
+    object flagged unexplained."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from observation_check import clutter_check, noise_check
+
+    noise = noise_check()
+    assert noise["parsed"] == noise["scenes"] == 80
+    assert noise["parsed_without_noise_model"] == 0
+    assert noise["same_tree"] >= 78, noise["differ"]
+    clutter = clutter_check()
+    assert clutter["sponge_flagged_alone"] == 80, clutter["wrong"]
+
+
+def test_the_diagnosis_hints_at_noise_and_clutter():
+    g = compile_text(DINNER + "  Sponge: {observed: true}\n")
+    scene = dinner_scene(g)
+    with pytest.raises(UnexplainedScene) as info:
+        explain(g, moved(scene, 4, [0.0, 0.0, 0.01]))
+    assert "`observation: noise`" in info.value.diagnosis.message
+    sponge = replace(scene, types=np.r_[scene.types[:5], g.type_ids["Sponge"]])
+    with pytest.raises(UnexplainedScene) as info:
+        explain(g, sponge)
+    assert "`observation: clutter`" in info.value.diagnosis.message
+    assert "`observation: noise`" not in info.value.diagnosis.message
+
+
+def test_render_marks_clutter_objects():
+    from ssgc.render.scene import View, unexplained
+
+    view = View(
+        "s",
+        "s",
+        ("~scene", "Table", "~clutter", "~clutter:object", "Sponge", "Plate"),
+        np.zeros((6, 3)),
+        np.tile([1.0, 0, 0, 0], (6, 1)),
+        np.array([False, True, False, False, True, True]),
+        np.array([-1, 0, 0, 2, 3, 1]),
+    )
+    assert unexplained(view).tolist() == [False, False, False, False, True, False]
+
+
+def test_parse_cli_lists_the_unexplained_objects(tmp_path: Path):
+    g = with_section(CLUTTER)
+    scene = dinner_scene(g)
+    grammar, path, out = tmp_path / "g.yaml", tmp_path / "scene.json", tmp_path / "out.json"
+    grammar.write_text(DINNER + CLUTTER)
+    objects = [
+        {"type": g.types[int(t)].name, "pose": {"xyz": list(x), "quat_wxyz": list(q)}}
+        for t, x, q in zip(scene.types, scene.xyz, scene.quat, strict=True)
+    ]
+    objects.append({"type": "Sponge", "pose": {"xyz": [0.2, 0.2, 0.8]}})
+    path.write_text(json.dumps({"grammar": "dinner", "objects": objects}))
+    result = CliRunner().invoke(app, ["parse", str(path), "-g", str(grammar), "-o", str(out), "-q"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(out.read_text())["scenes"][0]["parses"][0]["unexplained"] == [6]
+
+
+def test_noise_on_some_types_keeps_every_block_observed():
+    """Noise on the mugs only: the fixed rule into a mug stays fixed (its `or` parent's pose is
+    the mug's own), even though the plates' side of the same `or` is observed exactly."""
+    text = (
+        "grammar: g\nroot: Bin\ntypes:\n  Bin:\n    observed: true\n    repeat:\n"
+        "      count: {probs: [0, 0.5, 0.5]}\n      rule:\n        child: Thing\n"
+        "        translation: {world_normal: {mean: [0, 0, 0], variance: 0.01}}\n"
+        "        rotation: {world_bingham: {concentration: 10}}\n"
+        "  Thing:\n    or:\n      - child: Plate\n      - child: Mug\n"
+        "  Plate: {observed: true}\n  Mug: {observed: true}\n"
+        "observation:\n  noise:\n    Mug: {position: 0.005}\n"
+    )
+    g = compile_text(text)
+    into = {g.types[r.child].name: r for r in g.rules}
+    assert into["Mug"].translation.point is not None  # still one block with Thing
+    assert into["Thing"].translation.normal.cov[0, 0] == pytest.approx(0.01 + 0.005**2)
+    trees, logp = sample_trees(g, 4, 1)
+    parser = Parser(g)
+    for i in range(4):
+        best = parser.parse(scene_from_tree(g, trees.tree(i), f"s{i}")).parses[0]
+        assert best.score >= logp[i] - 1e-6
