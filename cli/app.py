@@ -847,6 +847,7 @@ def _progress(quiet: bool) -> Iterator[Progress]:
 from ssgc.cli import explain as _explain  # noqa: E402, F401  (registers `ssg explain`)
 from ssgc.cli import export as _export  # noqa: E402
 from ssgc.cli import settle as _settle  # noqa: E402, F401
+from ssgc.cli import view as _view  # noqa: E402, F401  (registers `ssg view`)
 
 
 def main() -> None:
