@@ -28,6 +28,7 @@ from ssgc import __version__
 from ssgc.assets import check_assets
 from ssgc.bench import bench_sample
 from ssgc.cli import render as render_cli
+from ssgc.cli.progress import SceneLines
 from ssgc.compile import load_grammar
 from ssgc.errors import GrammarError, SsgError
 from ssgc.inspect import grammar_summary
@@ -52,8 +53,11 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # click's plain help: flags whole, no <bool> tags (docs: --help)
 )
-bench_app = typer.Typer(help="Measure speed; prints JSON with --json.", no_args_is_help=True)
+bench_app = typer.Typer(
+    help="Measure speed; prints JSON with --json.", no_args_is_help=True, rich_markup_mode=None
+)
 app.add_typer(bench_app, name="bench")
 
 # Text is printed as it is: no emoji codes (rich would print `g.yaml:100:3` as `g.yaml💯3`)
@@ -665,6 +669,14 @@ def fit(
             "dataset: MMD² per object type (0: skip).",
         ),
     ] = 0,
+    plot: Annotated[
+        Path | None,
+        typer.Option(
+            "--plot",
+            help="Draw log-evidence per iteration, count histograms and positions of the data "
+            "against samples into this directory (PNG).",
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     resume: Annotated[
         bool, typer.Option("--resume", help="Continue an interrupted fit from its journal.")
@@ -696,6 +708,12 @@ def fit(
     report_dest = None
     if report is not None:
         report_dest = check_output(report, "report", inputs=[grammar, scenes], others=[dest])
+    plots = None
+    if plot is not None:
+        from ssgc.render.fit import check_plot_outputs, require_matplotlib
+
+        require_matplotlib()
+        plots = check_plot_outputs(plot, [grammar, scenes], [dest, report_dest])
     if resume and dest.stream:
         raise SsgError.single("--resume needs -o FILE: the journal is kept next to it", dest.name)
     text = read_text(grammar, MAX_GRAMMAR_BYTES, "grammar file")
@@ -718,7 +736,7 @@ def fit(
     )
     header = fit_header(text, scenes, items, options)
     with (
-        lock_outputs([dest, report_dest]),
+        lock_outputs([dest, report_dest, *(plots or [])]),
         _fit_journal_path(dest) as journal_file,
         FitJournal(journal_file, header, resume) as journal,
     ):
@@ -729,10 +747,17 @@ def fit(
             task = progress.add_task(
                 f"iteration {journal.iteration}", total=len(items), completed=len(journal.scenes)
             )
+            lines = SceneLines(err, len(items), not quiet and not sys.stderr.isatty())
+            lines.start(journal.iteration, len(journal.scenes))
+
+            def on_scene() -> None:
+                progress.advance(task)
+                lines.scene()
 
             def on_iteration(r: dict[str, Any]) -> None:
                 _print_iteration(r, quiet)
                 progress.reset(task, description=f"iteration {r['iteration'] + 1}")
+                lines.start(r["iteration"] + 1, 0)
 
             result = fit_grammar(
                 text,
@@ -741,7 +766,7 @@ def fit(
                 options,
                 journal,
                 time_limit=time_limit,
-                on_scene=lambda: progress.advance(task),
+                on_scene=on_scene,
                 on_iteration=on_iteration,
             )
         if mmd:
@@ -752,6 +777,11 @@ def fit(
         write_output_text(dest, result.text, kept)
         if report_dest is not None:
             write_output_text(report_dest, report_json(result), kept)
+        if plots is not None:
+            from ssgc.render.fit import plot_fit
+
+            fitted = compile_text(result.text, source.file, source.base_dir, allow_outside_files)
+            plot_fit(plots, result.iterations, items, fitted, g, seed)
         if result.status != "time_limit":
             journal.delete()
     if not quiet:
@@ -778,6 +808,14 @@ def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:
             f"{which} {per_type[name]:.4g}" for which, per_type in mmd.items() if name in per_type
         )
         err.print(f"MMD² {name}: {values}", markup=False, highlight=False)
+    if any(v < 0 for per_type in mmd.values() for v in per_type.values()):
+        err.print(
+            "note: MMD² is estimated without bias, so where the sampled and the data poses "
+            "cannot be told apart it comes out near 0, and below 0 as often as above: a "
+            "negative value means no measurable difference at this sample size",
+            markup=False,
+            highlight=False,
+        )
 
 
 def _print_iteration(r: dict[str, Any], quiet: bool, resumed: bool = False) -> None:
