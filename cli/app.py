@@ -197,6 +197,12 @@ def validate(
             mesh_errors = check_assets(g)  # every mesh opened: missing or unreadable is an error
             if mesh_errors:
                 raise GrammarError(mesh_errors)
+        except GrammarError as exc:  # with its missing or unreadable meshes, in one round
+            _print_diagnostics(
+                GrammarError(exc.diagnostics + _mesh_errors(path, exc, allow_outside_files))
+            )
+            failed += 1
+            continue
         except SsgError as exc:
             _print_diagnostics(exc)
             failed += 1
@@ -211,6 +217,13 @@ def validate(
             )
     if failed:
         raise typer.Exit(1)
+
+
+def _mesh_errors(path: Path, exc: GrammarError, allow_outside: bool) -> list[Any]:
+    from ssgc.assets import check_document_meshes
+
+    seen = {str(d) for d in exc.diagnostics}
+    return [d for d in check_document_meshes(path, allow_outside) if str(d) not in seen]
 
 
 @app.command()
