@@ -11,7 +11,6 @@
   const $ = (id) => document.getElementById(id);
   const FOV = 40 * Math.PI / 180;
   const LOW_SHARE = 0.25; // a rule in the lowest quarter of the page's range is marked
-  const HIGHLIGHT = [255, 221, 0]; // the selected object is drawn halfway to this yellow
 
   const state = {
     scene: 0, yaw: -2.2, pitch: 0.6, zoom: 1, pan: [0, 0, 0],
@@ -116,8 +115,7 @@
     tris.sort((a, b) => faint(a) - faint(b) || b.depth - a.depth);
     tris.forEach((t) => {
       const obj = state.world[t.object];
-      const base = t.object === state.selected ? obj.rgb.map((x, i) => (x + HIGHLIGHT[i]) / 2) : obj.rgb;
-      const c = base.map((x) => Math.round(x * t.shade));
+      const c = obj.rgb.map((x) => Math.round(x * t.shade));
       const fill = "rgba(" + c[0] + "," + c[1] + "," + c[2] + "," + obj.alpha + ")";
       path(t.pts);
       ctx.fillStyle = fill;
@@ -130,6 +128,7 @@
     });
     state.drawn = tris;
     drawTree(cam);
+    drawSelection();
   }
 
   function path(pts) {
@@ -183,6 +182,22 @@
       const p = project(cam, n.xyz);
       if (p[2] > cam.near) ctx.fillRect(p[0] - 3, p[1] - 3, 6, 6);
     });
+  }
+
+  function drawSelection() {
+    // A dashed frame around the selected object as drawn (its colour stays its type's).
+    let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
+    state.drawn.forEach((t) => {
+      if (t.object !== state.selected) return;
+      t.pts.forEach((p) => { x0 = Math.min(x0, p[0]); y0 = Math.min(y0, p[1]); x1 = Math.max(x1, p[0]); y1 = Math.max(y1, p[1]); });
+    });
+    if (!isFinite(x0)) return;
+    ctx.save();
+    ctx.setLineDash([5, 3]);
+    ctx.strokeStyle = "#111";
+    ctx.lineWidth = 1.5;
+    ctx.strokeRect(x0 - 4, y0 - 4, x1 - x0 + 8, y1 - y0 + 8);
+    ctx.restore();
   }
 
   // ---------------------------------------------------------------- picking ---
