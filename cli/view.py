@@ -52,38 +52,48 @@ def view(
     """An interactive 3-D page: step through scenes, click an object for its tree path and
     rule scores.  One self-contained HTML file; nothing is fetched from the network."""
     from ssgc.compile import load_grammar
-    from ssgc.view.page import write_view
+    from ssgc.io.outputs import check_output, lock_outputs, write_output_text
+    from ssgc.view.page import view_page
 
     if output is None and not (open_it or serve):
         raise SsgError.single("say where the page goes: -o PAGE.html, or --open or --serve")
-    with tempfile.TemporaryDirectory(prefix="ssg-view-") as tmp:
-        page = output if output is not None else Path(tmp) / "view.html"
+    dest = None if output is None else check_output(output, "page", inputs=(source,))
+    with lock_outputs([dest]):
         g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
-        count = write_view(source, page, g)
-        if not quiet:
-            err.print(f"{count} scene(s) of {source} on {page}", markup=False, highlight=False)
-        if open_it:
-            _open(page, keep=output is not None or serve)
-        if serve:
-            _serve(page, port)
+        html, count = view_page(source, g)
+        if dest is not None:
+            write_output_text(dest, html)
+    if not quiet:
+        where = dest.name if dest is not None else "the page"
+        err.print(f"{count} scene(s) of {source} on {where}", markup=False, highlight=False)
+    if open_it:
+        _open(html, None if dest is None or dest.stream else dest.target)
+    if serve:
+        _serve(html.encode("utf-8"), port)
 
 
-def _open(page: Path, keep: bool) -> None:
+def _open(html: str, page: Path | None) -> None:
+    """The written page, or (without -o) a temporary copy that lives until the browser has
+    read it."""
     import time
     import webbrowser
 
-    if not webbrowser.open(page.resolve().as_uri()):
-        raise SsgError.single("no browser found to open the page: write it with -o PAGE.html")
-    if not keep:  # the browser reads the temporary page before it is removed
-        time.sleep(3)
+    with tempfile.TemporaryDirectory(prefix="ssg-view-") as tmp:
+        if page is None:
+            page = Path(tmp) / "view.html"
+            page.write_text(html, encoding="utf-8")
+            linger = 3.0
+        else:
+            linger = 0.0
+        if not webbrowser.open(page.resolve().as_uri()):
+            raise SsgError.single("no browser found to open the page: write it with -o PAGE.html")
+        time.sleep(linger)
 
 
-def _serve(page: Path, port: int) -> None:
-    """The page on http://127.0.0.1:PORT/ (for a browser on another machine, through an SSH
-    tunnel), until Ctrl-C."""
+def _serve(body: bytes, port: int) -> None:
+    """The page, from memory, on http://127.0.0.1:PORT/ (for a browser on another machine,
+    through an SSH tunnel), until Ctrl-C."""
     from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-
-    body = page.read_bytes()
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self) -> None:

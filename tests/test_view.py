@@ -120,6 +120,28 @@ def test_mistakes_are_one_message_and_no_page(scenes, tmp_path):
     assert result.exit_code == 1 and "Traceback" not in result.output
 
 
+def test_serve_gives_the_page_on_this_machine_only(scenes, tmp_path):
+    """`--serve --port 0`: the page written with -o, served on 127.0.0.1 until stopped."""
+    import re
+    import subprocess
+    import sys
+    import urllib.request
+
+    page = tmp_path / "page.html"
+    cmd = [sys.executable, "-m", "ssgc.cli.app", "view", str(scenes), "-o", str(page)]
+    server = subprocess.Popen([*cmd, "--serve", "--port", "0"], stderr=subprocess.PIPE, text=True)
+    try:
+        lines = [server.stderr.readline() for _ in range(2)]
+        url = re.search(r"http://127\.0\.0\.1:\d+/", lines[1]).group(0)
+        with urllib.request.urlopen(url, timeout=10) as response:
+            assert response.read() == page.read_bytes()
+        with pytest.raises(urllib.error.HTTPError):
+            urllib.request.urlopen(url + "other", timeout=10)
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+
+
 # ------------------------------------------------------------------ in Chromium ---
 
 
