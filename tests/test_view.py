@@ -11,17 +11,20 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import GRAMMARS
+from hypothesis import given
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from ssgc.cli.app import app
 from ssgc.compile import load_grammar
-from ssgc.view.page import view_page
+from ssgc.view.page import _score_colours, view_page
 
 runner = CliRunner()
 SINK = GRAMMARS / "sink.yaml"
@@ -95,6 +98,30 @@ def test_page_holds_every_object_with_its_path_scores(parse_result, sink):
     assert "http" not in html.replace("http://www.w3.org", "")  # nothing fetched
 
 
+@given(
+    st.lists(
+        st.one_of(st.floats(-1e6, 1e6), st.just(-np.inf), st.just(np.nan)), min_size=1, max_size=30
+    )
+)
+def test_edge_colours_follow_the_scores(scores):
+    """Red at the page's lowest score (and −∞), green at its highest, none where no score."""
+    score = np.array(scores)
+    finite = score[np.isfinite(score)]
+    bounds = (float(finite.min()), float(finite.max())) if finite.size else None
+    colours = _score_colours(score, bounds)
+    assert len(colours) == len(score)
+    for s, c in zip(score, colours, strict=True):
+        if bounds is None or np.isnan(s):
+            assert c is None
+            continue
+        assert re.fullmatch(r"#[0-9a-f]{6}", c)
+        spread = bounds[1] - bounds[0] > 1e-9  # a narrower range is drawn as one score
+        if s == -np.inf or (s == bounds[0] and spread):
+            assert c == "#d73027"
+        elif s == bounds[1] and spread:
+            assert c == "#1a9850"
+
+
 def test_user_text_cannot_end_the_data_block(scenes, tmp_path):
     doc = json.loads((scenes / "sink_000000.json").read_text())
     del doc["tree"]
@@ -122,7 +149,6 @@ def test_mistakes_are_one_message_and_no_page(scenes, tmp_path):
 
 def test_serve_gives_the_page_on_this_machine_only(scenes, tmp_path):
     """`--serve --port 0`: the page written with -o, served on 127.0.0.1 until stopped."""
-    import re
     import subprocess
     import sys
     import urllib.request

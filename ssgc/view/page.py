@@ -140,7 +140,8 @@ def _score_colours(score: np.ndarray, bounds: tuple[float, float] | None) -> lis
     if bounds is None:
         return [None] * len(score)
     lo, hi = bounds
-    t = np.clip((np.where(np.isneginf(score), lo, score) - lo) / max(hi - lo, 1e-12), 0, 1)
+    known = np.where(np.isfinite(score), score, lo)  # −∞ (and NaN, dropped below): lowest
+    t = np.clip((known - lo) / max(hi - lo, 1e-12), 0, 1)
     seg = np.minimum((t * 2).astype(int), 1)
     frac = (t * 2 - seg)[:, None]
     rgb = SCORE_STOPS[seg] * (1 - frac) + SCORE_STOPS[seg + 1] * frac
