@@ -30,8 +30,11 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # click's plain help: flags whole, no <bool> tags (tests/test_help.py)
 )
-bench_app = typer.Typer(help="Measure speed; prints JSON with --json.", no_args_is_help=True)
+bench_app = typer.Typer(
+    help="Measure speed; prints JSON with --json.", no_args_is_help=True, rich_markup_mode=None
+)
 app.add_typer(bench_app, name="bench")
 
 # Text is printed as it is: no emoji codes (rich would print `g.yaml:100:3` as `g.yaml💯3`)
@@ -216,6 +219,7 @@ from ssgc.cli import explain as _explain  # noqa: E402, F401
 from ssgc.cli import export as _export  # noqa: E402, F401
 from ssgc.cli import settle as _settle  # noqa: E402, F401
 from ssgc.cli import bench as _bench  # noqa: E402, F401  (`ssg bench sample|parse`)
+from ssgc.cli import view as _view  # noqa: E402, F401  (`ssg view`)
 # isort: on
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
@@ -18,6 +19,7 @@ from ssgc.cli.app import (
     app,
     err,
 )
+from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
 from ssgc.io.outputs import check_output, lock_outputs, write_output_text
 
@@ -93,6 +95,14 @@ def fit(
             "dataset: MMD² per object type (0: skip).",
         ),
     ] = 0,
+    plot: Annotated[
+        Path | None,
+        typer.Option(
+            "--plot",
+            help="Draw log-evidence per iteration, count histograms and positions of the data "
+            "against samples into this directory (PNG).",
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     resume: Annotated[
         bool, typer.Option("--resume", help="Continue an interrupted fit from its journal.")
@@ -125,6 +135,12 @@ def fit(
     report_dest = None
     if report is not None:
         report_dest = check_output(report, "report", inputs=[grammar, scenes], others=[dest])
+    plots = None
+    if plot is not None:
+        from ssgc.render.fit import check_plot_outputs, require_matplotlib
+
+        require_matplotlib()
+        plots = check_plot_outputs(plot, [grammar, scenes], [dest, report_dest])
     if resume and dest.stream:
         raise SsgError.single("--resume needs -o FILE: the journal is kept next to it", dest.name)
     text = read_text(grammar, MAX_GRAMMAR_BYTES, "grammar file")
@@ -147,7 +163,7 @@ def fit(
     )
     header = fit_header(text, scenes, items, options)
     with (
-        lock_outputs([dest, report_dest]),
+        lock_outputs([dest, report_dest, *(plots or [])]),
         fit_journal_file(None if dest.stream else dest.target) as journal_file,
         FitJournal(journal_file, header, resume) as journal,
     ):
@@ -158,10 +174,17 @@ def fit(
             task = progress.add_task(
                 f"iteration {journal.iteration}", total=len(items), completed=len(journal.scenes)
             )
+            lines = SceneLines(err, len(items), not quiet and not sys.stderr.isatty())
+            lines.start(journal.iteration, len(journal.scenes))
+
+            def on_scene() -> None:
+                progress.advance(task)
+                lines.scene()
 
             def on_iteration(r: dict[str, Any]) -> None:
                 _print_iteration(r, quiet)
                 progress.reset(task, description=f"iteration {r['iteration'] + 1}")
+                lines.start(r["iteration"] + 1, 0)
 
             result = fit_grammar(
                 text,
@@ -170,7 +193,7 @@ def fit(
                 options,
                 journal,
                 time_limit=time_limit,
-                on_scene=lambda: progress.advance(task),
+                on_scene=on_scene,
                 on_iteration=on_iteration,
             )
         if mmd:
@@ -181,6 +204,11 @@ def fit(
         write_output_text(dest, result.text, kept)
         if report_dest is not None:
             write_output_text(report_dest, report_json(result), kept)
+        if plots is not None:
+            from ssgc.render.fit import plot_fit
+
+            fitted = compile_text(result.text, source.file, source.base_dir, allow_outside_files)
+            plot_fit(plots, result.iterations, items, fitted, g, seed)
         if result.status != "time_limit":
             journal.delete()
     if not quiet:
@@ -196,6 +224,14 @@ def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:
             f"{which} {per_type[name]:.4g}" for which, per_type in mmd.items() if name in per_type
         )
         err.print(f"MMD² {name}: {values}", markup=False, highlight=False)
+    if any(v < 0 for per_type in mmd.values() for v in per_type.values()):
+        err.print(
+            "note: MMD² is estimated without bias, so where the sampled and the data poses "
+            "cannot be told apart it comes out near 0, and below 0 as often as above: a "
+            "negative value means no measurable difference at this sample size",
+            markup=False,
+            highlight=False,
+        )
 
 
 def _print_iteration(r: dict[str, Any], quiet: bool, resumed: bool = False) -> None:

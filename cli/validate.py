@@ -7,10 +7,10 @@ from typing import Annotated
 
 import typer
 
-from ssgc.assets import check_assets
+from ssgc.assets import check_assets, check_document_meshes
 from ssgc.cli.app import AllowOutside, _command, _print_diagnostics, app, err, out
 from ssgc.compile import load_grammar
-from ssgc.errors import GrammarError, SsgError
+from ssgc.errors import Diagnostic, GrammarError, SsgError
 
 
 @app.command()
@@ -28,6 +28,12 @@ def validate(
             mesh_errors = check_assets(g)  # every mesh opened: missing or unreadable is an error
             if mesh_errors:
                 raise GrammarError(mesh_errors)
+        except GrammarError as exc:  # with its missing or unreadable meshes, in one round
+            _print_diagnostics(
+                GrammarError(exc.diagnostics + _mesh_errors(path, exc, allow_outside_files))
+            )
+            failed += 1
+            continue
         except SsgError as exc:
             _print_diagnostics(exc)
             failed += 1
@@ -42,3 +48,10 @@ def validate(
             )
     if failed:
         raise typer.Exit(1)
+
+
+def _mesh_errors(path: Path, exc: GrammarError, allow_outside: bool) -> list[Diagnostic]:
+    """The mesh files of a grammar that does not compile, opened all the same, so that a
+    missing one is reported with the grammar's other errors (docs/grammar.md section 6)."""
+    seen = {str(d) for d in exc.diagnostics}
+    return [d for d in check_document_meshes(path, allow_outside) if str(d) not in seen]

@@ -248,3 +248,45 @@ def _decompose(coacd, mesh) -> tuple[object, ...]:  # type: ignore[no-untyped-de
     pieces = tuple(trimesh.Trimesh(v, f).convex_hull for v, f in parts)
     _DECOMPOSED[digest] = pieces
     return pieces
+
+
+def check_document_meshes(path: Path, allow_outside: bool = False) -> list[Diagnostic]:
+    """Located errors for every missing or unreadable mesh of a grammar file that does not
+    compile (for `ssg validate`, so one run reports them with the grammar's other errors).
+
+    Read from the document itself: every `geometry: {mesh: {file}}` of a type whose file name
+    is a plain relative name inside the grammar's directory (other names the compiler already
+    reports), with its `scale` when that is well formed.
+    """
+    from ssgc.yamlio import load_located
+
+    try:
+        text = path.read_text(encoding="utf-8")
+        data, source = load_located(text, str(path))
+    except Exception:  # unreadable or not YAML: the compiler's messages say so
+        return []
+    types = data.get("types") if isinstance(data, dict) else None
+    if not isinstance(types, dict):
+        return []
+    base = path.parent.resolve()
+    problems = []
+    for name, body in types.items():
+        geometry = body.get("geometry") if isinstance(body, dict) else None
+        mesh = geometry.get("mesh") if isinstance(geometry, dict) else None
+        file = mesh.get("file") if isinstance(mesh, dict) else None
+        if not isinstance(file, str) or not file or Path(file).is_absolute():
+            continue
+        target = (path.parent / file).resolve()
+        if not allow_outside and not target.is_relative_to(base):
+            continue
+        scale = mesh.get("scale", 1.0)
+        try:
+            scale = np.broadcast_to(np.asarray(scale, dtype=float), 3)
+        except (TypeError, ValueError):
+            scale = np.ones(3)
+        try:
+            _load_mesh(path.parent / file, scale.tolist())
+        except ValueError as exc:
+            loc = ("types", name, "geometry", "mesh", "file")
+            problems.append(source.diagnostic(loc, f"mesh file '{file}': {exc}"))
+    return problems

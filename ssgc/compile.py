@@ -15,8 +15,10 @@ effect) travel with the compiled grammar.
 
 from __future__ import annotations
 
+import copy
 import difflib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -95,14 +97,65 @@ def compile_text(
     try:
         doc = dsl.GrammarDoc.model_validate(data)
     except ValidationError as exc:
-        later = _errors_beyond_shape(data, exc, source, base_dir, allow_outside)
-        raise GrammarError(validation_diagnostics(exc, source) + later) from None
+        shape, locs = _shape_errors(data, exc, source)
+        later = _errors_beyond_shape(data, locs, source, base_dir, allow_outside)
+        raise GrammarError(shape + later) from None
     return Compiler(doc, source, base_dir, allow_outside).run()
+
+
+MAX_SHAPE_PASSES = 4  # unknown keys nested this deep in one mapping path are all reported
+
+
+def _shape_errors(
+    data: dict, exc: ValidationError, source: SourceMap
+) -> tuple[list[Diagnostic], list[tuple]]:
+    """Every shape error, and where each is.  An unknown key stops the check of the mapping
+    that holds it (its other keys go unchecked), so the unknown keys are taken out and the
+    document checked again, a few times at most, adding what the next pass finds: one run
+    reports a type's unknown key and its wrong values together."""
+    diagnostics = validation_diagnostics(exc, source)
+    seen = {str(d) for d in diagnostics}
+    errors = exc.errors(include_url=False)
+    locs = [tuple(e["loc"]) for e in errors]
+    current = data
+    for _ in range(MAX_SHAPE_PASSES):
+        unknown = [e for e in errors if e["type"] == "unknown_key"]
+        if not unknown:
+            break
+        current = copy.deepcopy(current)
+        if not all(_drop_key(current, e["loc"], e["ctx"]["key"]) for e in unknown):
+            break
+        try:
+            dsl.GrammarDoc.model_validate(current)
+            break
+        except ValidationError as again:
+            errors = again.errors(include_url=False)
+            locs += [tuple(e["loc"]) for e in errors]
+            for d in validation_diagnostics(again, source):
+                if str(d) not in seen:
+                    seen.add(str(d))
+                    diagnostics.append(d)
+    return diagnostics, locs
+
+
+def _drop_key(data: Any, loc: Any, key: str) -> bool:
+    """Remove `key` from the mapping at `loc` (steps that name no key or index, such as a
+    union's tag, are skipped); false if it is not found."""
+    node = data
+    for step in loc:
+        if isinstance(node, dict) and step in node:
+            node = node[step]
+        elif isinstance(node, list) and isinstance(step, int) and 0 <= step < len(node):
+            node = node[step]
+    if isinstance(node, dict) and key in node:
+        del node[key]
+        return True
+    return False
 
 
 def _errors_beyond_shape(
     data: dict,
-    exc: ValidationError,
+    locs: list[tuple],
     source: SourceMap,
     base_dir: Path | None,
     allow_outside: bool,
@@ -110,28 +163,67 @@ def _errors_beyond_shape(
     """The semantic errors of the rest of a grammar whose shape is wrong in some node types,
     so that one run reports them all (not one stage per run).
 
-    Each malformed type is checked as a terminal stub: its name stays known, so the rest gets
-    no follow-on "unknown type" errors, and warnings (which a stub could cause) are dropped.
-    A shape error outside `types` (root, grammar name) leaves nothing sound to check.
+    A rule of an `and`, `or` or `independent` list with a shape error is left out, and the
+    type's other rules are still checked (their messages keep their places: `_Renumbered`).
+    A type with a shape error elsewhere is checked as a terminal stub: its name stays known,
+    so the rest gets no follow-on "unknown type" errors.  Warnings (which a stub or a missing
+    rule could cause) are dropped.  A shape error outside `types` (root, grammar name) leaves
+    nothing sound to check.
     """
     bad: set[str] = set()
-    for err in exc.errors(include_url=False):
-        loc = tuple(err["loc"])
-        if len(loc) < 3 or loc[0] != "types" or not isinstance(loc[1], str) or loc[2] == "[key]":
+    bad_rules: dict[tuple, set[int]] = {}
+    for loc in locs:
+        if len(loc) < 2 or loc[0] != "types" or not isinstance(loc[1], str):
             return []
-        bad.add(loc[1])
+        if len(loc) >= 3 and loc[2] == "[key]":  # a type's name itself
+            return []
+        if len(loc) >= 5 and loc[2] in RULE_LISTS and isinstance(loc[3], int):
+            bad_rules.setdefault(loc[:3], set()).add(loc[3])
+        else:
+            bad.add(loc[1])
     types = data.get("types")
     if not isinstance(types, dict):
         return []
-    stubbed = {**data, "types": {k: ({} if k in bad else v) for k, v in types.items()}}
+    kept: dict[tuple, list[int]] = {}
+    fixed = {}
+    for name, body in types.items():
+        if name in bad:
+            fixed[name] = {}
+            continue
+        body = dict(body) if isinstance(body, dict) else body
+        for word in RULE_LISTS:
+            drop = bad_rules.get(("types", name, word))
+            if drop and isinstance(body, dict) and isinstance(body.get(word), list):
+                kept[("types", name, word)] = [i for i in range(len(body[word])) if i not in drop]
+                body[word] = [r for i, r in enumerate(body[word]) if i not in drop]
+        fixed[name] = body
+    stubbed = {**data, "types": fixed}
     try:
         doc = dsl.GrammarDoc.model_validate(stubbed)
-        Compiler(doc, source, base_dir, allow_outside).run()
+        Compiler(doc, _Renumbered(source, kept), base_dir, allow_outside).run()  # type: ignore[arg-type]
     except ValidationError:
         return []
     except GrammarError as later:
         return [d for d in later.diagnostics if d.severity != "warning"]
     return []
+
+
+RULE_LISTS = ("and", "or", "independent")  # the document's keys of a type's rule lists
+
+
+class _Renumbered:
+    """The source map of a document some of whose rules were left out: a location in the
+    shortened copy is turned back into the rule's place in the document."""
+
+    def __init__(self, source: SourceMap, kept: dict[tuple, list[int]]) -> None:
+        self.source, self.kept, self.file = source, kept, source.file
+
+    def diagnostic(self, loc: Any, message: str, severity: str = "error") -> Diagnostic:
+        loc = tuple(loc)
+        rules = self.kept.get(loc[:3]) if len(loc) >= 4 else None
+        if rules is not None and isinstance(loc[3], int) and 0 <= loc[3] < len(rules):
+            loc = (*loc[:3], rules[loc[3]], *loc[4:])
+        return self.source.diagnostic(loc, message, severity)
 
 
 class Report:

@@ -1062,6 +1062,23 @@ def test_fuzz_render(work: Path, data: bytes, with_grammar: bool) -> None:
     assert not list(work.glob(".picture.png.*"))
 
 
+@fuzz(quick=15)
+@given(data=render_inputs(), with_grammar=st.booleans())
+def test_fuzz_view(work: Path, data: bytes, with_grammar: bool) -> None:
+    """`ssg view` reads what `ssg render` reads: a page or one message, never a half file."""
+    path = write(work / "scene.json", data)
+    out = work / "page.html"
+    out.unlink(missing_ok=True)
+    grammar = ["-g", str(GRAMMARS / "sink.yaml")] if with_grammar else []
+    result, seconds = invoke(["view", str(path), "-o", str(out), "-q", *grammar])
+    check(result, seconds, {0, 1}, [path, GRAMMARS / "sink.yaml"], data)
+    assert out.exists() == (result.exit_code == 0)
+    if result.exit_code == 0:
+        html = out.read_text()
+        assert html.count("</script>") == 2  # nothing in the data ends its block
+    assert not list(work.glob(".page.html.*"))
+
+
 def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes) -> None:
     """`ssg fit` on anything: the contract, and a fitted grammar that compiles or no file."""
     out = work / "fitted.yaml"

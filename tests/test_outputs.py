@@ -843,6 +843,30 @@ def test_pictures_to_devices_and_stdout(scene: Path, tmp_path: Path) -> None:
 
 
 @pytest.mark.usefixtures("devices_unchanged")
+def test_view_page_and_fit_plots_checked_first(scene: Path, tmp_path: Path) -> None:
+    assert run("view", scene, "-o", "/dev/null", "-q").exit_code == 0
+    full = run("view", scene, "-o", "/dev/full", "-q")
+    assert full.exit_code == 1 and "No space left on device" in full.output
+    no_bug(full.output)
+    piped = ssg("view", scene, "-o", "-", "-q", capture_output=True)
+    assert piped.returncode == 0 and piped.stdout.startswith(b"<!DOCTYPE html>"), piped.stderr
+    before = scene.read_bytes()
+    assert run("view", scene, "-o", scene).exit_code == 1 and scene.read_bytes() == before
+    folder = tmp_path / "a_dir.html"
+    folder.mkdir()
+    assert run("view", scene, "-o", folder).exit_code == 1 and folder.is_dir()
+    pytest.importorskip("matplotlib")
+    fitted = tmp_path / "fitted.yaml"
+    a_file = tmp_path / "plots"
+    a_file.write_text("keep")
+    for plots in (a_file, tmp_path / "missing", "/dev/null"):
+        result = run("fit", scene, "-g", GMM, "-o", fitted, "--plot", plots)
+        assert result.exit_code == 1, (plots, result.output)
+        no_bug(result.output)
+        assert not fitted.exists() and a_file.read_text() == "keep"
+
+
+@pytest.mark.usefixtures("devices_unchanged")
 def test_explain_output_checked_first(scene: Path, tmp_path: Path) -> None:
     before = scene.read_bytes()
     onto_input = run("explain", scene, "-g", GMM, "-o", scene)

@@ -49,6 +49,7 @@ class View:
     observed: NDArray[np.bool_]
     parent: NDArray[np.int64]  # -1: a root, or no tree known
     score: FloatArray | None = None  # a parse's per-node rule log-probability
+    rules: tuple[str | None, ...] | None = None  # a parse's per-node rule name (`ssg view`)
 
 
 def require_matplotlib() -> Any:
@@ -187,6 +188,7 @@ class _Loose(BaseModel):
 
 class _RuleScore(_Loose):
     node: int
+    rule: str | None = None
     log_prob: float | None = None
 
 
@@ -282,12 +284,25 @@ def _parse_views(doc: _ParseDoc, grammar: Grammar | None, path: Path) -> list[Vi
         best = s.parses[0]
         view = _tree_view(s.name, best.tree, grammar, path)
         score = np.full(len(view.types), np.nan)
+        rules: list[str | None] = [None] * len(score)
         for r in best.rules:
-            if 0 <= r.node < len(score) and r.log_prob is not None:
-                score[r.node] = r.log_prob
+            if 0 <= r.node < len(score):
+                rules[r.node] = r.rule
+                if r.log_prob is not None:
+                    score[r.node] = r.log_prob
         title = s.name if best.score is None else f"{s.name}  (log p = {best.score:.2f})"
         views.append(
-            View(s.name, title, view.types, view.xyz, view.quat, view.observed, view.parent, score)
+            View(
+                s.name,
+                title,
+                view.types,
+                view.xyz,
+                view.quat,
+                view.observed,
+                view.parent,
+                score,
+                tuple(rules),
+            )
         )
     if not views:
         statuses = ", ".join(sorted({s.status or "?" for s in doc.scenes})) or "no scenes"

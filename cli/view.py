@@ -1,0 +1,125 @@
+"""`ssg view`: scenes, sampled trees and parses in the browser (ssgc.view; docs/view.md)."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ssgc.errors import SsgError
+
+from .app import AllowOutside, _command, app, err
+
+SERVE_HOST = "127.0.0.1"  # this machine only: the page is for the user who runs ssg
+
+
+@app.command()
+@_command
+def view(
+    source: Annotated[
+        Path,
+        typer.Argument(
+            help="A scene JSON, a directory of them, an `ssg parse` result, or a sink-format "
+            "YAML dataset (with -g).",
+            show_default=False,
+        ),
+    ],
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "-o", "--output", help="Write the page here (.html); needed unless --open/--serve."
+        ),
+    ] = None,
+    grammar: Annotated[
+        Path | None,
+        typer.Option("-g", "--grammar", help="Grammar for the objects' shapes (optional)."),
+    ] = None,
+    open_it: Annotated[
+        bool, typer.Option("--open", help="Open the page in the default browser.")
+    ] = False,
+    serve: Annotated[
+        bool,
+        typer.Option("--serve", help="Serve the page on 127.0.0.1 until Ctrl-C."),
+    ] = False,
+    port: Annotated[
+        int, typer.Option("--port", min=0, max=65535, help="--serve: the port (0: any free).")
+    ] = 8000,
+    quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No summary line.")] = False,
+    allow_outside_files: AllowOutside = False,
+) -> None:
+    """An interactive 3-D page: step through scenes, click an object for its tree path and
+    rule scores.  One self-contained HTML file; nothing is fetched from the network."""
+    from ssgc.compile import load_grammar
+    from ssgc.io.outputs import check_output, lock_outputs, write_output_text
+    from ssgc.view.page import view_page
+
+    if output is None and not (open_it or serve):
+        raise SsgError.single("say where the page goes: -o PAGE.html, or --open or --serve")
+    dest = None if output is None else check_output(output, "page", inputs=(source,))
+    with lock_outputs([dest]):
+        g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
+        html, count = view_page(source, g)
+        if dest is not None:
+            write_output_text(dest, html)
+    if not quiet:
+        where = dest.name if dest is not None else "the page"
+        err.print(f"{count} scene(s) of {source} on {where}", markup=False, highlight=False)
+    if open_it:
+        _open(html, None if dest is None or dest.stream else dest.target)
+    if serve:
+        _serve(html.encode("utf-8"), port)
+
+
+def _open(html: str, page: Path | None) -> None:
+    """The written page, or (without -o) a temporary copy that lives until the browser has
+    read it."""
+    import time
+    import webbrowser
+
+    with tempfile.TemporaryDirectory(prefix="ssg-view-") as tmp:
+        if page is None:
+            page = Path(tmp) / "view.html"
+            page.write_text(html, encoding="utf-8")
+            linger = 3.0
+        else:
+            linger = 0.0
+        if not webbrowser.open(page.resolve().as_uri()):
+            raise SsgError.single("no browser found to open the page: write it with -o PAGE.html")
+        time.sleep(linger)
+
+
+def _serve(body: bytes, port: int) -> None:
+    """The page, from memory, on http://127.0.0.1:PORT/ (for a browser on another machine,
+    through an SSH tunnel), until Ctrl-C."""
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            if self.path not in ("/", "/index.html"):
+                self.send_error(404)
+                return
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html; charset=utf-8")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, format: str, *args: object) -> None:
+            pass  # no line per request
+
+    try:
+        server = ThreadingHTTPServer((SERVE_HOST, port), Handler)
+    except OSError as exc:
+        raise SsgError.single(f"cannot serve on {SERVE_HOST}:{port}: {exc.strerror}") from None
+    with server:
+        err.print(
+            f"serving on http://{SERVE_HOST}:{server.server_address[1]}/ (Ctrl-C stops)",
+            markup=False,
+            highlight=False,
+        )
+        try:
+            server.serve_forever()
+        except KeyboardInterrupt:
+            err.print("stopped", markup=False, highlight=False)

@@ -1,0 +1,46 @@
+"""`--help` of every command: every flag shown whole, no `<bool>` tags on flags (issue 16)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from ssgc.cli.app import app
+
+runner = CliRunner()
+
+
+def commands() -> list[tuple[list[str], Any]]:
+    """Every command and subcommand, with the words that reach it."""
+    found = []
+
+    def walk(words: list[str], cmd: Any) -> None:
+        found.append((words, cmd))
+        if hasattr(cmd, "commands"):  # a group (typer's own click types)
+            for name, sub in cmd.commands.items():
+                if not sub.hidden:
+                    walk([*words, name], sub)
+
+    walk([], typer.main.get_command(app))
+    return found
+
+
+@pytest.mark.parametrize("width", [60, 100])
+@pytest.mark.parametrize(
+    "words,cmd", [pytest.param(w, c, id=" ".join(w) or "ssg") for w, c in commands()]
+)
+def test_help_shows_every_flag_whole(words, cmd, width):
+    result = runner.invoke(app, [*words, "--help"], terminal_width=width)
+    assert result.exit_code == 0, result.output
+    text = result.output
+    assert "<bool>" not in text
+    assert "…" not in text  # nothing cut short
+    assert all(len(line) <= width for line in text.splitlines())
+    tokens = set(text.replace(",", " ").split())
+    for param in cmd.params:
+        if param.param_type_name == "option" and not param.hidden:
+            for flag in param.opts + param.secondary_opts:
+                assert flag in tokens, f"{flag} missing from `{' '.join(words)} --help`"
