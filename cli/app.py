@@ -238,7 +238,9 @@ def sample(
         str | None,
         typer.Option(help="Sample under constraints: all, or NAME,NAME (docs/constraints.md)."),
     ] = None,
-    method: Annotated[str, typer.Option(help="With --constraints: auto | rejection.")] = "auto",
+    method: Annotated[
+        str, typer.Option(help="With --constraints: auto | rejection | rjmcmc | hmc | project.")
+    ] = "auto",
     max_tries: Annotated[
         int | None, typer.Option(min=1, help="With --constraints: stop after this many candidates.")
     ] = None,

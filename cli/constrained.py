@@ -44,14 +44,15 @@ def sample_constrained(
     if resume:
         raise SsgError.single("--resume is not supported with --constraints yet")
     chosen = select(g, names)
-    method = choose_method(method, chosen)
+    asked, method = method, choose_method(method, chosen)
     width = max(6, len(str(max(n - 1, 0))))
     names_ = [c.name for c in chosen]
     tally = Tally()
     written = 0
     if not quiet:
         kinds = ", ".join(f"{c.name} ({c.kind})" for c in chosen)
-        err.print(f"sampling under {kinds} by {method}", markup=False, highlight=False)
+        why = " (auto: chosen per constraint kind, docs/constraints.md)" if asked == "auto" else ""
+        err.print(f"sampling under {kinds} by {method}{why}", markup=False, highlight=False)
     try:
         with _progress(quiet) as progress:
             task = progress.add_task("sampling (constrained)", total=n)
@@ -72,7 +73,7 @@ def sample_constrained(
                     index = first + k
                     name = f"{stem}_{index:0{width}d}"
                     scene = scene_from_tree(g, block.trees.tree(k), name, float(block.logp[k]))
-                    meta = scene_metadata(method, names_, block.margins, k)
+                    meta = scene_metadata(method, names_, block.margins, k, block.chain)
                     text = dumps_scene(g, scene, seed=seed, index=index, metadata=meta)
                     if not written:
                         before_first_write()

@@ -6,8 +6,11 @@ k = 0, 1, ... of growing size (`attempt_size(k)`), attempt k with the generator
 b that satisfies the constraints.  So scene i depends only on the seed and i (and the
 method), never on how many scenes were asked for, or on any time or try limit.
 
-Methods are registered in `METHODS` by name; each is one function drawing one attempt.  Only
-`rejection` (exact, `ssgc.sample.staged`) exists today; `auto` picks it.
+Methods are registered in `METHODS` by name; each is one function drawing one attempt:
+`rejection` (exact, `ssgc.sample.staged`), `rjmcmc` (exact in the limit of long chains,
+`ssgc.sample.rjmcmc`), `hmc` (thesis 2.4.1, `ssgc.sample.hmc`) and `project` (thesis 2.4.2,
+`ssgc.sample.project`), the last two biased.  The chain methods use smaller attempts
+(`ATTEMPTS`): each candidate costs a chain.  `auto` picks per constraint kind (`choose_method`).
 """
 
 from __future__ import annotations
@@ -22,6 +25,9 @@ from numpy.typing import NDArray
 from ssgc.constraints.base import Constraint
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.ir import Grammar
+from ssgc.sample.hmc import hmc_batch
+from ssgc.sample.project import project_batch
+from ssgc.sample.rjmcmc import rjmcmc_batch
 from ssgc.sample.staged import Outcome, OutOfTime, rejection_batch
 from ssgc.tree import Trees
 
@@ -32,12 +38,31 @@ LARGEST_ATTEMPT = 65536
 
 # (grammar, constraints, candidates, generator, deadline) -> the kept ones; may raise OutOfTime
 Method = Callable[[Grammar, list[Constraint], int, np.random.Generator, float | None], Outcome]
-METHODS: dict[str, Method] = {"rejection": rejection_batch}
-EXACT = {"rejection": True}
+METHODS: dict[str, Method] = {
+    "rejection": rejection_batch,
+    "rjmcmc": rjmcmc_batch,
+    "hmc": hmc_batch,
+    "project": project_batch,
+}
+EXACT = {"rejection": True, "rjmcmc": True, "hmc": False, "project": False}
+# (first, largest) attempt, in candidates; chain methods run one chain per (kept) candidate
+ATTEMPTS = {"rjmcmc": (256, 256), "hmc": (256, 1024), "project": (256, 1024)}
+# `auto`'s choice per constraint kind: the fastest exact method measured on the bundled
+# grammars (docs/constraints.md); a kind missing here would go to RJMCMC.
+AUTO = {
+    "count": "rejection",  # judged on the structure alone, before any pose is drawn
+    "longest_chain": "rejection",
+    "children": "rejection",
+    "inside_box": "rejection",  # one array expression per batch
+    "clearance": "rejection",
+    "upright": "rejection",
+    "non_penetration": "rejection",  # sink: 36% of candidates pass; chains call FCL far more
+}
 
 
-def attempt_size(k: int) -> int:
-    return min(LARGEST_ATTEMPT, FIRST_ATTEMPT << min(k, 16))
+def attempt_size(k: int, method: str = "rejection") -> int:
+    first, largest = ATTEMPTS.get(method, (FIRST_ATTEMPT, LARGEST_ATTEMPT))
+    return min(largest, first << min(k, 16))
 
 
 def select(grammar: Grammar, names: str | None) -> list[Constraint]:
@@ -62,9 +87,11 @@ def select(grammar: Grammar, names: str | None) -> list[Constraint]:
 
 
 def choose_method(method: str, constraints: list[Constraint]) -> str:
-    """`auto` picks per constraint kind; today every kind goes to exact rejection."""
+    """`auto` picks per constraint kind (`AUTO`), always an exact method: rejection when it
+    is every kind's choice, else RJMCMC (one chain handles every kind)."""
     if method == "auto":
-        return "rejection"
+        picks = {AUTO.get(c.word, "rjmcmc") for c in constraints}
+        return "rejection" if picks <= {"rejection"} else "rjmcmc"
     if method not in METHODS:
         raise SsgError.single(
             f"unknown sampling method '{method}'; expected auto or one of: {', '.join(METHODS)}"
@@ -110,6 +137,7 @@ class Block:
     trees: Trees
     logp: NDArray[np.float64]
     margins: dict[str, NDArray[np.float64]]
+    chain: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # MCMC statistics
 
 
 class Unmet(SsgError):
@@ -151,7 +179,7 @@ def sample_blocks(
                 raise _unmet(grammar, tally, n, limit)
             rng = np.random.default_rng([int(seed) & 0xFFFFFFFFFFFFFFFF, b, k + 1, TAG])
             try:
-                o = draw(grammar, constraints, attempt_size(k), rng, deadline)
+                o = draw(grammar, constraints, attempt_size(k, method), rng, deadline)
             except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
                 if have:
                     yield _block(b, got, have)
@@ -172,9 +200,11 @@ def _block(index: int, outcomes: list[Outcome], want: int) -> Block:
     logp = np.concatenate([o.logp for o in outcomes])[:want]
     names = outcomes[0].margins.keys()
     margins = {k: np.concatenate([o.margins[k] for o in outcomes])[:want] for k in names}
+    stats = [getattr(o, "chain", {}) for o in outcomes]
+    chain = {k: np.concatenate([s[k] for s in stats])[:want] for k in stats[0]}
     if trees.n_scenes > want:
         trees = trees.first(want)
-    return Block(index, trees, logp, margins)
+    return Block(index, trees, logp, margins, chain)
 
 
 def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str) -> Unmet:
@@ -186,10 +216,20 @@ def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str) -> Unmet:
     return Unmet([Diagnostic(line, grammar.file) for line in lines], exit_code=2)
 
 
-def scene_metadata(method: str, names: list[str], margins: dict[str, NDArray], k: int) -> dict:  # type: ignore[type-arg]
-    """What a scene file records about how it was sampled: method and each margin."""
+def scene_metadata(
+    method: str,
+    names: list[str],
+    margins: dict[str, NDArray],  # type: ignore[type-arg]
+    k: int,
+    chain: dict[str, NDArray] | None = None,  # type: ignore[type-arg]
+) -> dict:  # type: ignore[type-arg]
+    """What a scene file records about how it was sampled: method, each margin and, for the
+    chain methods, the chain's statistics (acceptance rates, step size, ...)."""
+    sampler: dict = {"method": method, "exact": EXACT.get(method, False)}  # type: ignore[type-arg]
+    if chain:
+        sampler["chain"] = {name: float(v[k]) for name, v in chain.items()}
     return {
-        "sampler": {"method": method, "exact": EXACT.get(method, False)},
+        "sampler": sampler,
         "constraints": {
             name: (float(margins[name][k]) if np.isfinite(margins[name][k]) else None)
             for name in names
