@@ -23,13 +23,18 @@ def bench_sample_cmd(
         str | None,
         typer.Option(help="Valid scenes/s under: all, or NAME,NAME (-n defaults to 1,000 then)."),
     ] = None,
+    method: Annotated[
+        str | None,
+        typer.Option(help="With --constraints: the methods to time, M or M,M (default: all)."),
+    ] = None,
 ) -> None:
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
     if constraints is not None:
         from ssgc.bench import bench_constrained
 
         g = load_grammar(grammar)
-        result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed)
+        methods = None if method is None else [m.strip() for m in method.split(",")]
+        result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed, methods)
     else:
         result = bench_sample(load_grammar(grammar), n, seed)
     if as_json:

@@ -135,22 +135,27 @@ def _linearity(size: np.ndarray, seconds: np.ndarray) -> dict[str, float]:
     }
 
 
-def bench_constrained(grammar: Grammar, names: str, n: int, seed: int) -> dict[str, Any]:
+def bench_constrained(
+    grammar: Grammar, names: str, n: int, seed: int, methods: list[str] | None = None
+) -> dict[str, Any]:
     """Valid scenes per second under constraints, and where the candidates were rejected.
 
     `n` valid scenes are drawn (after a warm-up of one small run); the acceptance rate of a
     constraint is the share of the candidates it judged that it let through.
     """
-    from ssgc.sample.constrained import METHODS, Tally, sample_blocks, select
+    from ssgc.sample.constrained import EXACT, METHODS, Tally, choose_method, sample_blocks, select
 
     chosen = select(grammar, names)
     list(sample_blocks(grammar, chosen, 8, seed + 1))  # warm caches
     rows = {}
-    for method in METHODS:
+    for method in methods or list(METHODS):
+        method = choose_method(method, chosen)  # an unknown name is a message
         tally = Tally()
         t0 = time.perf_counter()
-        for _ in sample_blocks(grammar, chosen, n, seed, method, tally=tally):
-            pass
+        chain: dict[str, list[float]] = {}
+        for block in sample_blocks(grammar, chosen, n, seed, method, tally=tally):
+            for k, v in block.chain.items():  # MCMC: per-scene chain statistics
+                chain.setdefault(k, []).extend(v.tolist())
         seconds = time.perf_counter() - t0
         rows[method] = {
             "valid_scenes_per_second": round(n / seconds, 1),
@@ -158,6 +163,8 @@ def bench_constrained(grammar: Grammar, names: str, n: int, seed: int) -> dict[s
             "candidates": tally.drawn,
             "candidates_per_second": round(tally.drawn / seconds, 1),
             "acceptance_rate": tally.kept / tally.drawn if tally.drawn else None,
+            "exact": EXACT[method],
+            "chain_means": {k: float(np.mean(v)) for k, v in chain.items()},
             "constraints": {
                 k: {
                     "judged": tally.evaluated[k],

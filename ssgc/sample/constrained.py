@@ -44,7 +44,9 @@ METHODS: dict[str, Method] = {
     "hmc": hmc_batch,
     "project": project_batch,
 }
-EXACT = {"rejection": True, "rjmcmc": True, "hmc": False, "project": False}
+# exact: every scene is a draw of P(T | C).  RJMCMC's stationary law is P(T | C), but a
+# finite chain's final state only approaches it, so its scenes say "exact": false too.
+EXACT = {"rejection": True, "rjmcmc": False, "hmc": False, "project": False}
 # (first, largest) attempt, in candidates; chain methods run one chain per (kept) candidate
 ATTEMPTS = {"rjmcmc": (256, 256), "hmc": (256, 1024), "project": (256, 1024)}
 # `auto`'s choice per constraint kind: the fastest exact method measured on the bundled
