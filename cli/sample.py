@@ -79,6 +79,10 @@ def sample(
     constrained = constraints is not None or (max_tries, time_limit) != (None, None)
     if constrained and (export or settle):
         raise SsgError.single("--export and --settle do not work with --constraints yet")
+    if constrained:  # a misspelt method is a message before the directory is touched
+        from ssgc.sample.constrained import choose_method
+
+        choose_method(method, [])
     check_directory(output)
     extras = None
     if export or settle:

@@ -315,3 +315,52 @@ def test_methods_against_rejection_on_a_fixed_structure() -> None:
         print(f"{name} | {t.n_scenes} | {d2:.2e} | {p:.3g} | {closest(t).mean():.4f}")
     assert result["rjmcmc"][1] > 1e-3
     assert result["project"][1] < 1e-3
+
+
+@pytest.mark.parametrize("command", ["sample", "bench"])
+def test_unknown_method_is_one_message(tmp_path: Path, command: str) -> None:
+    """A misspelt --method: one line naming the methods, exit 1, nothing written."""
+    from typer.testing import CliRunner
+
+    from ssgc.cli.app import app
+
+    grammar = str(GRAMMARS / "bin_packing.yaml")
+    out = tmp_path / "out"
+    args = (
+        ["sample", grammar, "-n", "2", "--constraints", "all", "--method", "mcmc", "-o", str(out)]
+        if command == "sample"
+        else ["bench", "sample", grammar, "--constraints", "all", "--method", "mcmc", "-n", "2"]
+    )
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 1
+    assert "unknown sampling method 'mcmc'" in result.output
+    assert "rjmcmc" in result.output and "Traceback" not in result.output
+    assert not out.exists()
+
+
+def test_chain_method_on_the_command_line_writes_chain_statistics(tmp_path: Path) -> None:
+    """`ssg sample --method rjmcmc`: scene files with the method, exact false, the chain's
+    acceptance rates and every margin (non-negative)."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from ssgc.cli.app import app
+
+    short = functools.partial(rjmcmc_batch, settings=RjSettings(sweeps=10))
+    METHODS["rjmcmc"], saved = short, METHODS["rjmcmc"]
+    try:
+        out = tmp_path / "out"
+        args = ["sample", str(GRAMMARS / "bin_packing.yaml"), "-n", "2", "--seed", "1"]
+        result = CliRunner().invoke(
+            app, [*args, "--constraints", "all", "--method", "rjmcmc", "-o", str(out)]
+        )
+    finally:
+        METHODS["rjmcmc"] = saved
+    assert result.exit_code == 0, result.output
+    scenes = sorted(out.glob("*_*.json"))
+    assert len(scenes) == 2
+    meta = json.loads(scenes[0].read_text())["metadata"]
+    assert meta["sampler"]["method"] == "rjmcmc" and meta["sampler"]["exact"] is False
+    assert 0 <= meta["sampler"]["chain"]["walk_acceptance"] <= 1
+    assert all(v is None or v >= 0 for v in meta["constraints"].values())
