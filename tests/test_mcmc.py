@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from ssgc.compile import load_grammar
@@ -30,6 +32,11 @@ from ssgc.score import score_trees
 from ssgc.tree import Trees
 
 GRAMMARS = Path(__file__).resolve().parents[1] / "grammars"
+
+
+@functools.cache
+def _grammar(name: str):  # type: ignore[no-untyped-def]
+    return load_grammar(GRAMMARS / name)
 
 
 def _pose_constraints(g):  # type: ignore[no-untyped-def]
@@ -364,3 +371,25 @@ def test_chain_method_on_the_command_line_writes_chain_statistics(tmp_path: Path
     assert meta["sampler"]["method"] == "rjmcmc" and meta["sampler"]["exact"] is False
     assert 0 <= meta["sampler"]["chain"]["walk_acceptance"] <= 1
     assert all(v is None or v >= 0 for v in meta["constraints"].values())
+
+
+@given(seed=st.integers(0, 2**32 - 1), name=st.sampled_from(["dimsum_table.yaml", "sink.yaml"]))
+@settings(max_examples=15, deadline=None)
+def test_pullback_is_the_adjoint_of_moving_local_translations(seed: int, name: str) -> None:
+    """With rotations held, positions are affine in the local translations u, so for any
+    directions d (in u) and g (in positions): <g, x(u + d) - x(u)> = <pullback(g), d>; and
+    world_poses(local_poses(T)) = T."""
+    g = _grammar(name)
+    rng = np.random.default_rng(seed)
+    trees, _ = sample_chunk(g, rng, 8)
+    levels = Levels.of(trees)
+    u, r = local_poses(g, trees)
+    base = world_poses(g, trees, u, r, levels)
+    assert np.allclose(base.xyz, trees.xyz, atol=1e-9)
+    d = rng.standard_normal(u.shape)
+    d[trees.parent < 0] = 0.0  # roots do not move
+    g_xyz = rng.standard_normal(u.shape)
+    moved = world_poses(g, trees, u + d, r, levels)
+    lhs = np.sum(g_xyz * (moved.xyz - base.xyz))
+    rhs = np.sum(pullback(g, base, g_xyz, levels) * d)
+    assert np.isclose(lhs, rhs, rtol=1e-9, atol=1e-9)
