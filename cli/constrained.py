@@ -18,6 +18,7 @@ from ssgc.sample.constrained import (
     Tally,
     Unmet,
     choose_method,
+    method_options,
     sample_blocks,
     scene_metadata,
     select,
@@ -38,7 +39,7 @@ def sample_constrained(
     scene file, so a run that finds no scene leaves the directory as it was."""
     from ssgc.cli.app import _progress, err, out
 
-    names, method, max_tries, time_limit, resume = options
+    names, method, max_tries, time_limit, resume, eps = options
     if names is None:
         raise SsgError.single("--max-tries and --time-limit need --constraints (all, or names)")
     if resume:
@@ -66,6 +67,7 @@ def sample_constrained(
                 time_limit,
                 tally,
                 lambda k: progress.advance(task, k),
+                method_options(method, eps),
             )
             for block in blocks:
                 first = block.index * BLOCK

@@ -55,6 +55,10 @@ def sample(
     time_limit: Annotated[
         float | None, typer.Option(min=0.001, help="With --constraints: stop after these seconds.")
     ] = None,
+    penalty_eps: Annotated[
+        float | None,
+        typer.Option(min=1e-9, help="hmc, rjmcmc: the penalty's ε in m (default 1e-3)."),
+    ] = None,
     export: Annotated[
         list[str] | None,
         typer.Option("--export", help="Also write each scene in this format (into OUTPUT/FORMAT)."),
@@ -97,7 +101,7 @@ def sample(
         if constrained:
             from ssgc.cli.constrained import sample_constrained
 
-            options = (constraints, method, max_tries, time_limit, resume)
+            options = (constraints, method, max_tries, time_limit, resume, penalty_eps)
             sample_constrained(
                 g,
                 n,

@@ -15,9 +15,11 @@ Methods are registered in `METHODS` by name; each is one function drawing one at
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,8 +27,10 @@ from numpy.typing import NDArray
 from ssgc.constraints.base import Constraint
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.ir import Grammar
+from ssgc.sample.hmc import SETTINGS as HMC_SETTINGS
 from ssgc.sample.hmc import hmc_batch
 from ssgc.sample.project import project_batch
+from ssgc.sample.rjmcmc import SETTINGS as RJ_SETTINGS
 from ssgc.sample.rjmcmc import rjmcmc_batch
 from ssgc.sample.staged import Outcome, OutOfTime, rejection_batch
 from ssgc.tree import Trees
@@ -86,6 +90,15 @@ def select(grammar: Grammar, names: str | None) -> list[Constraint]:
             grammar.file,
         )
     return [known[n] for n in dict.fromkeys(wanted)]
+
+
+def method_options(method: str, eps: float | None) -> dict[str, Any]:
+    """The method's settings for a penalty scale ε given on the command line (HMC's penalty,
+    RJMCMC's before a chain is first feasible); {} for the default."""
+    if eps is None or method not in ("hmc", "rjmcmc"):
+        return {}
+    settings = HMC_SETTINGS if method == "hmc" else RJ_SETTINGS
+    return {"settings": replace(settings, eps=eps)}
 
 
 def choose_method(method: str, constraints: list[Constraint]) -> str:
@@ -156,12 +169,15 @@ def sample_blocks(
     time_limit: float | None = None,
     tally: Tally | None = None,
     progress: Callable[[int], None] | None = None,
+    options: dict[str, Any] | None = None,
 ) -> Iterator[Block]:
     """Yield the blocks of scenes 0..n-1, in order.  Raises `Unmet` when `max_tries`
     candidates or `time_limit` seconds are spent first (tries are checked between attempts,
     time also between an attempt's stages); the scenes found by then are yielded first, as a
-    last, shorter block."""
+    last, shorter block.  `options` are keyword arguments of the method (`method_options`)."""
     draw = METHODS[method]
+    if options:
+        draw = functools.partial(draw, **options)
     tally = tally if tally is not None else Tally()
     deadline = None if time_limit is None else time.monotonic() + time_limit
     for b in range((n + BLOCK - 1) // BLOCK):

@@ -135,6 +135,7 @@ def run_chains(
         "divergences": div,
         "warmup": np.full(n, settings.warmup, float),
         "samples": np.full(n, settings.samples, float),
+        "penalty_eps": np.full(n, settings.eps),
     }
     final = replace(target.at(best), rule=trees.rule)
     return final, stats, found
