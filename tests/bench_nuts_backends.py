@@ -65,7 +65,9 @@ def numpy_nuts(n_discs: int, chains: int) -> None:
         z, lp, grad, st = nuts.step(z, lp, grad, adapt.step)
         adapt.update(st["accept"])
     t1 = time.perf_counter()
-    first = np.flatnonzero(trees.parent >= 0)[np.r_[True, np.diff(trees.scene[trees.parent >= 0]) > 0]]
+    first = np.flatnonzero(trees.parent >= 0)[
+        np.r_[True, np.diff(trees.scene[trees.parent >= 0]) > 0]
+    ]
     xs = []
     for _ in range(DRAWS):
         z, lp, grad, st = nuts.step(z, lp, grad, adapt.final())
