@@ -18,8 +18,10 @@ Moves, one of each per sweep, every chain at once:
 
 A chain starts from a draw of P(T).  Until it first satisfies every constraint it targets
 P(T) exp(-Σ_C min(C, 0)² / (2 ε²)) instead (same moves), which leads it into the feasible set;
-from then on it never leaves it.  After `sweeps` sweeps, a chain reports its state if it is
-feasible.  Exact in the limit of long chains: every move leaves P(T | C) invariant.
+from then on it never leaves it.  Every chain makes `sweeps` sweeps after it first became
+feasible (all chains sweep until the last one has, at most `max_factor` × `sweeps` in all), then
+reports its state if it is feasible.  Exact in the limit of long chains: every move leaves
+P(T | C) invariant.
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ MOVES = ("subtree", "translation", "walk", "rotation")
 
 @dataclass(frozen=True)
 class RjSettings:
-    sweeps: int = 200
+    sweeps: int = 200  # after a chain is first feasible
+    max_factor: int = 3  # at most this many times `sweeps` in all
     eps: float = 1e-3  # penalty scale before a chain is first feasible
     walk: float = 0.3  # random-walk step in the unconstrained coordinates
 
@@ -67,12 +70,20 @@ def rjmcmc_batch(
     judge = Judge(constraints)
     trees, _ = sample_chunk(grammar, rng, size)
     chain = Chains(grammar, constraints, trees, settings)
-    for _ in range(settings.sweeps):
+    # every chain makes `sweeps` sweeps after it is first feasible (burn-in), within a cap
+    since = np.zeros(size)
+    done = 0
+    while done < settings.sweeps or (
+        np.any(since < settings.sweeps) and done < settings.max_factor * settings.sweeps
+    ):
         chain.sweep(rng)
+        since = np.where(chain.feasible, since + 1, 0)
+        done += 1
         _check(deadline)
     ok = judge.judge(judge.margins(chain.trees), np.ones(size, bool))
-    stats = {f"{m}_acceptance": chain.accepted[m] / max(settings.sweeps, 1) for m in MOVES}
-    stats["sweeps"] = np.full(size, settings.sweeps, float)
+    stats = {f"{m}_acceptance": chain.accepted[m] / done for m in MOVES}
+    stats["sweeps"] = np.full(size, done, float)
+    stats["feasible_sweeps"] = since
     return judge.outcome(grammar, chain.trees, ok, size, stats)
 
 
