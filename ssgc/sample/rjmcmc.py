@@ -16,12 +16,13 @@ Moves, one of each per sweep, every chain at once:
   `ssgc.sample.lawspace`; accepted with min(1, p(z') / p(z)) 1[C].
 - **rotation (prior)**: as for translations, for a node whose rotation law is not a point.
 
-A chain starts from a draw of P(T).  Until it first satisfies every constraint it targets
-P(T) exp(-Σ_C min(C, 0)² / (2 ε²)) instead (same moves), which leads it into the feasible set;
-from then on it never leaves it.  Every chain makes `sweeps` sweeps after it first became
-feasible (all chains sweep until the last one has, at most `max_factor` × `sweeps` in all), then
-reports its state if it is feasible.  Exact in the limit of long chains: every move leaves
-P(T | C) invariant.
+A chain starts from an exact draw of P(T | C) when staged rejection finds one within
+`start_candidates` candidates, else from a draw of P(T).  Until it first satisfies every
+constraint it targets P(T) exp(-Σ_C min(C, 0)² / (2 ε²)) instead (same moves), which leads
+it into the feasible set; from then on it never leaves it.  Every chain makes `sweeps`
+sweeps after it first became feasible (all chains sweep until the last one has, at most
+`max_factor` × `sweeps` in all), then reports its state if it is feasible.  Exact in the
+limit of long chains: every move leaves P(T | C) invariant.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.forward import _choose_rules, sample_chunk
 from ssgc.sample.lawspace import Coords
 from ssgc.sample.poses import choose, local_poses, world_poses
-from ssgc.sample.staged import _check
+from ssgc.sample.staged import _check, rejection_batch
 from ssgc.score import nesting_counts
 from ssgc.tree import Trees
 
@@ -51,6 +52,7 @@ MOVES = ("subtree", "translation", "walk", "rotation")
 class RjSettings:
     sweeps: int = 200  # after a chain is first feasible
     max_factor: int = 3  # at most this many times `sweeps` in all
+    start_candidates: int = 16384  # staged-rejection budget for exact starting states
     eps: float = 1e-3  # penalty scale before a chain is first feasible
     walk: float = 0.3  # random-walk step in the unconstrained coordinates
 
@@ -68,7 +70,7 @@ def rjmcmc_batch(
 ) -> ChainOutcome:
     """Run `size` chains from draws of P(T); keep the final states that are feasible."""
     judge = Judge(constraints)
-    trees, _ = sample_chunk(grammar, rng, size)
+    trees = _starts(grammar, constraints, size, rng, settings.start_candidates, deadline)
     chain = Chains(grammar, constraints, trees, settings)
     # every chain makes `sweeps` sweeps after it is first feasible (burn-in), within a cap
     since = np.zeros(size)
@@ -85,6 +87,24 @@ def rjmcmc_batch(
     stats["sweeps"] = np.full(size, done, float)
     stats["feasible_sweeps"] = since
     return judge.outcome(grammar, chain.trees, ok, size, stats)
+
+
+def _starts(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    size: int,
+    rng: np.random.Generator,
+    budget: int,
+    deadline: float | None,
+) -> Trees:
+    """Starting states: as many exact draws of P(T | C) as staged rejection finds within
+    `budget` candidates (a chain started there is in its stationary law from the start), the
+    rest draws of P(T)."""
+    exact = rejection_batch(grammar, constraints, budget, rng, deadline).trees if budget else None
+    k = 0 if exact is None else min(size, exact.n_scenes)
+    prior, _ = sample_chunk(grammar, rng, size - k) if k < size else (None, None)
+    parts = ([exact.first(k)] if k else []) + ([prior] if prior is not None else [])
+    return Trees.concatenate(parts)
 
 
 class Chains:
