@@ -26,13 +26,18 @@ def bench_sample_cmd(
     jobs: Annotated[
         int, typer.Option("--jobs", "-j", min=1, help="With --constraints: processes sampling.")
     ] = 1,
+    method: Annotated[
+        str | None,
+        typer.Option(help="With --constraints: the methods to time, M or M,M (default: all)."),
+    ] = None,
 ) -> None:
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
     if constraints is not None:
         from ssgc.bench import bench_constrained
 
         g = load_grammar(grammar)
-        result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed, jobs)
+        methods = None if method is None else [m.strip() for m in method.split(",")]
+        result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed, methods, jobs)
     else:
         result = bench_sample(load_grammar(grammar), n, seed)
     if as_json:

@@ -55,6 +55,10 @@ def sample(
     time_limit: Annotated[
         float | None, typer.Option(min=0.001, help="With --constraints: stop after these seconds.")
     ] = None,
+    penalty_eps: Annotated[
+        float | None,
+        typer.Option(min=1e-9, help="hmc, rjmcmc: the penalty's ε in m (default 1e-3)."),
+    ] = None,
     export: Annotated[
         list[str] | None,
         typer.Option("--export", help="Also write each scene in this format (into OUTPUT/FORMAT)."),
@@ -78,7 +82,7 @@ def sample(
     --time-limit run out first, the exit code is 2 and the scenes found so far are kept.
     """
     g = load_grammar(grammar, allow_outside=allow_outside_files)
-    plan = plan_sampling(g, constraints, method, max_tries, time_limit, jobs)
+    plan = plan_sampling(g, constraints, method, max_tries, time_limit, jobs, penalty_eps)
     extras = None
     if export or settle:
         from ssgc.cli.export import SampleExtras
@@ -87,9 +91,9 @@ def sample(
     if plan.constrained and not quiet:
         kinds = ", ".join(f"{c.name} ({c.kind})" for c in plan.constraints)
         jobs_note = f", {jobs} processes" if jobs > 1 else ""
-        err.print(
-            f"sampling under {kinds} by {plan.method}{jobs_note}", markup=False, highlight=False
-        )
+        why = " (auto: chosen per constraint kind, docs/constraints.md)" if method == "auto" else ""
+        line = f"sampling under {kinds} by {plan.method}{why}{jobs_note}"
+        err.print(line, markup=False, highlight=False)
     with _progress(quiet) as progress:
         task = progress.add_task(
             "sampling (constrained)" if plan.constrained else "sampling", total=n

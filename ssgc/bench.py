@@ -137,8 +137,11 @@ def _linearity(size: np.ndarray, seconds: np.ndarray) -> dict[str, float]:
     }
 
 
+DEFAULT_CAP = {"rjmcmc": 256, "hmc": 32, "project": 32}  # scenes, when no method is named
+
+
 def bench_constrained(
-    grammar: Grammar, names: str, n: int, seed: int, jobs: int = 1
+    grammar: Grammar, names: str, n: int, seed: int, methods: list[str] | None = None, jobs: int = 1
 ) -> dict[str, Any]:
     """Valid scenes per second under constraints, and where the candidates were rejected.
 
@@ -147,27 +150,35 @@ def bench_constrained(
     through.  Wall-clock rates depend on what else the machine runs: the CPU time of this
     process and its workers, and the load average, are reported next to them.
     """
-    from ssgc.sample.constrained import METHODS, Tally, sample_blocks, select
+    from ssgc.sample.constrained import EXACT, METHODS, Tally, choose_method, sample_blocks, select
 
     chosen = select(grammar, names)
     list(sample_blocks(grammar, chosen, 8, seed + 1))  # warm caches
     rows = {}
-    for method in METHODS:
+    for method in methods or list(METHODS):
+        method = choose_method(method, chosen)  # an unknown name is a message
+        # without --method every method runs: the slow ones on fewer scenes
+        m = n if methods else min(n, DEFAULT_CAP.get(method, n))
         tally = Tally()
         cpu0 = _cpu_seconds()
         t0 = time.perf_counter()
-        for _ in sample_blocks(grammar, chosen, n, seed, method, tally=tally, jobs=jobs):
-            pass
+        chain: dict[str, list[float]] = {}
+        for block in sample_blocks(grammar, chosen, m, seed, method, tally=tally, jobs=jobs):
+            for k, v in block.chain.items():  # MCMC: per-scene chain statistics
+                chain.setdefault(k, []).extend(v.tolist())
         seconds = time.perf_counter() - t0
         cpu = _cpu_seconds() - cpu0
         rows[method] = {
-            "valid_scenes_per_second": round(n / seconds, 1),
-            "valid_scenes_per_cpu_second": round(n / cpu, 1) if cpu > 0 else None,
+            "scenes": m,
+            "valid_scenes_per_second": round(m / seconds, 1),
+            "valid_scenes_per_cpu_second": round(m / cpu, 1) if cpu > 0 else None,
             "seconds": round(seconds, 3),
             "cpu_seconds": round(cpu, 3),
             "candidates": tally.drawn,
             "candidates_per_second": round(tally.drawn / seconds, 1),
             "acceptance_rate": tally.kept / tally.drawn if tally.drawn else None,
+            "exact": EXACT[method],
+            "chain_means": {k: float(np.mean(v)) for k, v in chain.items()},
             "constraints": {
                 k: {
                     "judged": tally.evaluated[k],

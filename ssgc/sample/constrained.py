@@ -6,18 +6,22 @@ k = 0, 1, ... sized by the block's own draws so far (`attempt_size`), attempt k 
 b that satisfies the constraints.  So scene i depends only on the seed and i (and the
 method), never on how many scenes were asked for, or on any time or try limit.
 
-Methods are registered in `METHODS` by name; each is one function drawing one attempt.  Only
-`rejection` (exact, `ssgc.sample.staged`) exists today; `auto` picks it.
+Methods are registered in `METHODS` by name; each is one function drawing one attempt:
+`rejection` (exact, `ssgc.sample.staged`), `rjmcmc` (exact in the limit of long chains,
+`ssgc.sample.rjmcmc`), `hmc` (thesis 2.4.1, `ssgc.sample.hmc`) and `project` (thesis 2.4.2,
+`ssgc.sample.project`), the last two biased.  The chain methods use smaller attempts
+(`ATTEMPTS`): each candidate costs a chain.  `auto` picks per constraint kind (`choose_method`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import multiprocessing
 import signal
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -26,6 +30,11 @@ from numpy.typing import NDArray
 from ssgc.constraints.base import Constraint
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.ir import Grammar
+from ssgc.sample.hmc import SETTINGS as HMC_SETTINGS
+from ssgc.sample.hmc import hmc_batch
+from ssgc.sample.project import project_batch
+from ssgc.sample.rjmcmc import SETTINGS as RJ_SETTINGS
+from ssgc.sample.rjmcmc import rjmcmc_batch
 from ssgc.sample.staged import Outcome, OutOfTime, rejection_batch
 from ssgc.tree import Trees
 
@@ -36,8 +45,28 @@ LARGEST_ATTEMPT = 65536
 
 # (grammar, constraints, candidates, generator, deadline) -> the kept ones; may raise OutOfTime
 Method = Callable[[Grammar, list[Constraint], int, np.random.Generator, float | None], Outcome]
-METHODS: dict[str, Method] = {"rejection": rejection_batch}
-EXACT = {"rejection": True}
+METHODS: dict[str, Method] = {
+    "rejection": rejection_batch,
+    "rjmcmc": rjmcmc_batch,
+    "hmc": hmc_batch,
+    "project": project_batch,
+}
+# exact: every scene is a draw of P(T | C).  RJMCMC's stationary law is P(T | C), but a
+# finite chain's final state only approaches it, so its scenes say "exact": false too.
+EXACT = {"rejection": True, "rjmcmc": False, "hmc": False, "project": False}
+# (first, largest) attempt, in candidates; chain methods run one chain per (kept) candidate
+ATTEMPTS = {"rjmcmc": (256, 256), "hmc": (256, 1024), "project": (256, 1024)}
+# `auto`'s choice per constraint kind: the fastest exact method measured on the bundled
+# grammars (docs/constraints.md); a kind missing here would go to RJMCMC.
+AUTO = {
+    "count": "rejection",  # judged on the structure alone, before any pose is drawn
+    "longest_chain": "rejection",
+    "children": "rejection",
+    "inside_box": "rejection",  # one array expression per batch
+    "clearance": "rejection",
+    "upright": "rejection",
+    "non_penetration": "rejection",  # sink: 36% of candidates pass; chains call FCL far more
+}
 
 
 def attempt_size(
@@ -83,10 +112,21 @@ def select(grammar: Grammar, names: str | None) -> list[Constraint]:
     return [known[n] for n in dict.fromkeys(wanted)]
 
 
+def method_options(method: str, eps: float | None) -> dict[str, Any]:
+    """The method's settings for a penalty scale ε given on the command line (HMC's penalty,
+    RJMCMC's before a chain is first feasible); {} for the default."""
+    if eps is None or method not in ("hmc", "rjmcmc"):
+        return {}
+    settings = HMC_SETTINGS if method == "hmc" else RJ_SETTINGS
+    return {"settings": replace(settings, eps=eps)}
+
+
 def choose_method(method: str, constraints: list[Constraint]) -> str:
-    """`auto` picks per constraint kind; today every kind goes to exact rejection."""
+    """`auto` picks per constraint kind (`AUTO`), always an exact method: rejection when it
+    is every kind's choice, else RJMCMC (one chain handles every kind)."""
     if method == "auto":
-        return "rejection"
+        picks = {AUTO.get(c.word, "rjmcmc") for c in constraints}
+        return "rejection" if picks <= {"rejection"} else "rjmcmc"
     if method not in METHODS:
         raise SsgError.single(
             f"unknown sampling method '{method}'; expected auto or one of: {', '.join(METHODS)}"
@@ -141,6 +181,7 @@ class Block:
     trees: Trees
     logp: NDArray[np.float64]
     margins: dict[str, NDArray[np.float64]]
+    chain: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # MCMC statistics
 
 
 class Unmet(SsgError):
@@ -159,6 +200,7 @@ def sample_blocks(
     progress: Callable[[int], None] | None = None,
     jobs: int = 1,
     blocks: Iterable[int] | None = None,
+    options: dict[str, Any] | None = None,
 ) -> Iterator[Block]:
     """Yield the blocks of scenes 0..n-1 (or only the blocks numbered in `blocks`, e.g. those
     `--resume` still needs), in order.  With `jobs` > 1, blocks are drawn by that many forked
@@ -167,12 +209,13 @@ def sample_blocks(
     Raises `Unmet` when `max_tries` candidates (counted over all processes) or `time_limit`
     seconds are spent first (tries are checked between attempts, time also between an
     attempt's stages); the scenes found by then in the first unfinished block are yielded
-    first, as a last, shorter block, after every block before it."""
+    first, as a last, shorter block, after every block before it.  `options` are keyword
+    arguments of the method (`method_options`)."""
     tally = tally if tally is not None else Tally()
     deadline = None if time_limit is None else time.monotonic() + time_limit
     todo = list(range((n + BLOCK - 1) // BLOCK) if blocks is None else blocks)
     limits = _Limits(max_tries, time_limit, deadline, _counter(jobs > 1 and len(todo) > 1))
-    work = _BlockWork(grammar, constraints, n, seed, method, limits)
+    work = _BlockWork(grammar, constraints, n, seed, method, limits, options or {})
     results = _map_blocks(work, todo, jobs)
     for done in results:
         tally.merge(done.tally)
@@ -231,6 +274,7 @@ class _BlockWork:
     seed: int
     method: str
     limits: _Limits
+    options: dict[str, Any]
 
 
 @dataclass
@@ -245,7 +289,8 @@ class _Done:
 
 def _draw_block(work: _BlockWork, b: int) -> _Done:
     """Scenes b*BLOCK ... of the run, by attempts k = 0, 1, ... seeded by (seed, b, k)."""
-    draw = METHODS[work.method]
+    draw = functools.partial(METHODS[work.method], **work.options)
+    first, largest = ATTEMPTS.get(work.method, (FIRST_ATTEMPT, LARGEST_ATTEMPT))
     limits = work.limits
     want = min(BLOCK, work.n - b * BLOCK)
     tally = Tally()
@@ -259,7 +304,7 @@ def _draw_block(work: _BlockWork, b: int) -> _Done:
             break
         rng = np.random.default_rng([int(work.seed) & 0xFFFFFFFFFFFFFFFF, b, k + 1, TAG])
         try:
-            size = attempt_size(k, tally.drawn, have)
+            size = attempt_size(k, tally.drawn, have, first, largest)
             o = draw(work.grammar, work.constraints, size, rng, limits.deadline)
         except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
             limit = limits.out_of_time()
@@ -309,9 +354,11 @@ def _block(index: int, outcomes: list[Outcome], want: int) -> Block:
     logp = np.concatenate([o.logp for o in outcomes])[:want]
     names = outcomes[0].margins.keys()
     margins = {k: np.concatenate([o.margins[k] for o in outcomes])[:want] for k in names}
+    stats = [getattr(o, "chain", {}) for o in outcomes]
+    chain = {k: np.concatenate([s[k] for s in stats])[:want] for k in stats[0]}
     if trees.n_scenes > want:
         trees = trees.first(want)
-    return Block(index, trees, logp, margins)
+    return Block(index, trees, logp, margins, chain)
 
 
 def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str) -> Unmet:
@@ -323,10 +370,20 @@ def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str) -> Unmet:
     return Unmet([Diagnostic(line, grammar.file) for line in lines], exit_code=2)
 
 
-def scene_metadata(method: str, names: list[str], margins: dict[str, NDArray], k: int) -> dict:  # type: ignore[type-arg]
-    """What a scene file records about how it was sampled: method and each margin."""
+def scene_metadata(
+    method: str,
+    names: list[str],
+    margins: dict[str, NDArray],  # type: ignore[type-arg]
+    k: int,
+    chain: dict[str, NDArray] | None = None,  # type: ignore[type-arg]
+) -> dict:  # type: ignore[type-arg]
+    """What a scene file records about how it was sampled: method, each margin and, for the
+    chain methods, the chain's statistics (acceptance rates, step size, ...)."""
+    sampler: dict = {"method": method, "exact": EXACT.get(method, False)}  # type: ignore[type-arg]
+    if chain:
+        sampler["chain"] = {name: float(v[k]) for name, v in chain.items()}
     return {
-        "sampler": {"method": method, "exact": EXACT.get(method, False)},
+        "sampler": sampler,
         "constraints": {
             name: (float(margins[name][k]) if np.isfinite(margins[name][k]) else None)
             for name in names

@@ -33,6 +33,7 @@ from ssgc.sample.constrained import (
     Tally,
     Unmet,
     choose_method,
+    method_options,
     sample_blocks,
     scene_metadata,
     select,
@@ -68,6 +69,7 @@ class Plan:
     max_tries: int | None = None
     time_limit: float | None = None
     jobs: int = 1  # processes drawing constrained blocks (the same scenes for any number)
+    eps: float | None = None  # the penalty scale of hmc and rjmcmc; None: the method's default
     tally: Tally = field(default_factory=Tally)
 
     @property
@@ -82,6 +84,7 @@ def plan_sampling(
     max_tries: int | None = None,
     time_limit: float | None = None,
     jobs: int = 1,
+    penalty_eps: float | None = None,
 ) -> Plan:
     """Check the sampling options: `constraints` is `all` or `NAME,NAME`; a try or time
     limit only bounds constrained sampling, so it needs constraints."""
@@ -91,7 +94,8 @@ def plan_sampling(
         return Plan()
     chosen = select(grammar, constraints)
     chosen_method = choose_method(method, chosen)
-    return Plan(chosen, chosen_method, (constraints, method), max_tries, time_limit, jobs)
+    asked = (constraints, method)
+    return Plan(chosen, chosen_method, asked, max_tries, time_limit, jobs, penalty_eps)
 
 
 def draw_scenes(
@@ -171,6 +175,7 @@ def _constrained(
         None,
         plan.jobs,
         todo,
+        method_options(plan.method, plan.eps),
     )
     for block in blocks:
         first = block.index * BLOCK
@@ -181,7 +186,8 @@ def _constrained(
             if have is None or not have.done[index]:
                 tree = block.trees.tree(k)
                 scene = scene_from_tree(grammar, tree, name_of(index), float(block.logp[k]))
-                yield Drawn(index, scene, scene_metadata(plan.method, names, block.margins, k))
+                meta = scene_metadata(plan.method, names, block.margins, k, block.chain)
+                yield Drawn(index, scene, meta)
             step(1)
 
 

@@ -1,0 +1,141 @@
+"""`--method hmc`: thesis 2.4.1, NUTS over the poses of fixed trees with penalty terms.
+
+Candidate trees are drawn from P(T); those that satisfy the structural constraints each get a
+chain (all chains run together, `ssgc.sample.nuts`) over the local translations of their
+nodes, in the unconstrained coordinates of `ssgc.sample.lawspace`, targeting
+
+    P(poses | structure) · Π_C N(min(C(T), 0); 0, ε)     (ε = 1e-3 m by default).
+
+Rotations are held at their draw (translations are what the thesis's table constraints move;
+`upright` is left as drawn, and a tree that violates it is not reported).  After `warmup`
+transitions adapting each chain's step size (dual averaging), `samples` more are run and the
+chain's last state that satisfies every constraint exactly is reported; a chain with none
+reports nothing.
+
+Not exact: each chain keeps its structure, so structures follow P(S | structural
+constraints), not P(S | all constraints) — big scenes are over-represented (thesis 2.7.3,
+docs/constraints.md) — and the penalised law only approaches the constrained one as ε → 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ssgc.constraints.base import Constraint
+from ssgc.constraints.gradients import penalty_gradient
+from ssgc.ir import Grammar
+from ssgc.sample.chains import ChainOutcome, Judge
+from ssgc.sample.forward import sample_chunk
+from ssgc.sample.lawspace import Coords
+from ssgc.sample.nuts import DualAveraging, Nuts
+from ssgc.sample.poses import Levels, local_poses, pullback, subset, world_poses
+from ssgc.sample.staged import _check
+from ssgc.tree import Trees
+
+
+@dataclass(frozen=True)
+class HmcSettings:
+    eps: float = 1e-3  # penalty scale (m)
+    warmup: int = 60
+    samples: int = 20
+    max_depth: int = 6
+    max_chains: int = 64  # chains per attempt; candidates beyond are dropped
+    first_step: float = 0.1
+
+
+SETTINGS = HmcSettings()
+
+
+class FixedTrees:
+    """Trees whose structure and rotations are held: z -> their poses, log-density, gradient."""
+
+    def __init__(self, grammar: Grammar, trees: Trees, constraints: list[Constraint], eps: float):
+        self.grammar, self.trees, self.eps = grammar, trees, eps
+        self.constraints = [c for c in constraints if c.kind != "structure"]
+        self.levels = Levels.of(trees)
+        self.u, self.r = local_poses(grammar, trees)
+        self.coords = Coords.of(grammar, trees.rule)
+        self.z0 = self.coords.to_z(self.u)
+
+    def at(self, z: np.ndarray) -> Trees:
+        u = self.coords.to_u(z, self.u)
+        return world_poses(self.grammar, self.trees, u, self.r, self.levels)
+
+    def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = self.at(z)
+        pen, g_xyz, _ = penalty_gradient(self.constraints, t, self.eps)
+        g_u = pullback(self.grammar, t, g_xyz, self.levels)
+        lp = self.coords.log_density(z, t.scene, t.n_scenes) + pen
+        grad = self.coords.pull_to_z(z, g_u) + self.coords.grad_log_density(z)
+        return lp, grad
+
+
+def hmc_batch(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    size: int,
+    rng: np.random.Generator,
+    deadline: float | None = None,
+    settings: HmcSettings = SETTINGS,
+) -> ChainOutcome:
+    """Draw `size` candidates; run a chain on each that meets the structural constraints."""
+    judge = Judge(constraints)
+    trees, _ = sample_chunk(grammar, rng, size)
+    ok = judge.judge(judge.margins(trees, ("structure",)), np.ones(size, bool))
+    ok &= np.cumsum(ok) <= settings.max_chains
+    trees = subset(trees, ok)
+    final, stats, exact = run_chains(grammar, trees, constraints, rng, settings, deadline)
+    judge.judge(judge.margins(final, ("pose",)), np.ones(final.n_scenes, bool))
+    return judge.outcome(grammar, final, exact, size, stats)
+
+
+def run_chains(
+    grammar: Grammar,
+    trees: Trees,
+    constraints: list[Constraint],
+    rng: np.random.Generator,
+    settings: HmcSettings,
+    deadline: float | None = None,
+) -> tuple[Trees, dict[str, np.ndarray], np.ndarray]:
+    """(each chain's reported trees, its statistics, whether it met every constraint)."""
+    n = trees.n_scenes
+    target = FixedTrees(grammar, trees, constraints, settings.eps)
+    exact_cs = target.constraints
+    free = target.coords.free
+    nuts = Nuts(target, trees.scene, free, n, rng, settings.max_depth)
+    z = target.z0
+    lp, g = target(z)
+    adapt = DualAveraging(np.full(n, settings.first_step))
+    for _ in range(settings.warmup):
+        z, lp, g, st = nuts.step(z, lp, g, adapt.step)
+        adapt.update(st["accept"])
+        _check(deadline)
+    step = np.clip(adapt.final(), 1e-6, 10.0)  # a chain with nothing to move never rejects
+    best = z.copy()
+    found = np.zeros(n, bool)
+    acc, leap, div = np.zeros(n), np.zeros(n), np.zeros(n)
+    for _ in range(settings.samples):
+        z, lp, g, st = nuts.step(z, lp, g, step)
+        acc += st["accept"]
+        leap += st["steps"]
+        div += st["diverging"]
+        t = target.at(z)
+        good = np.ones(n, bool)
+        for c in exact_cs:
+            good &= c.margin(t) >= 0
+        best = np.where(good[trees.scene][:, None], z, best)
+        found |= good
+        _check(deadline)
+    stats = {
+        "acceptance": acc / max(settings.samples, 1),
+        "step_size": step,
+        "leapfrog_steps": leap / max(settings.samples, 1),
+        "divergences": div,
+        "warmup": np.full(n, settings.warmup, float),
+        "samples": np.full(n, settings.samples, float),
+        "penalty_eps": np.full(n, settings.eps),
+    }
+    final = replace(target.at(best), rule=trees.rule)
+    return final, stats, found

@@ -1,0 +1,148 @@
+"""The poses of fixed trees in their rules' law coordinates, and back.
+
+Every pose of a tree (except its root's) is a draw of its rule's translation law and rotation
+law, each written in a frame (world, offset from the parent, parent frame; `ssgc.laws`).  The
+samplers that move poses (`ssgc.sample.hmc`, `rjmcmc`, `project`) work in those coordinates:
+a move of one node's law value carries its descendants along exactly as the grammar would
+have, and the log-density of the poses given the structure is the sum of the laws'
+log-densities of the local values.
+
+With rotations held, world positions are affine in the local translations, so the gradient of
+anything in world positions pulls back to the local values with one pass from the leaves up
+(`pullback`).  Everything is vectorised over all nodes of a batch; the loops run over depths.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.geometry import quat_multiply, quat_rotate
+from ssgc.ir import Grammar
+from ssgc.laws.base import Frame
+from ssgc.rules import rotation_coordinates, translation_coordinates
+from ssgc.tree import Trees
+
+IntArray = NDArray[np.int64]
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Levels:
+    """The nodes of a batch by depth (depth 0, the roots, excluded), and each node's depth."""
+
+    depth: IntArray
+    by_depth: list[IntArray]
+
+    @classmethod
+    def of(cls, trees: Trees) -> Levels:
+        depth = trees.depth()
+        top = int(depth.max(initial=0))
+        order = np.argsort(depth, kind="stable")
+        bounds = np.searchsorted(depth[order], np.arange(1, top + 2))
+        return cls(depth, [order[bounds[d] : bounds[d + 1]] for d in range(top)])
+
+
+def local_poses(grammar: Grammar, trees: Trees) -> tuple[FloatArray, FloatArray]:
+    """(u, r): each node's translation and rotation in its rule's law coordinates (roots keep
+    their world pose)."""
+    u, r = trees.xyz.copy(), trees.quat.copy()
+    child = np.flatnonzero(trees.parent >= 0)
+    if len(child):
+        p, rules = trees.parent[child], trees.rule[child]
+        u[child] = translation_coordinates(
+            grammar, rules, trees.xyz[p], trees.quat[p], trees.xyz[child]
+        )
+        r[child] = rotation_coordinates(grammar, rules, trees.quat[p], trees.quat[child])
+    return u, r
+
+
+def world_poses(
+    grammar: Grammar, trees: Trees, u: FloatArray, r: FloatArray, levels: Levels | None = None
+) -> Trees:
+    """The batch with every pose rebuilt from law coordinates (u, r), root to leaves."""
+    levels = levels or Levels.of(trees)
+    tb = grammar.tables
+    xyz, quat = trees.xyz.copy(), trees.quat.copy()
+    for at in levels.by_depth:
+        p, rules = trees.parent[at], trees.rule[at]
+        rframe = tb.rotation.frame[rules]
+        quat[at] = np.where((rframe == Frame.WORLD)[:, None], r[at], quat_multiply(quat[p], r[at]))
+        tframe = tb.translation.frame[rules]
+        step = np.where((tframe == Frame.PARENT)[:, None], quat_rotate(quat[p], u[at]), u[at])
+        xyz[at] = np.where((tframe == Frame.WORLD)[:, None], u[at], xyz[p] + step)
+    return replace(trees, xyz=xyz, quat=quat)
+
+
+def pullback(grammar: Grammar, trees: Trees, g_xyz: FloatArray, levels: Levels) -> FloatArray:
+    """d f / d u for every node's local translation u, given d f / d xyz (rotations held).
+
+    A node's world position is its parent's plus its own (rotated) local value, unless its
+    law is written in the world frame; so the adjoint of a node is its own gradient plus its
+    children's adjoints that carry its position, summed from the deepest level up."""
+    frame = np.full(len(trees), Frame.WORLD, np.int64)
+    child = trees.parent >= 0
+    frame[child] = grammar.tables.translation.frame[trees.rule[child]]
+    adj = g_xyz.copy()
+    for at in reversed(levels.by_depth):
+        carry = at[frame[at] != Frame.WORLD]
+        np.add.at(adj, trees.parent[carry], adj[carry])
+    out = adj.copy()
+    par = np.flatnonzero(frame == Frame.PARENT)
+    if len(par):  # x = x_p + R(q_p) u: d/du = R^T adj
+        q = trees.quat[trees.parent[par]]
+        conj = q * np.array([1.0, -1.0, -1.0, -1.0])
+        out[par] = quat_rotate(conj, adj[par])
+    out[~child] = 0.0  # roots are fixed
+    return out
+
+
+def subset(trees: Trees, keep: NDArray[np.bool_]) -> Trees:
+    """The trees with keep[i] True, renumbered, in their order."""
+    idx = np.flatnonzero(keep[trees.scene])
+    new = np.full(len(trees), -1, np.int64)
+    new[idx] = np.arange(len(idx))
+    renumber = np.cumsum(keep) - 1
+    par = trees.parent[idx]
+    return Trees(
+        scene=renumber[trees.scene[idx]],
+        type=trees.type[idx],
+        parent=np.where(par >= 0, new[np.maximum(par, 0)], -1),
+        rule=trees.rule[idx],
+        xyz=trees.xyz[idx],
+        quat=trees.quat[idx],
+        n_scenes=int(keep.sum()),
+    )
+
+
+def choose(a: Trees, b: Trees, take_b: NDArray[np.bool_]) -> Trees:
+    """Tree i of `b` where take_b[i], else tree i of `a` (both batches of the same count)."""
+    na = np.flatnonzero(~take_b[a.scene])
+    nb = np.flatnonzero(take_b[b.scene])
+    scene = np.concatenate([a.scene[na], b.scene[nb]])
+    order = np.argsort(scene, kind="stable")  # a tree's nodes keep their order
+    new_a = np.full(len(a), -1, np.int64)
+    new_b = np.full(len(b), -1, np.int64)
+    pos = np.empty(len(order), np.int64)
+    pos[order] = np.arange(len(order))
+    new_a[na] = pos[: len(na)]
+    new_b[nb] = pos[len(na) :]
+    pa, pb = a.parent[na], b.parent[nb]
+    parent = np.concatenate(
+        [
+            np.where(pa >= 0, new_a[np.maximum(pa, 0)], -1),
+            np.where(pb >= 0, new_b[np.maximum(pb, 0)], -1),
+        ]
+    )
+    cat = np.concatenate
+    return Trees(
+        scene=scene[order],
+        type=cat([a.type[na], b.type[nb]])[order],
+        parent=parent[order],
+        rule=cat([a.rule[na], b.rule[nb]])[order],
+        xyz=cat([a.xyz[na], b.xyz[nb]])[order],
+        quat=cat([a.quat[na], b.quat[nb]])[order],
+        n_scenes=a.n_scenes,
+    )

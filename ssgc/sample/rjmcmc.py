@@ -1,0 +1,343 @@
+"""`--method rjmcmc`: Metropolis-Hastings over whole trees (structure and poses) whose
+stationary law is P(T | every constraint holds), many chains in lockstep.
+
+Moves, one of each per sweep, every chain at once:
+
+- **subtree**: pick a non-terminal node uniformly, redraw everything below it from the
+  grammar (its rule choices, counts and poses, given its pose and nesting depths).  The
+  proposal is P(new subtree | node) / |T|, the target P(T) 1[C(T)], and P(rest) cancels, so
+  the acceptance probability is min(1, |T| / |T'|) 1[C(T')], with |T| the number of
+  non-terminal nodes.  The dimension changes with the subtree: this is the reversible jump,
+  with the grammar itself as the proposal for the new dimensions (no Jacobian: the new
+  values are drawn, not transformed).
+- **translation (prior)**: pick a node whose translation law is not a point, redraw its local
+  translation from its law (descendants move along); accepted iff every constraint holds.
+- **translation (random walk)**: a Gaussian step in the unconstrained coordinates of
+  `ssgc.sample.lawspace`; accepted with min(1, p(z') / p(z)) 1[C].
+- **rotation (prior)**: as for translations, for a node whose rotation law is not a point.
+
+A chain starts from an exact draw of P(T | C) when staged rejection finds one within
+`start_candidates` candidates, else from a draw of P(T).  Until it first satisfies every
+constraint it targets P(T) exp(-Σ_C min(C, 0)² / (2 ε²)) instead (same moves), which leads
+it into the feasible set; from then on it never leaves it.  Every chain makes `sweeps`
+sweeps after it first became feasible (all chains sweep until the last one has, at most
+`max_factor` × `sweeps` in all), then reports its state if it is feasible.  Exact in the
+limit of long chains: every move leaves P(T | C) invariant.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.constraints.base import Constraint
+from ssgc.ir import Grammar, Kind
+from ssgc.rules import sample_children
+from ssgc.sample.chains import ChainOutcome, Judge
+from ssgc.sample.forward import _choose_rules, sample_chunk
+from ssgc.sample.lawspace import Coords
+from ssgc.sample.poses import choose, local_poses, world_poses
+from ssgc.sample.staged import _check, rejection_batch
+from ssgc.score import nesting_counts
+from ssgc.tree import Trees
+
+IntArray = NDArray[np.int64]
+FloatArray = NDArray[np.float64]
+MOVES = ("subtree", "translation", "walk", "rotation")
+
+
+@dataclass(frozen=True)
+class RjSettings:
+    sweeps: int = 200  # after a chain is first feasible
+    max_factor: int = 3  # at most this many times `sweeps` in all
+    start_candidates: int = 16384  # staged-rejection budget for exact starting states
+    eps: float = 1e-3  # penalty scale before a chain is first feasible
+    walk: float = 0.3  # random-walk step in the unconstrained coordinates
+
+
+SETTINGS = RjSettings()
+
+
+def rjmcmc_batch(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    size: int,
+    rng: np.random.Generator,
+    deadline: float | None = None,
+    settings: RjSettings = SETTINGS,
+) -> ChainOutcome:
+    """Run `size` chains from draws of P(T); keep the final states that are feasible."""
+    judge = Judge(constraints)
+    trees = _starts(grammar, constraints, size, rng, settings.start_candidates, deadline)
+    chain = Chains(grammar, constraints, trees, settings)
+    # every chain makes `sweeps` sweeps after it is first feasible (burn-in), within a cap
+    since = np.zeros(size)
+    done = 0
+    while done < settings.sweeps or (
+        np.any(since < settings.sweeps) and done < settings.max_factor * settings.sweeps
+    ):
+        chain.sweep(rng)
+        since = np.where(chain.feasible, since + 1, 0)
+        done += 1
+        _check(deadline)
+    ok = judge.judge(judge.margins(chain.trees), np.ones(size, bool))
+    stats = {f"{m}_acceptance": chain.accepted[m] / done for m in MOVES}
+    stats["sweeps"] = np.full(size, done, float)
+    stats["feasible_sweeps"] = since
+    return judge.outcome(grammar, chain.trees, ok, size, stats)
+
+
+def _starts(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    size: int,
+    rng: np.random.Generator,
+    budget: int,
+    deadline: float | None,
+) -> Trees:
+    """Starting states: as many exact draws of P(T | C) as staged rejection finds within
+    `budget` candidates (a chain started there is in its stationary law from the start), the
+    rest draws of P(T)."""
+    exact = rejection_batch(grammar, constraints, budget, rng, deadline).trees if budget else None
+    k = 0 if exact is None else min(size, exact.n_scenes)
+    prior, _ = sample_chunk(grammar, rng, size - k) if k < size else (None, None)
+    parts = ([exact.first(k)] if k else []) + ([prior] if prior is not None else [])
+    return Trees.concatenate(parts)
+
+
+class Chains:
+    """The current trees of every chain and the moves on them."""
+
+    def __init__(
+        self, grammar: Grammar, constraints: list[Constraint], trees: Trees, s: RjSettings
+    ) -> None:
+        self.grammar, self.constraints, self.s = grammar, constraints, s
+        self.trees = trees
+        self.n = trees.n_scenes
+        self.terminal = np.array([t.kind == Kind.TERMINAL for t in grammar.types])
+        self.pen, self.feasible = self._score(trees)
+        self.accepted = {m: np.zeros(self.n) for m in MOVES}
+
+    def _score(self, trees: Trees) -> tuple[FloatArray, NDArray[np.bool_]]:
+        pen = np.zeros(trees.n_scenes)
+        ok = np.ones(trees.n_scenes, bool)
+        for c in self.constraints:
+            m = c.margin(trees)
+            ok &= m >= 0
+            short = np.where(np.isnan(m), -np.inf, np.minimum(m, 0.0))
+            pen += np.where(np.isfinite(short), short**2 / (2 * self.s.eps**2), np.inf)
+        return pen, ok
+
+    def _accept(
+        self, name: str, new: Trees, log_ratio: FloatArray, rng: np.random.Generator
+    ) -> None:
+        """Metropolis-Hastings with the hard target for feasible chains, soft before."""
+        pen, ok = self._score(new)
+        soft = np.where(np.isfinite(pen), self.pen - pen, -np.inf)
+        hard = np.where(ok, 0.0, -np.inf)
+        log_a = log_ratio + np.where(self.feasible, hard, np.where(np.isinf(self.pen), 0.0, soft))
+        take = np.log(rng.random(self.n)) < log_a
+        self.trees = choose(self.trees, new, take)
+        self.pen = np.where(take, pen, self.pen)
+        self.feasible = np.where(take, ok, self.feasible)
+        self.accepted[name] += take
+
+    def sweep(self, rng: np.random.Generator) -> None:
+        self.subtree_move(rng)
+        self.translation_move(rng)
+        self.walk_move(rng)
+        self.rotation_move(rng)
+
+    # ------------------------------------------------------------------ the moves ---
+
+    def subtree_move(self, rng: np.random.Generator) -> None:
+        t = self.trees
+        inner = ~self.terminal[t.type]
+        chosen = _pick(t.scene[inner], np.flatnonzero(inner), self.n, rng)
+        has = chosen >= 0
+        new = regrow(self.grammar, t, chosen, rng)
+        before = np.bincount(t.scene[inner], minlength=self.n)
+        inner_new = ~self.terminal[new.type]
+        after = np.bincount(new.scene[inner_new], minlength=self.n)
+        log_ratio = np.where(
+            has, np.log(np.maximum(before, 1)) - np.log(np.maximum(after, 1)), -np.inf
+        )
+        self._accept("subtree", new, log_ratio, rng)
+
+    def _pose_nodes(self, part: str) -> NDArray[np.bool_]:
+        t = self.trees
+        movable = np.array([getattr(r, part).point is None for r in self.grammar.rules] + [False])
+        return movable[np.where(t.rule >= 0, t.rule, -1)]
+
+    def translation_move(self, rng: np.random.Generator) -> None:
+        self._redraw("translation", rng)
+
+    def rotation_move(self, rng: np.random.Generator) -> None:
+        self._redraw("rotation", rng)
+
+    def _redraw(self, part: str, rng: np.random.Generator) -> None:
+        """Redraw one node's local translation or rotation per chain from its law."""
+        t = self.trees
+        mask = self._pose_nodes(part)
+        chosen = _pick(t.scene[mask], np.flatnonzero(mask), self.n, rng)
+        at = chosen[chosen >= 0]
+        u, r = local_poses(self.grammar, t)
+        local = u if part == "translation" else r
+        rules = t.rule[at]
+        for rid in np.unique(rules):
+            law = getattr(self.grammar.rules[rid], part)
+            where = at[rules == rid]
+            local[where] = law.sample(rng, len(where))[0]
+        new = world_poses(self.grammar, t, u, r)
+        self._accept(
+            part if part == "rotation" else "translation",
+            new,
+            np.where(chosen >= 0, 0.0, -np.inf),
+            rng,
+        )
+
+    def walk_move(self, rng: np.random.Generator) -> None:
+        """A Gaussian step on one node's free coordinates, symmetric in z."""
+        t = self.trees
+        coords = Coords.of(self.grammar, t.rule)
+        mask = coords.free.any(axis=1)
+        chosen = _pick(t.scene[mask], np.flatnonzero(mask), self.n, rng)
+        at = chosen[chosen >= 0]
+        u, r = local_poses(self.grammar, t)
+        z = coords.to_z(u)
+        z_new = z.copy()
+        z_new[at] += self.s.walk * rng.standard_normal((len(at), 3))
+        z_new = np.where(coords.free, z_new, z)
+        new = world_poses(self.grammar, t, coords.to_u(z_new, u), r)
+        log_ratio = coords.log_density(z_new, t.scene, self.n) - coords.log_density(
+            z, t.scene, self.n
+        )
+        self._accept("walk", new, np.where(chosen >= 0, log_ratio, -np.inf), rng)
+
+
+def _pick(scene: IntArray, nodes: IntArray, n: int, rng: np.random.Generator) -> IntArray:
+    """One of `nodes` per tree, uniformly (-1 for a tree with none)."""
+    count = np.bincount(scene, minlength=n)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    k = np.floor(rng.random(n) * count).astype(np.int64)
+    out = np.full(n, -1, np.int64)
+    has = count > 0
+    order = np.argsort(scene, kind="stable")
+    out[has] = nodes[order[start[has] + k[has]]]
+    return out
+
+
+def regrow(grammar: Grammar, trees: Trees, chosen: IntArray, rng: np.random.Generator) -> Trees:
+    """Every tree with the subtree below its `chosen` node (-1: none) redrawn from the
+    grammar, given that node's pose and nesting depths."""
+    has = chosen >= 0
+    c = chosen[has]
+    desc = np.zeros(len(trees), bool)
+    target = np.full(trees.n_scenes, -2, np.int64)
+    target[has] = c
+    anc = trees.parent.copy()
+    live = np.flatnonzero(anc >= 0)
+    while len(live):
+        desc[live[anc[live] == target[trees.scene[live]]]] = True
+        anc[live] = trees.parent[anc[live]]
+        live = live[anc[live] >= 0]
+    nest = nesting_counts(grammar, trees)[c]
+    new = _grow(grammar, trees.type[c], trees.xyz[c], trees.quat[c], nest, rng)
+    keep = np.flatnonzero(~desc)
+    # new nodes' parents: frontier k -> the chosen node c[k]; else a new node
+    n_keep = len(keep)
+    old_pos = np.full(len(trees), -1, np.int64)
+    old_pos[keep] = np.arange(n_keep)
+    f = len(c)
+    par = new["parent"]
+    parent_new = np.where(
+        par < f, old_pos[c[np.minimum(par, f - 1)]] if f else par, n_keep + par - f
+    )
+    scene_all = np.concatenate(
+        [trees.scene[keep], trees.scene[c][new["root"]] if f else np.zeros(0, np.int64)]
+    )
+    parent_all = np.concatenate(
+        [
+            np.where(trees.parent[keep] >= 0, old_pos[np.maximum(trees.parent[keep], 0)], -1),
+            parent_new,
+        ]
+    )
+    order = np.argsort(scene_all, kind="stable")
+    pos = np.empty(len(order), np.int64)
+    pos[order] = np.arange(len(order))
+    parent_all = np.where(parent_all >= 0, pos[np.maximum(parent_all, 0)], -1)
+    cat = np.concatenate
+    return Trees(
+        scene=scene_all[order],
+        type=cat([trees.type[keep], new["type"]])[order],
+        parent=parent_all[order],
+        rule=cat([trees.rule[keep], new["rule"]])[order],
+        xyz=cat([trees.xyz[keep], new["xyz"]])[order],
+        quat=cat([trees.quat[keep], new["quat"]])[order],
+        n_scenes=trees.n_scenes,
+    )
+
+
+def _grow(
+    grammar: Grammar,
+    f_type: IntArray,
+    f_xyz: FloatArray,
+    f_quat: FloatArray,
+    f_nest: IntArray,
+    rng: np.random.Generator,
+) -> dict[str, NDArray]:  # type: ignore[type-arg]
+    """Forward-sample the subtrees below a frontier of nodes, level by level.  Node ids:
+    the frontier is 0..F-1, new nodes F, F+1, ... in level order; `root` is the frontier node
+    each new node descends from."""
+    tb = grammar.tables
+    f = len(f_type)
+    ids, roots = np.arange(f), np.arange(f)
+    cur = (f_type, f_xyz, f_quat, f_nest)
+    out: dict[str, list[NDArray]] = {
+        k: [] for k in ("type", "parent", "rule", "xyz", "quat", "root")
+    }  # type: ignore[type-arg]
+    next_id = f
+    while len(cur[0]):
+        c_type, c_xyz, c_quat, c_nest = cur
+        fires, _ = _choose_rules(grammar, c_type, c_nest, rng)
+        lv: dict[str, list[NDArray]] = {
+            k: [] for k in ("type", "parent", "rule", "xyz", "quat", "root", "nest")
+        }  # type: ignore[type-arg]
+        for rid, where in fires:
+            xyz, quat, _ = sample_children(grammar, rid, c_xyz[where], c_quat[where], rng)
+            child = tb.rule_child[rid]
+            nest = c_nest[where].copy()
+            if tb.nesting_slot[child] >= 0:
+                nest[:, tb.nesting_slot[child]] += 1
+            lv["type"].append(np.full(len(where), child, np.int64))
+            lv["parent"].append(ids[where])
+            lv["rule"].append(np.full(len(where), rid, np.int64))
+            lv["xyz"].append(xyz)
+            lv["quat"].append(quat)
+            lv["root"].append(roots[where])
+            lv["nest"].append(nest)
+        if not lv["type"]:
+            break
+        level = {k: np.concatenate(v) for k, v in lv.items()}
+        ids = next_id + np.arange(len(level["type"]))
+        next_id += len(ids)
+        roots = level["root"]
+        for k in out:
+            out[k].append(level[k])
+        cur = (level["type"], level["xyz"], level["quat"], level["nest"])
+    empty = {
+        "type": (0,),
+        "parent": (0,),
+        "rule": (0,),
+        "root": (0,),
+        "xyz": (0, 3),
+        "quat": (0, 4),
+    }
+    return {
+        k: np.concatenate(v)
+        if v
+        else np.zeros(empty[k], float if k in ("xyz", "quat") else np.int64)
+        for k, v in out.items()
+    }
