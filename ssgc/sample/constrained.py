@@ -122,8 +122,9 @@ def method_options(method: str, eps: float | None) -> dict[str, Any]:
 
 
 def choose_method(method: str, constraints: list[Constraint]) -> str:
-    """`auto` picks per constraint kind (`AUTO`), always an exact method: rejection when it
-    is every kind's choice, else RJMCMC (one chain handles every kind)."""
+    """`auto` picks per constraint kind (`AUTO`): rejection (exact) when it is every kind's
+    choice, which it is for every built-in kind; else RJMCMC (one chain handles every kind,
+    its stationary law is exact but a finite chain's scenes are not, and they say so)."""
     if method == "auto":
         picks = {AUTO.get(c.word, "rjmcmc") for c in constraints}
         return "rejection" if picks <= {"rejection"} else "rjmcmc"
