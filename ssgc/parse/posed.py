@@ -106,13 +106,19 @@ class PosedProblem:
         )
 
 
-def candidate_poses(grammar: Grammar, st: Supertree, scene: Scene) -> Candidates:
+def candidate_poses(
+    grammar: Grammar, st: Supertree, scene: Scene, deadline: float | None = None
+) -> Candidates:
     """Per equivalent set, the distinct poses of its top node that put one of its observed
-    nodes exactly on an object of the scene (latent sets get none here: see proposals)."""
+    nodes exactly on an object of the scene (latent sets get none here: see proposals).
+
+    Past the deadline it raises OutOfTime: a wide `repeat` of a large scene has a thousand
+    sets of a thousand poses each, whose deduplication alone takes a minute."""
     cand = Candidates(
         [np.zeros((0, 3)) for _ in range(st.n_sets)], [np.zeros((0, 4)) for _ in range(st.n_sets)]
     )
     for n, _, t, q in implied_set_poses(grammar, st, scene):
+        check_deadline(deadline)
         cand.add(int(st.set_of[n]), t, q)
     root_set = int(st.set_of[0])  # the root's set has exactly one pose
     cand.xyz[root_set] = grammar.root_xyz.reshape(1, 3).copy()
