@@ -25,12 +25,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-import grammar_gen as gg  # noqa: E402
-from bruteforce import enumerate_parses  # noqa: E402
+import grammar_gen as gg
+from bruteforce import enumerate_parses
 
-from ssgc.io.scene import Scene  # noqa: E402
-from ssgc.ir import Grammar  # noqa: E402
-from ssgc.parse.parser import Parser  # noqa: E402
+from ssgc.io.scene import Scene
+from ssgc.ir import Grammar
+from ssgc.parse.parser import Parser
 
 SCORE_TOL = 1e-6
 GAP_TOL = 1e-6
@@ -189,7 +189,7 @@ def _quantiles(times: list[float]) -> dict[str, float]:
     if not times:
         return {}
     q = np.quantile(times, [0.5, 0.9, 0.99, 1.0])
-    return {k: round(float(x), 4) for k, x in zip(("median", "p90", "p99", "max"), q)}
+    return {k: round(float(x), 4) for k, x in zip(("median", "p90", "p99", "max"), q, strict=True)}
 
 
 def main() -> None:
