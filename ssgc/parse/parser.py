@@ -14,7 +14,7 @@ from __future__ import annotations
 import gc
 import hashlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -53,6 +53,11 @@ STATUSES = (OPTIMAL, FEASIBLE, INFEASIBLE, NO_PARSE, ERROR)
 PHASES = ("proposals", "instance_limit", "time")
 # The steps a time limit can cut short (`timed_out_in`).
 STEPS = ("proposals", "build", "solve", "refine", "bound")
+# Exit codes of `ssg parse` and `ssg explain` (docs/robustness.md): the first that applies.
+EXIT_ERROR = 1  # the solver failed on some scene
+EXIT_INFEASIBLE = 2  # some scene has no tree under the grammar: proven
+EXIT_NO_PARSE = 3  # some scene has no parse found (proposals, instance limit): not proven
+EXIT_TIME = 4  # some scene has no parse because its --time-limit ran out
 
 
 @dataclass
@@ -552,6 +557,21 @@ def _exclude(session: Session, problem: Problem, x: np.ndarray) -> None:
     on = x[cols] > 0.5
     coefs = np.where(on, 1.0, -1.0)
     session.add_cut(cols, coefs, -np.inf, float(on.sum()) - 1.0)
+
+
+def exit_code(rows: Iterable[Mapping[str, Any]]) -> int:
+    """The exit code of a run from its scenes' `status` and `phase` (0: every scene has a
+    parse).  A proven answer outranks an unproven one: error, infeasible, no_parse, time."""
+    codes = {0}
+    for r in rows:
+        status, phase = r.get("status"), r.get("phase")
+        if status == ERROR:
+            codes.add(EXIT_ERROR)
+        elif status == INFEASIBLE:
+            codes.add(EXIT_INFEASIBLE)
+        elif status == NO_PARSE:
+            codes.add(EXIT_TIME if phase == "time" else EXIT_NO_PARSE)
+    return min(codes - {0}, default=0)
 
 
 def result_to_json(grammar: Grammar, result: SceneParses) -> dict[str, Any]:
