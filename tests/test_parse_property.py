@@ -58,20 +58,20 @@ types:
       - {child: C, translation: {world_box: {min: [0, 0, 0], max: [1, 1, 1]}}, rotation: uniform}
   B:
     or:
-      - {child: D, p: 0.75, translation: {world_box_offset: {min: [-1, -1, -1], max: [1, 1, 1]}}, rotation: uniform}
-      - {child: E, p: 0.25, translation: {world_box_offset: {min: [-1, -1, -1], max: [1, 1, 1]}}, rotation: uniform}
+      - {child: D, p: 0.75, translation: OFF, rotation: uniform}
+      - {child: E, p: 0.25, translation: OFF, rotation: uniform}
   D:
     observed: true
     independent:
-      - {child: G, p: 0.5, translation: {world_box_offset: {min: [-1, -1, -1], max: [1, 1, 1]}}, rotation: uniform}
+      - {child: G, p: 0.5, translation: OFF, rotation: uniform}
   C:
     repeat:
       count: {geometric: {p: 0.2, max: 5, start: 0}}
-      rule: {child: F, translation: {world_box_offset: {min: [-1, -1, -1], max: [1, 1, 1]}}, rotation: uniform}
+      rule: {child: F, translation: OFF, rotation: uniform}
   E: {observed: true}
   F: {observed: true}
   G: {observed: true}
-"""
+""".replace("OFF", "{world_box_offset: {min: [-1, -1, -1], max: [1, 1, 1]}}")
 METHODS = ("ip", "micp")
 
 
