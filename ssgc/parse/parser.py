@@ -142,12 +142,12 @@ class Parser:
         step, complete = "capacity", False
         try:
             self.check_capacity(scene)
+            step = "build"  # the poses the objects imply: part of every model
+            cand = candidate_poses(self.grammar, self.supertree, scene, deadline)
             step = "proposals"
             # proposals get part of a time limit; the MILP needs the rest
-            cand, bounds = self.candidates(
-                scene,
-                None if time_limit is None else t0 + PROPOSAL_SHARE * time_limit,
-                deadline,
+            bounds = self.latent_candidates(
+                cand, None if time_limit is None else t0 + PROPOSAL_SHARE * time_limit
             )
             propose_s = time.perf_counter() - t0
             step = "build"
@@ -221,22 +221,28 @@ class Parser:
             )
 
     def candidates(
-        self, scene: Scene, deadline: float | None = None, build_deadline: float | None = None
+        self, scene: Scene, deadline: float | None = None
     ) -> tuple[Candidates, dict[int, SetBound] | None]:
         """Candidate poses per set: implied by the objects; for latent sets, the best pose of
         every assignment of children (`micp`, when the grammar's shape allows the bound) or
-        proposals (`ip`, and any other shape).  Proposals stop at `deadline`; the implied
-        poses, which every model needs, raise OutOfTime at `build_deadline`."""
+        proposals (`ip`, and any other shape)."""
+        cand = candidate_poses(self.grammar, self.supertree, scene)
+        return cand, self.latent_candidates(cand, deadline)
+
+    def latent_candidates(
+        self, cand: Candidates, deadline: float | None = None
+    ) -> dict[int, SetBound] | None:
+        """Add the latent sets' candidate poses to `cand` (stopping at `deadline`): the bound's
+        assignments (returned, `micp` when the grammar's shape allows it), else proposals."""
         g, st = self.grammar, self.supertree
-        cand = candidate_poses(g, st, scene, build_deadline)
         if not self.has_latent:
-            return cand, None
+            return None
         if self.method != "ip":
             bounds = set_bounds(g, st, cand, deadline)
             if bounds is not None:
-                return cand, bounds
+                return bounds
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
-        return cand, None
+        return None
 
     def reduce(
         self,
