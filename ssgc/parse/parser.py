@@ -139,7 +139,7 @@ class Parser:
         t0 = time.perf_counter()
         # the last steps after a deadline check (a vectorised pass, HiGHS's exit) take a moment
         deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
-        step, complete = "capacity", False
+        step, complete = "capacity", not self.has_latent
         try:
             self.check_capacity(scene)
             step = "build"  # the poses the objects imply: part of every model
@@ -173,7 +173,8 @@ class Parser:
             run.message = (
                 run.message or "no upper bound for this grammar's shape: the gap is unknown"
             )
-        if propose_s >= PROPOSAL_SHARE * (time_limit or np.inf) and not run.timed_out_in:
+        proposals_cut = self.has_latent and propose_s >= PROPOSAL_SHARE * (time_limit or np.inf)
+        if proposals_cut and not run.timed_out_in:
             run.timed_out_in = "proposals"  # proposals were cut short: fewer of them
         run.settle()
         total_s = time.perf_counter() - t0
@@ -397,8 +398,10 @@ class _Run:
 
     def settle(self) -> None:
         """Each parse's status from its certificate, and the scene's from its best parse."""
-        if self.timed_out_in and not self.phase and not self.parses and self.status != ERROR:
-            self.status, self.phase = NO_PARSE, "time"
+        if self.status == NO_PARSE and self.timed_out_in == "proposals":
+            self.phase = "time"  # more time, more proposals: the clock gave up, not them
+        if not self.parses and self.status == FEASIBLE:  # the loop ended without a tree
+            self.status, self.phase = NO_PARSE, "time" if self.timed_out_in else "proposals"
         for p in self.parses:
             p.status = OPTIMAL if id(p) in self.certified else FEASIBLE
             if not self.complete and self.bounds is None:
@@ -457,6 +460,8 @@ class _Run:
         t0 = time.perf_counter()
         tree = refine_tree(g, parse.tree, deadline=self.deadline)
         self.refine_s += time.perf_counter() - t0
+        if self.deadline is not None and time.perf_counter() >= self.deadline:
+            self.timed_out_in = self.timed_out_in or "refine"
         refined = self.p.scored(tree, parse.status, float("nan"), parse.objective)
         if refined.score < parse.score:
             refined = replace(parse, gap=float("nan"))  # refinement cannot lose: keep it
@@ -469,6 +474,7 @@ class _Run:
         try:
             self.problem = self.p.reduce(self.scene, self.cand, deadline=self.deadline)
         except OutOfTime:
+            self.timed_out_in = self.timed_out_in or "build"
             return refined
         self.session = self.p.open_session(self.problem.milp)
         self.build_s += time.perf_counter() - t0
