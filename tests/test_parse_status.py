@@ -171,3 +171,16 @@ def test_instance_limit_is_no_parse_not_an_error_nor_a_proof():
     result = Parser(grammar, reductions=(_TooLarge(),)).parse(wide_scene(grammar, 3))
     assert (result.status, result.phase) == ("no_parse", "instance_limit")
     assert "not proven" in result.message and exit_code([vars(result)]) == 3
+
+
+def test_bench_parse_reports_the_share_certified():
+    from ssgc.bench import bench_parse
+
+    grammar = compile_text(LATENT_AND_CHAIN)
+    report = bench_parse(grammar, 4, seed=0, method="ip")
+    summary, rows = report["summary"], report["rows"]
+    rates = [summary[f"{s}_rate"] for s in ("certified", "feasible", "no_parse", "infeasible")]
+    assert sum(rates) + summary["error_rate"] == pytest.approx(1.0)
+    assert summary["infeasible_rate"] == 0.0 and summary["false_certificates"] == 0
+    assert summary["certified_rate"] == np.mean([r["status"] == "optimal" for r in rows])
+    assert all(r["certified"] == (r["status"] == "optimal") for r in rows)
