@@ -184,3 +184,18 @@ def test_bench_parse_reports_the_share_certified():
     assert summary["infeasible_rate"] == 0.0 and summary["false_certificates"] == 0
     assert summary["certified_rate"] == np.mean([r["status"] == "optimal" for r in rows])
     assert all(r["certified"] == (r["status"] == "optimal") for r in rows)
+
+
+def test_fit_skips_a_scene_without_a_parse_but_stops_on_a_proof():
+    from ssgc.errors import SsgError
+    from ssgc.fit.em import _scene_record
+    from ssgc.parse.parser import SceneParses
+
+    def result(status, phase=""):
+        return SceneParses("s", [], {"total_s": 0.0}, {}, status, "why", phase=phase)
+
+    record = _scene_record(1, 0, result("no_parse", "proposals"), "data")
+    assert (record["status"], record["phase"], record["scores"]) == ("no_parse", "proposals", [])
+    with pytest.raises(SsgError) as proof:
+        _scene_record(1, 0, result("infeasible"), "data")
+    assert proof.value.exit_code == 2
