@@ -14,7 +14,8 @@ DIAGNOSE_S = 20.0  # seconds (at most) to find the objects that rule out an infe
 
 
 def explain_results(grammar: Any, scenes: list[Any], time_limit: float | None) -> list[dict]:
-    """One JSON object per scene: its explanation, or the diagnosis of why it has no parse."""
+    """One JSON object per scene: its explanation, the diagnosis of a scene proven infeasible
+    (`diagnose` runs only then), or, for no_parse, the step that gave up."""
     from ssgc.explain import diagnose, explain_tree
     from ssgc.parse.parser import Parser
 
@@ -35,8 +36,9 @@ def explain_results(grammar: Any, scenes: list[Any], time_limit: float | None) -
                     "_text": d.message,
                 }
             )
-        else:
-            rows.append({"scene": scene.name, "status": result.status, "_text": result.message})
+        else:  # no_parse (not proven: no diagnosis) or error
+            row = {"scene": scene.name, "status": result.status, "_text": result.message}
+            rows.append(row | ({"phase": result.phase} if result.phase else {}))
     return rows
 
 
@@ -62,11 +64,13 @@ def explain(
 ) -> None:
     """Each object's and each rule's share of −log p of the best parse, most unusual first.
 
-    A scene without a parse gets the objects and rules that rule it out (exit code 2).
+    A scene proven infeasible gets the objects and rules that rule it out (exit code 2); one
+    without a parse found, unproven, says which step gave up (exit 3; 4 for the time limit).
     """
     from ssgc.compile import load_grammar
     from ssgc.io.outputs import check_output, lock_outputs, write_output_text
     from ssgc.io.scene import load_scenes
+    from ssgc.parse.parser import exit_code
 
     dest = None if output is None else check_output(output, inputs=[grammar, scenes])
     with lock_outputs([dest]):
@@ -83,10 +87,8 @@ def explain(
             err.print(f"{r['scene']}: {r['status']}: {text}", markup=False, highlight=False)
         elif not as_json and output is None:
             out.print(text, markup=False, highlight=False)
-    if any(r["status"] == "error" for r in rows):
-        raise typer.Exit(1)
-    if any("objects" not in r for r in rows):
-        raise typer.Exit(2)
+    if code := exit_code(rows):
+        raise typer.Exit(code)
 
 
 def annotate(

@@ -62,7 +62,9 @@ def parse(
 ) -> None:
     """Most probable parse trees of observed scenes (MAP parsing by MILP on HiGHS).
 
-    Exit code 2 when some scene cannot be produced by the grammar.
+    Exit code 2 when some scene is proven not to be produced by the grammar; 3 when no parse
+    was found for some scene without a proof that none exists; 4 when the time limit ran out
+    before a parse of some scene was found (docs/parsing.md "Statuses").
     """
     _check_method(method, solver)
     dest = check_output(output or "-", inputs=[grammar, scenes])
@@ -101,7 +103,7 @@ def _parse_into(
     from ssgc.cli.explain import annotate
     from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
     from ssgc.io.scene import load_scenes
-    from ssgc.parse.parser import Parser
+    from ssgc.parse.parser import Parser, exit_code
 
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_scenes(scenes, g)
@@ -136,7 +138,5 @@ def _parse_into(
         err.print(f"{r['name']}: {r['status']}: {r['message']}", markup=False, highlight=False)
     if not quiet and not dest.stdout:
         _summary(dest, f"parsed {len(items)} scene(s) -> {dest.name}")
-    if any(r["status"] == "error" for r in failed):
-        raise typer.Exit(1)
-    if failed:
-        raise typer.Exit(2)
+    if code := exit_code(failed):
+        raise typer.Exit(code)

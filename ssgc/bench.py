@@ -84,6 +84,9 @@ def bench_parse(
                 "scene": scene.name,
                 "objects": len(scene),
                 "status": result.status,
+                "phase": result.phase or None,
+                "timed_out_in": result.timed_out_in or None,
+                "certified": result.status == "optimal",
                 **result.model,
                 **{k: round(v, 6) for k, v in result.timing.items()},
                 "parses": len(result.parses),
@@ -108,6 +111,14 @@ def bench_parse(
         "rows": rows,
         "summary": {
             "match_or_beat_rate": float(np.mean([r["match_or_beat"] for r in rows])),
+            # statuses (docs/parsing.md): certified = optimal, the others have no proof
+            "certified_rate": _rate(rows, "optimal"),
+            "feasible_rate": _rate(rows, "feasible"),
+            "no_parse_rate": _rate(rows, "no_parse"),
+            "infeasible_rate": _rate(rows, "infeasible"),
+            "error_rate": _rate(rows, "error"),
+            # a certificate below the sampled tree's score would be a false proof: must be 0
+            "false_certificates": sum(r["certified"] and not r["match_or_beat"] for r in rows),
             "raw_match_or_beat_rate": float(np.mean([r["raw_match_or_beat"] for r in rows])),
             "max_gap": max((r["gap"] for r in rows if r["gap"] is not None), default=None),
             "gap_known_rate": float(np.mean([r["gap"] is not None for r in rows])),
@@ -116,6 +127,10 @@ def bench_parse(
             "build_linearity": _linearity(size, build),
         },
     }
+
+
+def _rate(rows: list[dict[str, Any]], status: str) -> float:
+    return float(np.mean([r["status"] == status for r in rows]))
 
 
 def _finite_or_none(x: float | None) -> float | None:

@@ -341,9 +341,14 @@ def test_streamed_output_is_byte_identical_to_dumps_json() -> None:
         failed = write_parse_output(f, grammar, results)
         assert f.getvalue() == dumps_json({"grammar": grammar, "scenes": results})
         assert failed == [
-            {"name": r["name"], "status": r["status"], "message": r.get("message", "")}
+            {
+                "name": r["name"],
+                "status": r["status"],
+                "phase": r.get("phase", ""),
+                "message": r.get("message", ""),
+            }
             for r in results
-            if r["status"] == "infeasible"
+            if r["status"] in ("infeasible", "no_parse", "error")
         ]
 
 

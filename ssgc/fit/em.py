@@ -23,6 +23,7 @@ import hashlib
 import json
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
@@ -44,7 +45,9 @@ from ssgc.ir import Grammar, Kind
 from ssgc.parse.parser import PROPOSAL_SHARE, Parser, SceneParses
 from ssgc.tree import Trees
 
-FIT_JOURNAL_FORMAT = "ssgc.fit-journal/1"
+# /2: scene records carry the parser's statuses of issue 11 (optimal only when certified,
+# infeasible only when proven, no_parse with its phase); a /1 journal is refused on --resume.
+FIT_JOURNAL_FORMAT = "ssgc.fit-journal/2"
 DEADLINE_SHARE = 0.95  # of a time limit: the last parse and the output still take a moment
 
 
@@ -279,7 +282,7 @@ def _cut_short(result: SceneParses | None, limit: float) -> bool:
     """
     if result is None:
         return True
-    return result.status == "time_limit" or result.timing["total_s"] >= PROPOSAL_SHARE * limit
+    return bool(result.timed_out_in) or result.timing["total_s"] >= PROPOSAL_SHARE * limit
 
 
 def _out_of_time(text: str, reports: list[dict[str, Any]]) -> FitResult:
@@ -298,7 +301,8 @@ def _out_of_time(text: str, reports: list[dict[str, Any]]) -> FitResult:
 
 
 def _scene_record(iteration: int, index: int, result: SceneParses, dataset: str) -> dict[str, Any]:
-    """One parsed scene as the journal keeps it; infeasible scenes stop the fit."""
+    """One parsed scene as the journal keeps it; a scene proven infeasible stops the fit, one
+    without a parse found (no_parse: not proven) is kept and skipped by the M-step."""
     if result.status == "infeasible":
         raise SsgError.single(
             f"scene '{result.name}' cannot be explained by the grammar: {result.message}",
@@ -310,6 +314,7 @@ def _scene_record(iteration: int, index: int, result: SceneParses, dataset: str)
         "index": index,
         "name": result.name,
         "status": result.status,
+        "phase": result.phase,
         "message": result.message,
         "scores": [p.score for p in result.parses],
         "trees": [_tree_json(p.tree) for p in result.parses],
@@ -353,6 +358,8 @@ def _weigh(
         "scenes": len(evidence),
         "trees": len(batches),
         "skipped": skipped,
+        # optimal: the best tree is certified; feasible: a tree, not proven best
+        "statuses": dict(sorted(Counter(str(r["status"]) for r in records).items())),
     }
     return Trees.concatenate(batches), np.concatenate(weights), report
 

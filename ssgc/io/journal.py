@@ -37,8 +37,10 @@ from ssgc.io import atomic
 from ssgc.io.atomic import remove_stale_temps, write_text_atomic
 from ssgc.io.scene import Scene, dumps_json
 
-JOURNAL_FORMAT = "ssgc.parse-journal/2"
-FAILED = ("infeasible", "error")
+# /3: statuses are optimal (certified) / feasible / infeasible (proven) / no_parse / error;
+# a /2 journal's "optimal" and "infeasible" were not always proven, so it is not resumed.
+JOURNAL_FORMAT = "ssgc.parse-journal/3"
+FAILED = ("infeasible", "no_parse", "error")  # scenes without a parse
 
 
 def journal_path(output: Path) -> Path:
@@ -127,6 +129,14 @@ class Journal:
         with open(self.path, "rb") as f:
             first = f.readline()
             found = _json_line(first)
+            if isinstance(found, dict) and _older(found.get("journal"), self.FORMAT):
+                raise SsgError.single(
+                    f"this {self.WHAT} was written by an older ssgc "
+                    f"({found['journal']}, now {self.FORMAT}) whose parse statuses meant "
+                    "less (an uncertified tree was 'optimal', an unproven one 'infeasible'); "
+                    "run without --resume to start again",
+                    str(self.path),
+                )
             if not isinstance(found, dict) or found.get("journal") != self.FORMAT:
                 raise SsgError.single(
                     f"not a {self.WHAT} of ssgc; delete it or run without --resume",
@@ -250,13 +260,23 @@ def _check_same_run(found: dict[str, Any], header: dict[str, Any], file: str) ->
         )
 
 
+def _older(found: Any, ours: str) -> bool:
+    """Whether `found` names an earlier version of the journal format `ours` ("name/N")."""
+    if not isinstance(found, str) or "/" not in found:
+        return False
+    name, _, version = found.rpartition("/")
+    our_name, _, our_version = ours.rpartition("/")
+    return name == our_name and version.isdigit() and int(version) < int(our_version)
+
+
 def write_parse_output(
     f: TextIO, grammar_name: str, results: Iterable[dict[str, Any]]
 ) -> list[dict[str, Any]]:
     """Stream `{"grammar": ..., "scenes": [...]}` into `f`, byte for byte what
     `dumps_json` makes of the whole document, one scene in memory at a time.
 
-    Returns the name, status and message of every scene that failed (infeasible or error), so
+    Returns the name, status, phase and message of every scene without a parse (infeasible,
+    no_parse or error), so
     the caller can report them without keeping all the results.
     """
     failed: list[dict[str, Any]] = []
@@ -267,6 +287,6 @@ def write_parse_output(
         f.write(dumps_json(result).rstrip("\n").replace("\n", "\n  "))
         count += 1
         if result["status"] in FAILED:
-            failed.append({k: result.get(k, "") for k in ("name", "status", "message")})
+            failed.append({k: result.get(k, "") for k in ("name", "status", "phase", "message")})
     f.write("\n ]\n}\n" if count else "]\n}\n")
     return failed

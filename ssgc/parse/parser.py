@@ -14,7 +14,7 @@ from __future__ import annotations
 import gc
 import hashlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -36,17 +36,35 @@ from ssgc.score import node_terms, score_trees
 from ssgc.tree import Trees
 
 SCORE_TOL = 1e-6
+GAP_TOL = 1e-6  # a relative gap at most this is a certificate (status `optimal`)
 METHODS = ("auto", "ip", "micp")
 PROPOSAL_SHARE = 0.3  # of a time limit, for making and optimising pose proposals
 DEADLINE_SHARE = 0.9  # of a time limit, when every step must have stopped
 REDUCTIONS = (AssignmentReduction(), PosedReduction(), SetReduction())  # first that accepts
+
+# What a scene's (and a parse's) status says; docs/parsing.md "Statuses".
+OPTIMAL = "optimal"  # a certificate: no tree scores higher (relative gap <= GAP_TOL)
+FEASIBLE = "feasible"  # a real tree with its exact score, not proven best (gap or null)
+INFEASIBLE = "infeasible"  # proven: no tree of the grammar explains the scene
+NO_PARSE = "no_parse"  # no tree found, and not proven that none exists: see `phase`
+ERROR = "error"  # the solver failed
+STATUSES = (OPTIMAL, FEASIBLE, INFEASIBLE, NO_PARSE, ERROR)
+# Why a scene is `no_parse`: the step that gave up.
+PHASES = ("proposals", "instance_limit", "time")
+# The steps a time limit can cut short (`timed_out_in`).
+STEPS = ("proposals", "build", "solve", "refine", "bound")
+# Exit codes of `ssg parse` and `ssg explain` (docs/robustness.md): the first that applies.
+EXIT_ERROR = 1  # the solver failed on some scene
+EXIT_INFEASIBLE = 2  # some scene has no tree under the grammar: proven
+EXIT_NO_PARSE = 3  # some scene has no parse found (proposals, instance limit): not proven
+EXIT_TIME = 4  # some scene has no parse because its --time-limit ran out
 
 
 @dataclass
 class Parse:
     tree: Trees
     score: float
-    status: str
+    status: str  # optimal (certified) or feasible
     gap: float
     objective: float
     rule_log_probs: list[float]  # per node: log p(pose | parent) + log P(its fired rules)
@@ -58,9 +76,11 @@ class SceneParses:
     parses: list[Parse]
     timing: dict[str, float]
     model: dict[str, int]
-    status: str
+    status: str  # one of STATUSES
     message: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    phase: str = ""  # for no_parse: the step that gave up (PHASES)
+    timed_out_in: str = ""  # the step the time limit cut short (STEPS), if any
 
 
 class Parser:
@@ -70,6 +90,12 @@ class Parser:
     (`ssgc.parse.proposals`); each tree it returns is then refined with its structure fixed
     (`ssgc.parse.poses`), and the refined poses are fed back as proposals until the MILP finds
     nothing better than the refined tree (at most MAX_ROUNDS times).
+
+    Statuses are claims, each backed by a proof or not made: `optimal` needs a certificate
+    (HiGHS's optimum of a *complete* model — one holding every tree of the grammar at its
+    exact score — or the assignment bound within GAP_TOL); `infeasible` needs a proof (a count
+    the grammar cannot hold, or a complete model with no solution).  Anything else is
+    `feasible` (a tree, not proven best) or `no_parse` (none found, not proven absent).
     """
 
     MAX_ROUNDS = 4
@@ -113,31 +139,44 @@ class Parser:
         t0 = time.perf_counter()
         # the last steps after a deadline check (a vectorised pass, HiGHS's exit) take a moment
         deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
+        step, complete = "capacity", not self.has_latent
         try:
             self.check_capacity(scene)
+            step = "build"  # the poses the objects imply: part of every model
+            cand = candidate_poses(self.grammar, self.supertree, scene, deadline)
+            step = "proposals"
             # proposals get part of a time limit; the MILP needs the rest
-            cand, bounds = self.candidates(
-                scene, None if time_limit is None else t0 + PROPOSAL_SHARE * time_limit
+            bounds = self.latent_candidates(
+                cand, None if time_limit is None else t0 + PROPOSAL_SHARE * time_limit
             )
             propose_s = time.perf_counter() - t0
-            problem = self.reduce(scene, cand, bounds, deadline)
+            step = "build"
+            request = self.request(scene, cand, bounds, deadline)
+            reduction = choose(self.reductions, request)
+            complete = self.complete(reduction, request)
+            problem = reduction.apply(request)[1]
         except UnparseableScene as exc:
-            return _failed(scene, "infeasible", exc, t0)
+            if step == "capacity" or (step == "build" and complete):  # a proof
+                return _failed(scene, INFEASIBLE, exc, t0)
+            return _failed(scene, NO_PARSE, exc, t0, "proposals")
         except OutOfTime:
-            message = f"scene '{scene.name}': time limit reached while building the parse model"
-            return _failed(scene, "time_limit", SsgError.single(message), t0)
+            step = "build" if step == "capacity" else step
+            message = f"scene '{scene.name}': time limit reached in the {step} step"
+            return _failed(scene, NO_PARSE, SsgError.single(message), t0, "time", step)
         except ModelTooLarge as exc:
-            return _failed(scene, "error", exc, t0)
-        run = _Run(self, scene, problem, cand, bounds, deadline)
+            return _failed(scene, NO_PARSE, exc, t0, "instance_limit")
+        run = _Run(self, scene, problem, cand, bounds, deadline, complete)
         run.solve(top)
         if bounds is not None and run.parses:
             run.certify()
-        elif self.has_latent and self.method == "micp":
-            run.message = "no upper bound for this grammar's shape: the gap is unknown"
-        if deadline is not None and time.perf_counter() >= deadline and run.status == "optimal":
-            run.status = "time_limit"  # some step was cut short: nothing is certain
-            for p in run.parses:
-                p.status = "time_limit"
+        elif self.has_latent and not complete and self.method == "micp":
+            run.message = (
+                run.message or "no upper bound for this grammar's shape: the gap is unknown"
+            )
+        proposals_cut = self.has_latent and propose_s >= PROPOSAL_SHARE * (time_limit or np.inf)
+        if proposals_cut and not run.timed_out_in:
+            run.timed_out_in = "proposals"  # proposals were cut short: fewer of them
+        run.settle()
         total_s = time.perf_counter() - t0
         return SceneParses(
             name=scene.name,
@@ -154,7 +193,16 @@ class Parser:
             },
             model=run.problem.milp.shape,
             extra={"raw_score": run.raw_score, "bound": run.bound},
+            phase=run.phase,
+            timed_out_in=run.timed_out_in,
         )
+
+    def complete(self, reduction: Reduction, request: Request) -> bool:
+        """Whether the model the reduction builds holds every tree of the grammar for the
+        scene at its exact score, so that its infeasibility is a proof and its optimum a
+        certificate: true for grammars without latent poses (every pose is implied by the
+        objects), and for a reduction that says so (`complete = True`)."""
+        return not request.latent or bool(getattr(reduction, "complete", False))
 
     def check_capacity(self, scene: Scene) -> None:
         """Refuse, before any model is built, a scene with more objects (of one type, or in
@@ -179,16 +227,23 @@ class Parser:
         """Candidate poses per set: implied by the objects; for latent sets, the best pose of
         every assignment of children (`micp`, when the grammar's shape allows the bound) or
         proposals (`ip`, and any other shape)."""
+        cand = candidate_poses(self.grammar, self.supertree, scene)
+        return cand, self.latent_candidates(cand, deadline)
+
+    def latent_candidates(
+        self, cand: Candidates, deadline: float | None = None
+    ) -> dict[int, SetBound] | None:
+        """Add the latent sets' candidate poses to `cand` (stopping at `deadline`): the bound's
+        assignments (returned, `micp` when the grammar's shape allows it), else proposals."""
         g, st = self.grammar, self.supertree
-        cand = candidate_poses(g, st, scene)
         if not self.has_latent:
-            return cand, None
+            return None
         if self.method != "ip":
             bounds = set_bounds(g, st, cand, deadline)
             if bounds is not None:
-                return cand, bounds
+                return bounds
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
-        return cand, None
+        return None
 
     def reduce(
         self,
@@ -202,10 +257,17 @@ class Parser:
         enough; else, for grammars without latent poses, the equivalent-set model)."""
         if cand is None:
             cand, bounds = self.candidates(scene)
-        request = Request(
-            self.grammar, self.supertree, scene, cand, self.has_latent, bounds, deadline
-        )
+        request = self.request(scene, cand, bounds, deadline)
         return choose(self.reductions, request).apply(request)[1]
+
+    def request(
+        self,
+        scene: Scene,
+        cand: Candidates,
+        bounds: dict[int, SetBound] | None,
+        deadline: float | None,
+    ) -> Request:
+        return Request(self.grammar, self.supertree, scene, cand, self.has_latent, bounds, deadline)
 
     def open_session(self, milp: Milp, time_limit: float | None = None) -> Session:
         """The one place a solver session is made (HiGHS unless the parser was given another)."""
@@ -242,7 +304,10 @@ class Parser:
 
 
 class _Run:
-    """One scene's solve loop: the refinement rounds (latent grammars), then top-N by cuts."""
+    """One scene's solve loop: the refinement rounds (latent grammars), then top-N by cuts.
+
+    Parses are read as `feasible`; `settle` makes a parse `optimal` only with its
+    certificate, and names the scene's status from what was found and proven."""
 
     def __init__(
         self,
@@ -252,13 +317,17 @@ class _Run:
         cand: Candidates,
         bounds: dict[int, SetBound] | None,
         deadline: float | None,
+        complete: bool,
     ) -> None:
         self.p, self.scene, self.problem, self.cand = parser, scene, problem, cand
         self.bounds = bounds
         self.deadline = deadline
+        self.complete = complete  # the MILP holds every tree at its exact score
         self.parses: list[Parse] = []
+        self.certified: set[int] = set()  # ids of parses with a certificate
         self.seen: set[tuple] = set()
-        self.status, self.message = "optimal", ""
+        self.status, self.message = FEASIBLE, ""
+        self.phase, self.timed_out_in = "", ""
         self.build_s = problem.build_s
         self.solve_s = 0.0
         self.rounds = 0
@@ -283,20 +352,17 @@ class _Run:
         while len(self.parses) < top and tries < 20 * top:
             tries += 1
             sol = self._solve_once()
-            if sol is None:
-                self.status = "time_limit"
+            if sol is None or (sol.x is None and sol.status == "time_limit"):
+                self.timed_out_in = "solve"
+                self.message = _why(self.scene, "time_limit", "", len(self.parses), top)
                 return
             if sol.x is None:
-                if not self.parses or sol.status != "infeasible":
-                    self.status = sol.status
-                    self.message = _why(self.scene, sol.status, sol.message)
-                if len(self.parses) < top:  # no more trees: say so (--top N asked for more)
-                    exists = "found" if self.p.has_latent else "exist"
-                    self.message = f"only {len(self.parses)} distinct tree(s) {exists}"
-                return  # infeasible after at least one parse: no more trees
-            parse = self.p.read(self.problem, sol.x, sol.objective, sol.status, sol.gap)
+                self._no_more(sol, top)
+                return
+            parse = self.p.read(self.problem, sol.x, sol.objective, FEASIBLE, sol.gap)
             if not self.parses and np.isnan(self.raw_score):
                 self.raw_score = parse.score
+            certified = self.complete and sol.status == "optimal" and sol.gap <= GAP_TOL
             if self.p.has_latent and self.bounds is None:
                 parse = self._refined(parse, sol)
                 if parse is None:
@@ -305,21 +371,63 @@ class _Run:
             if key not in self.seen:
                 self.seen.add(key)
                 self.parses.append(parse)
+                if certified and (not self.p.has_latent or parse.score >= parse.objective):
+                    self.certified.add(id(parse))
             if sol.status != "optimal":
-                self.status = sol.status
+                self.timed_out_in = "solve" if sol.status == "time_limit" else ""
+                if sol.status != "time_limit":
+                    self.status, self.message = ERROR, _why(self.scene, sol.status, sol.message)
                 return
             _exclude(self.session, self.problem, sol.x)
 
+    def _no_more(self, sol, top: int) -> None:  # type: ignore[no-untyped-def]
+        """The MILP has no (further) solution: a proof when the model is complete."""
+        if sol.status != "infeasible":
+            self.status, self.message = ERROR, _why(self.scene, sol.status, sol.message)
+        elif self.parses:  # no more trees: say so (--top N asked for more)
+            exists = "exist" if self.complete else "found"
+            self.message = f"only {len(self.parses)} distinct tree(s) {exists}"
+        elif self.complete:
+            self.status, self.message = INFEASIBLE, _why(self.scene, "infeasible", "")
+        else:
+            self.status, self.phase = NO_PARSE, "proposals"
+            self.message = (
+                f"scene '{self.scene.name}': no parse found among the proposed latent poses "
+                "(not proven: a tree may exist at poses not proposed)"
+            )
+
+    def settle(self) -> None:
+        """Each parse's status from its certificate, and the scene's from its best parse."""
+        if self.status == NO_PARSE and self.timed_out_in == "proposals":
+            self.phase = "time"  # more time, more proposals: the clock gave up, not them
+        if not self.parses and self.status == FEASIBLE:  # the loop ended without a tree
+            self.status, self.phase = NO_PARSE, "time" if self.timed_out_in else "proposals"
+        for p in self.parses:
+            p.status = OPTIMAL if id(p) in self.certified else FEASIBLE
+            if not self.complete and self.bounds is None:
+                p.gap = float("nan")  # the gap of a model over proposals proves nothing
+        if self.parses and self.status != ERROR:
+            best = max(self.parses, key=lambda p: p.score)
+            self.status = best.status
+        if self.timed_out_in and self.parses and not self.message:
+            self.message = f"time limit reached in the {self.timed_out_in} step"
+
     def certify(self) -> None:
-        """Bound the MAP score from above (`ssgc.parse.bound`) and give the best parse its gap.
+        """Bound the MAP score from above (`ssgc.parse.bound`) and give the best parse its gap;
+        within GAP_TOL, the best parse is certified.
 
         A time limit during the bound's MILP still leaves a valid bound (HiGHS's dual bound).
         """
         g, st = self.p.grammar, self.p.supertree
         t0 = time.perf_counter()
         assert self.bounds is not None
+        best = max(self.parses, key=lambda p: p.score)
+        best.gap = float("nan")  # only the bound gives this model's parses a gap
+        for p in self.parses:
+            p.gap = float("nan")
         if self.deadline is not None and self.deadline - t0 < self.build_s:
             self.message = "time limit reached before the bound: the gap is unknown"
+            self.timed_out_in = "bound"
             return
         try:
             problem = assignment_problem(
@@ -327,6 +435,7 @@ class _Run:
             )
         except OutOfTime:
             self.message = "time limit reached before the bound: the gap is unknown"
+            self.timed_out_in = "bound"
             return
         session = self.p.open_session(problem.milp)
         if self.deadline is not None:
@@ -334,12 +443,15 @@ class _Run:
         sol = session.solve()
         self.bound_s = time.perf_counter() - t0
         self.solve_s += sol.solve_s
+        if sol.status == "time_limit":
+            self.timed_out_in = "bound"
         upper = sol.objective if sol.status == "optimal" else sol.bound
         if not np.isfinite(upper):
             return
-        best = max(self.parses, key=lambda p: p.score)
         self.bound = max(float(upper), best.score)
         best.gap = (self.bound - best.score) / max(1.0, abs(best.score))
+        if best.gap <= GAP_TOL:
+            self.certified.add(id(best))
 
     def _refined(self, parse: Parse, sol) -> Parse | None:  # type: ignore[no-untyped-def]
         """The parse with its latent poses refined; None when the refined poses were added as
@@ -348,6 +460,8 @@ class _Run:
         t0 = time.perf_counter()
         tree = refine_tree(g, parse.tree, deadline=self.deadline)
         self.refine_s += time.perf_counter() - t0
+        if self.deadline is not None and time.perf_counter() >= self.deadline:
+            self.timed_out_in = self.timed_out_in or "refine"
         refined = self.p.scored(tree, parse.status, float("nan"), parse.objective)
         if refined.score < parse.score:
             refined = replace(parse, gap=float("nan"))  # refinement cannot lose: keep it
@@ -360,6 +474,7 @@ class _Run:
         try:
             self.problem = self.p.reduce(self.scene, self.cand, deadline=self.deadline)
         except OutOfTime:
+            self.timed_out_in = self.timed_out_in or "build"
             return refined
         self.session = self.p.open_session(self.problem.milp)
         self.build_s += time.perf_counter() - t0
@@ -406,27 +521,45 @@ def tree_signature(grammar: Grammar, tree: Trees) -> bytes:
     return keys[0] if keys else b""
 
 
-def _failed(scene: Scene, status: str, exc: SsgError, t0: float) -> SceneParses:
+def _failed(
+    scene: Scene, status: str, exc: SsgError, t0: float, phase: str = "", step: str = ""
+) -> SceneParses:
+    """A scene without a parse: proven `infeasible`, or `no_parse` with the phase that gave
+    up (and, for a time limit, the step it cut short)."""
     elapsed = time.perf_counter() - t0
+    message = "; ".join(d.message for d in exc.diagnostics)
+    if status == NO_PARSE and phase == "proposals":  # the model's reason is no proof: drop it
+        message = (
+            f"scene '{scene.name}': no parse found among the proposed latent poses "
+            "(not proven: a tree may exist at poses not proposed)"
+        )
+    elif status == NO_PARSE and phase == "instance_limit":
+        message = f"no parse: {message} (not proven that no tree exists)"
     return SceneParses(
         name=scene.name,
         parses=[],
         status=status,
-        message="; ".join(d.message for d in exc.diagnostics),
+        message=message,
         timing={"build_s": elapsed, "solve_s": 0.0, "total_s": elapsed},
         model={"variables": 0, "binaries": 0, "rows": 0, "nonzeros": 0},
+        phase=phase,
+        timed_out_in=step,
     )
 
 
-def _why(scene: Scene, status: str, solver_message: str) -> str:
+def _why(scene: Scene, status: str, solver_message: str, found: int = 0, top: int = 1) -> str:
     if status == "infeasible":
         return (
             f"scene '{scene.name}': no tree of the grammar explains all {len(scene)} objects "
             "together (each can be placed, but not all at once: too many for the grammar's "
             "count bounds or recursion depth?)"
         )
+    if status == "time_limit" and not found:
+        return (
+            f"scene '{scene.name}': time limit reached in the solve step before a parse was found"
+        )
     if status == "time_limit":
-        return f"scene '{scene.name}': time limit reached before a parse was found"
+        return f"time limit reached in the solve step after {found} of {top} parse(s)"
     return f"scene '{scene.name}': solver failure ({solver_message})"
 
 
@@ -436,6 +569,21 @@ def _exclude(session: Session, problem: Problem, x: np.ndarray) -> None:
     on = x[cols] > 0.5
     coefs = np.where(on, 1.0, -1.0)
     session.add_cut(cols, coefs, -np.inf, float(on.sum()) - 1.0)
+
+
+def exit_code(rows: Iterable[Mapping[str, Any]]) -> int:
+    """The exit code of a run from its scenes' `status` and `phase` (0: every scene has a
+    parse).  A proven answer outranks an unproven one: error, infeasible, no_parse, time."""
+    codes = {0}
+    for r in rows:
+        status, phase = r.get("status"), r.get("phase")
+        if status == ERROR:
+            codes.add(EXIT_ERROR)
+        elif status == INFEASIBLE:
+            codes.add(EXIT_INFEASIBLE)
+        elif status == NO_PARSE:
+            codes.add(EXIT_TIME if phase == "time" else EXIT_NO_PARSE)
+    return min(codes - {0}, default=0)
 
 
 def result_to_json(grammar: Grammar, result: SceneParses) -> dict[str, Any]:
@@ -472,6 +620,10 @@ def result_to_json(grammar: Grammar, result: SceneParses) -> dict[str, Any]:
     bound = result.extra.get("bound", float("nan"))
     if np.isfinite(bound):
         out["bound"] = bound
+    if result.phase:
+        out["phase"] = result.phase
+    if result.timed_out_in:
+        out["timed_out_in"] = result.timed_out_in
     if result.message:
         out["message"] = result.message
     return out

@@ -47,6 +47,9 @@ FloatArray = NDArray[np.float64]
 MAX_INSTANCES = 60_000
 
 
+ADD_CHUNK = 128  # implied poses deduplicated at once (candidate_poses, between deadline checks)
+
+
 class OutOfTime(Exception):
     """The deadline passed while the model was being built."""
 
@@ -106,14 +109,22 @@ class PosedProblem:
         )
 
 
-def candidate_poses(grammar: Grammar, st: Supertree, scene: Scene) -> Candidates:
+def candidate_poses(
+    grammar: Grammar, st: Supertree, scene: Scene, deadline: float | None = None
+) -> Candidates:
     """Per equivalent set, the distinct poses of its top node that put one of its observed
-    nodes exactly on an object of the scene (latent sets get none here: see proposals)."""
+    nodes exactly on an object of the scene (latent sets get none here: see proposals).
+
+    Past the deadline it raises OutOfTime: a wide `repeat` of a large scene has a thousand
+    sets of a thousand poses each, whose deduplication alone takes a minute."""
     cand = Candidates(
         [np.zeros((0, 3)) for _ in range(st.n_sets)], [np.zeros((0, 4)) for _ in range(st.n_sets)]
     )
     for n, _, t, q in implied_set_poses(grammar, st, scene):
-        cand.add(int(st.set_of[n]), t, q)
+        t, q = t.reshape(-1, 3), q.reshape(-1, 4)
+        for i in range(0, len(t), ADD_CHUNK):  # bounded work between deadline checks
+            check_deadline(deadline)
+            cand.add(int(st.set_of[n]), t[i : i + ADD_CHUNK], q[i : i + ADD_CHUNK])
     root_set = int(st.set_of[0])  # the root's set has exactly one pose
     cand.xyz[root_set] = grammar.root_xyz.reshape(1, 3).copy()
     cand.quat[root_set] = grammar.root_quat.reshape(1, 4).copy()

@@ -6,6 +6,13 @@ assignments) and its size, counted before anything is built; `apply` builds the 
 inverse data that maps a solution back (`Problem`); `invert` does that mapping.  The parser
 holds them as a chain and uses the first that accepts (`choose`); a new formulation is one more
 link, and a solver is a `Session` (`ssgc.parse.milp`) that never sees the reduction.
+
+Completeness.  A reduction whose model holds *every* tree of the grammar for the scene at its
+exact score sets a class attribute `complete = True`: the parser then takes its infeasibility
+(an `UnparseableScene` from `apply`, or HiGHS's `infeasible`) as a proof (status `infeasible`)
+and its optimum within the gap tolerance as a certificate (status `optimal`).  Without it, for
+grammars with latent poses, the parser claims neither (`no_parse`, `feasible`); models of
+grammars without latent poses are complete by construction (`Parser.complete`).
 """
 
 from __future__ import annotations

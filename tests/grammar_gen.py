@@ -1,0 +1,167 @@
+"""Small random grammars over the whole language, for parser property tests (issue 11).
+
+A grammar has 1–3 latent types (`L0` the root, then `L1`, `L2`), each of any kind (`and`, `or`,
+`independent`, `repeat`), and two observed types (`A`, `B`).  A latent type's rules reach later
+latent types or observed ones, so there are no cycles; every rule draws its translation from
+every translation law and its rotation from every rotation law of docs/grammar.md.
+
+One builder, two drivers: `make_spec(pick)` asks `pick(what, options)` for every choice, so
+hypothesis (`grammars()`, which shrinks) and a numpy generator (`random_spec`, for the long
+profile of thousands of grammars) make grammars of the same family.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ssgc.compile import compile_text
+from ssgc.io.scene import Scene, scene_from_tree
+from ssgc.ir import Grammar
+from ssgc.sample.forward import sample_trees
+
+TRANSLATIONS = (
+    "same",
+    "offset",
+    "world_normal",
+    "world_normal_offset",
+    "parent_normal_offset",
+    "world_box",
+    "world_box_offset",
+)
+ROTATIONS = (
+    "same",
+    "uniform",
+    "revolute",
+    "bounded_revolute",
+    "world_bingham",
+    "parent_bingham",
+    "offset",
+)
+KINDS = ("and", "or", "independent", "repeat")
+OBSERVED = ("A", "B")
+MAX_OBJECTS = 5  # scenes with more objects are left out (a property test, not a benchmark)
+
+Pick = Callable[[str, Sequence[Any]], Any]
+
+
+def translation(law: str, pick: Pick) -> Any:
+    """The YAML of one translation law, with numbers from a few fixed choices."""
+    mean = list(pick("mean", ([0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [1.0, 0.5, 0.0])))
+    variance = pick("variance", (0.01, 0.05, [0.02, 0.01, 0.04]))
+    if law == "same":
+        return "same"
+    if law == "offset":
+        return {"offset": mean}
+    if law in ("world_normal", "world_normal_offset", "parent_normal_offset"):
+        return {law: {"mean": mean, "variance": variance}}
+    half = pick("half", (0.1, 0.5))
+    return {law: {"min": [m - half for m in mean], "max": [m + half for m in mean]}}
+
+
+def rotation(law: str, pick: Pick) -> Any:
+    """The YAML of one rotation law."""
+    if law in ("same", "uniform"):
+        return law
+    axis = list(pick("axis", ([0, 0, 1], [1, 0, 0], [0, 1, 1])))
+    if law == "revolute":
+        return {"revolute": {"axis": axis}}
+    if law == "bounded_revolute":
+        return {"revolute": {"axis": axis, "min": -0.4, "max": 0.7}}
+    conc = pick("concentration", (20, 200, [100, 100, 0]))
+    mode = {"rpy_deg": list(pick("mode", ([0, 0, 0], [20, 0, 45], [0, 90, 0])))}
+    if law in ("world_bingham", "parent_bingham"):
+        return {law: {"mode": mode, "concentration": conc}}
+    return {"offset": mode}
+
+
+def make_spec(pick: Pick) -> dict[str, Any]:
+    """A grammar as a YAML-ready dict; `pick(what, options)` makes every choice."""
+    n_latent = pick("latent", (1, 2, 3))
+    latent = [f"L{i}" for i in range(n_latent)]
+    types: dict[str, Any] = {name: {"observed": True} for name in OBSERVED}
+    for i, name in enumerate(latent):
+        kind = pick("kind", KINDS)
+        reachable = latent[i + 1 :] + list(OBSERVED)
+        n_rules = 1 if kind == "repeat" else pick("rules", (1, 2))
+        rules = []
+        for _ in range(n_rules):
+            rule: dict[str, Any] = {"child": pick("child", reachable)}
+            rule["translation"] = translation(pick("translation", TRANSLATIONS), pick)
+            rule["rotation"] = rotation(pick("rotation", ROTATIONS), pick)
+            if kind == "or":
+                rule["p"] = pick("weight", (1.0, 2.0, 3.0))
+            elif kind == "independent":
+                rule["p"] = pick("p", (0.3, 0.6, 1.0))
+            rules.append(rule)
+        if kind == "repeat":
+            count = pick("count", ({"probs": [0.3, 0.4, 0.3]}, {"geometric": {"p": 0.5, "max": 2}}))
+            types[name] = {"repeat": {"count": count, "rule": rules[0]}}
+        else:
+            types[name] = {kind: rules}
+    return {"grammar": "generated", "root": latent[0], "types": types}
+
+
+def to_yaml(spec: dict[str, Any]) -> str:
+    return yaml.safe_dump(spec, sort_keys=False, default_flow_style=None)
+
+
+def compile_spec(spec: dict[str, Any]) -> Grammar:
+    return compile_text(to_yaml(spec))
+
+
+def random_spec(rng: np.random.Generator) -> dict[str, Any]:
+    """A grammar of the family drawn by numpy (the long profile: fast, no shrinking)."""
+    return make_spec(lambda what, options: options[int(rng.integers(len(options)))])
+
+
+def grammars() -> Any:
+    """A hypothesis strategy of grammar specs of the family."""
+    from hypothesis import strategies as st
+
+    @st.composite
+    def strategy(draw: Any) -> dict[str, Any]:
+        return make_spec(lambda what, options: draw(st.sampled_from(list(options)), label=what))
+
+    return strategy()
+
+
+def sampled_scenes(
+    grammar: Grammar, n: int, seed: int, max_objects: int = MAX_OBJECTS
+) -> list[Scene]:
+    """Scenes sampled from the grammar, each carrying its tree's score (`scene.score`) and
+    at most `max_objects` objects."""
+    trees, logp = sample_trees(grammar, n, seed)
+    scenes = []
+    for i in range(n):
+        if not np.isfinite(logp[i]):
+            continue
+        scene = scene_from_tree(grammar, trees.tree(i), f"s{i}", float(logp[i]))
+        if len(scene) <= max_objects:
+            scenes.append(scene)
+    return scenes
+
+
+def laws(spec: dict[str, Any]) -> set[str]:
+    """The laws and kinds a grammar uses, for statistics by law ("t:world_box", "kind:or")."""
+    out: set[str] = set()
+    for name, body in spec["types"].items():
+        if name in OBSERVED:
+            continue
+        (kind, rules), *_ = body.items()
+        out.add(f"kind:{kind}")
+        for rule in [rules["rule"]] if kind == "repeat" else rules:
+            out.add("t:" + _law_name(rule["translation"]))
+            r = rule["rotation"]
+            name = _law_name(r)
+            if name == "revolute" and "min" in r["revolute"]:
+                name = "bounded_revolute"
+            out.add("r:" + name)
+    return out
+
+
+def _law_name(law: Any) -> str:
+    return law if isinstance(law, str) else next(iter(law))

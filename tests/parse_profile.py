@@ -1,0 +1,210 @@
+"""The parser on random grammars: what it says about scenes sampled from them (issue 11).
+
+`check_scene` parses one sampled scene and lists what is false in the answer (the
+properties of tests/test_parse_property.py); `run_profile` does it for many grammars and
+counts statuses by law.  Run as a script for the long profile:
+
+    python tests/parse_profile.py --grammars 1000 --scenes 10 --seed 0 [--time-limit 10]
+
+prints one JSON object: grammars and scenes tried, false answers (must be 0), and the share
+of scenes certified / feasible / no_parse / infeasible, overall and by law.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+import grammar_gen as gg
+from bruteforce import enumerate_parses
+
+from ssgc.io.scene import Scene
+from ssgc.ir import Grammar
+from ssgc.parse.parser import Parser
+
+SCORE_TOL = 1e-6
+GAP_TOL = 1e-6
+BRUTE_NODES = 12  # brute force only on trees this small
+
+
+@dataclass
+class Verdict:
+    """What one parse of one sampled scene said, and what was false in it."""
+
+    status: str
+    certified: bool
+    score: float | None
+    truth: float
+    false: list[str] = field(default_factory=list)
+    brute: float | None = None  # the brute-force MAP score, when it could be enumerated
+
+
+def certified(result: Any) -> bool:
+    """A certificate: status `optimal` and a known gap within tolerance on the best parse."""
+    if result.status != "optimal" or not result.parses:
+        return False
+    gap = result.parses[0].gap
+    return bool(np.isfinite(gap) and gap <= GAP_TOL)
+
+
+def check_scene(
+    grammar: Grammar,
+    parser: Parser,
+    scene: Scene,
+    time_limit: float | None = None,
+    brute: float | None = None,
+) -> Verdict:
+    """Parse a scene sampled from `grammar` and list the false statements in the answer:
+    `infeasible` (the scene has a tree: the one it was sampled from), `optimal` with a score
+    below the sampled tree's, a score above the brute-force MAP, or `optimal` below it."""
+    truth = float(scene.log_prob)
+    result = parser.parse(scene, time_limit=time_limit)
+    best = result.parses[0].score if result.parses else None
+    v = Verdict(result.status, certified(result), best, truth, brute=brute)
+    tol = SCORE_TOL * max(1.0, abs(truth))
+    if result.status == "infeasible":
+        v.false.append("infeasible")
+    if result.status == "optimal" and (best is None or best < truth - tol):
+        v.false.append("optimal_below_truth")
+    if v.certified and best is not None and best < truth - tol:
+        v.false.append("certificate_below_truth")  # a false certificate: a wrong gap
+    if brute is not None and best is not None:
+        if best > brute + tol:
+            v.false.append("above_brute_force")
+        if result.status == "optimal" and best < brute - tol:
+            v.false.append("optimal_below_brute_force")
+    return v
+
+
+def brute_force_map(grammar: Grammar, scene: Scene) -> float | None:
+    """The MAP score by enumeration, when the grammar is a dependency grammar and its trees
+    for this scene are small; None otherwise."""
+    try:
+        parses = enumerate_parses(grammar, scene, max_nodes=BRUTE_NODES)
+    except (NotImplementedError, RecursionError):
+        return None
+    if scene.tree is not None and len(scene.tree) > BRUTE_NODES:
+        return None
+    return parses[0][0] if parses else None
+
+
+def category(v: Verdict) -> str:
+    if v.certified:
+        return "certified"
+    if v.score is not None:
+        return "feasible"
+    return v.status
+
+
+def run_profile(
+    n_grammars: int,
+    scenes_per: int,
+    seed: int,
+    methods: tuple[str, ...] = ("ip", "micp"),
+    time_limit: float | None = 10.0,
+) -> dict[str, Any]:
+    """Random grammars, sampled scenes, parsed with each method: counts and false answers."""
+    rng = np.random.default_rng(seed)
+    counts: Counter[str] = Counter()
+    by_law: dict[str, Counter[str]] = defaultdict(Counter)
+    false: list[dict[str, Any]] = []
+    times: list[float] = []
+    scenes_tried = 0
+    grammars_all_parsed = 0
+    t_start = time.perf_counter()
+    for gi in range(n_grammars):
+        spec = gg.random_spec(rng)
+        grammar = gg.compile_spec(spec)
+        scenes = gg.sampled_scenes(grammar, scenes_per, seed + gi)
+        used = gg.laws(spec)
+        all_parsed = True
+        for scene in scenes:
+            brute = brute_force_map(grammar, scene)
+            for method in methods:
+                parser = Parser(grammar, method=method)
+                t0 = time.perf_counter()
+                try:
+                    v = check_scene(grammar, parser, scene, time_limit, brute)
+                except Exception as exc:  # a crash is a finding, not the end of the profile
+                    v = Verdict("exception", False, None, float(scene.log_prob))
+                    v.false.append(f"exception: {type(exc).__name__}: {exc}"[:300])
+                times.append(time.perf_counter() - t0)
+                scenes_tried += 1
+                cat = category(v)
+                counts[cat] += 1
+                counts[f"{method}:{cat}"] += 1
+                all_parsed &= v.score is not None
+                for law in used:
+                    by_law[law][cat] += 1
+                    by_law[law]["false"] += bool(v.false)
+                if v.false:
+                    false.append(
+                        {
+                            "grammar": gi,
+                            "scene": scene.name,
+                            "method": method,
+                            "false": v.false,
+                            "status": v.status,
+                            "score": v.score,
+                            "truth": v.truth,
+                            "brute": v.brute,
+                            "yaml": gg.to_yaml(spec),
+                        }
+                    )
+        grammars_all_parsed += all_parsed
+    share = {k: v / max(scenes_tried, 1) for k, v in sorted(counts.items()) if ":" not in k}
+    return {
+        "grammars": n_grammars,
+        "grammars_all_parsed": grammars_all_parsed,
+        "scene_parses": scenes_tried,
+        "seconds": round(time.perf_counter() - t_start, 1),
+        "share": share,
+        "counts": dict(sorted(counts.items())),
+        "false_answers": len(false),
+        "false_certificates": sum("certificate_below_truth" in f["false"] for f in false),
+        "false_kinds": dict(Counter(k.split(":")[0] for f in false for k in f["false"])),
+        "parse_seconds": _quantiles(times),
+        "by_law": {law: _shares(c) for law, c in sorted(by_law.items())},
+        "false_examples": false[:5],
+    }
+
+
+def _shares(c: Counter[str]) -> dict[str, float]:
+    """Each category's share of a law's scene parses ("false": the share with a false answer)."""
+    n = sum(v for k, v in c.items() if k != "false")
+    return {"n": n, **{k: round(v / max(n, 1), 3) for k, v in sorted(c.items())}}
+
+
+def _quantiles(times: list[float]) -> dict[str, float]:
+    if not times:
+        return {}
+    q = np.quantile(times, [0.5, 0.9, 0.99, 1.0])
+    return {k: round(float(x), 4) for k, x in zip(("median", "p90", "p99", "max"), q, strict=True)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--grammars", type=int, default=100)
+    ap.add_argument("--scenes", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--time-limit", type=float, default=10.0)
+    ap.add_argument("--methods", default="ip,micp")
+    a = ap.parse_args()
+    out = run_profile(
+        a.grammars, a.scenes, a.seed, tuple(a.methods.split(",")), a.time_limit or None
+    )
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
