@@ -171,7 +171,9 @@ class _Unroll:
         if own in self.restrict:
             slots, assignment = self.restrict[own]
             a = self.cand_k[self.top[i]]
-            return [int(assignment[a, slots.index((n, rule))])]
+            cols = [j for j, s in enumerate(slots) if s == (n, rule)]
+            named = assignment[a, cols]  # -1: this column has no child
+            return sorted({int(k) for k in named if k >= 0})
         return range(len(self.cand_xyz[e]))
 
     def _slots(self, n: int) -> list[int]:
@@ -218,7 +220,9 @@ def instance_count(
             if st.set_of[c] == own:
                 count[c] = count[n]
             elif r not in seen:
-                count[c] = count[n] * (1 if own in restricted else n_cand[st.set_of[c]])
+                copies = sum(1 for c2 in st.children[n] if st.rule[c2] == r)
+                per = copies if own in restricted else n_cand[st.set_of[c]]
+                count[c] = count[n] * per
             seen.add(r)
             total += count[c]
         if total > MAX_INSTANCES:
