@@ -495,7 +495,7 @@ def set_bounds(
 def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):  # type: ignore[no-untyped-def]
     """(kind, member, rule, child set, copies) per rule leaving the set, or None when the set
     is out of scope: a member that may be inactive while the top is active (below an `or` or a
-    `repeat` inside the set), or a child set that is latent too."""
+    `repeat` inside the set), or a latent child set placed relative to this one."""
     groups = []
     sure = {int(st.set_top[e])}
     for v in np.flatnonzero(st.set_of == e):
@@ -515,11 +515,21 @@ def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):
                     sure.update(kids)
                 continue
             if latent[e_c]:
-                return None
+                if not _independent(grammar, r):
+                    return None
+                inner = True  # its own bound counts the edge: no column here
+                continue
             groups.append((node.kind, v, r, e_c, tuple(kids)))
         if node.kind == Kind.OR and inner:
             groups.append((Kind.OR, v, -1, -1, ()))  # the option that stays inside the set
     return tuple(groups)
+
+
+def _independent(grammar: Grammar, r: int) -> bool:
+    """Whether rule r's child pose ignores its parent's (world-frame translation and
+    rotation): a latent child set's own bound then holds the edge whatever its parent's pose."""
+    rule = grammar.rules[r]
+    return rule.translation.frame == Frame.WORLD and rule.rotation.frame == Frame.WORLD
 
 
 def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # type: ignore[no-untyped-def]
@@ -750,7 +760,9 @@ def assignment_problem(
             heads = np.flatnonzero((set_of == e) & (inst.top == np.arange(len(set_of))))
             inst.score[heads] = sb.upper[inst.cand_k[heads]]
         parent_set = set_of[np.maximum(inst.parent, 0)]
+        head = inst.top == np.arange(len(set_of))
         counted = (inst.parent >= 0) & np.isin(parent_set, list(bounds)) & (parent_set != set_of)
+        counted &= ~(head & np.isin(set_of, list(bounds)))  # a latent child's bound holds it
         inst.score[counted] = 0.0  # the assignment's bound already counts these edges
 
     return reduce_posed(grammar, st, scene, posed, adjust if upper else None, restrict, deadline)

@@ -172,6 +172,8 @@ class _Unroll:
             slots, assignment = self.restrict[own]
             a = self.cand_k[self.top[i]]
             cols = [j for j, s in enumerate(slots) if s == (n, rule)]
+            if not cols:  # a rule the assignment does not name (an independent latent child)
+                return range(len(self.cand_xyz[e]))
             named = assignment[a, cols]  # -1: this column has no child
             return sorted({int(k) for k in named if k >= 0})
         return range(len(self.cand_xyz[e]))
