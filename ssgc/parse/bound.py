@@ -41,6 +41,7 @@ from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
 from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
+from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse.milp import Milp
 from ssgc.parse.posed import (
     MAX_INSTANCES,
@@ -50,7 +51,7 @@ from ssgc.parse.posed import (
     reduce_posed,
     too_many_instances,
 )
-from ssgc.parse.poses import PoseEdges, maximize_independent
+from ssgc.parse.poses import PoseEdges, _owned_values, _sub_edges, maximize_independent
 from ssgc.parse.proposals import Candidates, known_parent, latent_sets
 from ssgc.parse.reduction import Request
 from ssgc.parse.supertree import Supertree
@@ -105,6 +106,10 @@ class _Terms:
     hi: FloatArray  # (A, 3)
     pin: FloatArray  # (A, 4): the rotation a fixed rotation law forces, NaN where free
     complete: bool  # every pose-dependent term is in the relaxation exactly
+    t_complete: bool  # every translation term is: t* is the best position for a rotation
+    V: FloatArray  # (A, 4, 2): a revolute law's rotations q = V (cos ψ, sin ψ), ψ in `arc`
+    arc: FloatArray  # (A, 2): half the law's angle range
+    revolute: NDArray[np.bool_]  # (A,): rows whose rotation is held to such a family
 
     @property
     def pinned(self) -> NDArray[np.bool_]:
@@ -153,6 +158,12 @@ class _LocalBounds:
         self.pin = np.full((n, 4), np.nan)
         self.clash = np.zeros(n, bool)
         self.complete = True
+        self.t_complete = True  # every translation term is exact (t* is the best position)
+        # the first revolute law on the set's rotation, per row: q = base ⊗ rot(axis, φ) ⊗ post
+        self.fam_base = np.full((n, 4), np.nan)
+        self.fam_axis = np.zeros((n, 3))
+        self.fam_post = np.tile(IDENTITY, (n, 1))
+        self.fam_range = np.zeros((n, 2))
 
     # ---------------------------------------------------------------- building blocks ---
 
@@ -183,6 +194,16 @@ class _LocalBounds:
             self.clash |= far
         self.pin = np.where((on & ~had)[:, None], q, self.pin)
 
+    def family(self, law, base, axis, post, on) -> None:  # type: ignore[no-untyped-def]
+        """q = base ⊗ rot(axis, φ) ⊗ post, φ in the law's range, on the rows `on` that have no
+        family yet (a later one is left to the exact scorer: the relaxation ignores it)."""
+        free = on & np.isnan(self.fam_base[:, 0])
+        self.fam_base = np.where(free[:, None], _rows(base, self.n, 4), self.fam_base)
+        self.fam_axis = np.where(free[:, None], _rows(axis, self.n, 3), self.fam_axis)
+        self.fam_post = np.where(free[:, None], _rows(post, self.n, 4), self.fam_post)
+        span = np.array([law.revolute.lo, law.revolute.hi])
+        self.fam_range = np.where(free[:, None], span, self.fam_range)
+
     @property
     def pinned(self) -> NDArray[np.bool_]:
         return ~np.isnan(self.pin[:, 0])
@@ -203,6 +224,18 @@ class _LocalBounds:
         if rot.point is not None and rot.frame == Frame.PARENT:
             q_member = quat_multiply(cq, quat_conjugate(rot.point))
             self.pin_rotation(quat_multiply(q_member, quat_conjugate(off_q)), on)
+
+    def prior_family(self, r: int, parent: tuple[FloatArray, FloatArray] | None) -> None:
+        rot = self.g.rules[r].rotation
+        if isinstance(rot, RevoluteRotation):
+            pq = IDENTITY if parent is None else parent[1]
+            self.family(rot, pq, rot.axis, IDENTITY, np.ones(self.n, bool))
+
+    def child_family(self, r: int, off_q: FloatArray, cq: FloatArray, on) -> None:  # type: ignore[no-untyped-def]
+        """A revolute child: cq = q ⊗ off_q ⊗ rot(a, θ), so q = cq ⊗ rot(-a, θ) ⊗ off_q⁻¹."""
+        rot = self.g.rules[r].rotation
+        if isinstance(rot, RevoluteRotation):
+            self.family(rot, cq, -rot.axis, quat_conjugate(off_q), on)
 
     # ------------------------------------------------------------------------- terms ---
 
@@ -230,7 +263,7 @@ class _LocalBounds:
             self.box(at, at, every)
         else:
             self.const += law.supremum()
-            self.complete = False
+            self._translation_exact(False)
         self._prior_rotation(r, pq)
 
     def _prior_rotation(self, r: int, pq: FloatArray) -> None:
@@ -287,21 +320,25 @@ class _LocalBounds:
             Rc = R0 @ quat_to_matrix(off_q)
             self.quadratic(cx - R0 @ m, np.zeros(3), Rc @ P @ np.swapaxes(Rc, 1, 2), pinned)
             self.add(np.full(n, law.supremum() - c), on & ~pinned)
-            self.complete &= bool(np.all(pinned == on))
+            self._translation_exact(bool(np.all(pinned == on)))
         elif isinstance(law, BoxTranslation) and law.frame == Frame.WORLD_OFFSET:
             at = R0 @ off_t  # the member's offset from the top, turned with the set
             self.add(np.full(n, law.supremum()), on)
             exact = pinned | (np.allclose(off_t, 0.0) & on)
             self.box(cx - law.box.hi - at, cx - law.box.lo - at, exact)
-            self.complete &= bool(np.all(exact == on))
+            self._translation_exact(bool(np.all(exact == on)))
         elif law.point is not None and law.frame == Frame.PARENT:
             m = off_t + quat_rotate(off_q, law.point)
             self.box(cx - R0 @ m, cx - R0 @ m, pinned)
             self.quadratic(cx, m, STEEP * np.eye(3), on & ~pinned)
-            self.complete &= bool(np.all(pinned == on))
+            self._translation_exact(bool(np.all(pinned == on)))
         else:
             self.add(np.full(n, law.supremum()), on)
-            self.complete = False
+            self._translation_exact(False)
+
+    def _translation_exact(self, exact: bool) -> None:
+        self.complete &= exact
+        self.t_complete &= exact
 
     def _child_rotation(self, r, off_q, cq, on) -> None:  # type: ignore[no-untyped-def]
         g, n = self.g, self.n
@@ -330,7 +367,26 @@ class _LocalBounds:
             c, m, P = np.zeros((n, 0, 3)), np.zeros((0, 3)), np.zeros((n, 0, 3, 3))
         else:
             c, m, P = np.stack(self.c, axis=1), np.stack(self.m), np.stack(self.P, axis=1)
-        return _Terms(c, m, P, self.B, self.const, self.lo, self.hi, self.pin, self.complete)
+        revolute = ~np.isnan(self.fam_base[:, 0]) & ~self.pinned
+        base = np.where(revolute[:, None], self.fam_base, IDENTITY)
+        axis_q = np.hstack([np.zeros((n, 1)), self.fam_axis])
+        u = quat_multiply(base, self.fam_post)
+        w = quat_multiply(quat_multiply(base, axis_q), self.fam_post)
+        return _Terms(
+            c,
+            m,
+            P,
+            self.B,
+            self.const,
+            self.lo,
+            self.hi,
+            self.pin,
+            self.complete,
+            self.t_complete,
+            np.stack([u, w], axis=-1),
+            0.5 * self.fam_range,
+            revolute,
+        )
 
     def feasible(self) -> NDArray[np.bool_]:
         """Rows whose constraints can all hold: pins agree, boxes meet, no -inf term."""
@@ -401,9 +457,10 @@ def relaxed_upper_bound(
     true maximum over rotations.  Stopping early (at the deadline) leaves a looser, still
     valid bound.
     """
-    pinned = terms.pinned
+    pinned, fam = terms.pinned, terms.revolute
     w, v = np.linalg.eigh(terms.B)
     top = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
+    top = np.where(fam[:, None], _arc_point(terms, terms.arc.mean(axis=1)), top)
     X = np.einsum("na,nb->nab", top, top)
     best = np.full(len(X), np.inf)
     if np.any(pinned):
@@ -413,10 +470,16 @@ def relaxed_upper_bound(
         if deadline is not None and time.perf_counter() >= deadline and np.all(best < np.inf):
             break
         h, G, _ = _h_and_gradient(terms, X)
-        w, v = np.linalg.eigh(0.5 * (G + np.swapaxes(G, 1, 2)))
-        bound = h + w[:, -1] - np.einsum("nab,nab->n", G, X)
+        Gs = 0.5 * (G + np.swapaxes(G, 1, 2))
+        w, v = np.linalg.eigh(Gs)
+        top, lmo = v[..., -1], w[:, -1]
+        if np.any(fam):  # the linear maximiser over the law's arc of rotations
+            s_fam, lmo_fam = _arc_lmo(terms, Gs)
+            top = np.where(fam[:, None], s_fam, top)
+            lmo = np.where(fam, lmo_fam, lmo)
+        bound = h + lmo - np.einsum("nab,nab->n", G, X)
         best = np.where(free, np.minimum(best, bound), best)
-        S = np.einsum("na,nb->nab", v[..., -1], v[..., -1])
+        S = np.einsum("na,nb->nab", top, top)
         S = np.where(free[:, None, None], S, X)
         h_half = _h_and_gradient(terms, 0.5 * (X + S))[0]
         h_one = _h_and_gradient(terms, S)[0]
@@ -428,8 +491,36 @@ def relaxed_upper_bound(
         X = X + gamma[:, None, None] * (S - X)
     w, v = np.linalg.eigh(X)
     q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
+    if np.any(fam):  # the family's rotation nearest the leading eigenvector
+        c = np.einsum("nab,na->nb", terms.V, q)
+        psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
+        q = np.where(fam[:, None], _arc_point(terms, psi), q)
     t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
     return best, t, q
+
+
+def _arc_point(terms: _Terms, psi: FloatArray) -> FloatArray:
+    """The family's rotation at half-angle ψ, per row: V (cos ψ, sin ψ)."""
+    return np.einsum("nab,nb->na", terms.V, np.stack([np.cos(psi), np.sin(psi)], axis=1))
+
+
+def _arc_lmo(terms: _Terms, G: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """max over ψ in the arc of sᵀ M s, s = (cos ψ, sin ψ), M = Vᵀ G V, and its maximiser
+    V s: sᵀ M s = a + r cos(2ψ - β), so the maximum is at ψ = β/2 (mod π) if the arc holds
+    it, else at an end."""
+    M = np.einsum("nai,nab,nbj->nij", terms.V, G, terms.V)
+    a = 0.5 * (M[:, 0, 0] + M[:, 1, 1])
+    beta = np.arctan2(M[:, 0, 1], 0.5 * (M[:, 0, 0] - M[:, 1, 1]))
+    r = np.hypot(0.5 * (M[:, 0, 0] - M[:, 1, 1]), M[:, 0, 1])
+    lo, hi = terms.arc[:, 0], terms.arc[:, 1]
+    peak = 0.5 * beta + np.pi * np.ceil((lo - 0.5 * beta) / np.pi)  # the first peak >= lo
+    inside = peak <= hi
+
+    def value(psi: FloatArray) -> FloatArray:
+        return a + r * np.cos(2 * psi - beta)
+
+    psi = np.where(inside, peak, np.where(value(lo) >= value(hi), lo, hi))
+    return _arc_point(terms, psi), value(psi)
 
 
 def _subset(terms: _Terms, rows: NDArray[np.bool_]) -> _Terms:
@@ -443,6 +534,10 @@ def _subset(terms: _Terms, rows: NDArray[np.bool_]) -> _Terms:
         terms.hi[rows],
         terms.pin[rows],
         terms.complete,
+        terms.t_complete,
+        terms.V[rows],
+        terms.arc[rows],
+        terms.revolute[rows],
     )
 
 
@@ -608,6 +703,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     local = _LocalBounds(grammar, n)
     top_rule = int(st.rule[st.set_top[e]])
     local.prior_pin(top_rule, parent)
+    local.prior_family(top_rule, parent)
     picked = []
     for k, (v, r, e_c) in enumerate(columns):
         on = assignment[:, k] >= 0
@@ -616,6 +712,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
         cq = cand.quat[e_c][idx] if len(cand.quat[e_c]) else np.tile(IDENTITY, (n, 1))
         picked.append((v, r, on, cx, cq))
         local.child_pin(r, st.offset_quat[v], cq, on)
+        local.child_family(r, st.offset_quat[v], cq, on)
     local.prior(top_rule, parent)
     for v, r, on, cx, cq in picked:
         local.child(r, st.offset_xyz[v], st.offset_quat[v], cx, cq, on)
@@ -628,7 +725,49 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     if not (terms.complete and np.all(terms.pinned)):  # else the relaxation's pose is exact
         xyz, quat = polish(grammar, st, cand, top_rule, bound, deadline)
     xyz, quat = _snap(terms, xyz, quat, t, q)
+    if np.any(terms.revolute):
+        edges = local_edges(grammar, st, cand, top_rule, bound)
+        xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat)
     return SetBound(columns, assignment, upper, xyz, quat, parent)
+
+
+REVOLUTE_GRID = 48  # angles tried along a revolute law's arc, then as many around the best
+
+
+def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyped-def]
+    """For rows held to a revolute family, the best rotation along its arc under the exact
+    densities (a grid, then a finer grid around its best point), each with its best position;
+    a row keeps its pose unless the search finds a better one.  The Newton polish cannot move
+    along the arc: off it the law's density is -inf."""
+    rows = np.flatnonzero(terms.revolute)
+    owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
+    sub, _ = _sub_edges(edges, owner, rows)
+    sub_owner = np.where(sub.p_block >= 0, sub.p_block, sub.c_block)
+    part = _subset(terms, terms.revolute)
+    best_x, best_q = xyz[rows].copy(), quat[rows].copy()
+    best_v = _owned_values(grammar, sub, sub_owner, best_x, best_q)
+    lo, hi = part.arc[:, 0], part.arc[:, 1]
+    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    for width in (1.0, 2.0 / REVOLUTE_GRID):
+        psi0 = np.zeros(len(rows))
+        for f in np.linspace(-1.0, 1.0, REVOLUTE_GRID):
+            psi = np.clip(centre + f * half * width, lo, hi)
+            q = _arc_point(part, psi)
+            if part.t_complete:
+                t = _h_and_gradient(part, np.einsum("na,nb->nab", q, q))[2]
+            else:
+                t = best_x
+            t = np.clip(t, part.lo + POS_TOL, np.maximum(part.hi - POS_TOL, part.lo + POS_TOL))
+            v = _owned_values(grammar, sub, sub_owner, t, q)
+            better = v > best_v
+            best_v = np.where(better, v, best_v)
+            best_x = np.where(better[:, None], t, best_x)
+            best_q = np.where(better[:, None], q, best_q)
+            psi0 = np.where(better, psi, psi0)
+        centre = np.where(np.isfinite(best_v), psi0, centre)
+    xyz, quat = xyz.copy(), quat.copy()
+    xyz[rows], quat[rows] = best_x, best_q
+    return xyz, quat
 
 
 def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: FloatArray):  # type: ignore[no-untyped-def]
@@ -639,7 +778,7 @@ def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: 
     xyz = np.where(bad[:, None], t0, xyz)
     quat = np.where(bad[:, None], q0, quat)
     quat = np.where(terms.pinned[:, None], np.nan_to_num(terms.pin), quat)
-    if terms.complete:
+    if terms.t_complete:
         xyz = _h_and_gradient(terms, np.einsum("na,nb->nab", quat, quat))[2]
     lo, hi = terms.lo + POS_TOL, terms.hi - POS_TOL
     with np.errstate(invalid="ignore"):  # -inf + inf on an unbounded axis: never used
@@ -648,17 +787,11 @@ def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: 
     return np.clip(xyz, lo, hi), quat_normalize(quat)
 
 
-def polish(
-    grammar: Grammar,
-    st: Supertree,
-    cand: Candidates,
-    top_rule: int,
-    bound: SetBound,
-    deadline: float | None,
-) -> tuple[FloatArray, FloatArray]:
-    """Each assignment's best top pose under the exact densities, from the relaxation's pose
-    (Newton, all assignments at once).  When the relaxation is tight this is the global
-    optimum, and the bound certifies it."""
+def local_edges(
+    grammar: Grammar, st: Supertree, cand: Candidates, top_rule: int, bound: SetBound
+) -> PoseEdges:
+    """The edges whose densities move with the set's pose, one block per assignment: its own
+    rule at its parent's pose, and each named child at its candidate pose."""
     n = len(bound.assignment)
     px, pq = bound.parent if bound.parent is not None else (np.zeros(3), IDENTITY)
     rule, pb, pxyz, pquat = (
@@ -688,6 +821,21 @@ def polish(
         cat(cxyz),
         cat(cquat),
     )
+    return edges
+
+
+def polish(
+    grammar: Grammar,
+    st: Supertree,
+    cand: Candidates,
+    top_rule: int,
+    bound: SetBound,
+    deadline: float | None,
+) -> tuple[FloatArray, FloatArray]:
+    """Each assignment's best top pose under the exact densities, from the relaxation's pose
+    (Newton, all assignments at once).  When the relaxation is tight this is the global
+    optimum, and the bound certifies it."""
+    edges = local_edges(grammar, st, cand, top_rule, bound)
     return maximize_independent(grammar, edges, bound.xyz, bound.quat, deadline=deadline)
 
 
