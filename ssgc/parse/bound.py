@@ -213,7 +213,9 @@ class _LocalBounds:
 
     # ------------------------------------------------------------------- rotation pins ---
 
-    def prior_pin(self, r: int, parent: tuple[FloatArray, FloatArray] | None) -> None:
+    def prior_pin(self, r: int, parent) -> None:  # type: ignore[no-untyped-def]
+        if parent is False:
+            return
         rot = self.g.rules[r].rotation
         if rot.point is not None and rot.frame == Frame.PARENT:
             pq = IDENTITY if parent is None else parent[1]
@@ -225,7 +227,9 @@ class _LocalBounds:
             q_member = quat_multiply(cq, quat_conjugate(rot.point))
             self.pin_rotation(quat_multiply(q_member, quat_conjugate(off_q)), on)
 
-    def prior_family(self, r: int, parent: tuple[FloatArray, FloatArray] | None) -> None:
+    def prior_family(self, r: int, parent) -> None:  # type: ignore[no-untyped-def]
+        if parent is False:
+            return
         rot = self.g.rules[r].rotation
         if isinstance(rot, RevoluteRotation):
             pq = IDENTITY if parent is None else parent[1]
@@ -239,9 +243,15 @@ class _LocalBounds:
 
     # ------------------------------------------------------------------------- terms ---
 
-    def prior(self, r: int, parent: tuple[FloatArray, FloatArray] | None) -> None:
-        """The set's own rule, at its known parent pose (None: the rule ignores the parent)."""
+    def prior(self, r: int, parent) -> None:  # type: ignore[no-untyped-def]
+        """The set's own rule, at its known parent pose (None: the rule ignores the parent;
+        False: the parent's pose is not known, and the rule counts its supremum)."""
         rule = self.g.rules[r]
+        if parent is False:
+            self.const += rule.translation.supremum() + rule.rotation.supremum()
+            self._translation_exact(False)
+            self.complete = False
+            return
         every = np.ones(self.n, bool)
         px, pq = parent if parent is not None else (np.zeros(3), IDENTITY)
         law, form = rule.translation, rule.translation.concave_form()
@@ -553,6 +563,7 @@ class SetBound:
     xyz: FloatArray  # (A, 3)
     quat: FloatArray  # (A, 4)
     parent: tuple[FloatArray, FloatArray] | None  # the pose the set's own rule is scored at
+    decoupled: bool = False  # the parent's pose is unknown: its rule counts its supremum
 
 
 def set_bounds(
@@ -565,12 +576,12 @@ def set_bounds(
     for e in np.flatnonzero(latent):
         groups = _groups(grammar, st, int(e), latent)
         parent = known_parent(grammar, st, cand, int(e))
-        if groups is None or parent is False:
+        if groups is None:
             return None
         key = (
             int(st.type[st.set_top[e]]),
             int(st.rule[st.set_top[e]]),
-            None if parent is None else (parent[0].tobytes(), parent[1].tobytes()),
+            parent if parent in (None, False) else (parent[0].tobytes(), parent[1].tobytes()),
             tuple((cand.xyz[c].tobytes(), cand.quat[c].tobytes()) for *_, c, _ in groups if c >= 0),
             tuple(
                 (k, v, r, len(kids), st.offset_xyz[v].tobytes(), st.offset_quat[v].tobytes(), c)
@@ -583,7 +594,10 @@ def set_bounds(
                 return None
             memo[key] = bound
         m = memo[key]
-        out[int(e)] = SetBound(m.slots, m.assignment, m.upper, m.xyz, m.quat, parent)
+        placed = None if parent is False else parent
+        out[int(e)] = SetBound(
+            m.slots, m.assignment, m.upper, m.xyz, m.quat, placed, decoupled=parent is False
+        )
     return out
 
 
@@ -609,10 +623,8 @@ def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):
                 if node.kind == Kind.AND:
                     sure.update(kids)
                 continue
-            if latent[e_c]:
-                if not _independent(grammar, r):
-                    return None
-                inner = True  # its own bound counts the edge: no column here
+            if latent[e_c]:  # its own bound holds the edge (see `set_bounds`): no column here
+                inner = True
                 continue
             groups.append((node.kind, v, r, e_c, tuple(kids)))
         if node.kind == Kind.OR and inner:
@@ -720,7 +732,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     terms = _subset(local.terms(), keep)
     assignment = assignment[keep]
     upper, t, q = relaxed_upper_bound(terms, FW_ITERATIONS, deadline)
-    bound = SetBound(columns, assignment, upper, t, q, parent)
+    bound = SetBound(columns, assignment, upper, t, q, *_placed(parent))
     xyz, quat = t, q
     if not (terms.complete and np.all(terms.pinned)):  # else the relaxation's pose is exact
         xyz, quat = polish(grammar, st, cand, top_rule, bound, deadline)
@@ -728,7 +740,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     if np.any(terms.revolute):
         edges = local_edges(grammar, st, cand, top_rule, bound)
         xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat)
-    return SetBound(columns, assignment, upper, xyz, quat, parent)
+    return SetBound(columns, assignment, upper, xyz, quat, *_placed(parent))
 
 
 REVOLUTE_GRID = 48  # angles tried along a revolute law's arc, then as many around the best
@@ -770,6 +782,11 @@ def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyp
     return xyz, quat
 
 
+def _placed(parent):  # type: ignore[no-untyped-def]
+    """SetBound's (parent, decoupled) from `known_parent`'s answer (False: not known)."""
+    return (None, True) if parent is False else (parent, False)
+
+
 def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: FloatArray):  # type: ignore[no-untyped-def]
     """The polished poses made to satisfy the hard constraints: a pinned rotation exactly,
     the position inside its box (shrunk back to the laws' own), and, when the relaxation
@@ -794,13 +811,14 @@ def local_edges(
     rule at its parent's pose, and each named child at its candidate pose."""
     n = len(bound.assignment)
     px, pq = bound.parent if bound.parent is not None else (np.zeros(3), IDENTITY)
+    own = 0 if bound.decoupled else n  # a decoupled set's own rule is not scored here
     rule, pb, pxyz, pquat = (
-        [np.full(n, top_rule)],
-        [np.full(n, -1)],
-        [np.tile(px, (n, 1))],
-        [np.tile(pq, (n, 1))],
+        [np.full(own, top_rule)],
+        [np.full(own, -1)],
+        [np.tile(px, (own, 1))],
+        [np.tile(pq, (own, 1))],
     )
-    cb, cxyz, cquat = [np.arange(n)], [np.zeros((n, 3))], [np.tile(IDENTITY, (n, 1))]
+    cb, cxyz, cquat = [np.arange(own)], [np.zeros((own, 3))], [np.tile(IDENTITY, (own, 1))]
     for k, (v, r, e_c) in enumerate(bound.slots):
         rows = np.flatnonzero(bound.assignment[:, k] >= 0)  # -1: no child in this column
         idx = bound.assignment[rows, k]
@@ -844,10 +862,14 @@ class AssignmentReduction:
     have assignments (`set_bounds`), within the unrolled model's MAX_INSTANCES."""
 
     def accepts(self, request: Request) -> bool:
-        return request.bounds is not None and self._count(request) <= MAX_INSTANCES
+        if request.bounds is None or certify_only(request.bounds):
+            return False
+        return self._count(request) <= MAX_INSTANCES
 
     def refusal(self, request: Request) -> str | None:
-        if request.bounds is None or self._count(request) <= MAX_INSTANCES:
+        if request.bounds is None or certify_only(request.bounds):
+            return None
+        if self._count(request) <= MAX_INSTANCES:
             return None
         return too_many_instances(request.scene)
 
@@ -867,6 +889,13 @@ class AssignmentReduction:
         assert request.bounds is not None
         posed = assignment_candidates(request.cand, request.bounds)
         return instance_count(request.supertree, posed, frozenset(request.bounds))
+
+
+def certify_only(bounds: dict[int, SetBound]) -> bool:
+    """Whether some set's bound was made without its parent's pose (a latent set placed
+    relative to another latent set): the bounds then certify, but their poses are not the
+    exact best, so the tree comes from proposals and refinement (`ip`)."""
+    return any(b.decoupled for b in bounds.values())
 
 
 def assignment_candidates(cand: Candidates, bounds: dict[int, SetBound]) -> Candidates:

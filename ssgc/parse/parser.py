@@ -23,7 +23,13 @@ import numpy as np
 from ssgc.errors import SsgError
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar
-from ssgc.parse.bound import AssignmentReduction, SetBound, assignment_problem, set_bounds
+from ssgc.parse.bound import (
+    AssignmentReduction,
+    SetBound,
+    assignment_problem,
+    certify_only,
+    set_bounds,
+)
 from ssgc.parse.highs import HighsSession
 from ssgc.parse.ip import SetReduction, UnparseableScene
 from ssgc.parse.milp import Milp, Session
@@ -183,12 +189,13 @@ class Parser:
         cand = candidate_poses(g, st, scene)
         if not self.has_latent:
             return cand, None
+        bounds = None
         if self.method != "ip":
             bounds = set_bounds(g, st, cand, deadline)
-            if bounds is not None:
+            if bounds is not None and not certify_only(bounds):
                 return cand, bounds
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
-        return cand, None
+        return cand, bounds  # bounds, if any, only certify the proposals' tree
 
     def reduce(
         self,
@@ -297,7 +304,7 @@ class _Run:
             parse = self.p.read(self.problem, sol.x, sol.objective, sol.status, sol.gap)
             if not self.parses and np.isnan(self.raw_score):
                 self.raw_score = parse.score
-            if self.p.has_latent and self.bounds is None:
+            if self.p.has_latent and (self.bounds is None or certify_only(self.bounds)):
                 parse = self._refined(parse, sol)
                 if parse is None:
                     continue  # the MILP was rebuilt with better proposals: solve again

@@ -283,10 +283,10 @@ class PosedReduction:
     bound's assignments whose unrolled instances stay within MAX_INSTANCES."""
 
     def accepts(self, request: Request) -> bool:
-        return request.bounds is None and self._count(request) <= MAX_INSTANCES
+        return _unbound(request) and self._count(request) <= MAX_INSTANCES
 
     def refusal(self, request: Request) -> str | None:
-        if request.bounds is not None or self._count(request) <= MAX_INSTANCES:
+        if not _unbound(request) or self._count(request) <= MAX_INSTANCES:
             return None
         return too_many_instances(request.scene)
 
@@ -301,6 +301,11 @@ class PosedReduction:
     @staticmethod
     def _count(request: Request) -> int:
         return instance_count(request.supertree, request.cand)
+
+
+def _unbound(request: Request) -> bool:
+    """No assignments to build on: none, or bounds that only certify (`certify_only`)."""
+    return request.bounds is None or any(b.decoupled for b in request.bounds.values())
 
 
 def too_many_instances(scene: Scene) -> str:
