@@ -42,10 +42,14 @@ def _rule(rng: random.Random, child: str, indent: str) -> str:
 
 
 def _node(rng: random.Random, name: str, children: list[str]) -> str:
-    kind = rng.choice(("and", "or", "repeat")) if len(children) > 1 else rng.choice(("and", "repeat"))
+    kind = (
+        rng.choice(("and", "or", "repeat")) if len(children) > 1 else rng.choice(("and", "repeat"))
+    )
     if kind == "repeat":
         rule = _rule(rng, children[0], "        ")
-        return f"  {name}:\n    repeat:\n      count: {{probs: [0.3, 0.4, 0.3]}}\n      rule:\n{rule}"
+        return (
+            f"  {name}:\n    repeat:\n      count: {{probs: [0.3, 0.4, 0.3]}}\n      rule:\n{rule}"
+        )
     out = f"  {name}:\n    {kind}:\n"
     for c in children:
         rule = _rule(rng, c, "        ")

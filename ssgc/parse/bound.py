@@ -39,7 +39,7 @@ from ssgc.geometry import (
 )
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
+from ssgc.laws.base import ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse.milp import Milp
@@ -102,7 +102,7 @@ class _Terms:
     P: FloatArray  # (A, K, 3, 3): zero where the term's child is absent
     B: FloatArray  # (A, 4, 4)
     const: FloatArray  # (A,)
-    lo: FloatArray  # (A, 3): box laws and fixed translations, widened by POS_TOL
+    lo: FloatArray  # (A, 3): box laws and fixed translations, widened by BOX_MARGIN
     hi: FloatArray  # (A, 3)
     pin: FloatArray  # (A, 4): the rotation a fixed rotation law forces, NaN where free
     complete: bool  # every pose-dependent term is in the relaxation exactly
@@ -174,8 +174,8 @@ class _LocalBounds:
         self.P.append(np.where(on[:, None, None], P, 0.0))
 
     def box(self, lo: FloatArray, hi: FloatArray, on: NDArray[np.bool_]) -> None:
-        """t in [lo, hi] on the rows `on` (widened by the scorer's POS_TOL: never too tight)."""
-        lo, hi = _rows(lo, self.n, 3) - POS_TOL, _rows(hi, self.n, 3) + POS_TOL
+        """t in [lo, hi] on the rows `on`, widened by BOX_MARGIN (rounding)."""
+        lo, hi = _rows(lo, self.n, 3) - BOX_MARGIN, _rows(hi, self.n, 3) + BOX_MARGIN
         self.lo = np.where(on[:, None], np.maximum(self.lo, lo), self.lo)
         self.hi = np.where(on[:, None], np.minimum(self.hi, hi), self.hi)
 
@@ -403,6 +403,7 @@ class _LocalBounds:
         return ~self.clash & np.all(self.lo <= self.hi, axis=1) & (self.const > -np.inf)
 
 
+BOX_MARGIN = 1e-9  # metres: rounding allowed on a box constraint in the bound
 STEEP = 1e8  # precision standing in for a fixed child translation under a free rotation
 
 
@@ -769,7 +770,7 @@ def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyp
                 t = _h_and_gradient(part, np.einsum("na,nb->nab", q, q))[2]
             else:
                 t = best_x
-            t = np.clip(t, part.lo + POS_TOL, np.maximum(part.hi - POS_TOL, part.lo + POS_TOL))
+            t = np.clip(t, part.lo + SNAP_MARGIN, np.maximum(part.hi - SNAP_MARGIN, part.lo))
             v = _owned_values(grammar, sub, sub_owner, t, q)
             better = v > best_v
             best_v = np.where(better, v, best_v)
@@ -787,17 +788,20 @@ def _placed(parent):  # type: ignore[no-untyped-def]
     return (None, True) if parent is False else (parent, False)
 
 
+SNAP_MARGIN = BOX_MARGIN  # an exact position goes inside the laws' own box
+
+
 def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: FloatArray):  # type: ignore[no-untyped-def]
     """The polished poses made to satisfy the hard constraints: a pinned rotation exactly,
-    the position inside its box (shrunk back to the laws' own), and, when the relaxation
-    holds every term exactly, the best position for the final rotation."""
+    the position inside its box, and, when the relaxation holds every translation term
+    exactly, the best position for the final rotation."""
     bad = ~(np.all(np.isfinite(xyz), axis=1) & np.all(np.isfinite(quat), axis=1))
     xyz = np.where(bad[:, None], t0, xyz)
     quat = np.where(bad[:, None], q0, quat)
     quat = np.where(terms.pinned[:, None], np.nan_to_num(terms.pin), quat)
     if terms.t_complete:
         xyz = _h_and_gradient(terms, np.einsum("na,nb->nab", quat, quat))[2]
-    lo, hi = terms.lo + POS_TOL, terms.hi - POS_TOL
+    lo, hi = terms.lo + SNAP_MARGIN, terms.hi - SNAP_MARGIN
     with np.errstate(invalid="ignore"):  # -inf + inf on an unbounded axis: never used
         mid = 0.5 * (terms.lo + terms.hi)
     lo, hi = np.where(lo <= hi, lo, mid), np.where(lo <= hi, hi, mid)
