@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -115,7 +116,12 @@ class _Terms:
     def pinned(self) -> NDArray[np.bool_]:
         return ~np.isnan(self.pin[:, 0])
 
-    @property
+    @cached_property
+    def inverse(self) -> FloatArray:
+        """The pseudo-inverse of each row's total precision (computed once per set)."""
+        return np.linalg.pinv(self.P.sum(axis=1))
+
+    @cached_property
     def diagonal(self) -> NDArray[np.bool_]:
         """Where the total precision is diagonal: clipping the free optimum to the box is then
         the best t in the box (the problem separates by axis)."""
@@ -409,9 +415,8 @@ STEEP = 1e8  # precision standing in for a fixed child translation under a free 
 
 def _best_t(terms: _Terms, e: FloatArray, clip: NDArray[np.bool_]) -> FloatArray:
     """The best t of Σ -½ (e_k - t)ᵀ P_k (e_k - t), clipped to the box on the rows `clip`."""
-    P_tot = terms.P.sum(axis=1)
     rhs = np.einsum("nkij,nkj->ni", terms.P, e)
-    t = np.einsum("nij,nj->ni", np.linalg.pinv(P_tot), rhs)
+    t = np.einsum("nij,nj->ni", terms.inverse, rhs)
     inside = np.clip(t, terms.lo, terms.hi)
     return np.where(clip[:, None], inside, t)
 
@@ -585,7 +590,7 @@ def set_bounds(
             parent if parent in (None, False) else (parent[0].tobytes(), parent[1].tobytes()),
             tuple((cand.xyz[c].tobytes(), cand.quat[c].tobytes()) for *_, c, _ in groups if c >= 0),
             tuple(
-                (k, v, r, len(kids), st.offset_xyz[v].tobytes(), st.offset_quat[v].tobytes(), c)
+                (k, r, len(kids), st.offset_xyz[v].tobytes(), st.offset_quat[v].tobytes())
                 for k, v, r, c, kids in groups
             ),
         )  # the copies of a `repeat` share one computation
@@ -597,7 +602,7 @@ def set_bounds(
         m = memo[key]
         placed = None if parent is False else parent
         out[int(e)] = SetBound(
-            m.slots, m.assignment, m.upper, m.xyz, m.quat, placed, decoupled=parent is False
+            _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False
         )
     return out
 
@@ -638,6 +643,20 @@ def _independent(grammar: Grammar, r: int) -> bool:
     rotation): a latent child set's own bound then holds the edge whatever its parent's pose."""
     rule = grammar.rules[r]
     return rule.translation.frame == Frame.WORLD and rule.rotation.frame == Frame.WORLD
+
+
+def _columns(groups) -> tuple[tuple[int, int, int], ...]:  # type: ignore[no-untyped-def]
+    """The set's own columns (member, rule, child set), in `_member_rows`' order: the copies
+    of a `repeat` share one computation, but each keeps its own nodes."""
+    members: dict[int, list] = {}
+    for g in groups:
+        members.setdefault(g[1], []).append(g)
+    cols = []
+    for v, gs in members.items():
+        for kind, _, r, e_c, kids in gs:
+            if r >= 0:
+                cols += [(v, r, e_c)] * (len(kids) if kind == Kind.REPEAT else 1)
+    return tuple(cols)
 
 
 def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # type: ignore[no-untyped-def]
