@@ -921,6 +921,18 @@ def certify_only(bounds: dict[int, SetBound]) -> bool:
     return any(b.decoupled for b in bounds.values())
 
 
+MAX_POSE_PROPOSALS = 200  # assignment poses offered to `ip` per set, best bounds first
+
+
+def add_assignment_poses(cand: Candidates, bounds: dict[int, SetBound]) -> None:
+    """Offer each set's assignment poses (the best bounds first) as proposals: a box or
+    revolute law holds them where rule-inversion proposals may not reach."""
+    for e, sb in bounds.items():
+        best = np.argsort(-sb.upper, kind="stable")[:MAX_POSE_PROPOSALS]
+        if len(best):
+            cand.add(e, sb.xyz[best], sb.quat[best])
+
+
 def assignment_candidates(cand: Candidates, bounds: dict[int, SetBound]) -> Candidates:
     """The candidates with each latent set's replaced by its assignments' best poses."""
     posed = Candidates(list(cand.xyz), list(cand.quat))

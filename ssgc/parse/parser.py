@@ -26,6 +26,7 @@ from ssgc.ir import Grammar
 from ssgc.parse.bound import (
     AssignmentReduction,
     SetBound,
+    add_assignment_poses,
     assignment_problem,
     certify_only,
     set_bounds,
@@ -195,7 +196,9 @@ class Parser:
             if bounds is not None and not certify_only(bounds):
                 return cand, bounds
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
-        return cand, bounds  # bounds, if any, only certify the proposals' tree
+        if bounds is not None:  # they only certify; their poses join the proposals
+            add_assignment_poses(cand, bounds)
+        return cand, bounds
 
     def reduce(
         self,
