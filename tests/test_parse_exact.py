@@ -149,7 +149,7 @@ def test_bound_never_below_a_sampled_tree(seed):
 
 
 @pytest.mark.slow
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=hs.integers(0, 10**6))
 def test_bound_never_below_a_sampled_tree_long(seed):
     _check_random(seed, 5)

@@ -599,12 +599,41 @@ def set_bounds(
             if bound is None:
                 return None
             memo[key] = bound
-        m = memo[key]
+        m = _copies_apart(memo[key], _copies(st, int(e)))
         placed = None if parent is False else parent
         out[int(e)] = SetBound(
             _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False
         )
     return out
+
+
+def _copies(st: Supertree, e: int) -> int:
+    """How many copies of the rule entering set e its parent node has (a `repeat`'s max)."""
+    top = int(st.set_top[e])
+    parent = int(st.parent[top])
+    return sum(1 for c in st.children[parent] if st.rule[c] == st.rule[top])
+
+
+def _copies_apart(bound: SetBound, copies: int) -> SetBound:
+    """The bound with each assignment that names no child repeated `copies` times.
+
+    The unrolled model gives a `repeat`'s copies distinct candidates.  Assignments that name
+    an object are distinct by nature (an object has one parent), but several copies may take
+    the same childless assignment (two latent nodes with the same best pose): without the
+    repeats, a tree using it twice would have no encoding and the bound could miss it."""
+    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1))
+    if copies < 2 or not len(empty):
+        return bound
+    rows = np.concatenate([np.arange(len(bound.assignment)), np.repeat(empty, copies - 1)])
+    return SetBound(
+        bound.slots,
+        bound.assignment[rows],
+        bound.upper[rows],
+        bound.xyz[rows],
+        bound.quat[rows],
+        bound.parent,
+        bound.decoupled,
+    )
 
 
 def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):  # type: ignore[no-untyped-def]
