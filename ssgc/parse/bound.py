@@ -3,22 +3,21 @@
 The proposal parser's trees are feasible, so their scores are lower bounds on the MAP score;
 this module gives the matching upper bound, so that a parse can report its gap honestly.
 
-The bound keeps the tree structure discrete and relaxes the latent poses.  For a latent set
-whose parent pose is known (or irrelevant) and whose children are observed objects, the score
-terms that move with its pose depend only on *which* candidate child fills each of its rule
-slots (an *assignment*).  Writing the set's rotation as X = q qᵀ (a 4x4 matrix; the rotation
-matrix is linear in X and so is every Bingham log-density), and relaxing X to the convex hull
-{X ⪰ 0, tr X = 1}, every such term is a concave function of (t, X): isotropic parent-frame
-Normal offsets and world-frame Normal offsets are concave quadratics of a linear function of
-(t, X), and every other term is replaced by its supremum.  The maximum over t is taken in
-closed form; the maximum over X is approached by Frank–Wolfe, whose duality gap gives a valid
-upper bound at every iterate.  The MILP over structures, with each latent node's edge terms
-replaced by the bound of its assignment, then bounds the MAP score from above (solved to
-optimality by HiGHS).
+The bound keeps the tree structure discrete and relaxes the latent poses.  For a latent set,
+the score terms that move with its pose depend only on *which* candidate child fills each of
+its slots (an *assignment*: one per rule of an `and`, one option of an `or`, a set of
+candidates for a `repeat`).  Writing the set's rotation as X = q qᵀ (the rotation matrix and
+every Bingham log-density are linear in X) and relaxing X to {X ⪰ 0, tr X = 1}, Normal
+translations are concave quadratics of (t, X), box laws are constraints on t, fixed rotations
+pin X, a revolute law holds q to an arc, and any other term is replaced by its supremum.  The
+maximum over t is closed-form (clipped to the box); over X, Frank–Wolfe, whose duality gap is
+a valid upper bound at every iterate.  The MILP over structures, with each latent node's edge
+terms replaced by the bound of its assignment, then bounds the MAP score from above.
 
-Scope: latent sets of `and` nodes whose child slots are single rules (no `repeat` copies),
-whose children's poses are observed, and whose own parent pose is known or irrelevant.
-Grammars outside it get no bound (gap unknown), never a wrong one.
+A latent child placed in the world frame holds its own edge; a latent set whose parent's pose
+is not known (a latent parent) counts its rule's supremum (`decoupled`: such bounds only
+certify, `certify_only`).  Grammars outside the scope get no bound (gap unknown), never a
+wrong one.
 """
 
 from __future__ import annotations
