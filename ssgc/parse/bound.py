@@ -3,36 +3,45 @@
 The proposal parser's trees are feasible, so their scores are lower bounds on the MAP score;
 this module gives the matching upper bound, so that a parse can report its gap honestly.
 
-The bound keeps the tree structure discrete and relaxes the latent poses.  For a latent set
-whose parent pose is known (or irrelevant) and whose children are observed objects, the score
-terms that move with its pose depend only on *which* candidate child fills each of its rule
-slots (an *assignment*).  Writing the set's rotation as X = q qᵀ (a 4x4 matrix; the rotation
-matrix is linear in X and so is every Bingham log-density), and relaxing X to the convex hull
-{X ⪰ 0, tr X = 1}, every such term is a concave function of (t, X): isotropic parent-frame
-Normal offsets and world-frame Normal offsets are concave quadratics of a linear function of
-(t, X), and every other term is replaced by its supremum.  The maximum over t is taken in
-closed form; the maximum over X is approached by Frank–Wolfe, whose duality gap gives a valid
-upper bound at every iterate.  The MILP over structures, with each latent node's edge terms
-replaced by the bound of its assignment, then bounds the MAP score from above (solved to
-optimality by HiGHS).
+The bound keeps the tree structure discrete and relaxes the latent poses.  For a latent set,
+the score terms that move with its pose depend only on *which* candidate child fills each of
+its slots (an *assignment*: one per rule of an `and`, one option of an `or`, a set of
+candidates for a `repeat`).  Writing the set's rotation as X = q qᵀ (the rotation matrix and
+every Bingham log-density are linear in X) and relaxing X to {X ⪰ 0, tr X = 1}, Normal
+translations are concave quadratics of (t, X), box laws are constraints on t, fixed rotations
+pin X, a revolute law holds q to an arc, and any other term is replaced by its supremum.  The
+maximum over t is closed-form (clipped to the box); over X, Frank–Wolfe, whose duality gap is
+a valid upper bound at every iterate.  The MILP over structures, with each latent node's edge
+terms replaced by the bound of its assignment, then bounds the MAP score from above.
 
-Scope: latent sets of `and` nodes whose child slots are single rules (no `repeat` copies),
-whose children's poses are observed, and whose own parent pose is known or irrelevant.
-Grammars outside it get no bound (gap unknown), never a wrong one.
+A latent child placed in the world frame holds its own edge; a latent set whose parent's pose
+is not known (a latent parent) counts its rule's supremum (`decoupled`: such bounds only
+certify, `certify_only`).  Grammars outside the scope get no bound (gap unknown), never a
+wrong one.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ssgc.geometry import quat_conjugate, quat_multiply, quat_rotate, quat_to_matrix
+from ssgc.geometry import (
+    quat_angle,
+    quat_conjugate,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+    quat_to_matrix,
+)
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.laws.base import Frame
+from ssgc.laws.base import ROT_TOL, Frame
+from ssgc.laws.position_box import BoxTranslation
+from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse.milp import Milp
 from ssgc.parse.posed import (
     MAX_INSTANCES,
@@ -42,7 +51,7 @@ from ssgc.parse.posed import (
     reduce_posed,
     too_many_instances,
 )
-from ssgc.parse.poses import PoseEdges, maximize_independent
+from ssgc.parse.poses import PoseEdges, _owned_values, _sub_edges, maximize_independent
 from ssgc.parse.proposals import Candidates, known_parent, latent_sets
 from ssgc.parse.reduction import Request
 from ssgc.parse.supertree import Supertree
@@ -85,13 +94,39 @@ def _left_linear(f, n: int) -> FloatArray:  # type: ignore[no-untyped-def]
 
 @dataclass
 class _Terms:
-    """g(t, X) = -½ Σ_k (c_k - t - R(X) m_k)ᵀ P_k (…) + tr(B X) + const, per assignment."""
+    """g(t, X) = -½ Σ_k (c_k - t - R(X) m_k)ᵀ P_k (…) + tr(B X) + const, per assignment, with
+    t in the box [lo, hi] and, where `pin` is not NaN, X = pin pinᵀ (a fixed rotation)."""
 
     c: FloatArray  # (A, K, 3)
     m: FloatArray  # (K, 3)
-    P: FloatArray  # (K, 3, 3)
+    P: FloatArray  # (A, K, 3, 3): zero where the term's child is absent
     B: FloatArray  # (A, 4, 4)
     const: FloatArray  # (A,)
+    lo: FloatArray  # (A, 3): box laws and fixed translations, widened by BOX_MARGIN
+    hi: FloatArray  # (A, 3)
+    pin: FloatArray  # (A, 4): the rotation a fixed rotation law forces, NaN where free
+    complete: bool  # every pose-dependent term is in the relaxation exactly
+    t_complete: bool  # every translation term is: t* is the best position for a rotation
+    V: FloatArray  # (A, 4, 2): a revolute law's rotations q = V (cos ψ, sin ψ), ψ in `arc`
+    arc: FloatArray  # (A, 2): half the law's angle range
+    revolute: NDArray[np.bool_]  # (A,): rows whose rotation is held to such a family
+
+    @property
+    def pinned(self) -> NDArray[np.bool_]:
+        return ~np.isnan(self.pin[:, 0])
+
+    @cached_property
+    def inverse(self) -> FloatArray:
+        """The pseudo-inverse of each row's total precision (computed once per set)."""
+        return np.linalg.pinv(self.P.sum(axis=1))
+
+    @cached_property
+    def diagonal(self) -> NDArray[np.bool_]:
+        """Where the total precision is diagonal: clipping the free optimum to the box is then
+        the best t in the box (the problem separates by axis)."""
+        P = self.P.sum(axis=1)
+        off = np.abs(P - P * np.eye(3)).max(axis=(1, 2), initial=0.0)
+        return off <= 1e-12 * (1.0 + np.abs(P).max(axis=(1, 2), initial=0.0))
 
 
 def _isotropic(precision: FloatArray) -> bool:
@@ -99,13 +134,21 @@ def _isotropic(precision: FloatArray) -> bool:
     return bool(precision[0, 0] > 0 and np.allclose(precision, precision[0, 0] * np.eye(3)))
 
 
+def _rows(x: FloatArray, n: int, width: int) -> FloatArray:
+    return np.broadcast_to(np.asarray(x, float), (n, width))
+
+
 class _LocalBounds:
     """Upper bounds on the latent-pose-dependent score of one set, for many assignments.
 
     A law whose log-density is a quadratic form (`concave_form`: a Normal translation is
     concave in the set's position, a Bingham rotation linear in X = q qᵀ) enters the relaxation
-    exactly where its frame keeps it so; every other law contributes its supremum, or its exact
-    value when it does not depend on the set's pose.
+    exactly where its frame keeps it so; a box law is a constraint on the position; a fixed
+    rotation pins X; a fixed translation pins the position (or, under a free rotation, is a
+    steep quadratic: still an upper bound).  Where the rotation is pinned every rotation term
+    is exact.  Every other law contributes its supremum (`complete` is then False), or its exact
+    value when it does not depend on the set's pose.  Rows whose child is absent (`on` False)
+    get nothing.
     """
 
     def __init__(self, grammar: Grammar, n: int) -> None:
@@ -115,15 +158,106 @@ class _LocalBounds:
         self.P: list[FloatArray] = []
         self.B = np.zeros((n, 4, 4))
         self.const = np.zeros(n)
+        self.lo = np.full((n, 3), -np.inf)
+        self.hi = np.full((n, 3), np.inf)
+        self.pin = np.full((n, 4), np.nan)
+        self.clash = np.zeros(n, bool)
+        self.complete = True
+        self.t_complete = True  # every translation term is exact (t* is the best position)
+        # the first revolute law on the set's rotation, per row: q = base ⊗ rot(axis, φ) ⊗ post
+        self.fam_base = np.full((n, 4), np.nan)
+        self.fam_axis = np.zeros((n, 3))
+        self.fam_post = np.tile(IDENTITY, (n, 1))
+        self.fam_range = np.zeros((n, 2))
 
-    def quadratic(self, c: FloatArray, m: FloatArray, P: FloatArray) -> None:
-        self.c.append(np.broadcast_to(c, (self.n, 3)))
-        self.m.append(m)
-        self.P.append(P)
+    # ---------------------------------------------------------------- building blocks ---
 
-    def prior(self, r: int, parent: tuple[FloatArray, FloatArray] | None) -> None:
-        """The set's own rule, at its known parent pose (None: the rule ignores the parent)."""
+    def quadratic(self, c: FloatArray, m: FloatArray, P: FloatArray, on: NDArray[np.bool_]) -> None:
+        self.c.append(_rows(c, self.n, 3).copy())
+        self.m.append(np.asarray(m, float))
+        P = np.broadcast_to(P, (self.n, 3, 3))
+        self.P.append(np.where(on[:, None, None], P, 0.0))
+
+    def box(self, lo: FloatArray, hi: FloatArray, on: NDArray[np.bool_]) -> None:
+        """t in [lo, hi] on the rows `on`, widened by BOX_MARGIN (rounding)."""
+        lo, hi = _rows(lo, self.n, 3) - BOX_MARGIN, _rows(hi, self.n, 3) + BOX_MARGIN
+        self.lo = np.where(on[:, None], np.maximum(self.lo, lo), self.lo)
+        self.hi = np.where(on[:, None], np.minimum(self.hi, hi), self.hi)
+
+    def add(self, values: FloatArray, on: NDArray[np.bool_]) -> None:
+        self.const += np.where(on, values, 0.0)
+
+    def pin_rotation(self, q: FloatArray, on: NDArray[np.bool_]) -> None:
+        """X = q qᵀ on the rows `on`; two pins further apart than twice ROT_TOL exclude each
+        other (no rotation is within ROT_TOL of both)."""
+        q = _rows(q, self.n, 4)
+        had = ~np.isnan(self.pin[:, 0])
+        both = on & had
+        if np.any(both):
+            far = np.zeros(self.n, bool)
+            far[both] = quat_angle(self.pin[both], q[both]) > 2 * ROT_TOL
+            self.clash |= far
+        self.pin = np.where((on & ~had)[:, None], q, self.pin)
+
+    def family(self, law, base, axis, post, on) -> None:  # type: ignore[no-untyped-def]
+        """q = base ⊗ rot(axis, φ) ⊗ post, φ in the law's range, on the rows `on` that have no
+        family yet (a later one is left to the exact scorer: the relaxation ignores it)."""
+        free = on & np.isnan(self.fam_base[:, 0])
+        self.fam_base = np.where(free[:, None], _rows(base, self.n, 4), self.fam_base)
+        self.fam_axis = np.where(free[:, None], _rows(axis, self.n, 3), self.fam_axis)
+        self.fam_post = np.where(free[:, None], _rows(post, self.n, 4), self.fam_post)
+        span = np.array([law.revolute.lo, law.revolute.hi])
+        self.fam_range = np.where(free[:, None], span, self.fam_range)
+
+    @property
+    def pinned(self) -> NDArray[np.bool_]:
+        return ~np.isnan(self.pin[:, 0])
+
+    def _pin_or_identity(self) -> FloatArray:
+        return np.where(self.pinned[:, None], self.pin, IDENTITY)
+
+    # ------------------------------------------------------------------- rotation pins ---
+
+    def prior_pin(self, r: int, parent) -> None:  # type: ignore[no-untyped-def]
+        if parent is False:
+            return
+        rot = self.g.rules[r].rotation
+        if rot.point is not None and rot.frame == Frame.PARENT:
+            pq = IDENTITY if parent is None else parent[1]
+            self.pin_rotation(quat_multiply(pq, rot.point), np.ones(self.n, bool))
+
+    def child_pin(self, r: int, off_q: FloatArray, cq: FloatArray, on: NDArray[np.bool_]) -> None:
+        rot = self.g.rules[r].rotation
+        if rot.point is not None and rot.frame == Frame.PARENT:
+            q_member = quat_multiply(cq, quat_conjugate(rot.point))
+            self.pin_rotation(quat_multiply(q_member, quat_conjugate(off_q)), on)
+
+    def prior_family(self, r: int, parent) -> None:  # type: ignore[no-untyped-def]
+        if parent is False:
+            return
+        rot = self.g.rules[r].rotation
+        if isinstance(rot, RevoluteRotation):
+            pq = IDENTITY if parent is None else parent[1]
+            self.family(rot, pq, rot.axis, IDENTITY, np.ones(self.n, bool))
+
+    def child_family(self, r: int, off_q: FloatArray, cq: FloatArray, on) -> None:  # type: ignore[no-untyped-def]
+        """A revolute child: cq = q ⊗ off_q ⊗ rot(a, θ), so q = cq ⊗ rot(-a, θ) ⊗ off_q⁻¹."""
+        rot = self.g.rules[r].rotation
+        if isinstance(rot, RevoluteRotation):
+            self.family(rot, cq, -rot.axis, quat_conjugate(off_q), on)
+
+    # ------------------------------------------------------------------------- terms ---
+
+    def prior(self, r: int, parent) -> None:  # type: ignore[no-untyped-def]
+        """The set's own rule, at its known parent pose (None: the rule ignores the parent;
+        False: the parent's pose is not known, and the rule counts its supremum)."""
         rule = self.g.rules[r]
+        if parent is False:
+            self.const += rule.translation.supremum() + rule.rotation.supremum()
+            self._translation_exact(False)
+            self.complete = False
+            return
+        every = np.ones(self.n, bool)
         px, pq = parent if parent is not None else (np.zeros(3), IDENTITY)
         law, form = rule.translation, rule.translation.concave_form()
         if form is not None:
@@ -133,11 +267,23 @@ class _LocalBounds:
             elif law.frame == Frame.PARENT:
                 Rp = quat_to_matrix(pq)
                 mean, P = px + Rp @ mean, Rp @ P @ Rp.T
-            self.quadratic(mean, np.zeros(3), P)
+            self.quadratic(mean, np.zeros(3), P, every)
             self.const += c
+        elif isinstance(law, BoxTranslation):
+            shift = px if law.frame == Frame.WORLD_OFFSET else np.zeros(3)
+            self.box(shift + law.box.lo, shift + law.box.hi, every)
+            self.const += law.supremum()
+        elif law.point is not None and law.frame == Frame.PARENT:
+            at = px + quat_rotate(pq, law.point)
+            self.box(at, at, every)
         else:
             self.const += law.supremum()
-        rot, rform = rule.rotation, rule.rotation.concave_form()
+            self._translation_exact(False)
+        self._prior_rotation(r, pq)
+
+    def _prior_rotation(self, r: int, pq: FloatArray) -> None:
+        rot, rform = self.g.rules[r].rotation, self.g.rules[r].rotation.concave_form()
+        rules, pinned = np.full(self.n, r), self.pinned
         if rform is not None:
             A, c = rform
             G = np.eye(4)
@@ -145,68 +291,172 @@ class _LocalBounds:
                 G = _left_linear(lambda q: quat_multiply(quat_conjugate(pq), q), 1)[0]
             self.B += G.T @ A @ G
             self.const += c
-        else:
-            self.const += rot.supremum()
+            return
+        exact = rotation_log_density(self.g, rules, _rows(pq, self.n, 4), self._pin_or_identity())
+        self.add(exact, pinned)
+        self.add(np.full(self.n, rot.supremum()), ~pinned)
+        if rot.mode() is not None and not np.all(pinned):
+            self.complete = False  # a revolute law's axis is not imposed on a free rotation
 
-    def child(self, r: int, off_t: FloatArray, off_q: FloatArray, cx: FloatArray, cq: FloatArray):  # type: ignore[no-untyped-def]
-        """A child at poses (cx, cq) (one per assignment) of the member at offset (off_t, off_q).
+    def child(
+        self,
+        r: int,
+        off_t: FloatArray,
+        off_q: FloatArray,
+        cx: FloatArray,
+        cq: FloatArray,
+        on: NDArray[np.bool_],
+    ) -> None:
+        """A child at poses (cx, cq) (one per assignment, where `on`) of the member at offset
+        (off_t, off_q) from the set's top."""
+        self._child_translation(r, off_t, off_q, cx, on)
+        self._child_rotation(r, off_q, cq, on)
 
-        Terms that do not move with the set (world-frame laws) are exact; a parent-frame
-        quadratic is kept only when isotropic (else rotating it is not concave in X)."""
-        g, rule = self.g, self.g.rules[r]
-        rules = np.full(self.n, r)
-        law, form = rule.translation, rule.translation.concave_form()
+    def _child_translation(self, r, off_t, off_q, cx, on) -> None:  # type: ignore[no-untyped-def]
+        g, n = self.g, self.n
+        law, form = g.rules[r].translation, g.rules[r].translation.concave_form()
+        pinned = self.pinned & on
+        R0 = quat_to_matrix(self._pin_or_identity())  # (n, 3, 3)
         if law.frame == Frame.WORLD:
-            zeros, ident = np.zeros((self.n, 3)), np.tile(IDENTITY, (self.n, 1))
-            self.const += translation_log_density(g, rules, zeros, ident, cx)
-        elif form is not None and law.frame == Frame.PARENT and _isotropic(form[1]):
-            mean, P, c = form
-            self.quadratic(cx, off_t + quat_rotate(off_q, mean), P)
-            self.const += c
+            zeros, ident = np.zeros((n, 3)), np.tile(IDENTITY, (n, 1))
+            self.add(translation_log_density(g, np.full(n, r), zeros, ident, cx), on)
         elif form is not None and law.frame == Frame.WORLD_OFFSET:
             mean, P, c = form
-            self.quadratic(cx - mean, off_t, P)
-            self.const += c
+            self.quadratic(cx - mean, off_t, P, on)
+            self.add(np.full(n, c), on)
+        elif form is not None and law.frame == Frame.PARENT:
+            mean, P, c = form
+            m = off_t + quat_rotate(off_q, mean)
+            self.add(np.full(n, c), on)
+            if _isotropic(P):
+                self.quadratic(cx, m, P, on)
+                return
+            # an anisotropic precision turns with the set: exact only where the rotation is
+            Rc = R0 @ quat_to_matrix(off_q)
+            self.quadratic(cx - R0 @ m, np.zeros(3), Rc @ P @ np.swapaxes(Rc, 1, 2), pinned)
+            self.add(np.full(n, law.supremum() - c), on & ~pinned)
+            self._translation_exact(bool(np.all(pinned == on)))
+        elif isinstance(law, BoxTranslation) and law.frame == Frame.WORLD_OFFSET:
+            at = R0 @ off_t  # the member's offset from the top, turned with the set
+            self.add(np.full(n, law.supremum()), on)
+            exact = pinned | (np.allclose(off_t, 0.0) & on)
+            self.box(cx - law.box.hi - at, cx - law.box.lo - at, exact)
+            self._translation_exact(bool(np.all(exact == on)))
+        elif law.point is not None and law.frame == Frame.PARENT:
+            m = off_t + quat_rotate(off_q, law.point)
+            self.box(cx - R0 @ m, cx - R0 @ m, pinned)
+            self.quadratic(cx, m, STEEP * np.eye(3), on & ~pinned)
+            self._translation_exact(bool(np.all(pinned == on)))
         else:
-            self.const += law.supremum()
-        rot, rform = rule.rotation, rule.rotation.concave_form()
+            self.add(np.full(n, law.supremum()), on)
+            self._translation_exact(False)
+
+    def _translation_exact(self, exact: bool) -> None:
+        self.complete &= exact
+        self.t_complete &= exact
+
+    def _child_rotation(self, r, off_q, cq, on) -> None:  # type: ignore[no-untyped-def]
+        g, n = self.g, self.n
+        rot, rform = g.rules[r].rotation, g.rules[r].rotation.concave_form()
+        rules, pinned = np.full(n, r), self.pinned & on
         if rot.frame == Frame.WORLD:
-            self.const += rotation_log_density(g, rules, np.tile(IDENTITY, (self.n, 1)), cq)
+            self.add(rotation_log_density(g, rules, np.tile(IDENTITY, (n, 1)), cq), on)
         elif rform is not None and rot.frame == Frame.PARENT:
             A, c = rform
             inv_off = quat_conjugate(off_q)
             G = _left_linear(
-                lambda q: quat_multiply(quat_multiply(inv_off, quat_conjugate(q)), cq), self.n
+                lambda q: quat_multiply(quat_multiply(inv_off, quat_conjugate(q)), cq), n
             )
-            self.B += np.einsum("nki,kl,nlj->nij", G, A, G)
-            self.const += c
+            self.B += np.where(on[:, None, None], np.einsum("nki,kl,nlj->nij", G, A, G), 0.0)
+            self.add(np.full(n, c), on)
         else:
-            self.const += rot.supremum()
+            member_q = quat_multiply(self._pin_or_identity(), off_q)
+            self.add(rotation_log_density(g, rules, member_q, cq), pinned)
+            self.add(np.full(n, rot.supremum()), on & ~pinned)
+            if rot.mode() is not None and not np.all(pinned == on):
+                self.complete = False
 
     def terms(self) -> _Terms:
+        n = self.n
         if not self.c:
-            return _Terms(
-                np.zeros((self.n, 0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), self.B, self.const
-            )
+            c, m, P = np.zeros((n, 0, 3)), np.zeros((0, 3)), np.zeros((n, 0, 3, 3))
+        else:
+            c, m, P = np.stack(self.c, axis=1), np.stack(self.m), np.stack(self.P, axis=1)
+        revolute = ~np.isnan(self.fam_base[:, 0]) & ~self.pinned
+        base = np.where(revolute[:, None], self.fam_base, IDENTITY)
+        axis_q = np.hstack([np.zeros((n, 1)), self.fam_axis])
+        u = quat_multiply(base, self.fam_post)
+        w = quat_multiply(quat_multiply(base, axis_q), self.fam_post)
         return _Terms(
-            np.stack(self.c, axis=1), np.stack(self.m), np.stack(self.P), self.B, self.const
+            c,
+            m,
+            P,
+            self.B,
+            self.const,
+            self.lo,
+            self.hi,
+            self.pin,
+            self.complete,
+            self.t_complete,
+            np.stack([u, w], axis=-1),
+            0.5 * self.fam_range,
+            revolute,
         )
+
+    def feasible(self) -> NDArray[np.bool_]:
+        """Rows whose constraints can all hold: pins agree, boxes meet, no -inf term."""
+        return ~self.clash & np.all(self.lo <= self.hi, axis=1) & (self.const > -np.inf)
+
+
+BOX_MARGIN = 1e-9  # metres: rounding allowed on a box constraint in the bound
+STEEP = 1e8  # precision standing in for a fixed child translation under a free rotation
+
+
+def _best_t(terms: _Terms, e: FloatArray, clip: NDArray[np.bool_]) -> FloatArray:
+    """The best t of Σ -½ (e_k - t)ᵀ P_k (e_k - t), clipped to the box on the rows `clip`."""
+    rhs = np.einsum("nkij,nkj->ni", terms.P, e)
+    t = np.einsum("nij,nj->ni", terms.inverse, rhs)
+    inside = np.clip(t, terms.lo, terms.hi)
+    return np.where(clip[:, None], inside, t)
+
+
+def _value(terms: _Terms, e: FloatArray, t: FloatArray, X: FloatArray):  # type: ignore[no-untyped-def]
+    d = e - t[:, None, :]
+    Pd = np.einsum("nkij,nkj->nki", terms.P, d)
+    h = -0.5 * np.einsum("nki,nki->n", d, Pd) + np.einsum("nab,nab->n", terms.B, X) + terms.const
+    return h, Pd
 
 
 def _h_and_gradient(terms: _Terms, X: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """max over t of g(t, X), its gradient in X (Danskin: the gradient at t*), and t*."""
+    """max over t of g(t, X), its gradient in X (Danskin: the gradient at t*), and t*.
+
+    t is confined to its box where that keeps the maximum exact (diagonal total precision);
+    elsewhere the free maximum is used, which is larger: still an upper bound, and concave.
+    """
     R = np.einsum("ijab,nab->nij", K_ROT, X)  # (A, 3, 3)
     Rm = np.einsum("nij,kj->nki", R, terms.m)  # (A, K, 3)
     e = terms.c - Rm  # d_k = e_k - t
-    P_tot = terms.P.sum(axis=0)
-    rhs = np.einsum("kij,nkj->ni", terms.P, e)
-    t = rhs @ np.linalg.pinv(P_tot).T
-    d = e - t[:, None, :]
-    Pd = np.einsum("kij,nkj->nki", terms.P, d)
-    h = -0.5 * np.einsum("nki,nki->n", d, Pd) + np.einsum("nab,nab->n", terms.B, X) + terms.const
+    t = _best_t(terms, e, terms.diagonal)
+    h, Pd = _value(terms, e, t, X)
     grad_R = np.einsum("nki,kj->nij", Pd, terms.m)  # d g / d R
     grad_X = np.einsum("nij,ijab->nab", grad_R, K_ROT) + terms.B
     return h, grad_X, t
+
+
+def _pinned_bound(terms: _Terms, X: FloatArray) -> FloatArray:
+    """An upper bound on max over t in the box of g(t, X) at a fixed X, for any precision:
+    the free maximum, and the concave g's linear over-estimate from the clipped point
+    (g(s) <= g(t) + ∇g(t)·(s - t) <= g(t) + Σ |∇g(t)_i| (hi_i - lo_i) for s in the box)."""
+    R = np.einsum("ijab,nab->nij", K_ROT, X)
+    e = terms.c - np.einsum("nij,kj->nki", R, terms.m)
+    free = _value(terms, e, _best_t(terms, e, np.zeros(len(X), bool)), X)[0]
+    t = np.clip(_best_t(terms, e, np.zeros(len(X), bool)), terms.lo, terms.hi)
+    h, Pd = _value(terms, e, t, X)
+    width = np.where(np.isfinite(terms.hi - terms.lo), terms.hi - terms.lo, np.inf)
+    slack = np.einsum("ni,ni->n", np.abs(Pd.sum(axis=1)), width)
+    slack = np.where(np.isnan(slack), np.inf, slack)  # a zero gradient on an unbounded axis
+    exact = np.where(terms.diagonal, _h_and_gradient(terms, X)[0], np.inf)
+    return np.minimum(np.minimum(free, h + slack), exact)
 
 
 def relaxed_upper_bound(
@@ -214,25 +464,38 @@ def relaxed_upper_bound(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Frank–Wolfe over {X ⪰ 0, tr X = 1}: the best duality-gap bound per assignment, and the
     pose (t, q) read off the last iterate (q: X's leading eigenvector), a starting point for
-    the exact local optimisation.
+    the exact local optimisation.  A pinned rotation keeps X = pin pinᵀ: its bound is the
+    maximum over t alone.
 
     For concave h, h(Y) <= h(X) + <∇h(X), Y - X> <= h(X) + λmax(∇h(X)) - <∇h(X), X> for every
     feasible Y, so every iterate yields a valid upper bound on the relaxation, hence on the
     true maximum over rotations.  Stopping early (at the deadline) leaves a looser, still
     valid bound.
     """
+    pinned, fam = terms.pinned, terms.revolute
     w, v = np.linalg.eigh(terms.B)
-    top = v[..., -1]
+    top = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
+    top = np.where(fam[:, None], _arc_point(terms, terms.arc.mean(axis=1)), top)
     X = np.einsum("na,nb->nab", top, top)
     best = np.full(len(X), np.inf)
-    for _ in range(iterations):
+    if np.any(pinned):
+        best[pinned] = _pinned_bound(_subset(terms, pinned), X[pinned])
+    free = ~pinned
+    for _ in range(iterations if np.any(free) else 0):
         if deadline is not None and time.perf_counter() >= deadline and np.all(best < np.inf):
             break
         h, G, _ = _h_and_gradient(terms, X)
-        w, v = np.linalg.eigh(0.5 * (G + np.swapaxes(G, 1, 2)))
-        bound = h + w[:, -1] - np.einsum("nab,nab->n", G, X)
-        best = np.minimum(best, bound)
-        S = np.einsum("na,nb->nab", v[..., -1], v[..., -1])
+        Gs = 0.5 * (G + np.swapaxes(G, 1, 2))
+        w, v = np.linalg.eigh(Gs)
+        top, lmo = v[..., -1], w[:, -1]
+        if np.any(fam):  # the linear maximiser over the law's arc of rotations
+            s_fam, lmo_fam = _arc_lmo(terms, Gs)
+            top = np.where(fam[:, None], s_fam, top)
+            lmo = np.where(fam, lmo_fam, lmo)
+        bound = h + lmo - np.einsum("nab,nab->n", G, X)
+        best = np.where(free, np.minimum(best, bound), best)
+        S = np.einsum("na,nb->nab", top, top)
+        S = np.where(free[:, None, None], S, X)
         h_half = _h_and_gradient(terms, 0.5 * (X + S))[0]
         h_one = _h_and_gradient(terms, S)[0]
         # h(X + γ(S - X)) is a concave parabola in γ through these three values.
@@ -242,22 +505,70 @@ def relaxed_upper_bound(
         gamma = np.where((curv >= -1e-15) & (h_one < h), 0.0, gamma)
         X = X + gamma[:, None, None] * (S - X)
     w, v = np.linalg.eigh(X)
-    q = v[..., -1]
+    q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
+    if np.any(fam):  # the family's rotation nearest the leading eigenvector
+        c = np.einsum("nab,na->nb", terms.V, q)
+        psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
+        q = np.where(fam[:, None], _arc_point(terms, psi), q)
     t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
     return best, t, q
 
 
+def _arc_point(terms: _Terms, psi: FloatArray) -> FloatArray:
+    """The family's rotation at half-angle ψ, per row: V (cos ψ, sin ψ)."""
+    return np.einsum("nab,nb->na", terms.V, np.stack([np.cos(psi), np.sin(psi)], axis=1))
+
+
+def _arc_lmo(terms: _Terms, G: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """max over ψ in the arc of sᵀ M s, s = (cos ψ, sin ψ), M = Vᵀ G V, and its maximiser
+    V s: sᵀ M s = a + r cos(2ψ - β), so the maximum is at ψ = β/2 (mod π) if the arc holds
+    it, else at an end."""
+    M = np.einsum("nai,nab,nbj->nij", terms.V, G, terms.V)
+    a = 0.5 * (M[:, 0, 0] + M[:, 1, 1])
+    beta = np.arctan2(M[:, 0, 1], 0.5 * (M[:, 0, 0] - M[:, 1, 1]))
+    r = np.hypot(0.5 * (M[:, 0, 0] - M[:, 1, 1]), M[:, 0, 1])
+    lo, hi = terms.arc[:, 0], terms.arc[:, 1]
+    peak = 0.5 * beta + np.pi * np.ceil((lo - 0.5 * beta) / np.pi)  # the first peak >= lo
+    inside = peak <= hi
+
+    def value(psi: FloatArray) -> FloatArray:
+        return a + r * np.cos(2 * psi - beta)
+
+    psi = np.where(inside, peak, np.where(value(lo) >= value(hi), lo, hi))
+    return _arc_point(terms, psi), value(psi)
+
+
+def _subset(terms: _Terms, rows: NDArray[np.bool_]) -> _Terms:
+    return _Terms(
+        terms.c[rows],
+        terms.m,
+        terms.P[rows],
+        terms.B[rows],
+        terms.const[rows],
+        terms.lo[rows],
+        terms.hi[rows],
+        terms.pin[rows],
+        terms.complete,
+        terms.t_complete,
+        terms.V[rows],
+        terms.arc[rows],
+        terms.revolute[rows],
+    )
+
+
 @dataclass(frozen=True)
 class SetBound:
-    """One latent set's assignments: which candidate child fills each slot, the upper bound
-    of each, and the pose of the set's top node that is best for each (see `polish`)."""
+    """One latent set's assignments: which candidate child fills each column (-1: none), the
+    upper bound of each, and the pose of the set's top node that is best for each (see
+    `polish`).  A column is one child slot, or one copy of a `repeat`."""
 
-    slots: tuple[tuple[int, int, int], ...]  # (member node, rule, child set)
-    assignment: IntArray  # (A, n_slots) candidate index of each slot's child
+    slots: tuple[tuple[int, int, int], ...]  # (member node, rule, child set) per column
+    assignment: IntArray  # (A, n_columns) candidate index of each column's child, -1: none
     upper: FloatArray  # (A,)
     xyz: FloatArray  # (A, 3)
     quat: FloatArray  # (A, 4)
     parent: tuple[FloatArray, FloatArray] | None  # the pose the set's own rule is scored at
+    decoupled: bool = False  # the parent's pose is unknown: its rule counts its supremum
 
 
 def set_bounds(
@@ -268,65 +579,318 @@ def set_bounds(
     latent = latent_sets(st)
     memo: dict[tuple, SetBound] = {}
     for e in np.flatnonzero(latent):
-        slots = _slots(grammar, st, int(e), latent)
+        groups = _groups(grammar, st, int(e), latent)
         parent = known_parent(grammar, st, cand, int(e))
-        if slots is None or parent is False:
+        if groups is None:
             return None
         key = (
             int(st.type[st.set_top[e]]),
             int(st.rule[st.set_top[e]]),
-            None if parent is None else (parent[0].tobytes(), parent[1].tobytes()),
+            parent if parent in (None, False) else (parent[0].tobytes(), parent[1].tobytes()),
+            tuple((cand.xyz[c].tobytes(), cand.quat[c].tobytes()) for *_, c, _ in groups if c >= 0),
             tuple(
-                (r, st.offset_xyz[v].tobytes(), cand.xyz[c].tobytes(), cand.quat[c].tobytes())
-                for v, r, c in slots
+                (k, r, len(kids), st.offset_xyz[v].tobytes(), st.offset_quat[v].tobytes())
+                for k, v, r, c, kids in groups
             ),
         )  # the copies of a `repeat` share one computation
         if key not in memo:
-            bound = _bound_one(grammar, st, cand, int(e), slots, parent, deadline)
+            bound = _bound_one(grammar, st, cand, int(e), groups, parent, deadline)
             if bound is None:
                 return None
             memo[key] = bound
-        m = memo[key]
-        out[int(e)] = SetBound(slots, m.assignment, m.upper, m.xyz, m.quat, parent)
+        m = _copies_apart(memo[key], _copies(st, int(e)))
+        placed = None if parent is False else parent
+        out[int(e)] = SetBound(
+            _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False
+        )
     return out
 
 
-def _slots(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):  # type: ignore[no-untyped-def]
-    """(member, rule, child set) per child slot, or None when the set is out of scope."""
-    slots = []
+def _copies(st: Supertree, e: int) -> int:
+    """How many copies of the rule entering set e its parent node has (a `repeat`'s max)."""
+    top = int(st.set_top[e])
+    parent = int(st.parent[top])
+    return sum(1 for c in st.children[parent] if st.rule[c] == st.rule[top])
+
+
+def _copies_apart(bound: SetBound, copies: int) -> SetBound:
+    """The bound with each assignment that names no child repeated `copies` times.
+
+    The unrolled model gives a `repeat`'s copies distinct candidates.  Assignments that name
+    an object are distinct by nature (an object has one parent), but several copies may take
+    the same childless assignment (two latent nodes with the same best pose): without the
+    repeats, a tree using it twice would have no encoding and the bound could miss it."""
+    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1))
+    if copies < 2 or not len(empty):
+        return bound
+    rows = np.concatenate([np.arange(len(bound.assignment)), np.repeat(empty, copies - 1)])
+    return SetBound(
+        bound.slots,
+        bound.assignment[rows],
+        bound.upper[rows],
+        bound.xyz[rows],
+        bound.quat[rows],
+        bound.parent,
+        bound.decoupled,
+    )
+
+
+def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):  # type: ignore[no-untyped-def]
+    """(kind, member, rule, child set, copies) per rule leaving the set, or None when the set
+    is out of scope: a member that may be inactive while the top is active (below an `or` or a
+    `repeat` inside the set), or a latent child set placed relative to this one."""
+    groups = []
+    sure = {int(st.set_top[e])}
     for v in np.flatnonzero(st.set_of == e):
+        v = int(v)
         node = grammar.types[st.type[v]]
-        kids = st.children[v]
-        if node.kind == Kind.TERMINAL and not kids:
-            continue
-        if node.kind != Kind.AND or len({int(st.rule[c]) for c in kids}) != len(kids):
+        if v not in sure:
             return None
-        for c in kids:
-            e_c = int(st.set_of[c])
-            if e_c != e:
-                if latent[e_c]:
-                    return None
-                slots.append((int(v), int(st.rule[c]), e_c))
-    return tuple(slots)
+        by_rule: dict[int, list[int]] = {}
+        for c in st.children[v]:
+            by_rule.setdefault(int(st.rule[c]), []).append(int(c))
+        inner = False
+        for r, kids in by_rule.items():
+            e_c = int(st.set_of[kids[0]])
+            if e_c == e:
+                inner = True
+                if node.kind == Kind.AND:
+                    sure.update(kids)
+                continue
+            if latent[e_c]:  # its own bound holds the edge (see `set_bounds`): no column here
+                inner = True
+                continue
+            groups.append((node.kind, v, r, e_c, tuple(kids)))
+        if node.kind == Kind.OR and inner:
+            groups.append((Kind.OR, v, -1, -1, ()))  # the option that stays inside the set
+    return tuple(groups)
 
 
-def _bound_one(grammar, st, cand, e, slots, parent, deadline):  # type: ignore[no-untyped-def]
-    sizes = [len(cand.xyz[s[2]]) for s in slots]
+def _independent(grammar: Grammar, r: int) -> bool:
+    """Whether rule r's child pose ignores its parent's (world-frame translation and
+    rotation): a latent child set's own bound then holds the edge whatever its parent's pose."""
+    rule = grammar.rules[r]
+    return rule.translation.frame == Frame.WORLD and rule.rotation.frame == Frame.WORLD
+
+
+def _columns(groups) -> tuple[tuple[int, int, int], ...]:  # type: ignore[no-untyped-def]
+    """The set's own columns (member, rule, child set), in `_member_rows`' order: the copies
+    of a `repeat` share one computation, but each keeps its own nodes."""
+    members: dict[int, list] = {}
+    for g in groups:
+        members.setdefault(g[1], []).append(g)
+    cols = []
+    for v, gs in members.items():
+        for kind, _, r, e_c, kids in gs:
+            if r >= 0:
+                cols += [(v, r, e_c)] * (len(kids) if kind == Kind.REPEAT else 1)
+    return tuple(cols)
+
+
+def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # type: ignore[no-untyped-def]
+    """Per member: its columns (member, rule, child set) and its rows of candidate indices
+    (-1: no child): AND, one candidate per rule; OR, one option and one candidate; REPEAT,
+    every set of at most `copies` candidates, in increasing order (copies are exchangeable)."""
+    from itertools import combinations
+
+    members: dict[int, list] = {}
+    for g in groups:
+        members.setdefault(g[1], []).append(g)
+    cols_all, rows_all = [], []
+    for v, gs in members.items():
+        kind = gs[0][0]
+        real = [g for g in gs if g[2] >= 0]
+        cols = []
+        if kind == Kind.AND:
+            sizes = [len(cand.xyz[g[3]]) for g in real]
+            if int(np.prod(sizes, dtype=float)) > MAX_ASSIGNMENTS:
+                raise _TooMany
+            grids = np.meshgrid(*[np.arange(k) for k in sizes], indexing="ij")
+            rows = np.stack([gr.ravel() for gr in grids], axis=1).reshape(-1, len(real))
+            cols = [(v, g[2], g[3]) for g in real]
+        elif kind == Kind.OR:
+            cols = [(v, g[2], g[3]) for g in real]
+            parts = [np.full((1, len(real)), -1)] if len(real) < len(gs) else []
+            for j, g in enumerate(real):
+                k = len(cand.xyz[g[3]])
+                part = np.full((k, len(real)), -1)
+                part[:, j] = np.arange(k)
+                parts.append(part)
+            rows = np.vstack(parts) if parts else np.zeros((0, len(real)), np.int64)
+        else:  # REPEAT: one rule, `copies` columns
+            (_, _, r, e_c, kids), k = real[0], len(cand.xyz[real[0][3]])
+            copies = len(kids)
+            cols = [(v, r, e_c)] * copies
+            subsets = [s for j in range(min(copies, k) + 1) for s in combinations(range(k), j)]
+            if len(subsets) > MAX_ASSIGNMENTS:
+                raise _TooMany
+            rows = np.full((len(subsets), copies), -1)
+            for i, s in enumerate(subsets):
+                rows[i, : len(s)] = s
+        cols_all.append(cols)
+        rows_all.append(np.asarray(rows, np.int64))
+    return cols_all, rows_all
+
+
+class _TooMany(Exception):
+    """More assignments than MAX_ASSIGNMENTS."""
+
+
+def _assignments(cand: Candidates, groups) -> tuple[tuple, IntArray] | None:  # type: ignore[no-untyped-def]
+    """All columns and the product of every member's rows, or None when too many."""
+    try:
+        cols_all, rows_all = _member_rows(cand, groups)
+    except _TooMany:
+        return None
+    sizes = [len(r) for r in rows_all]
     if int(np.prod(sizes, dtype=float)) > MAX_ASSIGNMENTS:
         return None
     grids = np.meshgrid(*[np.arange(k) for k in sizes], indexing="ij")
-    assignment = np.stack([gr.ravel() for gr in grids], axis=1).astype(np.int64)
-    if not slots:
-        assignment = np.zeros((1, 0), np.int64)
-    local = _LocalBounds(grammar, len(assignment))
-    local.prior(int(st.rule[st.set_top[e]]), parent)
-    for k, (v, r, e_c) in enumerate(slots):
-        idx = assignment[:, k]
-        local.child(r, st.offset_xyz[v], st.offset_quat[v], cand.xyz[e_c][idx], cand.quat[e_c][idx])
-    upper, t, q = relaxed_upper_bound(local.terms(), FW_ITERATIONS, deadline)
-    bound = SetBound(slots, assignment, upper, t, q, parent)
-    xyz, quat = polish(grammar, st, cand, int(st.rule[st.set_top[e]]), bound, deadline)
-    return SetBound(slots, assignment, upper, xyz, quat, parent)
+    picks = [gr.ravel() for gr in grids] if sizes else []
+    n = int(np.prod(sizes, dtype=np.int64)) if sizes else 1
+    blocks = [rows[p] for rows, p in zip(rows_all, picks, strict=True)]
+    assignment = np.hstack(blocks) if blocks else np.zeros((n, 0), np.int64)
+    columns = tuple(c for cols in cols_all for c in cols)
+    return columns, assignment.astype(np.int64)
+
+
+def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[no-untyped-def]
+    made = _assignments(cand, groups)
+    if made is None:
+        return None
+    columns, assignment = made
+    n = len(assignment)
+    local = _LocalBounds(grammar, n)
+    top_rule = int(st.rule[st.set_top[e]])
+    local.prior_pin(top_rule, parent)
+    local.prior_family(top_rule, parent)
+    picked = []
+    for k, (v, r, e_c) in enumerate(columns):
+        on = assignment[:, k] >= 0
+        idx = np.maximum(assignment[:, k], 0)
+        cx = cand.xyz[e_c][idx] if len(cand.xyz[e_c]) else np.zeros((n, 3))
+        cq = cand.quat[e_c][idx] if len(cand.quat[e_c]) else np.tile(IDENTITY, (n, 1))
+        picked.append((v, r, on, cx, cq))
+        local.child_pin(r, st.offset_quat[v], cq, on)
+        local.child_family(r, st.offset_quat[v], cq, on)
+    local.prior(top_rule, parent)
+    for v, r, on, cx, cq in picked:
+        local.child(r, st.offset_xyz[v], st.offset_quat[v], cx, cq, on)
+    keep = local.feasible()
+    terms = _subset(local.terms(), keep)
+    assignment = assignment[keep]
+    upper, t, q = relaxed_upper_bound(terms, FW_ITERATIONS, deadline)
+    bound = SetBound(columns, assignment, upper, t, q, *_placed(parent))
+    xyz, quat = t, q
+    if not (terms.complete and np.all(terms.pinned)):  # else the relaxation's pose is exact
+        xyz, quat = polish(grammar, st, cand, top_rule, bound, deadline)
+    xyz, quat = _snap(terms, xyz, quat, t, q)
+    if np.any(terms.revolute):
+        edges = local_edges(grammar, st, cand, top_rule, bound)
+        xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat)
+    return SetBound(columns, assignment, upper, xyz, quat, *_placed(parent))
+
+
+REVOLUTE_GRID = 48  # angles tried along a revolute law's arc, then as many around the best
+
+
+def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyped-def]
+    """For rows held to a revolute family, the best rotation along its arc under the exact
+    densities (a grid, then a finer grid around its best point), each with its best position;
+    a row keeps its pose unless the search finds a better one.  The Newton polish cannot move
+    along the arc: off it the law's density is -inf."""
+    rows = np.flatnonzero(terms.revolute)
+    owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
+    sub, _ = _sub_edges(edges, owner, rows)
+    sub_owner = np.where(sub.p_block >= 0, sub.p_block, sub.c_block)
+    part = _subset(terms, terms.revolute)
+    best_x, best_q = xyz[rows].copy(), quat[rows].copy()
+    best_v = _owned_values(grammar, sub, sub_owner, best_x, best_q)
+    lo, hi = part.arc[:, 0], part.arc[:, 1]
+    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    for width in (1.0, 2.0 / REVOLUTE_GRID):
+        psi0 = np.zeros(len(rows))
+        for f in np.linspace(-1.0, 1.0, REVOLUTE_GRID):
+            psi = np.clip(centre + f * half * width, lo, hi)
+            q = _arc_point(part, psi)
+            if part.t_complete:
+                t = _h_and_gradient(part, np.einsum("na,nb->nab", q, q))[2]
+            else:
+                t = best_x
+            t = np.clip(t, part.lo + SNAP_MARGIN, np.maximum(part.hi - SNAP_MARGIN, part.lo))
+            v = _owned_values(grammar, sub, sub_owner, t, q)
+            better = v > best_v
+            best_v = np.where(better, v, best_v)
+            best_x = np.where(better[:, None], t, best_x)
+            best_q = np.where(better[:, None], q, best_q)
+            psi0 = np.where(better, psi, psi0)
+        centre = np.where(np.isfinite(best_v), psi0, centre)
+    xyz, quat = xyz.copy(), quat.copy()
+    xyz[rows], quat[rows] = best_x, best_q
+    return xyz, quat
+
+
+def _placed(parent):  # type: ignore[no-untyped-def]
+    """SetBound's (parent, decoupled) from `known_parent`'s answer (False: not known)."""
+    return (None, True) if parent is False else (parent, False)
+
+
+SNAP_MARGIN = BOX_MARGIN  # an exact position goes inside the laws' own box
+
+
+def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: FloatArray):  # type: ignore[no-untyped-def]
+    """The polished poses made to satisfy the hard constraints: a pinned rotation exactly,
+    the position inside its box, and, when the relaxation holds every translation term
+    exactly, the best position for the final rotation."""
+    bad = ~(np.all(np.isfinite(xyz), axis=1) & np.all(np.isfinite(quat), axis=1))
+    xyz = np.where(bad[:, None], t0, xyz)
+    quat = np.where(bad[:, None], q0, quat)
+    quat = np.where(terms.pinned[:, None], np.nan_to_num(terms.pin), quat)
+    if terms.t_complete:
+        xyz = _h_and_gradient(terms, np.einsum("na,nb->nab", quat, quat))[2]
+    lo, hi = terms.lo + SNAP_MARGIN, terms.hi - SNAP_MARGIN
+    with np.errstate(invalid="ignore"):  # -inf + inf on an unbounded axis: never used
+        mid = 0.5 * (terms.lo + terms.hi)
+    lo, hi = np.where(lo <= hi, lo, mid), np.where(lo <= hi, hi, mid)
+    return np.clip(xyz, lo, hi), quat_normalize(quat)
+
+
+def local_edges(
+    grammar: Grammar, st: Supertree, cand: Candidates, top_rule: int, bound: SetBound
+) -> PoseEdges:
+    """The edges whose densities move with the set's pose, one block per assignment: its own
+    rule at its parent's pose, and each named child at its candidate pose."""
+    n = len(bound.assignment)
+    px, pq = bound.parent if bound.parent is not None else (np.zeros(3), IDENTITY)
+    own = 0 if bound.decoupled else n  # a decoupled set's own rule is not scored here
+    rule, pb, pxyz, pquat = (
+        [np.full(own, top_rule)],
+        [np.full(own, -1)],
+        [np.tile(px, (own, 1))],
+        [np.tile(pq, (own, 1))],
+    )
+    cb, cxyz, cquat = [np.arange(own)], [np.zeros((own, 3))], [np.tile(IDENTITY, (own, 1))]
+    for k, (v, r, e_c) in enumerate(bound.slots):
+        rows = np.flatnonzero(bound.assignment[:, k] >= 0)  # -1: no child in this column
+        idx = bound.assignment[rows, k]
+        rule.append(np.full(len(rows), r))
+        pb.append(rows)
+        pxyz.append(np.tile(st.offset_xyz[v], (len(rows), 1)))
+        pquat.append(np.tile(st.offset_quat[v], (len(rows), 1)))
+        cb.append(np.full(len(rows), -1))
+        cxyz.append(cand.xyz[e_c][idx].reshape(-1, 3))
+        cquat.append(cand.quat[e_c][idx].reshape(-1, 4))
+    cat = np.concatenate
+    edges = PoseEdges(
+        cat(rule).astype(np.int64),
+        cat(pb).astype(np.int64),
+        cat(pxyz),
+        cat(pquat),
+        cat(cb).astype(np.int64),
+        cat(cxyz),
+        cat(cquat),
+    )
+    return edges
 
 
 def polish(
@@ -340,34 +904,7 @@ def polish(
     """Each assignment's best top pose under the exact densities, from the relaxation's pose
     (Newton, all assignments at once).  When the relaxation is tight this is the global
     optimum, and the bound certifies it."""
-    n = len(bound.assignment)
-    px, pq = bound.parent if bound.parent is not None else (np.zeros(3), IDENTITY)
-    rule, pb, pxyz, pquat = (
-        [np.full(n, top_rule)],
-        [np.full(n, -1)],
-        [np.tile(px, (n, 1))],
-        [np.tile(pq, (n, 1))],
-    )
-    cb, cxyz, cquat = [np.arange(n)], [np.zeros((n, 3))], [np.tile(IDENTITY, (n, 1))]
-    for k, (v, r, e_c) in enumerate(bound.slots):
-        idx = bound.assignment[:, k]
-        rule.append(np.full(n, r))
-        pb.append(np.arange(n))
-        pxyz.append(np.tile(st.offset_xyz[v], (n, 1)))
-        pquat.append(np.tile(st.offset_quat[v], (n, 1)))
-        cb.append(np.full(n, -1))
-        cxyz.append(cand.xyz[e_c][idx])
-        cquat.append(cand.quat[e_c][idx])
-    cat = np.concatenate
-    edges = PoseEdges(
-        cat(rule).astype(np.int64),
-        cat(pb).astype(np.int64),
-        cat(pxyz),
-        cat(pquat),
-        cat(cb).astype(np.int64),
-        cat(cxyz),
-        cat(cquat),
-    )
+    edges = local_edges(grammar, st, cand, top_rule, bound)
     return maximize_independent(grammar, edges, bound.xyz, bound.quat, deadline=deadline)
 
 
@@ -376,10 +913,14 @@ class AssignmentReduction:
     have assignments (`set_bounds`), within the unrolled model's MAX_INSTANCES."""
 
     def accepts(self, request: Request) -> bool:
-        return request.bounds is not None and self._count(request) <= MAX_INSTANCES
+        if request.bounds is None or certify_only(request.bounds):
+            return False
+        return self._count(request) <= MAX_INSTANCES
 
     def refusal(self, request: Request) -> str | None:
-        if request.bounds is None or self._count(request) <= MAX_INSTANCES:
+        if request.bounds is None or certify_only(request.bounds):
+            return None
+        if self._count(request) <= MAX_INSTANCES:
             return None
         return too_many_instances(request.scene)
 
@@ -399,6 +940,25 @@ class AssignmentReduction:
         assert request.bounds is not None
         posed = assignment_candidates(request.cand, request.bounds)
         return instance_count(request.supertree, posed, frozenset(request.bounds))
+
+
+def certify_only(bounds: dict[int, SetBound]) -> bool:
+    """Whether some set's bound was made without its parent's pose (a latent set placed
+    relative to another latent set): the bounds then certify, but their poses are not the
+    exact best, so the tree comes from proposals and refinement (`ip`)."""
+    return any(b.decoupled for b in bounds.values())
+
+
+MAX_POSE_PROPOSALS = 200  # assignment poses offered to `ip` per set, best bounds first
+
+
+def add_assignment_poses(cand: Candidates, bounds: dict[int, SetBound]) -> None:
+    """Offer each set's assignment poses (the best bounds first) as proposals: a box or
+    revolute law holds them where rule-inversion proposals may not reach."""
+    for e, sb in bounds.items():
+        best = np.argsort(-sb.upper, kind="stable")[:MAX_POSE_PROPOSALS]
+        if len(best):
+            cand.add(e, sb.xyz[best], sb.quat[best])
 
 
 def assignment_candidates(cand: Candidates, bounds: dict[int, SetBound]) -> Candidates:
@@ -440,7 +1000,9 @@ def assignment_problem(
             heads = np.flatnonzero((set_of == e) & (inst.top == np.arange(len(set_of))))
             inst.score[heads] = sb.upper[inst.cand_k[heads]]
         parent_set = set_of[np.maximum(inst.parent, 0)]
+        head = inst.top == np.arange(len(set_of))
         counted = (inst.parent >= 0) & np.isin(parent_set, list(bounds)) & (parent_set != set_of)
+        counted &= ~(head & np.isin(set_of, list(bounds)))  # a latent child's bound holds it
         inst.score[counted] = 0.0  # the assignment's bound already counts these edges
 
     return reduce_posed(grammar, st, scene, posed, adjust if upper else None, restrict, deadline)

@@ -23,7 +23,14 @@ import numpy as np
 from ssgc.errors import SsgError
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar
-from ssgc.parse.bound import AssignmentReduction, SetBound, assignment_problem, set_bounds
+from ssgc.parse.bound import (
+    AssignmentReduction,
+    SetBound,
+    add_assignment_poses,
+    assignment_problem,
+    certify_only,
+    set_bounds,
+)
 from ssgc.parse.highs import HighsSession
 from ssgc.parse.ip import SetReduction, UnparseableScene
 from ssgc.parse.milp import Milp, Session
@@ -238,12 +245,15 @@ class Parser:
         g, st = self.grammar, self.supertree
         if not self.has_latent:
             return None
+        bounds = None
         if self.method != "ip":
             bounds = set_bounds(g, st, cand, deadline)
-            if bounds is not None:
+            if bounds is not None and not certify_only(bounds):
                 return bounds
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
-        return None
+        if bounds is not None:  # they only certify; their poses join the proposals
+            add_assignment_poses(cand, bounds)
+        return bounds
 
     def reduce(
         self,
@@ -363,7 +373,7 @@ class _Run:
             if not self.parses and np.isnan(self.raw_score):
                 self.raw_score = parse.score
             certified = self.complete and sol.status == "optimal" and sol.gap <= GAP_TOL
-            if self.p.has_latent and self.bounds is None:
+            if self.p.has_latent and (self.bounds is None or certify_only(self.bounds)):
                 parse = self._refined(parse, sol)
                 if parse is None:
                     continue  # the MILP was rebuilt with better proposals: solve again

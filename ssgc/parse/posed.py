@@ -182,7 +182,11 @@ class _Unroll:
         if own in self.restrict:
             slots, assignment = self.restrict[own]
             a = self.cand_k[self.top[i]]
-            return [int(assignment[a, slots.index((n, rule))])]
+            cols = [j for j, s in enumerate(slots) if s == (n, rule)]
+            if not cols:  # a rule the assignment does not name (an independent latent child)
+                return range(len(self.cand_xyz[e]))
+            named = assignment[a, cols]  # -1: this column has no child
+            return sorted({int(k) for k in named if k >= 0})
         return range(len(self.cand_xyz[e]))
 
     def _slots(self, n: int) -> list[int]:
@@ -229,7 +233,9 @@ def instance_count(
             if st.set_of[c] == own:
                 count[c] = count[n]
             elif r not in seen:
-                count[c] = count[n] * (1 if own in restricted else n_cand[st.set_of[c]])
+                copies = sum(1 for c2 in st.children[n] if st.rule[c2] == r)
+                per = copies if own in restricted else n_cand[st.set_of[c]]
+                count[c] = count[n] * per
             seen.add(r)
             total += count[c]
         if total > MAX_INSTANCES:
@@ -288,10 +294,10 @@ class PosedReduction:
     bound's assignments whose unrolled instances stay within MAX_INSTANCES."""
 
     def accepts(self, request: Request) -> bool:
-        return request.bounds is None and self._count(request) <= MAX_INSTANCES
+        return _unbound(request) and self._count(request) <= MAX_INSTANCES
 
     def refusal(self, request: Request) -> str | None:
-        if request.bounds is not None or self._count(request) <= MAX_INSTANCES:
+        if not _unbound(request) or self._count(request) <= MAX_INSTANCES:
             return None
         return too_many_instances(request.scene)
 
@@ -306,6 +312,11 @@ class PosedReduction:
     @staticmethod
     def _count(request: Request) -> int:
         return instance_count(request.supertree, request.cand)
+
+
+def _unbound(request: Request) -> bool:
+    """No assignments to build on: none, or bounds that only certify (`certify_only`)."""
+    return request.bounds is None or any(b.decoupled for b in request.bounds.values())
 
 
 def too_many_instances(scene: Scene) -> str:
