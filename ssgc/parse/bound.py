@@ -689,8 +689,9 @@ def _columns(groups) -> tuple[tuple[int, int, int], ...]:  # type: ignore[no-unt
 
 def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # type: ignore[no-untyped-def]
     """Per member: its columns (member, rule, child set) and its rows of candidate indices
-    (-1: no child): AND, one candidate per rule; OR, one option and one candidate; REPEAT,
-    every set of at most `copies` candidates, in increasing order (copies are exchangeable)."""
+    (-1: no child): AND, one candidate per rule; OR, one option and one candidate;
+    INDEPENDENT, no child or one candidate per rule; REPEAT, every set of at most `copies`
+    candidates, in increasing order (copies are exchangeable)."""
     from itertools import combinations
 
     members: dict[int, list] = {}
@@ -717,6 +718,13 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
                 part[:, j] = np.arange(k)
                 parts.append(part)
             rows = np.vstack(parts) if parts else np.zeros((0, len(real)), np.int64)
+        elif kind == Kind.INDEPENDENT:  # each rule fires or not: no child, or one candidate
+            sizes = [len(cand.xyz[g[3]]) + 1 for g in real]
+            if int(np.prod(sizes, dtype=float)) > MAX_ASSIGNMENTS:
+                raise _TooMany
+            grids = np.meshgrid(*[np.arange(k) - 1 for k in sizes], indexing="ij")
+            rows = np.stack([gr.ravel() for gr in grids], axis=1).reshape(-1, len(real))
+            cols = [(v, g[2], g[3]) for g in real]
         else:  # REPEAT: one rule, `copies` columns
             (_, _, r, e_c, kids), k = real[0], len(cand.xyz[real[0][3]])
             copies = len(kids)
