@@ -11,7 +11,6 @@ from ssgc.cli.app import (
     AllowOutside,
     _check_method,
     _command,
-    _note_discarded,
     _progress,
     _summary,
     app,
@@ -19,7 +18,7 @@ from ssgc.cli.app import (
 )
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
-from ssgc.io.outputs import Output, check_output, lock_outputs, write_output
+from ssgc.io.outputs import Output, check_output, lock_outputs
 
 
 @app.command()
@@ -100,43 +99,37 @@ def _parse_into(
     explain: bool,
 ) -> None:
     """`ssg parse`'s work, once its output is checked and locked."""
-    from ssgc.cli.explain import annotate
-    from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
     from ssgc.io.scene import load_scenes
-    from ssgc.parse.parser import Parser, exit_code
+    from ssgc.parse.parser import Parser
+    from ssgc.scene_reports import parse_to_output
 
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_scenes(scenes, g)
     parser = Parser(g, method=method)
-    if dest.stream:  # stdout or a device: nothing to resume, so the results are kept in memory
-        results = []
-        with _progress(quiet) as progress:
-            task = progress.add_task("parsing", total=len(items))
-            for scene in items:
-                result = parser.parse(scene, top=top, time_limit=time_limit)
-                results.append(annotate(parser, scene, result, top, explain, time_limit, quiet))
-                progress.advance(task)
-        with write_output(dest) as f:
-            failed = write_parse_output(f, g.name, results)
-    else:  # each result goes to the journal as soon as it is known, OUT.json at the end
-        header = run_header(g.name, grammar, scenes, items, top, method, time_limit)
-        with ParseJournal(journal_path(dest.target), header, resume) as journal:
-            _note_discarded(journal, quiet)
-            with _progress(quiet) as progress:
-                task = progress.add_task("parsing", total=len(items))
-                progress.advance(task, journal.done)
-                for index in range(journal.done, len(items)):
-                    scene = items[index]
-                    result = parser.parse(scene, top=top, time_limit=time_limit)
-                    row = annotate(parser, scene, result, top, explain, time_limit, quiet)
-                    journal.append(index, row)
-                    progress.advance(task)
-            with write_output(dest, kept=journal.path) as f:
-                failed = write_parse_output(f, g.name, journal.results())
-        journal.delete()
+
+    def note(line: str) -> None:
+        err.print(line, markup=False, highlight=False)
+
+    with _progress(quiet) as progress:
+        task = progress.add_task("parsing", total=len(items))
+        failed = parse_to_output(
+            dest,
+            grammar,
+            scenes,
+            parser,
+            items,
+            top,
+            time_limit,
+            explain,
+            resume,
+            step=lambda k: progress.advance(task, k),
+            note=None if quiet else note,
+        )
     for r in failed:
         err.print(f"{r['name']}: {r['status']}: {r['message']}", markup=False, highlight=False)
     if not quiet and not dest.stdout:
         _summary(dest, f"parsed {len(items)} scene(s) -> {dest.name}")
+    from ssgc.parse.parser import exit_code
+
     if code := exit_code(failed):
         raise typer.Exit(code)

@@ -14,6 +14,7 @@ Heavy parts (the parser, the fitter, matplotlib) are imported when first used.
 
 from __future__ import annotations
 
+import copy
 import json
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -72,9 +73,14 @@ def parse(
 ) -> ParseResult:
     """The `top` most probable distinct parse trees of `scene` (as `ssg parse`): `method` is
     auto, ip or micp (docs/parsing.md), `time_limit` in seconds.  A scene the grammar cannot
-    produce is not an exception: the result's `status` says `infeasible`."""
-    result = grammar.parser(method).parse(scene.data, top=top, time_limit=time_limit)
-    return ParseResult(grammar, result)
+    produce is not an exception: the result's `status` says `infeasible` (proven) or
+    `no_parse` (none found, not proven)."""
+    from ssgc.scene_reports import parse_document
+
+    parser = grammar.parser(method)
+    result = parser.parse(scene.data, top=top, time_limit=time_limit)
+    document = parse_document(parser, scene.data, result, top, time_limit=time_limit)
+    return ParseResult(grammar, result, document)
 
 
 def explain(grammar: Grammar, scene: Scene, time_limit: float | None = None) -> Explanation:
@@ -365,6 +371,7 @@ class ParseResult:
 
     grammar: Grammar
     result: SceneParses
+    document: dict[str, Any]  # the scene's entry of `ssg parse`'s output
 
     def __repr__(self) -> str:
         return (
@@ -373,7 +380,9 @@ class ParseResult:
 
     @property
     def status(self) -> str:
-        """optimal, infeasible (no tree of the grammar contains the scene), time_limit, error."""
+        """optimal (certified), feasible (a tree, not proven best), infeasible (proven: no tree
+        of the grammar contains the scene), no_parse (none found, not proven) or error
+        (docs/parsing.md "Statuses")."""
         return self.result.status
 
     @property
@@ -392,10 +401,9 @@ class ParseResult:
         return parses[0] if parses else None
 
     def to_json(self) -> dict[str, Any]:
-        """This scene's entry of `ssg parse`'s output (`scenes[i]`)."""
-        from ssgc.parse.parser import result_to_json
-
-        return result_to_json(self.grammar.ir, self.result)
+        """This scene's entry of `ssg parse`'s output (`scenes[i]`): with the diagnosis of a
+        scene proven infeasible and the objects left to clutter, as the command writes it."""
+        return copy.deepcopy(self.document)
 
     def render(self, path: str | Path) -> Path:
         """Draw the best parse, its edges coloured by their rule's log-probability."""
