@@ -105,25 +105,30 @@ def test_cli_parse_time_limit_exits_4_with_the_phase(tmp_path):
     assert "wide: no_parse: " in result.stderr
 
 
-def test_cli_parse_and_explain_exit_3_when_no_parse_is_found_unproven(tmp_path):
-    """An object far from every proposed latent pose: nothing found, nothing proven."""
+def test_cli_parse_and_explain_exit_3_when_no_parse_is_found_unproven(tmp_path, monkeypatch):
+    """Proposals that find no latent pose near the object: nothing found, nothing proven.
+
+    The exact bound now places L for every scene of this grammar, so `ip` is used, with its
+    proposals emptied: the model then holds no tree, and that proves nothing."""
+    monkeypatch.setattr("ssgc.parse.parser.add_proposals", lambda *args, **kwargs: None)
     grammar_path = tmp_path / "chain.yaml"
     grammar_path.write_text(LATENT_AND_CHAIN)
     grammar = compile_text(LATENT_AND_CHAIN)
     x = grammar.type_ids["X"]
     scene = Scene("far", np.array([x]), np.array([[3.0, 0.0, 0.0]]), np.array([[1.0, 0, 0, 0]]))
     path = write_scene(tmp_path / "far.json", grammar, scene)
-    parsed = Parser(grammar, method="micp").parse(scene)
-    if parsed.parses:  # the parser found a tree: then it is a tree, not a claim of none
-        assert parsed.status in ("optimal", "feasible")
-        pytest.skip("the parser finds a tree for this scene (issue 11 item 2 landed)")
+    parsed = Parser(grammar, method="ip").parse(scene)
     assert (parsed.status, parsed.phase) == ("no_parse", "proposals")
-    result = run("parse", path, "-g", grammar_path, "--method", "micp", "-q")
+    assert not parsed.parses
+    result = run("parse", path, "-g", grammar_path, "--method", "ip", "-q")
     assert result.exit_code == 3, result.output
     assert "far: no_parse: " in result.stderr and "not proven" in result.stderr
     assert "diagnosis" not in json.loads(result.stdout)["scenes"][0]  # only for a proof
-    result = run("explain", path, "-g", grammar_path, "--json")
+    assert Parser(grammar, method="micp").parse(scene).status == "optimal"  # the exact bound
+    monkeypatch.setattr("ssgc.parse.parser.set_bounds", lambda *args, **kwargs: None)
+    result = run("explain", path, "-g", grammar_path, "--json")  # auto: micp, no bound now
     assert result.exit_code == 3, result.output
+    assert json.loads(result.stdout)["scenes"][0]["phase"] == "proposals"
 
 
 def test_resume_refuses_a_journal_of_the_old_statuses(tmp_path):
