@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import multiprocessing
-import signal
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
@@ -29,6 +28,7 @@ from numpy.typing import NDArray
 
 from ssgc.constraints.base import Constraint
 from ssgc.errors import Diagnostic, SsgError
+from ssgc.forked import ordered_map
 from ssgc.ir import Grammar
 from ssgc.sample.hmc import SETTINGS as HMC_SETTINGS
 from ssgc.sample.hmc import hmc_batch
@@ -217,7 +217,7 @@ def sample_blocks(
     todo = list(range((n + BLOCK - 1) // BLOCK) if blocks is None else blocks)
     limits = _Limits(max_tries, time_limit, deadline, _counter(jobs > 1 and len(todo) > 1))
     work = _BlockWork(grammar, constraints, n, seed, method, limits, options or {})
-    results = _map_blocks(work, todo, jobs)
+    results = ordered_map(functools.partial(_draw_block, work), todo, jobs)
     for done in results:
         tally.merge(done.tally)
         if done.block is not None:
@@ -319,35 +319,6 @@ def _draw_block(work: _BlockWork, b: int) -> _Done:
         k += 1
     block = _block(b, got, min(have, want)) if have else None
     return _Done(block, tally, limit if have < want else None)
-
-
-_work: _BlockWork | None = None  # what forked workers draw with
-
-
-def _map_blocks(work: _BlockWork, todo: list[int], jobs: int) -> Iterator[_Done]:
-    """`_draw_block` over `todo`, in order; by forked workers when `jobs` > 1.  The caller may
-    stop iterating at any point (the workers are then stopped)."""
-    global _work
-    if jobs <= 1 or len(todo) <= 1:
-        for b in todo:
-            yield _draw_block(work, b)
-        return
-    _work = work
-    context = multiprocessing.get_context("fork")
-    try:
-        with context.Pool(min(jobs, len(todo)), initializer=_worker_setup) as pool:
-            yield from pool.imap(_draw_in_worker, todo, chunksize=1)
-    finally:
-        _work = None
-
-
-def _draw_in_worker(b: int) -> _Done:
-    assert _work is not None, "workers are forked after the work is set"
-    return _draw_block(_work, b)
-
-
-def _worker_setup() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
 
 
 def _block(index: int, outcomes: list[Outcome], want: int) -> Block:
