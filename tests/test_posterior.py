@@ -9,9 +9,18 @@ import numpy as np
 import pytest
 from bruteforce import enumerate_parses
 from conftest import GRAMMARS
+from scipy.special import logsumexp
 
 from ssgc.compile import compile_text
-from ssgc.fit.em import FitJournal, FitOptions, GrammarSource, fit_grammar, fit_header
+from ssgc.fit.em import (
+    FitJournal,
+    FitOptions,
+    GrammarSource,
+    _tree_json,
+    _weigh,
+    fit_grammar,
+    fit_header,
+)
 from ssgc.fit.mstep import FitSettings, Ties, m_step
 from ssgc.fit.posterior import McmcSettings, posterior_e_step, posterior_scores, sample_posterior
 from ssgc.io.scene import scene_from_tree
@@ -52,8 +61,8 @@ types:
 """
 
 
-def test_the_chain_samples_the_exact_posterior_of_an_ambiguous_scene():
-    g = compile_text(NEST)
+def _ambiguous_scene(g):
+    """A scene of NEST with at least five trees (cups in and beside boxes), all enumerated."""
     trees, _ = sample_trees(g, 50, 3)
     scene = next(
         s
@@ -62,23 +71,63 @@ def test_the_chain_samples_the_exact_posterior_of_an_ambiguous_scene():
     )
     parses = enumerate_parses(g, scene)
     assert len(parses) >= 5
+    return scene, parses
 
+
+@pytest.fixture(scope="module")
+def ambiguous():
+    """NEST, its ambiguous scene's parses, and 40 chains' visit frequencies on them."""
+    g = compile_text(NEST)
+    _, parses = _ambiguous_scene(g)
+    return g, parses, _chain_frequencies(g, parses[0][1])
+
+
+def _chain_frequencies(g, start, chains=40):
+    post = sample_posterior(g, [start] * chains, McmcSettings(samples=100, burn_in=10), 0, 1)
+    freq: Counter[bytes] = Counter()
+    for k in range(post.trees.n_scenes):
+        freq[tree_signature(g, post.trees.tree(k))] += post.weights[k] / chains
+    return freq
+
+
+def _tv(freq, keys, probs):
+    return 0.5 * sum(abs(freq.get(k, 0.0) - p) for k, p in zip(keys, probs, strict=True))
+
+
+def test_the_chain_samples_the_exact_posterior_of_an_ambiguous_scene(ambiguous):
+    g, parses, freq = ambiguous
     exact_scores = posterior_scores(g, Trees.concatenate([t for _, t in parses]))
     exact = np.exp(exact_scores - exact_scores.max())
     exact /= exact.sum()
     keys = [tree_signature(g, t) for _, t in parses]
-    best = parses[0][1]
-    chains = 40
-    post = sample_posterior(g, [best] * chains, McmcSettings(samples=100, burn_in=10), 0, 1)
-    freq: Counter[bytes] = Counter()
-    for k in range(post.trees.n_scenes):
-        freq[tree_signature(g, post.trees.tree(k))] += post.weights[k] / chains
     assert set(freq) <= set(keys)
-    tv = 0.5 * sum(abs(freq.get(k, 0.0) - p) for k, p in zip(keys, exact, strict=True))
     # 4,000 correlated draws over a handful of trees: sampling noise in TV is a few 0.01;
     # the best tree alone (what top-1 would say) is ≥ 0.3 away.
-    assert tv < 0.06
+    assert _tv(freq, keys, exact) < 0.06
     assert 0.5 * (1 - exact[0] + sum(exact[1:])) > 0.3
+
+
+def test_top_n_weights_over_every_tree_are_the_posterior_the_chain_samples(ambiguous):
+    """With N covering every tree, `--estep topn` and `--estep mcmc` estimate one posterior:
+    the top-N weights (from the parse scores, as journalled) must add log c! per repeat node
+    as the chain does.  Without it they are ≥ 0.1 away from the chain's frequencies here."""
+    g, parses, freq = ambiguous
+    records = [
+        {
+            "name": "s",
+            "status": "optimal",
+            "message": "",
+            "scores": [score for score, _ in parses],
+            "trees": [_tree_json(t) for _, t in parses],
+        }
+    ]
+    _, weights, report = _weigh(g, records, 1)
+    keys = [tree_signature(g, t) for _, t in parses]
+    assert _tv(freq, keys, weights) < 0.06
+    ordered = np.exp([score for score, _ in parses])
+    assert _tv(freq, keys, ordered / ordered.sum()) > 0.1  # the check can tell them apart
+    exact = posterior_scores(g, Trees.concatenate([t for _, t in parses]))
+    assert report["log_evidence"] == pytest.approx(float(logsumexp(exact)), rel=1e-12)
 
 
 def _p(updates, name):

@@ -292,23 +292,27 @@ def sample_posterior(
     return Posterior(Trees.concatenate(trees), np.asarray(weights), draws, mass)
 
 
-def posterior_scores(grammar: Grammar, trees: Trees) -> NDArray[np.float64]:
-    """log P(T, scene) for trees whose repeat children are unordered: the tree score plus,
-    per repeat node with c children, log c!.
+def log_orders(grammar: Grammar, trees: Trees) -> NDArray[np.float64]:
+    """Per tree of the batch: the sum over its repeat nodes of log c!, c their children.
 
-    `score_trees` is the probability of one *ordered* draw of the c children, but a scene is
-    a set of objects: every one of the c! orders gives the same set and the same tree.  The
-    factor differs between trees that nest an object and trees that do not (moving a dish
-    from a bin of k into an empty bowl divides it by k), so leaving it out favours nesting.
+    `score_trees` is the probability of one *ordered* draw of a repeat node's c children, but
+    a scene is a set of objects: every one of the c! orders gives the same set and the same
+    tree.  The factor differs between trees that nest an object and trees that do not
+    (moving a dish from a bin of k into an empty bowl divides it by k), so weighing trees
+    without it favours nesting (issue 13).  Both E-steps of `ssg fit` add it.
     """
     kinds = grammar.tables.type_kind
     child = trees.parent >= 0
     under_repeat = child & (kinds[trees.type[np.maximum(trees.parent, 0)]] == Kind.REPEAT)
     counts = np.bincount(trees.parent[under_repeat], minlength=len(trees))
     per_node = gammaln(counts + 1.0)
-    return score_trees(grammar, trees) + np.bincount(
-        trees.scene, per_node, minlength=trees.n_scenes
-    )
+    return np.bincount(trees.scene, per_node, minlength=trees.n_scenes)
+
+
+def posterior_scores(grammar: Grammar, trees: Trees) -> NDArray[np.float64]:
+    """log P(T, scene) for trees whose repeat children are unordered: the tree score plus,
+    per repeat node with c children, log c! (`log_orders`)."""
+    return score_trees(grammar, trees) + log_orders(grammar, trees)
 
 
 def _round(grammar: Grammar, chains: list[_Chain], derivations: Derivations) -> None:
