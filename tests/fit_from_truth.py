@@ -46,7 +46,7 @@ def flatten(updates: list[Update]) -> dict[str, float]:
     return out
 
 
-def read_values(text: str, names: list[str], grammar_text_or_ir: Any) -> dict[str, float]:
+def read_values(text: str, names: list[str]) -> dict[str, float]:
     """The values at `names` in a grammar's YAML (an `or` rule without `p`: its compiled
     weight; an isotropic variance read for every component)."""
     doc = YAML(typ="safe").load(text)
@@ -74,7 +74,7 @@ def read_values(text: str, names: list[str], grammar_text_or_ir: Any) -> dict[st
 def perturbed(text: str, names: list[str]) -> str:
     """The truth moved: count p + 0.2 (at most 0.9), the first `or` weight doubled (then
     renormalised), means + 0.02, variances doubled."""
-    truth = read_values(text, names, None)
+    truth = read_values(text, names)
     by_path: dict[tuple, dict[str, Any]] = {}
     for name, v in truth.items():
         path, _, key = name.rpartition(".")
@@ -122,12 +122,12 @@ def main() -> None:
     scenes = [scene_from_tree(g, trees.tree(i), f"s{i}", float(logp[i])) for i in range(a.n)]
     mle = flatten(m_step(g, trees, np.ones(a.n), FitSettings()))
     names = list(mle)
-    truth = read_values(text, names, None)
+    truth = read_values(text, names)
     start = perturbed(text, names) if a.perturb else text
     table: dict[str, dict[str, float]] = {
         "truth": truth,
         "mle": mle,
-        "start": read_values(start, names, None),
+        "start": read_values(start, names),
     }
     info: dict[str, Any] = {}
     for estep in a.esteps:
@@ -136,12 +136,14 @@ def main() -> None:
         d = Path(tempfile.mkdtemp())
         with FitJournal(d / "j.jsonl", fit_header(start, d, scenes, opts), resume=False) as j:
             res = fit_grammar(start, GrammarSource(a.grammar), scenes, opts, j)
-        table[estep] = read_values(res.text, names, None)
+        table[estep] = read_values(res.text, names)
         info[estep] = {
             "seconds": round(time.monotonic() - t0, 1),
             "log_evidence": [r["log_evidence"] for r in res.iterations],
             "posterior": res.iterations[-1].get("posterior"),
         }
+        if a.json:  # after every fit: a long run's finished columns are kept
+            Path(a.json).write_text(json.dumps({"table": table, "info": info}, indent=1))
     cols = list(table)
     print("| parameter | " + " | ".join(cols) + " |")
     print("|---" * (len(cols) + 1) + "|")
@@ -152,8 +154,6 @@ def main() -> None:
         print(estep, {k: v for k, v in i.items() if k != "posterior"})
         if i["posterior"]:
             print("  posterior:", {k: v for k, v in i["posterior"].items() if k != "spread"})
-    if a.json:
-        Path(a.json).write_text(json.dumps({"table": table, "info": info}, indent=1))
 
 
 if __name__ == "__main__":

@@ -359,7 +359,7 @@ def _posterior(
     """The MCMC E-step (`ssgc.fit.posterior`), from the journalled top-N parses: a function of
     the journal and the seed, so `--resume` and `--jobs` do not change it."""
     scene_trees = [[_tree_from_json(t) for t in r["trees"]] for r in journal.scenes if r["trees"]]
-    mcmc = McmcSettings(samples=options.samples)
+    mcmc = McmcSettings(samples=options.samples, burn_in=options.samples // 2)
     return posterior_e_step(
         grammar,
         scene_trees,
