@@ -173,11 +173,11 @@ def test_an_e_step_at_the_truth_of_the_sink_gives_the_true_tree_estimates():
 
 def test_an_mcmc_fit_resumed_from_its_journal_is_the_same_with_any_jobs(tmp_path):
     g = compile_text(NEST)
-    trees, logp = sample_trees(g, 12, 11)
-    scenes = [scene_from_tree(g, trees.tree(i), f"s{i}", float(logp[i])) for i in range(12)]
+    trees, logp = sample_trees(g, 8, 11)
+    scenes = [scene_from_tree(g, trees.tree(i), f"s{i}", float(logp[i])) for i in range(8)]
 
     def run(path, iterations, jobs, resume):
-        opts = FitOptions(iterations=iterations, estep="mcmc", samples=10, tol=0, jobs=jobs)
+        opts = FitOptions(iterations=iterations, estep="mcmc", samples=6, tol=0, jobs=jobs)
         with FitJournal(path, fit_header(NEST, tmp_path, scenes, opts), resume) as journal:
             return fit_grammar(NEST, GrammarSource("<nest>"), scenes, opts, journal)
 
