@@ -42,7 +42,9 @@ def flatten(updates: list[Update]) -> dict[str, float]:
             if isinstance(v, (int, float)):
                 out[f"{where}.{key}"] = float(v)
             elif isinstance(v, list):
-                out.update({f"{where}.{key}[{j}]": float(x) for j, x in enumerate(v)})
+                out.update(
+                    {f"{where}.{key}[{j}]": float(x) for j, x in enumerate(v) if x is not None}
+                )  # None: a pinned axis, not fitted
     return out
 
 
