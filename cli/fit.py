@@ -1,0 +1,228 @@
+"""`ssg fit`: fit a grammar's parameters to a dataset by approximate EM (docs/fitting.md)."""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from ssgc.cli.app import (
+    AllowOutside,
+    _check_method,
+    _command,
+    _note_discarded,
+    _progress,
+    _summary,
+    app,
+    err,
+)
+from ssgc.errors import SsgError
+from ssgc.io.journal import journal_path
+from ssgc.io.outputs import Output, check_output, lock_outputs, write_output_text
+
+
+class EStep(StrEnum):
+    """`ssg fit --estep` (docs/fitting.md section 1)."""
+
+    topn = "topn"
+    mcmc = "mcmc"
+
+
+@app.command()
+@_command
+def fit(
+    scenes: Annotated[
+        Path,
+        typer.Argument(
+            help="The dataset: a directory of scene JSON files, one scene JSON, or a "
+            "sink-format YAML file.",
+            show_default=False,
+        ),
+    ],
+    grammar: Annotated[Path, typer.Option("-g", "--grammar", help="Grammar YAML to fit.")],
+    output: Annotated[
+        Path, typer.Option("-o", "--output", help="Write the fitted grammar YAML here.")
+    ],
+    iterations: Annotated[int, typer.Option(min=1, help="At most this many EM iterations.")] = 10,
+    top: Annotated[
+        int, typer.Option("--top", min=1, help="Parse trees per scene (the E-step's N).")
+    ] = 10,
+    method: Annotated[str, typer.Option(help="Parsing method: auto | ip | micp.")] = "auto",
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
+    estep: Annotated[
+        EStep, typer.Option(help="topn: weigh the top-N parses; mcmc: sample the posterior.")
+    ] = EStep.topn,
+    samples: Annotated[
+        int, typer.Option(min=1, help="--estep mcmc: sampled rounds per scene.")
+    ] = 100,
+    pseudocount: Annotated[
+        float,
+        typer.Option(
+            min=0.0, help="Added to every possible outcome of a discrete law (0: plain MLE)."
+        ),
+    ] = 0.01,
+    min_variance: Annotated[
+        float, typer.Option(min=1e-300, help="Floor of fitted variances (m²).")
+    ] = 1e-6,
+    tol: Annotated[
+        float,
+        typer.Option(min=0.0, help="Stop when the log-evidence changes less (nats per scene)."),
+    ] = 1e-4,
+    time_limit: Annotated[
+        float | None,
+        typer.Option(
+            "--time-limit",
+            min=0.001,
+            help="Seconds for the whole fit; then the last "
+            "finished iteration's grammar is written.",
+        ),
+    ] = None,
+    report: Annotated[
+        Path | None, typer.Option("--report", help="Write per-iteration numbers (JSON) here.")
+    ] = None,
+    jobs: Annotated[
+        int, typer.Option("--jobs", "-j", min=1, help="Processes parsing scenes (same result).")
+    ] = 1,
+    mmd: Annotated[
+        int,
+        typer.Option(
+            "--mmd",
+            min=0,
+            help="Then compare N scenes sampled from the input and the fitted grammar with the "
+            "dataset: MMD² per object type (0: skip).",
+        ),
+    ] = 0,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Continue an interrupted fit from its journal.")
+    ] = False,
+    allow_outside_files: AllowOutside = False,
+) -> None:
+    """Fit a grammar's parameters to a dataset of scenes by approximate EM (thesis ch. 4).
+
+    Writes the grammar back with only the fitted numbers changed: comments, order and layout
+    are kept.  Exit code 2 when some scene cannot be produced by the grammar.
+    """
+    from ssgc.compile import compile_text
+    from ssgc.fit.em import (
+        FitJournal,
+        FitOptions,
+        GrammarSource,
+        fit_grammar,
+        fit_header,
+        report_json,
+    )
+    from ssgc.fit.metrics import compare_by_mmd
+    from ssgc.fit.mstep import FitSettings
+    from ssgc.io.scene import load_scenes
+    from ssgc.yamlio import MAX_GRAMMAR_BYTES, read_text
+
+    _check_method(method, "highs")
+    # `-o` may be the grammar itself (an in-place update), never the dataset.
+    dest = check_output(output, inputs=[grammar, scenes], in_place=[grammar])
+    report_dest = None
+    if report is not None:
+        report_dest = check_output(report, "report", inputs=[grammar, scenes], others=[dest])
+    if resume and dest.stream:
+        raise SsgError.single("--resume needs -o FILE: the journal is kept next to it", dest.name)
+    text = read_text(grammar, MAX_GRAMMAR_BYTES, "grammar file")
+
+    source = GrammarSource(str(grammar), grammar.parent, allow_outside_files, str(scenes))
+    g = compile_text(text, source.file, source.base_dir, source.allow_outside)
+    items = load_scenes(scenes, g)
+    if not items:
+        raise SsgError.single("the dataset has no scenes", str(scenes))
+    options = FitOptions(
+        iterations=iterations,
+        top=top,
+        method=method,
+        seed=seed,
+        tol=tol,
+        jobs=jobs,
+        estep=estep.value,
+        samples=samples,
+        settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
+    )
+    header = fit_header(text, scenes, items, options)
+    with (
+        lock_outputs([dest, report_dest]),
+        _fit_journal_path(dest) as journal_file,
+        FitJournal(journal_file, header, resume) as journal,
+    ):
+        _note_discarded(journal, quiet)
+        for r in journal.reports:
+            _print_iteration(r, quiet, resumed=True)
+        with _progress(quiet) as progress:
+            task = progress.add_task(
+                f"iteration {journal.iteration}", total=len(items), completed=len(journal.scenes)
+            )
+
+            def on_iteration(r: dict[str, Any]) -> None:
+                _print_iteration(r, quiet)
+                progress.reset(task, description=f"iteration {r['iteration'] + 1}")
+
+            result = fit_grammar(
+                text,
+                source,
+                items,
+                options,
+                journal,
+                time_limit=time_limit,
+                on_scene=lambda: progress.advance(task),
+                on_iteration=on_iteration,
+            )
+        if mmd:
+            fitted = compile_text(result.text, source.file, source.base_dir, allow_outside_files)
+            result.mmd = compare_by_mmd({"input": g, "fitted": fitted}, items, mmd, seed)
+            _print_mmd(result.mmd, quiet)
+        kept = None if dest.stream else journal.path
+        write_output_text(dest, result.text, kept)
+        if report_dest is not None:
+            write_output_text(report_dest, report_json(result), kept)
+        if result.status != "time_limit":
+            journal.delete()
+    if not quiet:
+        _summary(dest, f"{result.message}; wrote {dest.name}")
+
+
+@contextmanager
+def _fit_journal_path(dest: Output) -> Iterator[Path]:
+    """The fit journal's place: next to the output file, or, for a stream (which cannot be
+    resumed), in a temporary directory removed at the end."""
+    if not dest.stream:
+        yield journal_path(dest.target)
+        return
+    with tempfile.TemporaryDirectory(prefix="ssg-fit-") as tmp:
+        yield Path(tmp) / "fit.partial.jsonl"
+
+
+def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:
+    if quiet:
+        return
+    names = sorted({name for per_type in mmd.values() for name in per_type})
+    for name in names:
+        values = ", ".join(
+            f"{which} {per_type[name]:.4g}" for which, per_type in mmd.items() if name in per_type
+        )
+        err.print(f"MMD² {name}: {values}", markup=False, highlight=False)
+
+
+def _print_iteration(r: dict[str, Any], quiet: bool, resumed: bool = False) -> None:
+    if quiet:
+        return
+    line = (
+        f"iteration {r['iteration']}: log-evidence {r['log_evidence']:.4f} "
+        f"(mean best tree {r['mean_best_score']:.4f}), {r['scenes']} scene(s), "
+        f"{r['trees']} tree(s)"
+    )
+    line += " (from the journal)" if resumed else f", {r['seconds']:.2f} s"
+    err.print(line, markup=False, highlight=False)
+    for s in r.get("skipped", []):
+        err.print(f"  skipped {s}", markup=False, highlight=False)
+    if "warning" in r.get("posterior", {}):
+        err.print(f"  warning: {r['posterior']['warning']}", markup=False, highlight=False)
