@@ -427,14 +427,14 @@ def _round(grammar: Grammar, chains: list[_Chain], derivations: Derivations) -> 
             c.set_tree(_attach(st, pick))
 
 
-SPREAD_KEYS = ("p", "probs", "mean", "variance", "concentration")
+SPREAD_KEYS = ("p", "probs", "mean", "variance")
 
 
 def spread(updates_per_draw: list[list[Any]]) -> dict[str, dict[str, float]]:
-    """Per fitted number (a `p`, every entry of a `probs`, a mean or variance component, a
-    Bingham concentration): mean and standard deviation of its estimate across complete-data
-    draws (one sampled tree per scene).  A number the M-step sets in only some draws (an
-    outcome no sampled tree uses) is left out."""
+    """Per fitted number (a `p`, every entry of a `probs`, a mean or variance component; not
+    the rotation laws, whose fits would be most of the E-step's time): mean and standard
+    deviation of its estimate across complete-data draws (one sampled tree per scene).  A
+    number the M-step sets in only some draws (an outcome no sampled tree uses) is left out."""
     values: dict[str, list[float]] = {}
     for updates in updates_per_draw:
         for u in updates:
@@ -481,7 +481,8 @@ def posterior_e_step(
     if post is None:
         return None
     per_draw = [
-        m_step(grammar, draw, np.ones(len(scene_trees)), fit_settings, ties) for draw in post.draws
+        m_step(grammar, draw, np.ones(len(scene_trees)), fit_settings, ties, rotations=False)
+        for draw in post.draws
     ]
     mass = np.asarray(post.topn_mass)
     report: dict[str, Any] = {
