@@ -1036,9 +1036,7 @@ def test_fuzz_render(work: Path, data: bytes, with_grammar: bool) -> None:
     assert not list(work.glob(".picture.png.*"))
 
 
-def check_fit(
-    work: Path, dataset: Path, grammar: Path, data: bytes, estep: str = "topn"
-) -> None:
+def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes, estep: str = "topn") -> None:
     """`ssg fit` on anything: the contract, and a fitted grammar that compiles or no file."""
     out = work / "fitted.yaml"
     out.unlink(missing_ok=True)
