@@ -56,7 +56,7 @@ def fit(
         EStep, typer.Option(help="topn: weigh the top-N parses; mcmc: sample the posterior.")
     ] = EStep.topn,
     samples: Annotated[
-        int, typer.Option(min=1, help="--estep mcmc: sampled rounds per scene.")
+        int, typer.Option(min=1, help="--estep mcmc: rounds kept per scene (after S/2 of burn-in).")
     ] = 100,
     pseudocount: Annotated[
         float,

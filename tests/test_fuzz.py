@@ -1080,11 +1080,13 @@ def test_fuzz_view(work: Path, data: bytes, with_grammar: bool) -> None:
     assert not list(work.glob(".page.html.*"))
 
 
-def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes) -> None:
+def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes, estep: str = "topn") -> None:
     """`ssg fit` on anything: the contract, and a fitted grammar that compiles or no file."""
     out = work / "fitted.yaml"
     out.unlink(missing_ok=True)
-    args = ["fit", str(dataset), "-g", str(grammar), "-o", str(out), "-q"]
+    args = ["fit", str(dataset), "-g", str(grammar), "-o", str(out), "-q", "--estep", estep]
+    if estep == "mcmc":
+        args += ["--samples", "4"]
     result, seconds = invoke([*args, "--iterations", "2", "--top", "2", "--time-limit", "5"])
     check(result, seconds, {0, 1, 2}, [dataset, grammar, out], data)
     if result.exit_code == 0:
@@ -1094,8 +1096,8 @@ def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes) -> None:
 
 
 @fuzz(quick=8)
-@given(data=grammar_inputs())
-def test_fuzz_fit_grammar(work: Path, data: bytes) -> None:
+@given(data=grammar_inputs(), estep=st.sampled_from(["topn", "mcmc"]))
+def test_fuzz_fit_grammar(work: Path, data: bytes, estep: str) -> None:
     """Fuzzed grammars fitted to scenes they sampled themselves (when they can sample)."""
     path = write(work / "grammar.yaml", data)
     scenes = work / "fit_scenes"
@@ -1103,13 +1105,17 @@ def test_fuzz_fit_grammar(work: Path, data: bytes) -> None:
     result, _ = invoke(["sample", str(path), "-n", "3", "-o", str(scenes), "-q"])
     if result.exit_code != 0:
         scenes.mkdir(exist_ok=True)  # an empty dataset: refused, with a message
-    check_fit(work, scenes, path, data)
+    check_fit(work, scenes, path, data, estep)
 
 
 @fuzz(quick=30)
-@given(data=scene_json_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
-def test_fuzz_fit_dataset(work: Path, data: bytes, grammar: str) -> None:
-    check_fit(work, write(work / "dataset.json", data), GRAMMARS / grammar, data)
+@given(
+    data=scene_json_inputs(),
+    grammar=st.sampled_from(PARSE_GRAMMARS),
+    estep=st.sampled_from(["topn", "mcmc"]),
+)
+def test_fuzz_fit_dataset(work: Path, data: bytes, grammar: str, estep: str) -> None:
+    check_fit(work, write(work / "dataset.json", data), GRAMMARS / grammar, data, estep)
 
 
 @fuzz(quick=12)

@@ -2,14 +2,16 @@
 
 Each iteration parses every scene with the current grammar (top-N distinct trees, the
 E-step), weighs each scene's trees by their posterior under the current parameters (the
-softmax of their scores), and sets every parameter to its weighted maximum-likelihood value
-(`ssgc.fit.mstep`, the M-step).  The new numbers are written into the grammar's YAML text
-(`ssgc.fit.writeback`) and the next iteration compiles that text: what the user gets is
-exactly the grammar the last iteration fitted.
+softmax of their scores plus log c! per repeat node with c children: the parse score is that
+of one ordered draw of the children, the scene is their set), and sets every parameter to its
+weighted maximum-likelihood value (`ssgc.fit.mstep`, the M-step).  The new numbers are
+written into the grammar's YAML text (`ssgc.fit.writeback`) and the next iteration compiles
+that text: what the user gets is exactly the grammar the last iteration fitted.
 
 The log-evidence reported per iteration is the thesis's estimate: for every scene, the
-log-sum-exp of its top-N tree scores.  It is a lower bound of the true log-evidence (only N
-trees are summed), so it is comparable between iterations with the same N, not across N.
+log-sum-exp of the same numbers over its top-N trees.  It is a lower bound of the true
+log-evidence (only N trees are summed), so it is comparable between iterations with the same
+N, not across N.
 
 Work is journalled (`FitJournal`): every parsed scene and every finished iteration is on disk
 before the next starts, so `--resume` redoes nothing that was finished.  The results do not
@@ -31,13 +33,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.special import logsumexp
 
 from ssgc.compile import compile_text
 from ssgc.errors import SsgError
 from ssgc.fit.estep import parse_scenes
 from ssgc.fit.mstep import FitSettings, Ties, m_step
-from ssgc.fit.posterior import McmcSettings, posterior_e_step
+from ssgc.fit.posterior import McmcSettings, log_orders, posterior_e_step
 from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
 from ssgc.io.journal import Journal, journal_path, scenes_digest
 from ssgc.io.scene import Scene
@@ -201,7 +202,7 @@ def fit_grammar(
             journal.add_scene(record)
             if on_scene is not None:
                 on_scene()
-        trees, weights, report = _weigh(journal.scenes, journal.iteration)
+        trees, weights, report = _weigh(grammar, journal.scenes, journal.iteration)
         if options.estep == "mcmc":
             sampled = _posterior(grammar, journal, options, ties, deadline)
             if sampled is None:  # resumed, the journalled parses give the same chains
@@ -334,34 +335,43 @@ def _tree_json(tree: Trees) -> dict[str, list[Any]]:
 
 
 def _weigh(
-    records: list[dict[str, Any]], iteration: int
+    grammar: Grammar, records: list[dict[str, Any]], iteration: int
 ) -> tuple[Trees, np.ndarray, dict[str, Any]]:
-    """All trees as one batch, each weighted by its posterior within its scene; the report."""
-    batches, weights, evidence, best = [], [], [], []
-    skipped = []
+    """All trees as one batch, each weighted by its posterior within its scene; the report.
+
+    A tree's log-posterior (up to the scene's constant) is its parse score plus `log_orders`
+    (log c! per repeat node with c children): the parser scores one ordered draw of the
+    children, the scene is their set (`ssgc.fit.posterior.log_orders`).  The log-evidence is
+    that of the set, the log-sum-exp of the same numbers.
+    """
+    batches, per_scene, skipped = [], [], []
     for r in records:
-        scores = np.asarray(r["scores"], float)
-        if scores.size == 0:
+        if not r["scores"]:
             skipped.append(f"{r['name']}: {r['status']}: {r['message']}")
             continue
-        lse = float(logsumexp(scores))
-        evidence.append(lse)
-        best.append(float(scores.max()))
-        weights.append(np.exp(scores - lse))
+        per_scene.append(len(r["scores"]))
         batches += [_tree_from_json(t) for t in r["trees"]]
     if not batches:
         raise SsgError.single("no scene could be parsed, so there is nothing to fit to")
+    trees = Trees.concatenate(batches)
+    raw = np.concatenate([np.asarray(r["scores"], float) for r in records if r["scores"]])
+    scores = raw + log_orders(grammar, trees)
+    scene = np.repeat(np.arange(len(per_scene)), per_scene)
+    best = np.full(len(per_scene), -np.inf)
+    np.maximum.at(best, scene, scores)
+    shifted = np.exp(scores - best[scene])
+    lse = best + np.log(np.bincount(scene, shifted, minlength=len(per_scene)))
     report = {
         "iteration": iteration,
-        "log_evidence": float(np.sum(evidence)),
+        "log_evidence": float(np.sum(lse)),
         "mean_best_score": float(np.mean(best)),
-        "scenes": len(evidence),
+        "scenes": len(per_scene),
         "trees": len(batches),
         "skipped": skipped,
         # optimal: the best tree is certified; feasible: a tree, not proven best
         "statuses": dict(sorted(Counter(str(r["status"]) for r in records).items())),
     }
-    return Trees.concatenate(batches), np.concatenate(weights), report
+    return trees, np.exp(scores - lse[scene]), report
 
 
 def _posterior(
@@ -370,7 +380,7 @@ def _posterior(
     """The MCMC E-step (`ssgc.fit.posterior`), from the journalled top-N parses: a function of
     the journal and the seed, so `--resume` and `--jobs` do not change it."""
     scene_trees = [[_tree_from_json(t) for t in r["trees"]] for r in journal.scenes if r["trees"]]
-    mcmc = McmcSettings(samples=options.samples)
+    mcmc = McmcSettings(samples=options.samples, burn_in=options.samples // 2)
     return posterior_e_step(
         grammar,
         scene_trees,

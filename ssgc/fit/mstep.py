@@ -80,8 +80,13 @@ def m_step(
     tree_weight: FloatArray,
     settings: FitSettings,
     ties: Ties | None = None,
+    rotations: bool = True,
 ) -> list[Update]:
-    """New values for every fittable parameter that the weighted trees say something about."""
+    """New values for every fittable parameter that the weighted trees say something about.
+
+    `rotations=False` leaves the rotation laws out: their Bingham fits are most of an M-step's
+    time, and the posterior E-step's per-draw spread (`ssgc.fit.posterior`) repeats the M-step
+    twenty times for the discrete laws and the translations."""
     ties = ties or Ties.none(grammar)
     node_weight = tree_weight[trees.scene]
     counts, exists, blocked = fired_slots(grammar, trees)
@@ -99,10 +104,10 @@ def m_step(
     by_translation = _groups(ties.translation[edges.rule], len(grammar.rules))
     by_rotation = _groups(ties.rotation[edges.rule], len(grammar.rules))
     for rule in grammar.rules:
-        for law, take, local in (
-            (rule.translation, by_translation[rule.id], edges.u),
-            (rule.rotation, by_rotation[rule.id], edges.q),
-        ):
+        parts = [(rule.translation, by_translation[rule.id], edges.u)]
+        if rotations:
+            parts.append((rule.rotation, by_rotation[rule.id], edges.q))
+        for law, take, local in parts:
             if law.fits and take.size:
                 values = law.fit(local[take], edges.weight[take], settings)
                 if values is not None:
