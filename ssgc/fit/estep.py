@@ -1,27 +1,21 @@
 """The E-step's parsing: every scene's top-N trees, in one process or in several.
 
-Scenes are independent, so `jobs` worker processes parse them side by side.  Results come
-back in scene order (`imap`), so the journal, and therefore the fit, is the same for any
-number of jobs.  Workers are forked with the iteration's parser already built (nothing is
-pickled but scene indices and results), ignore Ctrl-C (the main process handles it and
-stops them), and die with the main process if it is killed, so a SIGKILLed fit leaves no
-orphans behind.
+Scenes are independent, so `jobs` worker processes parse them side by side
+(`ssgc.forked.ordered_map`: forked with the iteration's parser already built).  Results come
+back in scene order, so the journal, and therefore the fit, is the same for any number of
+jobs.
 """
 
 from __future__ import annotations
 
-import ctypes
-import multiprocessing
-import signal
-import sys
+import functools
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
+from ssgc.forked import ordered_map
 from ssgc.io.scene import Scene
 from ssgc.parse.parser import Parser, SceneParses
-
-_PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 @dataclass(frozen=True)
@@ -39,9 +33,6 @@ class _Work:
     deadline: float | None  # time.monotonic() value, the same clock in every process
 
 
-_work: _Work | None = None  # what forked workers parse with
-
-
 def parse_scenes(
     parser: Parser,
     scenes: Sequence[Scene],
@@ -52,20 +43,8 @@ def parse_scenes(
 ) -> Iterator[Parsed]:
     """Parse scenes `start`, `start + 1`, ... in order; each gets the time left until
     `deadline`.  The caller may stop iterating at any point (the workers are then stopped)."""
-    global _work
     work = _Work(parser, scenes, top, deadline)
-    indices = range(start, len(scenes))
-    if jobs <= 1 or len(indices) <= 1:
-        for index in indices:
-            yield _parse(work, index)
-        return
-    _work = work
-    context = multiprocessing.get_context("fork")
-    try:
-        with context.Pool(min(jobs, len(indices)), initializer=_worker_setup) as pool:
-            yield from pool.imap(_parse_in_worker, indices, chunksize=1)
-    finally:
-        _work = None
+    yield from ordered_map(functools.partial(_parse, work), range(start, len(scenes)), jobs)
 
 
 def _parse(work: _Work, index: int) -> Parsed:
@@ -76,18 +55,3 @@ def _parse(work: _Work, index: int) -> Parsed:
         return Parsed(index, None, limit)
     result = work.parser.parse(work.scenes[index], top=work.top, time_limit=limit)
     return Parsed(index, result, limit)
-
-
-def _parse_in_worker(index: int) -> Parsed:
-    assert _work is not None, "workers are forked after the work is set"
-    return _parse(_work, index)
-
-
-def _worker_setup() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if sys.platform.startswith("linux"):
-        try:
-            libc = ctypes.CDLL("libc.so.6", use_errno=True)
-            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-        except OSError:
-            pass  # no such libc: a killed fit's workers then linger until their pipe closes
