@@ -138,7 +138,13 @@ def _complete(doc: dict[str, Any]) -> bool:
 MANIFEST = "ssg-sample.manifest"  # not *.json: a dataset directory's *.json files are scenes
 MANIFEST_FORMAT = "ssgc.sample-run/1"
 SAME_RUN = (
-    "grammar", "grammar_sha256", "seed", "count", "width", "constraints", "method"
+    "grammar",
+    "grammar_sha256",
+    "seed",
+    "count",
+    "width",
+    "constraints",
+    "method",
 )  # what --resume compares
 _SCENE_NAME = re.compile(r"[A-Za-z0-9_.-]*_[0-9]+\.json")  # the names `ssg sample` gives
 
