@@ -32,7 +32,7 @@ from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
 from ssgc.laws.base import Context, Deviation, Frame, percent
-from ssgc.observation import unexplained_objects
+from ssgc.observation import clutter_nodes
 from ssgc.rules import (
     rotation_coordinates,
     rotation_log_density,
@@ -321,6 +321,12 @@ def match_objects(grammar: Grammar, scene: Scene, tree: Trees) -> IntArray:
         rows, cols = linear_sum_assignment(cost)
         obj_of[nodes[rows]] = objs[cols]
     return obj_of
+
+
+def unexplained_objects(grammar: Grammar, scene: Scene, tree: Trees) -> list[int]:
+    """The scene's objects that `tree` leaves to clutter (their indices, in scene order)."""
+    obj_of = match_objects(grammar, scene, tree)
+    return sorted(int(o) for o in obj_of[clutter_nodes(grammar, tree) & (obj_of >= 0)])
 
 
 def blocks(grammar: Grammar, tree: Trees) -> IntArray:

@@ -57,7 +57,6 @@ from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.laws.rotation_uniform import UniformRotation
 
 if TYPE_CHECKING:
-    from ssgc.io.scene import Scene
     from ssgc.tree import Trees
 
 LOC: Loc = ("observation",)
@@ -446,11 +445,3 @@ def clutter_nodes(grammar: Grammar, tree: Trees) -> NDArray[np.bool_]:
         & (role[parent_type] == "clutter")
         & grammar.tables.type_observed[tree.type]
     )
-
-
-def unexplained_objects(grammar: Grammar, scene: Scene, tree: Trees) -> list[int]:
-    """The scene's objects that `tree` leaves to clutter (their indices, in scene order)."""
-    from ssgc.explain import match_objects  # explain reads this module's results
-
-    obj_of = match_objects(grammar, scene, tree)
-    return sorted(int(o) for o in obj_of[clutter_nodes(grammar, tree) & (obj_of >= 0)])

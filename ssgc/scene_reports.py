@@ -14,12 +14,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ssgc.explain import diagnose, explain_tree
+from ssgc.explain import diagnose, explain_tree, unexplained_objects
 from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
 from ssgc.io.outputs import Output, write_output
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar
-from ssgc.observation import unexplained_objects
 from ssgc.parse.parser import Parser, SceneParses, result_to_json
 
 DIAGNOSE_S = 20.0  # seconds (at most) to find the objects that rule out an infeasible scene

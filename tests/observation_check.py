@@ -21,11 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from ssgc.compile import compile_text, load_grammar
-from ssgc.explain import blocks, match_objects
+from ssgc.explain import blocks, match_objects, unexplained_objects
 from ssgc.geometry import axis_angle_to_quat, quat_multiply
 from ssgc.io.scene import Scene, load_scenes
 from ssgc.ir import Grammar
-from ssgc.observation import unexplained_objects
 from ssgc.parse.parser import Parser
 from ssgc.tree import Trees
 

@@ -18,12 +18,11 @@ from typer.testing import CliRunner
 from ssgc.cli.app import app
 from ssgc.compile import compile_text
 from ssgc.errors import GrammarError
-from ssgc.explain import UnexplainedScene, explain
+from ssgc.explain import UnexplainedScene, explain, unexplained_objects
 from ssgc.fit.em import parameter_ties
 from ssgc.io.scene import Scene, scene_from_tree
 from ssgc.laws.position_normal import NormalTranslation
 from ssgc.laws.rotation_bingham import BinghamRotation
-from ssgc.observation import unexplained_objects
 from ssgc.parse.parser import Parser
 from ssgc.sample.forward import sample_trees
 from ssgc.score import score_trees
