@@ -8,6 +8,7 @@ reported in one paragraph (set SSG_DEBUG=1 for the traceback), still never a raw
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -190,9 +191,37 @@ def _one_of(names: tuple[str, ...]) -> str:
     return ", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0]
 
 
+class _CtrlC:
+    """A Ctrl-C is never lost.  Python raises KeyboardInterrupt wherever the main thread is;
+    where it cannot propagate (a destructor run by the garbage collector, a callback), it is
+    printed as "Exception ignored" and the command would go on.  So the press is remembered,
+    and the next step of a long command (each scene of a progress bar) raises it again."""
+
+    pressed = False
+
+    @classmethod
+    def handler(cls, signum: int, frame: Any) -> None:
+        cls.pressed = True
+        raise KeyboardInterrupt
+
+    @classmethod
+    def install(cls) -> None:
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored
+            signal.signal(signal.SIGINT, cls.handler)
+
+
+class _Steps(Progress):
+    """rich's progress bar, whose every step is a point where a remembered Ctrl-C is raised."""
+
+    def advance(self, task_id: Any, advance: float = 1) -> None:
+        if _CtrlC.pressed:
+            raise KeyboardInterrupt
+        super().advance(task_id, advance)
+
+
 @contextmanager
 def _progress(quiet: bool) -> Iterator[Progress]:
-    progress = Progress(
+    progress = _Steps(
         TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
@@ -225,6 +254,7 @@ from ssgc.cli import view as _view  # noqa: E402, F401  (`ssg view`)
 
 def main() -> None:
     np.seterr(all="ignore")  # -inf log-probabilities are expected values, not warnings
+    _CtrlC.install()
     try:
         app()
         code: Any = 0

@@ -147,7 +147,7 @@ def test_sample_interrupted_with_ctrl_c_then_resumed(reference: Path, tmp_path: 
     code, stderr = interrupt_when(
         proc, lambda: out.is_dir() and len(scene_files(out)) >= 300, signal.SIGINT
     )
-    assert code == 130 and "interrupted" in stderr and "Traceback" not in stderr
+    assert code == 130 and "interrupted" in stderr and "Traceback" not in stderr, (code, stderr)
     assert_only_complete_scenes(out, temps_allowed=False)
     assert 300 <= len(scene_files(out)) < N_REF
     result = run("sample", SINK, "-n", N_REF, "-o", out, "--resume", "-q")
@@ -265,7 +265,7 @@ def test_parse_killed_interrupted_and_resumed(tmp_path: Path) -> None:
 
     resumed = start("parse", SINK_DATA, "-g", SINK, "-o", out, "--resume")
     code, stderr = interrupt_when(resumed, journalled(len(lines) + 10), signal.SIGINT)
-    assert code == 130 and "interrupted" in stderr and "Traceback" not in stderr
+    assert code == 130 and "interrupted" in stderr and "Traceback" not in stderr, (code, stderr)
     assert out.read_text() == "the previous version\n"
     assert [temp_target(p.name) for p in tmp_path.iterdir() if temp_target(p.name)] == []
 
@@ -407,7 +407,7 @@ def test_fit_killed_interrupted_and_resumed(
     code, stderr = interrupt_when(
         start(*args, "--resume"), journalled(1 + 2 * (n + 1) + 20), signal.SIGINT
     )
-    assert code == 130 and "interrupted" in stderr and "Traceback" not in stderr
+    assert code == 130 and "interrupted" in stderr and "Traceback" not in stderr, (code, stderr)
     assert out.read_text() == "the previous version\n" and not report.exists()
     assert [p.name for p in tmp_path.iterdir() if temp_target(p.name)] == []
 
