@@ -65,6 +65,26 @@ class Trees:
             keep,
         )
 
+    def select(self, keep: NDArray[np.bool_]) -> Trees:
+        """The trees with keep[i] True, renumbered, in their order, each tree's nodes together
+        (a store whose trees are interleaved, level by level, comes out grouped) and parents
+        before children."""
+        idx = np.flatnonzero(keep[self.scene])
+        idx = idx[np.argsort(self.scene[idx], kind="stable")]
+        new = np.full(len(self), -1, np.int64)
+        new[idx] = np.arange(len(idx))
+        renumber = np.cumsum(keep) - 1
+        par = self.parent[idx]
+        return Trees(
+            scene=renumber[self.scene[idx]],
+            type=self.type[idx],
+            parent=np.where(par >= 0, new[np.maximum(par, 0)], -1),
+            rule=self.rule[idx],
+            xyz=self.xyz[idx],
+            quat=self.quat[idx],
+            n_scenes=int(np.count_nonzero(keep)),
+        )
+
     @staticmethod
     def concatenate(batches: list[Trees]) -> Trees:
         """Join batches into one, renumbering trees and parent indices."""

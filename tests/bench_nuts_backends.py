@@ -22,7 +22,6 @@ from ssgc.compile import load_grammar
 from ssgc.sample.forward import sample_chunk
 from ssgc.sample.hmc import FixedTrees
 from ssgc.sample.nuts import DualAveraging, Nuts
-from ssgc.sample.poses import subset
 
 EPS, WARMUP, DRAWS = 1e-3, 200, 200
 R, HALF, LO, HI = 0.05, 0.15, -0.1, 0.1
@@ -50,7 +49,7 @@ def trees_with(n_discs: int, chains: int):  # type: ignore[no-untyped-def]
     counts = np.bincount(t.scene, minlength=t.n_scenes) - 1
     keep = counts == n_discs
     keep &= np.cumsum(keep) <= chains
-    return g, subset(t, keep)
+    return g, t.select(keep)
 
 
 def numpy_nuts(n_discs: int, chains: int) -> None:

@@ -10,7 +10,6 @@ from numpy.typing import NDArray
 
 from ssgc.constraints.base import Constraint
 from ssgc.ir import Grammar
-from ssgc.sample.poses import subset
 from ssgc.sample.staged import Outcome
 from ssgc.score import score_trees
 from ssgc.tree import Trees
@@ -61,7 +60,7 @@ class Judge:
         chain: dict[str, FloatArray],
     ) -> ChainOutcome:
         """The kept trees, with every constraint's margin evaluated on them afresh."""
-        kept = subset(trees, keep)
+        kept = trees.select(keep)
         margins = {c.name: c.margin(kept) for c in self.constraints}
         return ChainOutcome(
             trees=kept,

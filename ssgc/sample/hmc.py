@@ -30,7 +30,7 @@ from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.forward import sample_chunk
 from ssgc.sample.lawspace import Coords
 from ssgc.sample.nuts import DualAveraging, Nuts
-from ssgc.sample.poses import Levels, local_poses, pullback, subset, world_poses
+from ssgc.sample.poses import Levels, local_poses, pullback, world_poses
 from ssgc.sample.staged import _check
 from ssgc.tree import Trees
 
@@ -85,7 +85,7 @@ def hmc_batch(
     trees, _ = sample_chunk(grammar, rng, size)
     ok = judge.judge(judge.margins(trees, ("structure",)), np.ones(size, bool))
     ok &= np.cumsum(ok) <= settings.max_chains
-    trees = subset(trees, ok)
+    trees = trees.select(ok)
     final, stats, exact = run_chains(grammar, trees, constraints, rng, settings, deadline)
     judge.judge(judge.margins(final, ("pose",)), np.ones(final.n_scenes, bool))
     return judge.outcome(grammar, final, exact, size, stats)

@@ -99,24 +99,6 @@ def pullback(grammar: Grammar, trees: Trees, g_xyz: FloatArray, levels: Levels) 
     return out
 
 
-def subset(trees: Trees, keep: NDArray[np.bool_]) -> Trees:
-    """The trees with keep[i] True, renumbered, in their order."""
-    idx = np.flatnonzero(keep[trees.scene])
-    new = np.full(len(trees), -1, np.int64)
-    new[idx] = np.arange(len(idx))
-    renumber = np.cumsum(keep) - 1
-    par = trees.parent[idx]
-    return Trees(
-        scene=renumber[trees.scene[idx]],
-        type=trees.type[idx],
-        parent=np.where(par >= 0, new[np.maximum(par, 0)], -1),
-        rule=trees.rule[idx],
-        xyz=trees.xyz[idx],
-        quat=trees.quat[idx],
-        n_scenes=int(keep.sum()),
-    )
-
-
 def choose(a: Trees, b: Trees, take_b: NDArray[np.bool_]) -> Trees:
     """Tree i of `b` where take_b[i], else tree i of `a` (both batches of the same count)."""
     na = np.flatnonzero(~take_b[a.scene])

@@ -23,7 +23,7 @@ from ssgc.ir import Grammar
 from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.forward import sample_chunk
 from ssgc.sample.lawspace import BOX, Coords
-from ssgc.sample.poses import Levels, local_poses, pullback, subset, world_poses
+from ssgc.sample.poses import Levels, local_poses, pullback, world_poses
 from ssgc.sample.staged import _check
 from ssgc.tree import Trees
 
@@ -44,7 +44,7 @@ def project_batch(
     trees, _ = sample_chunk(grammar, rng, size)
     ok = judge.judge(judge.margins(trees, ("structure",)), np.ones(size, bool))
     ok &= np.cumsum(ok) <= MAX_TREES
-    trees = subset(trees, ok)
+    trees = trees.select(ok)
     pose = [c for c in constraints if c.kind != "structure"]
     projected, moved, iters = [], np.zeros(trees.n_scenes), np.zeros(trees.n_scenes)
     for i in range(trees.n_scenes):

@@ -671,20 +671,8 @@ class _Stats:
 
 def _as_trees(nodes: Nodes, keep: NDArray[np.bool_]) -> Trees:
     """The kept candidates as a `Trees` batch: grouped by tree, parents before children."""
-    idx = np.flatnonzero(keep[nodes.scene])
-    idx = idx[np.argsort(nodes.scene[idx], kind="stable")]
-    new = np.full(len(nodes.type), -1, np.int64)
-    new[idx] = np.arange(len(idx))
-    scenes = np.flatnonzero(keep)
-    renumber = np.full(nodes.n_scenes, -1, np.int64)
-    renumber[scenes] = np.arange(len(scenes))
-    par = nodes.parent[idx]
-    return Trees(
-        scene=renumber[nodes.scene[idx]],
-        type=nodes.type[idx],
-        parent=np.where(par >= 0, new[np.maximum(par, 0)], -1),
-        rule=nodes.rule[idx],
-        xyz=nodes.xyz[idx],
-        quat=nodes.quat[idx],
-        n_scenes=len(scenes),
+    assert nodes.xyz is not None and nodes.quat is not None, "poses are drawn first"
+    every = Trees(
+        nodes.scene, nodes.type, nodes.parent, nodes.rule, nodes.xyz, nodes.quat, nodes.n_scenes
     )
+    return every.select(keep)
