@@ -45,7 +45,7 @@ def parse(
     time_limit: Annotated[
         float | None, typer.Option("--time-limit", min=0.001, help="Seconds per scene.")
     ] = None,
-    solver: Annotated[str, typer.Option(help="highs | scip")] = "highs",
+    solver: Annotated[str, typer.Option(help="highs: the MILP solver of this build.")] = "highs",
     output: Annotated[
         Path | None, typer.Option("-o", "--output", help="Write JSON here (default: stdout).")
     ] = None,
