@@ -9,6 +9,7 @@ from typing import Annotated, Any
 
 import typer
 
+from ssgc.api import fit_defaults, fit_options
 from ssgc.cli.app import (
     AllowOutside,
     _check_method,
@@ -23,12 +24,17 @@ from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
 from ssgc.io.outputs import check_output, lock_outputs, write_output_text
 
+DEFAULTS = fit_defaults()  # `ssgc.fit`'s: one place for the defaults of the API and the command
+
 
 class EStep(StrEnum):
     """`ssg fit --estep` (docs/fitting.md section 1)."""
 
     topn = "topn"
     mcmc = "mcmc"
+
+
+DEFAULT_ESTEP = EStep(DEFAULTS["estep"])
 
 
 @app.command()
@@ -46,31 +52,35 @@ def fit(
     output: Annotated[
         Path, typer.Option("-o", "--output", help="Write the fitted grammar YAML here.")
     ],
-    iterations: Annotated[int, typer.Option(min=1, help="At most this many EM iterations.")] = 10,
+    iterations: Annotated[
+        int, typer.Option(min=1, help="At most this many EM iterations.")
+    ] = DEFAULTS["iterations"],
     top: Annotated[
         int, typer.Option("--top", min=1, help="Parse trees per scene (the E-step's N).")
-    ] = 10,
-    method: Annotated[str, typer.Option(help="Parsing method: auto | ip | micp.")] = "auto",
-    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
+    ] = DEFAULTS["top"],
+    method: Annotated[str, typer.Option(help="Parsing method: auto | ip | micp.")] = DEFAULTS[
+        "method"
+    ],
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = DEFAULTS["seed"],
     estep: Annotated[
         EStep, typer.Option(help="topn: weigh the top-N parses; mcmc: sample the posterior.")
-    ] = EStep.topn,
+    ] = DEFAULT_ESTEP,
     samples: Annotated[
         int, typer.Option(min=1, help="--estep mcmc: rounds kept per scene (after S/2 of burn-in).")
-    ] = 100,
+    ] = DEFAULTS["samples"],
     pseudocount: Annotated[
         float,
         typer.Option(
             min=0.0, help="Added to every possible outcome of a discrete law (0: plain MLE)."
         ),
-    ] = 0.01,
+    ] = DEFAULTS["pseudocount"],
     min_variance: Annotated[
         float, typer.Option(min=1e-300, help="Floor of fitted variances (m²).")
-    ] = 1e-6,
+    ] = DEFAULTS["min_variance"],
     tol: Annotated[
         float,
         typer.Option(min=0.0, help="Stop when the log-evidence changes less (nats per scene)."),
-    ] = 1e-4,
+    ] = DEFAULTS["tol"],
     time_limit: Annotated[
         float | None,
         typer.Option(
@@ -85,7 +95,7 @@ def fit(
     ] = None,
     jobs: Annotated[
         int, typer.Option("--jobs", "-j", min=1, help="Processes parsing scenes (same result).")
-    ] = 1,
+    ] = DEFAULTS["jobs"],
     mmd: Annotated[
         int,
         typer.Option(
@@ -114,20 +124,10 @@ def fit(
     Writes the grammar back with only the fitted numbers changed: comments, order and layout
     are kept.  Exit code 2 when some scene cannot be produced by the grammar.
     """
-    from ssgc.compile import compile_text
-    from ssgc.fit.em import (
-        FitJournal,
-        FitOptions,
-        GrammarSource,
-        fit_grammar,
-        fit_header,
-        fit_journal_file,
-        report_json,
-    )
+    from ssgc.api import Grammar, load_grammar, open_fit
+    from ssgc.fit.em import report_json
     from ssgc.fit.metrics import compare_by_mmd
-    from ssgc.fit.mstep import FitSettings
     from ssgc.io.scene import load_scenes
-    from ssgc.yamlio import MAX_GRAMMAR_BYTES, read_text
 
     _check_method(method, "highs")
     # `-o` may be the grammar itself (an in-place update), never the dataset.
@@ -143,30 +143,25 @@ def fit(
         plots = check_plot_outputs(plot, [grammar, scenes], [dest, report_dest])
     if resume and dest.stream:
         raise SsgError.single("--resume needs -o FILE: the journal is kept next to it", dest.name)
-    text = read_text(grammar, MAX_GRAMMAR_BYTES, "grammar file")
-
-    source = GrammarSource(str(grammar), grammar.parent, allow_outside_files, str(scenes))
-    g = compile_text(text, source.file, source.base_dir, source.allow_outside)
-    items = load_scenes(scenes, g)
-    if not items:
-        raise SsgError.single("the dataset has no scenes", str(scenes))
-    options = FitOptions(
+    g = load_grammar(grammar, allow_outside=allow_outside_files)
+    items = load_scenes(scenes, g.ir)
+    options = fit_options(
         iterations=iterations,
         top=top,
         method=method,
         seed=seed,
         tol=tol,
-        jobs=jobs,
         estep=estep.value,
         samples=samples,
-        settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
+        pseudocount=pseudocount,
+        min_variance=min_variance,
+        jobs=jobs,
     )
-    header = fit_header(text, scenes, items, options)
     with (
         lock_outputs([dest, report_dest, *(plots or [])]),
-        fit_journal_file(None if dest.stream else dest.target) as journal_file,
-        FitJournal(journal_file, header, resume) as journal,
+        open_fit(g, items, scenes, options, None if dest.stream else dest.target, resume) as run,
     ):
+        journal = run.journal
         _note_discarded(journal, quiet)
         for r in journal.reports:
             _print_iteration(r, quiet, resumed=True)
@@ -186,29 +181,21 @@ def fit(
                 progress.reset(task, description=f"iteration {r['iteration'] + 1}")
                 lines.start(r["iteration"] + 1, 0)
 
-            result = fit_grammar(
-                text,
-                source,
-                items,
-                options,
-                journal,
-                time_limit=time_limit,
-                on_scene=on_scene,
-                on_iteration=on_iteration,
-            )
-        if mmd:
-            fitted = compile_text(result.text, source.file, source.base_dir, allow_outside_files)
-            result.mmd = compare_by_mmd({"input": g, "fitted": fitted}, items, mmd, seed)
+            result = run.fit(time_limit, on_scene=on_scene, on_iteration=on_iteration)
+        fitted: Grammar | None = None
+        if mmd or plots is not None:
+            fitted = run.fitted(result)
+        if mmd and fitted is not None:
+            result.mmd = compare_by_mmd({"input": g.ir, "fitted": fitted.ir}, items, mmd, seed)
             _print_mmd(result.mmd, quiet)
         kept = None if dest.stream else journal.path
         write_output_text(dest, result.text, kept)
         if report_dest is not None:
             write_output_text(report_dest, report_json(result), kept)
-        if plots is not None:
+        if plots is not None and fitted is not None:
             from ssgc.render.fit import plot_fit
 
-            fitted = compile_text(result.text, source.file, source.base_dir, allow_outside_files)
-            plot_fit(plots, result.iterations, items, fitted, g, seed)
+            plot_fit(plots, result.iterations, items, fitted.ir, g.ir, seed)
         if result.status != "time_limit":
             journal.delete()
     if not quiet:

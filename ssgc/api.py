@@ -15,8 +15,10 @@ Heavy parts (the parser, the fitter, matplotlib) are imported when first used.
 from __future__ import annotations
 
 import copy
+import inspect
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,11 +33,13 @@ from ssgc.tree import Trees
 
 if TYPE_CHECKING:
     from ssgc.explain import Explanation
-    from ssgc.fit.em import GrammarSource
+    from ssgc.fit.em import FitJournal, FitOptions, GrammarSource
+    from ssgc.fit.em import FitResult as FitReport
     from ssgc.parse.parser import Parser, SceneParses
 
 __all__ = [
     "FitResult",
+    "FitRun",
     "Grammar",
     "Parse",
     "ParseResult",
@@ -43,8 +47,11 @@ __all__ = [
     "Tree",
     "explain",
     "fit",
+    "fit_defaults",
+    "fit_options",
     "load_grammar",
     "load_scenes",
+    "open_fit",
     "parse",
 ]
 
@@ -111,28 +118,59 @@ def fit(
     time_limit: float | None = None,
 ) -> FitResult:
     """Fit the grammar's parameters to a dataset by approximate EM (as `ssg fit`, whose flags
-    these are; docs/fitting.md).  `dataset` is a list of scenes or a path `load_scenes`
-    reads.  The grammar itself is not changed: the result holds the fitted grammar, its YAML
-    text (the original with only the fitted numbers changed) and one report per iteration."""
-    from ssgc.fit.em import (
-        FitJournal,
-        FitOptions,
-        fit_grammar,
-        fit_header,
-        fit_journal_file,
-    )
-    from ssgc.fit.mstep import FitSettings
-
+    these are, with these defaults; docs/fitting.md).  `dataset` is a list of scenes or a path
+    `load_scenes` reads.  The grammar itself is not changed: the result holds the fitted
+    grammar, its YAML text (the original with only the fitted numbers changed) and one report
+    per iteration."""
     if isinstance(dataset, str | Path):
         where, scenes = Path(dataset), load_scenes(dataset, grammar)
     else:
         where, scenes = Path("<scenes>"), list(dataset)
-    if not scenes:
-        from ssgc.errors import SsgError
+    options = fit_options(
+        iterations=iterations,
+        top=top,
+        method=method,
+        seed=seed,
+        tol=tol,
+        estep=estep,
+        samples=samples,
+        pseudocount=pseudocount,
+        min_variance=min_variance,
+        jobs=jobs,
+    )
+    with open_fit(grammar, [s.data for s in scenes], where, options) as run:
+        result = run.fit(time_limit)
+    return FitResult(run.fitted(result), result.iterations, result.status, result.message)
 
-        raise SsgError.single("the dataset has no scenes", str(where))
-    items = [s.data for s in scenes]
-    options = FitOptions(
+
+def fit_defaults() -> dict[str, Any]:
+    """The defaults of `fit`'s options by name: `ssg fit`'s flags take theirs from here, so the
+    command and the API cannot drift apart."""
+    return {
+        name: p.default
+        for name, p in inspect.signature(fit).parameters.items()
+        if p.default is not inspect.Parameter.empty
+    }
+
+
+def fit_options(
+    *,
+    iterations: int,
+    top: int,
+    method: str,
+    seed: int,
+    tol: float,
+    estep: str,
+    samples: int,
+    pseudocount: float,
+    min_variance: float,
+    jobs: int,
+) -> FitOptions:
+    """`fit`'s options (and `ssg fit`'s flags) as the fitter (`ssgc.fit.em`) takes them."""
+    from ssgc.fit.em import FitOptions
+    from ssgc.fit.mstep import FitSettings
+
+    return FitOptions(
         iterations=iterations,
         top=top,
         method=method,
@@ -143,17 +181,69 @@ def fit(
         samples=samples,
         settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
     )
-    source = grammar.source(str(where))
-    header = fit_header(grammar.text, where, items, options)
-    with fit_journal_file(None) as path, FitJournal(path, header, resume=False) as journal:
-        result = fit_grammar(grammar.text, source, items, options, journal, time_limit)
-    fitted = compile_text(result.text, source.file, source.base_dir, source.allow_outside)
-    return FitResult(
-        Grammar(fitted, result.text, grammar.path, grammar.allow_outside),
-        result.iterations,
-        result.status,
-        result.message,
-    )
+
+
+@contextmanager
+def open_fit(
+    grammar: Grammar,
+    scenes: Sequence[scene_io.Scene],
+    dataset: Path,
+    options: FitOptions,
+    journal_next_to: Path | None = None,
+    resume: bool = False,
+) -> Iterator[FitRun]:
+    """A fit of `grammar` to `scenes` (read from `dataset`), with its journal open: what `fit`
+    and `ssg fit` share.  The journal lies next to `journal_next_to` (the fitted grammar's
+    file, so that `resume` finds it), or in a temporary directory removed at the end; the
+    caller decides when to delete a finished run's journal, after writing its results."""
+    from ssgc.errors import SsgError
+    from ssgc.fit.em import FitJournal, fit_header, fit_journal_file
+
+    if not scenes:
+        raise SsgError.single("the dataset has no scenes", str(dataset))
+    source = grammar.source(str(dataset))
+    header = fit_header(grammar.text, dataset, scenes, options)
+    with fit_journal_file(journal_next_to) as path, FitJournal(path, header, resume) as journal:
+        yield FitRun(grammar, list(scenes), options, source, journal)
+
+
+@dataclass(frozen=True, eq=False)
+class FitRun:
+    """One EM run with its journal open (`open_fit`): `fit()` runs it, from where the journal
+    stopped; `fitted()` compiles the grammar it returns."""
+
+    grammar: Grammar
+    scenes: list[scene_io.Scene]
+    options: FitOptions
+    source: GrammarSource
+    journal: FitJournal
+
+    def fit(
+        self,
+        time_limit: float | None = None,
+        on_scene: Callable[[], None] | None = None,
+        on_iteration: Callable[[dict[str, Any]], None] | None = None,
+    ) -> FitReport:
+        """Run EM (`ssgc.fit.em.fit_grammar`): `on_scene` after each parsed scene,
+        `on_iteration` with each iteration's report."""
+        from ssgc.fit.em import fit_grammar
+
+        return fit_grammar(
+            self.grammar.text,
+            self.source,
+            self.scenes,
+            self.options,
+            self.journal,
+            time_limit=time_limit,
+            on_scene=on_scene,
+            on_iteration=on_iteration,
+        )
+
+    def fitted(self, result: FitReport) -> Grammar:
+        """The fitted grammar, compiled as the original was (same file, directory, files)."""
+        g, s = self.grammar, self.source
+        compiled = compile_text(result.text, s.file, s.base_dir, s.allow_outside)
+        return Grammar(compiled, result.text, g.path, g.allow_outside)
 
 
 class Grammar:

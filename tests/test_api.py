@@ -103,3 +103,22 @@ def test_an_infeasible_scene_is_a_status_and_explain_names_the_culprit(gmm: Gram
     with pytest.raises(UnexplainedScene) as caught:
         gmm.explain(scene)
     assert caught.value.status == "infeasible"
+
+
+def test_fit_defaults_are_one_set_for_the_api_the_command_and_the_fitter():
+    """`ssg fit`'s flags take their defaults from `ssgc.fit`'s signature, and those build the
+    fitter's own default options."""
+    import typer
+
+    from ssgc.api import fit_defaults, fit_options
+    from ssgc.cli.app import app
+    from ssgc.fit.em import FitOptions
+
+    defaults = fit_defaults()
+    assert defaults["iterations"] == 10 and defaults["time_limit"] is None
+    options = {k: v for k, v in defaults.items() if k != "time_limit"}
+    assert fit_options(**options) == FitOptions()
+    command = typer.main.get_command(app).commands["fit"]
+    flags = {p.name: p.default for p in command.params}
+    for name, value in options.items():
+        assert flags[name] == value, name
