@@ -97,8 +97,8 @@ def compile_text(
     try:
         doc = dsl.GrammarDoc.model_validate(data)
     except ValidationError as exc:
-        shape, locs = _shape_errors(data, exc, source)
-        later = _errors_beyond_shape(data, locs, source, base_dir, allow_outside)
+        shape, locs, cleaned = _shape_errors(data, exc, source)
+        later = _errors_beyond_shape(cleaned, locs, source, base_dir, allow_outside)
         raise GrammarError(shape + later) from None
     return Compiler(doc, source, base_dir, allow_outside).run()
 
@@ -108,34 +108,40 @@ MAX_SHAPE_PASSES = 4  # unknown keys nested this deep in one mapping path are al
 
 def _shape_errors(
     data: dict, exc: ValidationError, source: SourceMap
-) -> tuple[list[Diagnostic], list[tuple]]:
-    """Every shape error, and where each is.  An unknown key stops the check of the mapping
-    that holds it (its other keys go unchecked), so the unknown keys are taken out and the
-    document checked again, a few times at most, adding what the next pass finds: one run
-    reports a type's unknown key and its wrong values together."""
+) -> tuple[list[Diagnostic], list[tuple], dict]:
+    """Every shape error, where each is, and the document without its unknown keys.  An
+    unknown key stops the check of the mapping that holds it (its other keys go unchecked), so
+    the unknown keys are taken out and the document checked again, a few times at most, adding
+    what the next pass finds: one run reports a type's unknown key and its wrong values
+    together.  The locations are those of the errors still in the returned document (an
+    unknown key taken out is none)."""
     diagnostics = validation_diagnostics(exc, source)
     seen = {str(d) for d in diagnostics}
     errors = exc.errors(include_url=False)
-    locs = [tuple(e["loc"]) for e in errors]
+    locs: list[tuple] = []
     current = data
     for _ in range(MAX_SHAPE_PASSES):
         unknown = [e for e in errors if e["type"] == "unknown_key"]
+        locs += [tuple(e["loc"]) for e in errors if e["type"] != "unknown_key"]
         if not unknown:
             break
-        current = copy.deepcopy(current)
-        if not all(_drop_key(current, e["loc"], e["ctx"]["key"]) for e in unknown):
+        dropped = copy.deepcopy(current)
+        if not all(_drop_key(dropped, e["loc"], e["ctx"]["key"]) for e in unknown):
+            locs += [tuple(e["loc"]) for e in unknown]  # still there: its type is left out
             break
+        current = dropped
         try:
             dsl.GrammarDoc.model_validate(current)
             break
         except ValidationError as again:
             errors = again.errors(include_url=False)
-            locs += [tuple(e["loc"]) for e in errors]
             for d in validation_diagnostics(again, source):
                 if str(d) not in seen:
                     seen.add(str(d))
                     diagnostics.append(d)
-    return diagnostics, locs
+    else:  # passes used up: the last one's errors all stay
+        locs += [tuple(e["loc"]) for e in errors]
+    return diagnostics, locs, current
 
 
 def _drop_key(data: Any, loc: Any, key: str) -> bool:
@@ -163,21 +169,27 @@ def _errors_beyond_shape(
     """The semantic errors of the rest of a grammar whose shape is wrong in some node types,
     so that one run reports them all (not one stage per run).
 
-    A rule of an `and`, `or` or `independent` list with a shape error is left out, and the
-    type's other rules are still checked (their messages keep their places: `_Renumbered`).
-    A type with a shape error elsewhere is checked as a terminal stub: its name stays known,
-    so the rest gets no follow-on "unknown type" errors.  Warnings (which a stub or a missing
-    rule could cause) are dropped.  A shape error outside `types` (root, grammar name) leaves
-    nothing sound to check.
+    A rule's translation or rotation with a shape error is checked as `same`, so the rule's
+    child, probability and other part still are.  A rule of an `and`, `or` or `independent`
+    list with a shape error elsewhere is left out, and the type's other rules are still
+    checked (their messages keep their places: `_Renumbered`).  A type with a shape error
+    elsewhere is checked as a terminal stub: its name stays known, so the rest gets no
+    follow-on "unknown type" errors.  Warnings (which a stub or a missing rule could cause)
+    are dropped.  A shape error outside `types` (root, grammar name) leaves nothing sound to
+    check.
     """
     bad: set[str] = set()
     bad_rules: dict[tuple, set[int]] = {}
+    as_same: dict[str, list[tuple]] = {}  # type -> paths of rule parts to check as `same`
     for loc in locs:
         if len(loc) < 2 or loc[0] != "types" or not isinstance(loc[1], str):
             return []
         if len(loc) >= 3 and loc[2] == "[key]":  # a type's name itself
             return []
-        if len(loc) >= 5 and loc[2] in RULE_LISTS and isinstance(loc[3], int):
+        part = _rule_part(loc)
+        if part is not None:
+            as_same.setdefault(loc[1], []).append(part)
+        elif len(loc) >= 5 and loc[2] in RULE_LISTS and isinstance(loc[3], int):
             bad_rules.setdefault(loc[:3], set()).add(loc[3])
         else:
             bad.add(loc[1])
@@ -191,6 +203,8 @@ def _errors_beyond_shape(
             fixed[name] = {}
             continue
         body = dict(body) if isinstance(body, dict) else body
+        for path in as_same.get(name, []):
+            body = _with_same(body, path)
         for word in RULE_LISTS:
             drop = bad_rules.get(("types", name, word))
             if drop and isinstance(body, dict) and isinstance(body.get(word), list):
@@ -209,6 +223,32 @@ def _errors_beyond_shape(
 
 
 RULE_LISTS = ("and", "or", "independent")  # the document's keys of a type's rule lists
+RULE_PARTS = ("translation", "rotation")
+
+
+def _rule_part(loc: tuple) -> tuple | None:
+    """The path in its type of the rule part (translation or rotation) a shape error lies in:
+    `("or", 2, "translation")`, `("repeat", "rule", "rotation")`; None if it is elsewhere."""
+    if len(loc) < 5 or loc[4] not in RULE_PARTS:
+        return None
+    if loc[2] in RULE_LISTS and isinstance(loc[3], int):
+        return tuple(loc[2:5])
+    if loc[2] == "repeat" and loc[3] == "rule":
+        return tuple(loc[2:5])
+    return None
+
+
+def _with_same(body: Any, path: tuple) -> Any:
+    """A copy of a type's body with the rule part at `path` set to `same` (the parts on the
+    way copied, the document itself untouched); unchanged if the path is not there."""
+    if not path:
+        return "same"
+    step, rest = path[0], path[1:]
+    if isinstance(body, dict) and step in body:
+        return {**body, step: _with_same(body[step], rest)}
+    if isinstance(body, list) and isinstance(step, int) and 0 <= step < len(body):
+        return [_with_same(x, rest) if i == step else x for i, x in enumerate(body)]
+    return body
 
 
 class _Renumbered:
@@ -374,12 +414,13 @@ class Compiler(Report):
     # ---------------------------------------------------------------------- rules ---
 
     def rule(self, rid: int, parent: int, index: int, spec: dsl.Rule, loc: Loc) -> Rule | None:
-        if spec.child not in self.ids:
+        known = spec.child in self.ids
+        if not known:
             self.unknown_type((*loc, "child"), spec.child, "child type")
-            return None
+        # The placement is checked even under a misspelt child: one run, every mistake.
         translation = self.part("translation", spec.translation, (*loc, "translation"))
         rotation = self.part("rotation", spec.rotation, (*loc, "rotation"))
-        if translation is None or rotation is None:
+        if not known or translation is None or rotation is None:
             return None
         return Rule(rid, parent, index, self.ids[spec.child], translation, rotation, loc)
 

@@ -97,3 +97,74 @@ def test_fixing_what_one_run_reports_is_enough(tmp_path: Path):
     grammar.write_text(text)
     result = runner.invoke(app, ["validate", str(grammar)])
     assert result.exit_code == 0, result.output
+
+
+# A type with an unknown key and a misshapen translation in its `repeat` rule, whose child is
+# misspelt and whose rotation is wrong too: the rule's other parts are still checked.
+NESTED = """\
+grammar: nested
+root: {type: Table, pose: {xyz: [0, 0, 0.375]}}
+types:
+  Table:
+    observed: true
+    colour: red
+    repeat:
+      count: {probs: [0.1, 0.3, 0.4, 0.2]}
+      rule:
+        child: Plat
+        translation: {parent_normal_offset: {mean: [0, 0], variance: [0.04, 0.01, 0], pin: [w]}}
+        rotation: {revolute: {axis: [0, 0, 0]}}
+  Plate:
+    observed: true
+    or:
+      - {child: Cupp, translation: {world_normal: {mean: [0, 0, 1], variance: -1}}, rotation: same}
+      - {child: Cup, rotation: {revolute: {axis: [0, 0, 0]}}}
+  Cup: {observed: true}
+"""
+
+NESTED_EXPECTED = {
+    (6, 5): "unknown key 'colour'",
+    (10, 16): "child type 'Plat' is not a type",
+    (11, 46): "must have at least 3 items",
+    (11, 93): "must be 'x', 'y' or 'z'",
+    (12, 31): "revolute axis must be nonzero",
+    (16, 17): "child type 'Cupp' is not a type",
+    (16, 79): "must be greater than 0",
+    (17, 44): "revolute axis must be nonzero",
+}
+
+NESTED_FIXES = [
+    ("    colour: red\n", ""),
+    ("child: Plat\n", "child: Plate\n"),
+    (
+        "mean: [0, 0], variance: [0.04, 0.01, 0], pin: [w]",
+        "mean: [0, 0, 0.4], variance: [0.04, 0.01, 0], pin: [z]",
+    ),
+    ("axis: [0, 0, 0]}}\n  Plate", "axis: [0, 0, 1]}}\n  Plate"),
+    ("child: Cupp", "child: Cup"),
+    ("variance: -1", "variance: 0.01"),
+    ("axis: [0, 0, 0]}}}", "axis: [0, 0, 1]}}}"),
+]
+
+
+def test_a_misshapen_rule_part_leaves_the_rest_of_its_rule_checked(tmp_path: Path):
+    grammar = tmp_path / "nested.yaml"
+    grammar.write_text(NESTED)
+    result = runner.invoke(app, ["validate", str(grammar)])
+    assert result.exit_code == 1
+    found = {}
+    for line in result.output.splitlines():
+        if ": error: " in line:
+            where, message = line.split(": error: ", 1)
+            _, row, col = where.rsplit(":", 2)
+            found[(int(row), int(col))] = message
+    assert set(found) == set(NESTED_EXPECTED), result.output
+    for place, words in NESTED_EXPECTED.items():
+        assert words in found[place]
+    text = NESTED
+    for old, new in NESTED_FIXES:
+        assert old in text
+        text = text.replace(old, new, 1)
+    grammar.write_text(text)
+    result = runner.invoke(app, ["validate", str(grammar)])
+    assert result.exit_code == 0, result.output
