@@ -169,8 +169,9 @@ def _errors_beyond_shape(
     """The semantic errors of the rest of a grammar whose shape is wrong in some node types,
     so that one run reports them all (not one stage per run).
 
-    A rule's translation or rotation with a shape error is checked as `same`, so the rule's
-    child, probability and other part still are.  A rule of an `and`, `or` or `independent`
+    A rule's translation or rotation with a shape error is checked as `same`, and a repeat's
+    misshapen count law as `COUNT_STAND_IN`, so the rule's child, probability and other part
+    still are.  A rule of an `and`, `or` or `independent`
     list with a shape error elsewhere is left out, and the type's other rules are still
     checked (their messages keep their places: `_Renumbered`).  A type with a shape error
     elsewhere is checked as a terminal stub: its name stays known, so the rest gets no
@@ -180,7 +181,9 @@ def _errors_beyond_shape(
     """
     bad: set[str] = set()
     bad_rules: dict[tuple, set[int]] = {}
-    as_same: dict[str, list[tuple]] = {}  # type -> paths of rule parts to check as `same`
+    # type -> (path, stand-in) of the rule parts (placements, a count law) to check in place
+    # of misshapen ones
+    stand_ins: dict[str, list[tuple[tuple, Any]]] = {}
     for loc in locs:
         if len(loc) < 2 or loc[0] != "types" or not isinstance(loc[1], str):
             return []
@@ -188,7 +191,7 @@ def _errors_beyond_shape(
             return []
         part = _rule_part(loc)
         if part is not None:
-            as_same.setdefault(loc[1], []).append(part)
+            stand_ins.setdefault(loc[1], []).append(part)
         elif len(loc) >= 5 and loc[2] in RULE_LISTS and isinstance(loc[3], int):
             bad_rules.setdefault(loc[:3], set()).add(loc[3])
         else:
@@ -198,56 +201,89 @@ def _errors_beyond_shape(
         return []
     kept: dict[tuple, list[int]] = {}
     fixed = {}
-    for name, body in types.items():
+    for name, original in types.items():
         if name in bad:
-            fixed[name] = {}
+            fixed[name] = _stub(original, [loc for loc in locs if loc[1] == name])
             continue
-        body = dict(body) if isinstance(body, dict) else body
-        for path in as_same.get(name, []):
-            body = _with_same(body, path)
+        body = dict(original) if isinstance(original, dict) else original
+        for path, value in stand_ins.get(name, []):
+            body = _with_value(body, path, value)
         for word in RULE_LISTS:
             drop = bad_rules.get(("types", name, word))
             if drop and isinstance(body, dict) and isinstance(body.get(word), list):
                 kept[("types", name, word)] = [i for i in range(len(body[word])) if i not in drop]
                 body[word] = [r for i, r in enumerate(body[word]) if i not in drop]
+        if name in stand_ins and not _valid_type(body):  # a stand-in had no place to go
+            body = _stub(original, [loc for loc in locs if loc[1] == name])
         fixed[name] = body
     stubbed = {**data, "types": fixed}
     try:
         doc = dsl.GrammarDoc.model_validate(stubbed)
-        Compiler(doc, _Renumbered(source, kept), base_dir, allow_outside).run()  # type: ignore[arg-type]
     except ValidationError:
         return []
+    try:
+        renumbered = _Renumbered(source, kept)
+        Compiler(doc, renumbered, base_dir, allow_outside, partial=True).run()  # type: ignore[arg-type]
     except GrammarError as later:
         return [d for d in later.diagnostics if d.severity != "warning"]
     return []
+
+
+STUB_KEEPS = ("observed", "geometry")  # what other checks (noise, keep-out radii) read of a type
+
+
+def _stub(body: Any, locs: list[tuple]) -> dict:
+    """An empty terminal type in place of one with a shape error, keeping its `observed` and
+    `geometry` when the error is elsewhere (so checks that read them raise nothing false)."""
+    if not isinstance(body, dict):
+        return {}
+    broken = {loc[2] for loc in locs if len(loc) >= 3}
+    stub = {k: body[k] for k in STUB_KEEPS if k in body and k not in broken}
+    return stub if _valid_type(stub) else {}
+
+
+def _valid_type(body: Any) -> bool:
+    try:
+        dsl.NodeType.model_validate(body)
+    except ValidationError:
+        return False
+    return True
 
 
 RULE_LISTS = ("and", "or", "independent")  # the document's keys of a type's rule lists
 RULE_PARTS = ("translation", "rotation")
 
 
-def _rule_part(loc: tuple) -> tuple | None:
-    """The path in its type of the rule part (translation or rotation) a shape error lies in:
-    `("or", 2, "translation")`, `("repeat", "rule", "rotation")`; None if it is elsewhere."""
+# A `repeat` whose count law is misshapen is checked with this one: it adds no rule and
+# forces none (count 0 is possible), and constraints are not checked against a stand-in.
+COUNT_STAND_IN = {"probs": [0.5, 0.5]}
+
+
+def _rule_part(loc: tuple) -> tuple[tuple, Any] | None:
+    """The path in its type of the rule part a shape error lies in, and what to check in its
+    place: `same` for a translation or rotation (`("or", 2, "translation")`, `("repeat", "rule",
+    "rotation")`), `COUNT_STAND_IN` for a repeat's count; None if the error is elsewhere."""
+    if len(loc) >= 4 and loc[2] == "repeat" and loc[3] == "count":
+        return ("repeat", "count"), COUNT_STAND_IN
     if len(loc) < 5 or loc[4] not in RULE_PARTS:
         return None
     if loc[2] in RULE_LISTS and isinstance(loc[3], int):
-        return tuple(loc[2:5])
+        return tuple(loc[2:5]), "same"
     if loc[2] == "repeat" and loc[3] == "rule":
-        return tuple(loc[2:5])
+        return tuple(loc[2:5]), "same"
     return None
 
 
-def _with_same(body: Any, path: tuple) -> Any:
-    """A copy of a type's body with the rule part at `path` set to `same` (the parts on the
-    way copied, the document itself untouched); unchanged if the path is not there."""
+def _with_value(body: Any, path: tuple, value: Any) -> Any:
+    """A copy of a type's body with `value` at `path` (the parts on the way copied, the
+    document itself untouched); unchanged if the path up to its last key is not there."""
     if not path:
-        return "same"
+        return value
     step, rest = path[0], path[1:]
-    if isinstance(body, dict) and step in body:
-        return {**body, step: _with_same(body[step], rest)}
+    if isinstance(body, dict) and (step in body or not rest):  # a missing last key is added
+        return {**body, step: _with_value(body.get(step), rest, value)}
     if isinstance(body, list) and isinstance(step, int) and 0 <= step < len(body):
-        return [_with_same(x, rest) if i == step else x for i, x in enumerate(body)]
+        return [_with_value(x, rest, value) if i == step else x for i, x in enumerate(body)]
     return body
 
 
@@ -309,11 +345,15 @@ class Compiler(Report):
         source: SourceMap,
         base_dir: Path | None = None,
         allow_outside: bool = False,
+        partial: bool = False,
     ) -> None:
         super().__init__(source, list(doc.types))
         self.doc = doc
         self.base_dir = base_dir
         self.allow_outside = allow_outside
+        # A document some of whose parts were stubbed (`_errors_beyond_shape`): what a tree of
+        # it can hold says nothing of the grammar, so constraints are not checked against it.
+        self.partial = partial
         self.ids = {name: i for i, name in enumerate(self.names)}
 
     def run(self) -> Grammar:
@@ -332,7 +372,9 @@ class Compiler(Report):
             self.add(check_recursion(types, rules))
             if not self.errors:
                 self.add(check_reachable(types, rules, root))
-        constraints = build_constraints(self, types, rules, root, sound=not self.errors)
+        constraints = build_constraints(
+            self, types, rules, root, sound=not self.errors and not self.partial
+        )
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
         seen = observation.apply(

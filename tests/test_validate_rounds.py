@@ -168,3 +168,44 @@ def test_a_misshapen_rule_part_leaves_the_rest_of_its_rule_checked(tmp_path: Pat
     grammar.write_text(text)
     result = runner.invoke(app, ["validate", str(grammar)])
     assert result.exit_code == 0, result.output
+
+
+# Shape errors whose stand-ins must not raise anything false: a table whose geometry is wrong
+# keeps its place in the constraints' trees (no "can never hold"), and a missing count law
+# leaves the repeat's rule checked.
+STAND_INS = """\
+grammar: stand_ins
+root: {type: Table, pose: {xyz: [0, 0, 0.375]}}
+types:
+  Table:
+    observed: true
+    geometry: {box: {size: [1.2, 0.8]}}
+    independent:
+      - {child: Shelf, p: 0.5}
+  Shelf:
+    repeat:
+      rule: {child: Plat}
+  Plate: {observed: true, geometry: {cylinder: {radius: 0.1, length: 0.02}}}
+constraints:
+  some_plates: {count: {type: Plate, min: 1}}
+  apart: {clearance: {types: [Plate]}}
+"""
+
+
+def test_stand_ins_for_misshapen_parts_raise_nothing_false(tmp_path: Path):
+    grammar = tmp_path / "stand_ins.yaml"
+    grammar.write_text(STAND_INS)
+    result = runner.invoke(app, ["validate", str(grammar)])
+    assert result.exit_code == 1
+    errors = [ln.split(": error: ", 1)[1] for ln in result.output.splitlines() if ": error: " in ln]
+    assert len(errors) == 3, result.output
+    assert "types.Table.geometry.box.size: must have at least 3 items" in errors[0]
+    assert "types.Shelf.repeat.count: missing required key" in errors[1]
+    assert "child type 'Plat' is not a type" in errors[2]
+    fixed = STAND_INS.replace("[1.2, 0.8]", "[1.2, 0.8, 0.75]")
+    fixed = fixed.replace(
+        "rule: {child: Plat}", "count: {probs: [0, 1]}\n      rule: {child: Plate}"
+    )
+    grammar.write_text(fixed)
+    result = runner.invoke(app, ["validate", str(grammar)])
+    assert result.exit_code == 0, result.output
