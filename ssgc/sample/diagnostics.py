@@ -5,12 +5,16 @@ sweep of every chain, e.g. the number of nodes of each type.
 
 RJMCMC (`ssgc.sample.rjmcmc`) uses them to decide when its burn-in is over instead of a
 fixed number of sweeps: while the chains still drift from where they started (towards fewer
-objects, say), the first and second halves of each chain's window disagree, and split-R̂ is
-above 1.  Counts are discrete (ties), so values are replaced by their average ranks over all
-draws before R̂ is computed, which also makes R̂ blind to the scale of the statistic.
+objects, say), the first and second halves of each chain's window disagree: split-R̂ is
+above 1 and the chains' mean moves (`drift`).  RJMCMC runs many short chains and reports
+one state of each, so the drift of the ensemble decides, and R̂ and ESS are recorded.
+Counts are discrete (ties), so values are replaced by their average ranks over all draws
+before R̂ is computed, which also makes R̂ blind to the scale of the statistic.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -82,10 +86,39 @@ def ess_bulk(x: FloatArray) -> float:
     return float(n * m / tau)
 
 
-def summary(history: FloatArray) -> tuple[float, float]:
-    """(largest split-R̂, smallest bulk ESS) over the statistics of `history`, shaped
-    (draws, chains, statistics)."""
+def drift(x: FloatArray) -> float:
+    """How far the chains' mean moved between the first and the second half of the draws, in
+    standard errors: each chain's second-half mean minus its first-half mean is one
+    independent difference per chain (the chains are independent), and z is their mean over
+    its standard error.  Many short chains that still forget their starting law drift
+    together, which this sees even when each chain is too short for R̂ to be near 1
+    (R̂² ≈ 1 + τ / n for a chain of n draws with autocorrelation time τ).  0 for a statistic
+    that does not change."""
+    s = _split(np.asarray(x, float))
+    m = s.shape[1] // 2
+    d = s[:, m:].mean(axis=0) - s[:, :m].mean(axis=0)
+    spread = float(np.std(d, ddof=1)) if len(d) > 1 else 0.0
+    if spread == 0.0:
+        return 0.0 if float(np.mean(d)) == 0.0 else float("inf")
+    return float(abs(np.mean(d)) / (spread / np.sqrt(len(d))))
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Worst values over the statistics: largest split-R̂, smallest bulk ESS, largest
+    drift (in standard errors)."""
+
+    rhat: float
+    ess: float
+    drift: float
+
+
+def summary(history: FloatArray) -> Summary:
+    """`Summary` of `history`, shaped (draws, chains, statistics)."""
     k = history.shape[2]
-    rhat = max((split_rhat(history[:, :, j]) for j in range(k)), default=1.0)
-    ess = min((ess_bulk(history[:, :, j]) for j in range(k)), default=float(history.shape[0]))
-    return rhat, ess
+    cols = [history[:, :, j] for j in range(k)]
+    return Summary(
+        rhat=max((split_rhat(c) for c in cols), default=1.0),
+        ess=min((ess_bulk(c) for c in cols), default=float(history.shape[0])),
+        drift=max((drift(c) for c in cols), default=0.0),
+    )

@@ -36,6 +36,7 @@ from ssgc.constraints.base import Constraint
 from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
 from ssgc.sample.chains import ChainOutcome, Judge
+from ssgc.sample.diagnostics import Summary, summary
 from ssgc.sample.forward import _choose_rules, sample_chunk
 from ssgc.sample.lawspace import Coords
 from ssgc.sample.poses import choose, local_poses, world_poses
@@ -50,11 +51,17 @@ MOVES = ("subtree", "structure", "translation", "walk", "rotation")
 
 @dataclass(frozen=True)
 class RjSettings:
-    sweeps: int = 200  # after a chain is first feasible
-    max_factor: int = 3  # at most this many times `sweeps` in all
+    min_sweeps: int = 40  # after every chain is feasible, before convergence is first checked
+    max_sweeps: int = 600  # in all (initialisation included)
+    check_every: int = 10  # sweeps between convergence checks
+    drift: float = 3.0  # burn-in is over when no count statistic's mean drifts by more
+    # standard errors than this between the halves of the window
+    rhat: float = 1.5  # ... and every count statistic's split-R̂ is at most this
+    ess: float = 400.0  # ... and every count statistic's bulk ESS over all chains is this
     start_candidates: int = 16384  # staged-rejection budget for exact starting states
     eps: float = 1e-3  # penalty scale before a chain is first feasible
     walk: float = 0.3  # random-walk step in the unconstrained coordinates
+    moves: tuple[str, ...] = MOVES  # the moves of a sweep, in order
 
 
 SETTINGS = RjSettings()
@@ -68,25 +75,74 @@ def rjmcmc_batch(
     deadline: float | None = None,
     settings: RjSettings = SETTINGS,
 ) -> ChainOutcome:
-    """Run `size` chains from draws of P(T); keep the final states that are feasible."""
+    """Run `size` chains; keep the final states of the chains that are burnt in.
+
+    Initialisation (not output): chains that start infeasible follow the penalised target
+    until every chain is feasible (or half of `max_sweeps` is spent).  From that sweep t0,
+    the per-type node counts of every chain are recorded at every sweep, and every
+    `check_every` sweeps (from `min_sweeps` on) the window of the last half of the sweeps
+    since t0 is diagnosed over the chains feasible throughout it: burn-in is over when no
+    count's mean over the chains drifts by more than `drift` standard errors between the
+    window's halves and every count's bulk ESS is at least `ess` (`ssgc.sample.diagnostics`;
+    R̂ is recorded too).  A chain is reported if it was feasible throughout that window (a
+    chain that became feasible later has not burnt in)."""
+    s = settings
     judge = Judge(constraints)
-    trees = _starts(grammar, constraints, size, rng, settings.start_candidates, deadline)
-    chain = Chains(grammar, constraints, trees, settings)
-    # every chain makes `sweeps` sweeps after it is first feasible (burn-in), within a cap
-    since = np.zeros(size)
-    done = 0
-    while done < settings.sweeps or (
-        np.any(since < settings.sweeps) and done < settings.max_factor * settings.sweeps
-    ):
+    trees = _starts(grammar, constraints, size, rng, s.start_candidates, deadline)
+    chain = Chains(grammar, constraints, trees, s)
+    watch = CountWatch(grammar)
+    since = np.where(chain.feasible, 0, -1)  # sweeps since each chain was first feasible
+    t0, done, diag = None, 0, None
+    while done < s.max_sweeps:
         chain.sweep(rng)
-        since = np.where(chain.feasible, since + 1, 0)
         done += 1
+        since = np.where(chain.feasible, since + 1, -1)
         _check(deadline)
-    ok = judge.judge(judge.margins(chain.trees), np.ones(size, bool))
-    stats = {f"{m}_acceptance": chain.accepted[m] / done for m in MOVES}
+        if t0 is None and (chain.feasible.all() or done >= s.max_sweeps // 2):
+            t0 = done
+        if t0 is None:
+            continue
+        watch.record(chain.trees)
+        run = done - t0 + 1
+        if run >= s.min_sweeps and run % s.check_every == 0:
+            diag = watch.diagnose(since >= run - run // 2)
+            if diag.drift <= s.drift and diag.rhat <= s.rhat and diag.ess >= s.ess:
+                break
+    run = 0 if t0 is None else done - t0 + 1
+    burnt = since >= run - run // 2 if t0 is not None else np.zeros(size, bool)
+    if diag is None and run >= 4:
+        diag = watch.diagnose(burnt)
+    ok = judge.judge(judge.margins(chain.trees), burnt)
+    stats = {f"{m}_acceptance": chain.accepted[m] / done for m in s.moves}
     stats["sweeps"] = np.full(size, done, float)
-    stats["feasible_sweeps"] = since
+    stats["feasible_sweeps"] = since.astype(float)
+    for k in ("rhat", "ess", "drift"):
+        stats[k] = np.full(size, np.nan if diag is None else getattr(diag, k))
     return judge.outcome(grammar, chain.trees, ok, size, stats)
+
+
+class CountWatch:
+    """The statistics the burn-in is judged on: each chain's number of nodes of every
+    non-root type and in all, recorded once per sweep."""
+
+    def __init__(self, grammar: Grammar) -> None:
+        self.n_types = len(grammar.types)
+        self.history: list[FloatArray] = []
+
+    def record(self, trees: Trees) -> None:
+        key = trees.scene * (self.n_types + 1) + trees.type
+        per = np.bincount(key, minlength=trees.n_scenes * (self.n_types + 1))
+        per = per.reshape(trees.n_scenes, self.n_types + 1).astype(float)
+        per[:, -1] = per[:, :-1].sum(axis=1)
+        self.history.append(per)
+
+    def diagnose(self, chains: NDArray[np.bool_]) -> Summary:
+        """The diagnostics of the recorded window's last half, for the given chains (too
+        few chains or draws: nothing is known, the worst values)."""
+        h = np.stack(self.history[len(self.history) // 2 :])[:, chains]
+        if h.shape[1] < 4 or h.shape[0] < 4:
+            return Summary(rhat=float("inf"), ess=0.0, drift=float("inf"))
+        return summary(h)
 
 
 def _starts(
@@ -145,11 +201,9 @@ class Chains:
         self.accepted[name] += take
 
     def sweep(self, rng: np.random.Generator) -> None:
-        self.subtree_move(rng)
-        self.structure_move(rng)
-        self.translation_move(rng)
-        self.walk_move(rng)
-        self.rotation_move(rng)
+        """One of each move of the settings, in order."""
+        for m in self.s.moves:
+            getattr(self, f"{m}_move")(rng)
 
     # ------------------------------------------------------------------ the moves ---
 
@@ -377,7 +431,8 @@ def _structure_step(
     with np.errstate(invalid="ignore"):
         lp_rep = count_lp(k2) - count_lp(k)
     lp_p, lp_q = tb.type_logp[t, slot], tb.type_log1mp[t, slot]
-    lp_ind = np.where(birth, lp_p - lp_q, lp_q - lp_p)
+    with np.errstate(invalid="ignore"):
+        lp_ind = np.where(birth, lp_p - lp_q, lp_q - lp_p)
     log_ratio = np.where(repeat, lp_rep, lp_ind)
     ok = has & ((born >= 0) | (dies >= 0)) & ~np.isnan(log_ratio)
     return Step(np.where(ok, born, -1), np.where(ok, dies, -1), np.where(ok, log_ratio, -np.inf))
