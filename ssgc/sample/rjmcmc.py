@@ -116,8 +116,10 @@ def rjmcmc_batch(
     stats = {f"{m}_acceptance": chain.accepted[m] / done for m in s.moves}
     stats["sweeps"] = np.full(size, done, float)
     stats["feasible_sweeps"] = since.astype(float)
+    known = diag is not None and np.isfinite([diag.rhat, diag.drift]).all()
+    stats["diagnosed"] = np.full(size, float(known))  # else too few chains or sweeps
     for k in ("rhat", "ess", "drift"):
-        stats[k] = np.full(size, np.nan if diag is None else getattr(diag, k))
+        stats[k] = np.full(size, getattr(diag, k) if known else 0.0)
     return judge.outcome(grammar, chain.trees, ok, size, stats)
 
 
