@@ -1,7 +1,7 @@
 """`--method rjmcmc`: Metropolis-Hastings over whole trees (structure and poses) whose
 stationary law is P(T | every constraint holds), many chains in lockstep.
 
-Moves, one of each per sweep, every chain at once:
+Moves, one of each per sweep (`RjSettings.moves`), every chain at once:
 
 - **subtree**: pick a non-terminal node uniformly, redraw everything below it from the
   grammar (its rule choices, counts and poses, given its pose and nesting depths).  The
@@ -10,19 +10,30 @@ Moves, one of each per sweep, every chain at once:
   non-terminal nodes.  The dimension changes with the subtree: this is the reversible jump,
   with the grammar itself as the proposal for the new dimensions (no Jacobian: the new
   values are drawn, not transformed).
+- **structure (birth/death)**: pick a site uniformly among the tree's M sites (a `repeat`
+  node, or one rule of an `independent` node); at a `repeat` node with k children, add a
+  child drawn with its whole subtree from the grammar (probability 1/2) or remove one of the
+  k children, uniformly, with its subtree; at an `independent` rule, remove the child if it
+  is there, else draw it.  The drawn subtree's density cancels, so the acceptance
+  probability is min(1, P(k') / P(k) · M / M') 1[C(T')] (P the count law, or p and 1 - p).
+  One object comes or goes at a time, so the number of objects mixes far faster than by
+  regrowing a whole group, which must then fit at once.
 - **translation (prior)**: pick a node whose translation law is not a point, redraw its local
   translation from its law (descendants move along); accepted iff every constraint holds.
 - **translation (random walk)**: a Gaussian step in the unconstrained coordinates of
-  `ssgc.sample.lawspace`; accepted with min(1, p(z') / p(z)) 1[C].
+  `ssgc.sample.lawspace` (so the step never leaves a law's support); accepted with
+  min(1, p(z') / p(z)) 1[C].
 - **rotation (prior)**: as for translations, for a node whose rotation law is not a point.
 
 A chain starts from an exact draw of P(T | C) when staged rejection finds one within
-`start_candidates` candidates, else from a draw of P(T).  Until it first satisfies every
-constraint it targets P(T) exp(-Σ_C min(C, 0)² / (2 ε²)) instead (same moves), which leads
-it into the feasible set; from then on it never leaves it.  Every chain makes `sweeps`
-sweeps after it first became feasible (all chains sweep until the last one has, at most
-`max_factor` × `sweeps` in all), then reports its state if it is feasible.  Exact in the
-limit of long chains: every move leaves P(T | C) invariant.
+`start_candidates` candidates, else from a draw of P(T).  Initialisation, never output: until
+it first satisfies every constraint, a chain targets P(T) exp(-Σ_C min(C, 0)² / (2 ε²))
+instead (same moves), which leads it into the feasible set; from then on it never leaves
+it.  Burn-in is then decided by diagnostics on the per-type node counts across the chains
+(`ssgc.sample.diagnostics`: the drift of their mean between the halves of the window,
+split-R̂ and bulk ESS), not by a fixed number of sweeps; see `rjmcmc_batch`.  Every move
+leaves P(T | C) invariant (`tests/test_rjmcmc_kernel.py` checks each one against exact
+rejection), so the chains' law tends to it.
 """
 
 from __future__ import annotations
