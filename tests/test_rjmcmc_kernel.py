@@ -214,3 +214,11 @@ def test_rjmcmc_from_the_prior_on_the_bin() -> None:
         {"rjmcmc": rjmcmc.MOVES, "rjmcmc without birth/death": OLD_MOVES},
     )
     assert _all_pass(*rows["rjmcmc"])
+
+
+@pytest.mark.slow
+def test_rjmcmc_from_the_prior_on_the_dimsum_table() -> None:
+    """The full dimsum table with its four constraints (two structural: a tall stack, many
+    stacks), 512 chains from P(T) against 4,096 rejection scenes."""
+    rows = _table_rows("dimsum_table.yaml", 512, 4096, {"rjmcmc": rjmcmc.MOVES})
+    assert _all_pass(*rows["rjmcmc"])
