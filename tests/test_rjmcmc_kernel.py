@@ -16,13 +16,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from ssgc.compile import load_grammar
 from ssgc.sample import rjmcmc
 from ssgc.sample.diagnostics import drift, ess_bulk, split_rhat
+from ssgc.sample.forward import sample_chunk
 from ssgc.sample.rjmcmc import Chains, RjSettings, rjmcmc_batch
 from ssgc.sample.staged import rejection_batch
+from ssgc.score import score_trees
 from ssgc.tree import Trees
 
 HERE = Path(__file__).resolve().parent
@@ -32,6 +36,11 @@ GRAMMARS = HERE.parent / "grammars"
 @functools.cache
 def _tiny():  # type: ignore[no-untyped-def]
     return load_grammar(HERE / "data" / "tiny_bin.yaml")
+
+
+@functools.cache
+def _bundled(name: str):  # type: ignore[no-untyped-def]
+    return load_grammar(GRAMMARS / name)
 
 
 def _exact(g, n: int, seed: int) -> Trees:  # type: ignore[no-untyped-def]
@@ -222,3 +231,31 @@ def test_rjmcmc_from_the_prior_on_the_dimsum_table() -> None:
     stacks), 512 chains from P(T) against 4,096 rejection scenes."""
     rows = _table_rows("dimsum_table.yaml", 512, 4096, {"rjmcmc": rjmcmc.MOVES})
     assert _all_pass(*rows["rjmcmc"])
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), name=st.sampled_from(["dimsum_table.yaml", "sink.yaml"]))
+def test_birth_and_death_give_trees_of_the_grammar(seed: int, name: str) -> None:
+    """A proposed birth or death gives a tree of the grammar (finite log-probability,
+    parents before children); a tree with neither is unchanged, a death removes exactly the
+    child's subtree, a birth adds at least the child and keeps every old node."""
+    g = _bundled(name)
+    rng = np.random.default_rng(seed)
+    trees, _ = sample_chunk(g, rng, 16)
+    node, slot = rjmcmc.sites(g, trees)
+    pick = rjmcmc._pick(trees.scene[node], np.arange(len(node)), 16, rng)
+    v = np.where(pick >= 0, node[np.maximum(pick, 0)], -1)
+    k = np.where(pick >= 0, slot[np.maximum(pick, 0)], 0)
+    step = rjmcmc._structure_step(g, trees, v, k, rng)
+    new = rjmcmc._apply_step(g, trees, v, step, rng)
+    assert np.all(np.isfinite(score_trees(g, new)))
+    assert np.all(new.parent < np.arange(len(new)))
+    before = np.bincount(trees.scene, minlength=16)
+    after = np.bincount(new.scene, minlength=16)
+    gone = rjmcmc.below(trees, step.dies)
+    gone[step.dies[step.dies >= 0]] = True
+    lost = np.bincount(trees.scene[gone], minlength=16)
+    assert np.array_equal(after[step.dies >= 0], (before - lost)[step.dies >= 0])
+    assert np.all(after[step.born >= 0] > before[step.born >= 0])
+    same = (step.dies < 0) & (step.born < 0)
+    assert np.array_equal(after[same], before[same])

@@ -447,7 +447,8 @@ def _structure_step(
     with np.errstate(invalid="ignore"):
         lp_ind = np.where(birth, lp_p - lp_q, lp_q - lp_p)
     log_ratio = np.where(repeat, lp_rep, lp_ind)
-    ok = has & ((born >= 0) | (dies >= 0)) & ~np.isnan(log_ratio)
+    # a step to a tree the grammar cannot make (a count beyond the law's support) is none
+    ok = has & ((born >= 0) | (dies >= 0)) & (log_ratio > -np.inf)
     return Step(np.where(ok, born, -1), np.where(ok, dies, -1), np.where(ok, log_ratio, -np.inf))
 
 
