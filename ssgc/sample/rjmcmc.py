@@ -62,7 +62,7 @@ MOVES = ("subtree", "structure", "translation", "walk", "rotation")
 
 @dataclass(frozen=True)
 class RjSettings:
-    min_sweeps: int = 40  # after every chain is feasible, before convergence is first checked
+    min_sweeps: int = 100  # after every chain is feasible, before convergence is first checked
     max_sweeps: int = 600  # in all (initialisation included)
     check_every: int = 10  # sweeps between convergence checks
     drift: float = 3.0  # burn-in is over when no count statistic's mean drifts by more
