@@ -94,9 +94,10 @@ def rjmcmc_batch(
     `check_every` sweeps (from `min_sweeps` on) the window of the last half of the sweeps
     since t0 is diagnosed over the chains feasible throughout it: burn-in is over when no
     count's mean over the chains drifts by more than `drift` standard errors between the
-    window's halves and every count's bulk ESS is at least `ess` (`ssgc.sample.diagnostics`;
-    R̂ is recorded too).  A chain is reported if it was feasible throughout that window (a
-    chain that became feasible later has not burnt in)."""
+    window's halves, every count's split-R̂ is at most `rhat` and its bulk ESS at least
+    `ess` (`ssgc.sample.diagnostics`; docs/constraints.md says why these bounds), else at
+    `max_sweeps`.  A chain is reported if it was feasible throughout that window (a chain
+    that became feasible later has not burnt in); every scene records the diagnostics."""
     s = settings
     judge = Judge(constraints)
     trees = _starts(grammar, constraints, size, rng, s.start_candidates, deadline)
