@@ -176,7 +176,7 @@ def test_rjmcmc_bin_count_histogram_matches_brute_force_rejection() -> None:
     disc = g.type_id("Disc")
     exact = _disc_counts(_rejection(g, cs, 768, 11), disc)
     # every chain starts from P(T): the burn-in and the moves are what is tested
-    settings = RjSettings(sweeps=60, start_candidates=0)
+    settings = RjSettings(min_sweeps=20, max_sweeps=120, start_candidates=0)
     out = rjmcmc_batch(g, cs, 768, np.random.default_rng(12), settings=settings)
     assert out.trees.n_scenes > 700
     ours = _disc_counts(out.trees, disc)
@@ -190,7 +190,9 @@ def test_chain_methods_keep_the_seeding_guarantee_and_record_their_statistics(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Scene i depends only on the seed and i; scene files record method and chain stats."""
-    short = functools.partial(rjmcmc_batch, settings=RjSettings(sweeps=20, start_candidates=0))
+    short = functools.partial(
+        rjmcmc_batch, settings=RjSettings(min_sweeps=20, max_sweeps=40, start_candidates=0)
+    )
     monkeypatch.setitem(METHODS, "rjmcmc", short)
     g = load_grammar(GRAMMARS / "bin_packing.yaml")
     cs = list(g.constraints)
@@ -356,7 +358,9 @@ def test_chain_method_on_the_command_line_writes_chain_statistics(tmp_path: Path
 
     from ssgc.cli.app import app
 
-    short = functools.partial(rjmcmc_batch, settings=RjSettings(sweeps=10, start_candidates=0))
+    short = functools.partial(
+        rjmcmc_batch, settings=RjSettings(min_sweeps=10, max_sweeps=20, start_candidates=0)
+    )
     METHODS["rjmcmc"], saved = short, METHODS["rjmcmc"]
     try:
         out = tmp_path / "out"
