@@ -135,6 +135,7 @@ def grow(
     levels: list[dict[str, NDArray]] | None = None,  # type: ignore[type-arg]
     counts_in: dict[int, tuple[int, int | None]] | None = None,
     forced: frozenset[int] = frozenset(),
+    chain: ChainProposal | None = None,
 ) -> IntArray:
     """Expand the nodes `start` level by level, only nodes whose type is in `expand`; with
     `poses`, children get poses drawn by their rules (the store must have poses).  Adds the
@@ -142,7 +143,8 @@ def grow(
     level and may kill candidates (their nodes stop growing).  Returns the nodes left
     unexpanded (pending).  With `levels`, the new nodes are put there, not in the store
     (for `Nodes.extend_kept`).  `counts_in` restricts `repeat` counts (`count_proposals`),
-    `forced` makes `independent` rules fire (`forced_rules`)."""
+    `forced` makes `independent` rules fire (`forced_rules`), `chain` forces one chain of
+    each candidate to its constraint's length (`chain_proposal`)."""
     tb = grammar.tables
     kind = tb.type_kind
     f_id = start
@@ -152,6 +154,8 @@ def grow(
         "nest": nodes.nest[f_id],
         "depth": nodes.depth[f_id],
     }
+    if chain is not None:  # per node: how many more links of the forced chain it must make
+        f["force"] = np.zeros(len(f_id), np.int64)
     if poses:
         assert nodes.xyz is not None and nodes.quat is not None
         f["xyz"], f["quat"] = nodes.xyz[f_id], nodes.quat[f_id]
@@ -175,7 +179,11 @@ def grow(
         if watch is not None:
             watch.select(live)
         budget = MAX_CHUNK_NODES - next_id  # memory bound, as in forward sampling
-        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng, budget, counts_in, forced)
+        must = None if chain is None else chain.must(f["force"])
+        biased = frozenset() if chain is None else frozenset([chain.repeat])
+        fires, lp = _choose_rules(
+            grammar, f["type"], f["nest"], rng, budget, counts_in, forced, biased, must
+        )
         logp += np.bincount(f["scene"], lp, minlength=len(logp))
         if not fires:
             break
@@ -192,6 +200,8 @@ def grow(
             "parent": f_id[at],
             "rule": rid,
         }
+        if chain is not None:
+            level["force"] = chain.child_force(f["force"], at, rid, rng)
         if poses:
             xyz, quat = [], []
             for r, where in fires:
@@ -206,6 +216,7 @@ def grow(
         f_id = next_id + np.arange(len(at))
         next_id += len(at)
         f = {k: level[k] for k in f}
+        level.pop("force", None)  # the store does not keep it
         if watch is not None:
             watch.step(at, level["type"], level["scene"], f["type"])
     if not keep_levels:
@@ -443,6 +454,90 @@ def forced_rules(grammar: Grammar, constraints: list[Constraint]) -> frozenset[i
     return frozenset(out)
 
 
+@dataclass(frozen=True)
+class ChainProposal:
+    """Draw the structure with one chain of `chain_type` nodes at least `length` long.
+
+    Under the `repeat` node (type `repeat`, rule `root_rule` makes the chain roots), the
+    count n is drawn size-biased (weight n, on top of its restriction by `count_proposals`),
+    one of the n roots J is picked uniformly, and J and the next `length` - 2 nodes of its
+    chain choose the self rule `self_rule` (index `self_index` among the `or` type's rules);
+    everything else is drawn from the grammar.  A candidate is then kept with probability
+    1/K, K the number of its chains at least `length` long (`chain_proposal` says when and
+    docs/constraints.md why the kept candidates follow the grammar's law given the
+    constraint)."""
+
+    constraint: str
+    repeat: int
+    root_rule: int
+    chain_type: int
+    self_rule: int
+    self_index: int
+    length: int
+
+    def must(self, force: IntArray) -> tuple[NDArray[np.bool_], int, int]:
+        return force > 0, self.chain_type, self.self_index
+
+    def child_force(
+        self, force: IntArray, at: IntArray, rid: IntArray, rng: np.random.Generator
+    ) -> IntArray:
+        """The forced links left to each child: one less than its parent's along the self
+        rule, `length` - 1 for the one chain root picked among each `repeat` node's roots."""
+        out = np.where(rid == self.self_rule, np.maximum(force[at] - 1, 0), 0)
+        new = np.flatnonzero(rid == self.root_rule)
+        if len(new):
+            par = at[new]  # sorted: a repeat node's children are consecutive
+            starts = np.flatnonzero(np.r_[True, par[1:] != par[:-1]])
+            sizes = np.diff(np.r_[starts, len(par)])
+            picked = starts + (rng.random(len(starts)) * sizes).astype(np.int64)
+            out[new[picked]] = self.length - 1
+        return out
+
+
+def chain_proposal(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    counts: dict[int, tuple[int, int | None]],
+) -> ChainProposal | None:
+    """The chain proposal for the first `longest_chain` constraint where it is exact.
+
+    It needs: `min` = m >= 2 on a chain type X of kind `or` with one self rule X -> X of
+    probability p > 0; X produced otherwise only by a `repeat` node R whose count is drawn
+    from a restricted law (`count_proposals`: every accepted tree has exactly one R node,
+    n >= 1 roots); no other rule of X leads back to X (so chains are paths from R's
+    children, one per root) and none has a nesting-bounded child; and m <= X's
+    `max_nesting` (so the m - 1 forced choices are never blocked: each has probability p).
+    Then the proposal's probability of a tree ω is P(ω) K(ω) / (Z p^(m-1)) with Z the
+    size-biased count law's normaliser, and keeping ω with probability 1/K makes it a
+    constant times P(ω) on every tree with K >= 1 (docs/constraints.md)."""
+    tb = grammar.tables
+    reach = reachers(grammar)
+    for c in constraints:
+        if not isinstance(c, LongestChain) or c.lo < 2:
+            continue
+        x = c.type_id
+        node = grammar.types[x]
+        if node.kind != Kind.OR:
+            continue
+        own = [k for k, r in enumerate(node.rules) if grammar.rules[r].child == x]
+        producers = [rid for rid, r in enumerate(grammar.rules) if r.child == x and r.parent != x]
+        if len(own) != 1 or len(producers) != 1 or not node.probs[own[0]] > 0:
+            continue
+        repeat = grammar.rules[producers[0]].parent
+        if repeat not in counts or grammar.types[repeat].kind != Kind.REPEAT:
+            continue
+        others = [grammar.rules[r].child for k, r in enumerate(node.rules) if k != own[0]]
+        if any(reach[o, x] or o == x or tb.nesting_slot[o] >= 0 for o in others):
+            continue
+        slot = tb.nesting_slot[x]
+        if slot >= 0 and c.lo > tb.nesting_max[slot]:
+            continue
+        return ChainProposal(
+            c.name, repeat, producers[0], x, int(node.rules[own[0]]), own[0], int(c.lo)
+        )
+    return None
+
+
 def _named(c: Constraint) -> list[int]:
     return [
         int(v) for v in (getattr(c, a, None) for a in ("type_id", "of", "child")) if v is not None
@@ -454,9 +549,18 @@ class Watch:
     candidate is rejected as soon as its fate is sealed: a bound `max` is exceeded (counts
     only grow), or no node that could still change the statistic is left to expand."""
 
-    def __init__(self, grammar: Grammar, constraints: list[Constraint], n: int, stats: _Stats):
+    def __init__(
+        self,
+        grammar: Grammar,
+        constraints: list[Constraint],
+        n: int,
+        stats: _Stats,
+        chain: ChainProposal | None = None,
+    ):
         reach = reachers(grammar)
         self.stats = stats
+        self.chain = chain
+        self.tall = np.zeros(n, np.int64)  # chains reaching the proposal's length (K)
         self.alive = np.ones(n, bool)
         self.items = []
         for c in constraints:
@@ -510,6 +614,10 @@ class Watch:
                 run = np.where(is_t, np.where(p_type == c.type_id, self.runs[id(c)][at] + 1, 1), 0)
                 self.runs[id(c)] = run
                 np.maximum.at(it["stat"], c_scene[is_t], run[is_t])
+                if self.chain is not None and self.chain.constraint == c.name:
+                    self.tall += np.bincount(
+                        c_scene[is_t & (run == self.chain.length)], minlength=len(self.alive)
+                    )
         self.f_type = c_type
         self.check(next_type, c_scene)
 
@@ -582,11 +690,12 @@ def rejection_batch(
     logp = np.zeros(size)
 
     # 1. the structure of the part that structural constraints depend on
-    watch = Watch(grammar, constraints, size, stats)
-    relevant = relevant_types(grammar, constraints)
-    levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
     restricted = count_proposals(grammar, constraints)
     forced = forced_rules(grammar, constraints)
+    chain = chain_proposal(grammar, constraints, restricted)
+    watch = Watch(grammar, constraints, size, stats, chain)
+    relevant = relevant_types(grammar, constraints)
+    levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
     pending = grow(
         grammar,
         nodes,
@@ -599,9 +708,15 @@ def rejection_batch(
         levels,
         restricted,
         forced,
+        chain,
     )
     watch.finish()
     alive = watch.alive
+    if chain is not None:  # keep a proposed candidate with probability 1/K
+        assert np.all(watch.tall[alive] >= 1), "the proposal forces one chain"
+        unlucky = alive & (rng.random(size) * watch.tall >= 1)
+        stats.rejected[chain.constraint] += int(np.count_nonzero(unlucky))
+        alive &= ~unlucky
     pending = nodes.extend_kept(levels, alive, pending)
     for c in constraints:  # registered structural kinds that Watch does not follow
         if c.kind == "structure" and not _watched(c) and np.any(alive):
