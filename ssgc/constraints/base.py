@@ -210,6 +210,30 @@ def tree_pairs(nodes: IntArray, scene: IntArray) -> tuple[IntArray, IntArray]:
     return order[first], order[first + 1 + offset]
 
 
+def fresh_pairs(
+    nodes: IntArray, scene: IntArray, fresh: NDArray[np.bool_]
+) -> tuple[IntArray, IntArray]:
+    """The pairs of `tree_pairs` with at least one fresh node, each once, without
+    enumerating the others: within a tree the old nodes come first, and each fresh node is
+    paired with the nodes before it (trees with no fresh node are left out)."""
+    has = np.zeros(int(scene.max(initial=-1)) + 1, bool)
+    has[scene[nodes[fresh[nodes]]]] = True
+    nodes = nodes[has[scene[nodes]]]
+    if len(nodes) < 2:
+        empty = np.zeros(0, np.int64)
+        return empty, empty
+    order = nodes[np.lexsort((fresh[nodes], scene[nodes]))]
+    s = scene[order]
+    start = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
+    size = np.diff(np.r_[start, len(order)])
+    first_of = np.repeat(start, size)
+    pos = np.arange(len(order)) - first_of  # position within its tree
+    partners = np.where(fresh[order], pos, 0)  # the nodes before it
+    later = np.repeat(np.arange(len(order)), partners)
+    offset = np.arange(len(later)) - np.repeat(np.cumsum(partners) - partners, partners)
+    return order[later], order[first_of[later] + offset]
+
+
 def type_mask(type_ids: list[int], n_types: int) -> NDArray[np.bool_]:
     mask = np.zeros(n_types, bool)
     mask[type_ids] = True

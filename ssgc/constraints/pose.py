@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from ssgc.constraints.base import (
     Constraint,
     FloatArray,
+    fresh_pairs,
     lineal,
     lineal_few,
     nearest_ancestor,
@@ -134,18 +135,22 @@ class Clearance(Constraint):
         np.add.at(grad, j[k], -unit)
         return per_scene_min(batch.scene[i], gap, batch.n_scenes), grad
 
-    def typed_pairs(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        i, j = tree_pairs(_selected(batch, self.types), batch.scene)
+    def typed_pairs(
+        self, batch: Any, fresh: NDArray[np.bool_] | None = None
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The pairs of `types` nodes of a tree (with `fresh`, only those with a fresh node),
+        exempt type pairs left out."""
+        nodes = _selected(batch, self.types)
+        if fresh is None:
+            i, j = tree_pairs(nodes, batch.scene)
+        else:
+            i, j = fresh_pairs(nodes, batch.scene, fresh)
         keep = ~self.exempt[batch.type[i], batch.type[j]]
         return i[keep], j[keep]
 
     def margin(self, batch: Any) -> FloatArray:
         """Per tree, the smallest gap; with `batch.fresh`, over the pairs with a fresh node."""
-        i, j = self.typed_pairs(batch)
-        fresh = getattr(batch, "fresh", None)
-        if fresh is not None:
-            new = fresh[i] | fresh[j]
-            i, j = i[new], j[new]
+        i, j = self.typed_pairs(batch, getattr(batch, "fresh", None))
         x, y = batch.xyz[:, 0], batch.xyz[:, 1]  # 1-D gathers are much cheaper than 2-D
         r = self.radius[batch.type]
         gap = np.hypot(x[i] - x[j], y[i] - y[j]) - r[i] - r[j]

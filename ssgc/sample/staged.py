@@ -28,6 +28,7 @@ types and rules.
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
 
@@ -241,16 +242,17 @@ def pose_stage(
     rng: np.random.Generator,
     logp: FloatArray,
     stats: _Stats,
+    skip: NDArray[np.bool_] | None = None,
 ) -> None:
-    """Draw the poses of the candidates `alive` depth by depth, judging the pose constraints
-    on the partial trees after each depth that posed nodes they read; `alive` is updated in
-    place.  A pose margin is a minimum over nodes or pairs, so the nodes posed so far can only
-    lower it when more are added: a partial tree that fails is a candidate that fails, and
-    the deeper nodes of a candidate already rejected are never drawn (in the dimsum table,
-    two stacks' bottom trays that overlap reject the candidate before any tray above them
-    gets a pose).  Constraints whose evaluation is costly (`progressive` False: FCL) are
-    judged once, after the last depth."""
-    which = np.flatnonzero(nodes.parent >= 0)
+    """Draw the poses of the candidates `alive` depth by depth (not of the nodes `skip`), judging
+    the pose constraints on the partial trees after each depth that posed nodes they read;
+    `alive` is updated in place. A pose margin is a minimum over nodes or pairs, so the nodes
+    posed so far can only lower it when more are added: a partial tree that fails is a candidate
+    that fails, and the deeper nodes of a candidate already rejected are never drawn (in the
+    dimsum table, two stacks' bottom trays that overlap reject the candidate before any tray
+    above them gets a pose). Constraints whose evaluation is costly (`progressive` False: FCL)
+    are judged once, after the last depth."""
+    which = np.flatnonzero((nodes.parent >= 0) if skip is None else (nodes.parent >= 0) & ~skip)
     order = which[np.lexsort((nodes.rule[which], nodes.depth[which]))]
     if not len(order):
         return
@@ -313,6 +315,23 @@ def pose_stage(
     for c in constraints:
         if not c.progressive and np.any(alive):
             alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
+
+
+def pose_nodes(
+    grammar: Grammar, nodes: Nodes, idx: IntArray, rng: np.random.Generator, logp: FloatArray
+) -> None:
+    """Draw the poses of the nodes `idx` (their parents posed) by their rules, one
+    vectorised draw per rule."""
+    assert nodes.xyz is not None and nodes.quat is not None
+    idx = idx[np.argsort(nodes.rule[idx], kind="stable")]
+    rule = nodes.rule[idx]
+    cuts = np.flatnonzero(np.r_[True, rule[1:] != rule[:-1], True]) if len(idx) else [0]
+    for a, b in itertools.pairwise(cuts):
+        some = idx[a:b]
+        par = nodes.parent[some]
+        xyz, quat, lp = sample_children(grammar, int(rule[a]), nodes.xyz[par], nodes.quat[par], rng)
+        nodes.xyz[some], nodes.quat[some] = xyz, quat
+        logp += np.bincount(nodes.scene[some], lp, minlength=len(logp))
 
 
 @dataclass
@@ -725,16 +744,27 @@ def rejection_batch(
     # 2. its poses, depth by depth, and the pose constraints on the partial trees
     nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
     nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
-    pose_stage(grammar, nodes, pose, alive, rng, logp, stats)
+    # Pending nodes that no pose constraint reads get their poses with the rest (below):
+    # they are not needed to judge the partial trees, and most candidates die first.
+    read = np.zeros(len(grammar.types), bool)
+    for c in pose:
+        read |= c.reads(len(grammar.types))
+    deferred = np.zeros(len(nodes.type), bool)
+    deferred[pending[~read[nodes.type[pending]]]] = True
+    pose_stage(grammar, nodes, pose, alive, rng, logp, stats, deferred)
     _check(deadline)
     # 3. the rest of each surviving tree, with poses; every pose constraint on the terms
     # with a node of the rest (the partial tree passed on the others), then each kept
     # tree's margins in full
     pending = nodes.compact(alive, pending)
+    late = pending[~read[nodes.type[pending]]]
+    pose_nodes(grammar, nodes, late, rng, logp)
     grown_from = len(nodes.type)
     grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), True, rng, logp)
     if np.any(alive) and len(nodes.type) > grown_from:
-        rest = view(nodes, alive, fresh=np.arange(len(nodes.type)) >= grown_from)
+        fresh = np.arange(len(nodes.type)) >= grown_from
+        fresh[late] = True
+        rest = view(nodes, alive, fresh=fresh)
         for c in pose:
             alive &= stats.judge(c, c.margin(rest), alive)
     full = view(nodes, alive)
