@@ -749,15 +749,16 @@ def rejection_batch(
     read = np.zeros(len(grammar.types), bool)
     for c in pose:
         read |= c.reads(len(grammar.types))
+    late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
     deferred = np.zeros(len(nodes.type), bool)
-    deferred[pending[~read[nodes.type[pending]]]] = True
+    deferred[late] = True
     pose_stage(grammar, nodes, pose, alive, rng, logp, stats, deferred)
     _check(deadline)
     # 3. the rest of each surviving tree, with poses; every pose constraint on the terms
     # with a node of the rest (the partial tree passed on the others), then each kept
     # tree's margins in full
     pending = nodes.compact(alive, pending)
-    late = pending[~read[nodes.type[pending]]]
+    late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
     pose_nodes(grammar, nodes, late, rng, logp)
     grown_from = len(nodes.type)
     grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), True, rng, logp)
