@@ -152,3 +152,23 @@ def test_thesis_constraints_match_plain_rejection() -> None:
     staged = _staged(g, 2 * plain.n_scenes, 41)
     pvalues = _compare(g, plain, staged, 4)
     assert min(pvalues.values()) > 1e-3 / len(pvalues), pvalues
+
+
+def test_bench_constrained_with_two_jobs_reports_wall_and_cpu_rates() -> None:
+    """`ssg bench sample --constraints all -j 2 --json`: the rates with both workers, per
+    wall-clock and per CPU second (the workers' CPU included), and how busy the cores were."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from ssgc.cli.app import app
+
+    args = ["bench", "sample", str(GRAMMARS / "bin_packing.yaml"), "--constraints", "all"]
+    args += ["--method", "rejection", "-n", "600", "-j", "2", "--json"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.output)
+    row = data["methods"]["rejection"]
+    assert data["jobs"] == 2 and row["scenes"] == 600 and row["exact"] is True
+    assert row["valid_scenes_per_second"] > 0 and row["valid_scenes_per_cpu_second"] > 0
+    assert 0 < row["cores_busy"] <= data["cpus"] + 0.05
