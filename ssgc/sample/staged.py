@@ -28,7 +28,6 @@ types and rules.
 
 from __future__ import annotations
 
-import itertools
 import time
 from dataclasses import dataclass
 
@@ -242,20 +241,23 @@ def pose_stage(
     rng: np.random.Generator,
     logp: FloatArray,
     stats: _Stats,
-    skip: NDArray[np.bool_] | None = None,
+    todo: IntArray,
 ) -> None:
-    """Draw the poses of the candidates `alive` depth by depth (not of the nodes `skip`), judging
-    the pose constraints on the partial trees after each depth that posed nodes they read;
-    `alive` is updated in place. A pose margin is a minimum over nodes or pairs, so the nodes
-    posed so far can only lower it when more are added: a partial tree that fails is a candidate
-    that fails, and the deeper nodes of a candidate already rejected are never drawn (in the
-    dimsum table, two stacks' bottom trays that overlap reject the candidate before any tray
-    above them gets a pose). Constraints whose evaluation is costly (`progressive` False: FCL)
-    are judged once, after the last depth."""
-    which = np.flatnonzero((nodes.parent >= 0) if skip is None else (nodes.parent >= 0) & ~skip)
-    order = which[np.lexsort((nodes.rule[which], nodes.depth[which]))]
+    """Draw the poses of the nodes `todo` (their ancestors posed or among them) of the
+    candidates `alive`, depth by depth, judging the pose constraints on the partial trees
+    (every posed node) after each depth that posed nodes they read; `alive` is updated in
+    place.  A pose margin is a minimum over nodes or pairs, so the nodes posed so far can
+    only lower it when more are added: a partial tree that fails is a candidate that fails,
+    and the deeper nodes of a candidate already rejected are never drawn (in the dimsum
+    table, two stacks' bottom trays that overlap reject the candidate before any tray above
+    them gets a pose; a teapot on a stack, before the plates).  Constraints whose evaluation
+    is costly (`progressive` False: FCL) are judged once, after the last depth."""
+    order = todo[np.lexsort((nodes.rule[todo], nodes.depth[todo]))]
     if not len(order):
         return
+    waiting = np.zeros(len(nodes.type), bool)  # not posed yet: left out of the views
+    waiting[order] = True
+    fresh = np.zeros(len(nodes.type), bool)  # posed since the last judgement
     n_rules = len(grammar.rules) + 1
     key = nodes.depth[order] * n_rules + nodes.rule[order]
     cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
@@ -263,7 +265,6 @@ def pose_stage(
     early = [c for c in constraints if c.progressive]
     reads = {c.name: c.reads(len(grammar.types)) for c in early}
     touched = {c.name: np.zeros(len(alive), bool) for c in early}
-    since = -1  # nodes deeper than this were posed after the last judgement
     rate = 1.0  # share of the judged candidates the last judgement rejected
     start = 0
     while start < len(cuts) - 1:
@@ -285,12 +286,14 @@ def pose_stage(
             logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
             posed.append(idx)
         start = stop
-        if not early:
-            continue
         if posed:
             new = np.concatenate(posed)
+            waiting[new] = False
+            fresh[new] = True
             for c in early:
                 touched[c.name][nodes.scene[new[reads[c.name][nodes.type[new]]]]] = True
+        if not early:
+            continue
         # Judging costs a pass over the partial trees: after a judgement that rejected few,
         # the next depths are posed first and judged together (always after the last one).
         if rate < SKIP_BELOW and start < len(cuts) - 1:
@@ -298,8 +301,7 @@ def pose_stage(
         among = np.logical_or.reduce(list(touched.values())) & alive
         if not np.any(among):
             continue
-        fresh = nodes.depth > since
-        partial = view(nodes, among, int(d), fresh)  # one view for every constraint
+        partial = view(nodes, among, fresh=fresh, waiting=waiting)  # one for every constraint
         before = int(np.count_nonzero(among))
         fresh_here = partial.fresh
         assert fresh_here is not None
@@ -311,27 +313,13 @@ def pose_stage(
                 alive &= stats.judge(c, c.margin(partial), judged)
             touched[c.name][:] = False
         rate = 1.0 - np.count_nonzero(among & alive) / before
-        since = int(d)
+        fresh[:] = False
+    done = np.zeros(len(nodes.type), bool)
+    done[order] = True
     for c in constraints:
         if not c.progressive and np.any(alive):
-            alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
-
-
-def pose_nodes(
-    grammar: Grammar, nodes: Nodes, idx: IntArray, rng: np.random.Generator, logp: FloatArray
-) -> None:
-    """Draw the poses of the nodes `idx` (their parents posed) by their rules, one
-    vectorised draw per rule."""
-    assert nodes.xyz is not None and nodes.quat is not None
-    idx = idx[np.argsort(nodes.rule[idx], kind="stable")]
-    rule = nodes.rule[idx]
-    cuts = np.flatnonzero(np.r_[True, rule[1:] != rule[:-1], True]) if len(idx) else [0]
-    for a, b in itertools.pairwise(cuts):
-        some = idx[a:b]
-        par = nodes.parent[some]
-        xyz, quat, lp = sample_children(grammar, int(rule[a]), nodes.xyz[par], nodes.quat[par], rng)
-        nodes.xyz[some], nodes.quat[some] = xyz, quat
-        logp += np.bincount(nodes.scene[some], lp, minlength=len(logp))
+            whole = view(nodes, alive, fresh=done, waiting=waiting)
+            alive &= stats.judge(c, c.margin(whole), alive)
 
 
 @dataclass
@@ -353,14 +341,14 @@ class View:
 def view(
     nodes: Nodes,
     keep_scene: NDArray[np.bool_],
-    upto: int | None = None,
     fresh: NDArray[np.bool_] | None = None,
+    waiting: NDArray[np.bool_] | None = None,
 ) -> View:
-    """The nodes of the candidates `keep_scene` (only those at depth <= `upto` if given, the
-    ones at depth `upto` fresh); `fresh` (per node of the store) marks fresh nodes instead."""
+    """The nodes of the candidates `keep_scene`, except those `waiting` for their poses;
+    `fresh` (per node of the store) marks the nodes posed since the trees were last judged."""
     keep = keep_scene[nodes.scene]
-    if upto is not None:
-        keep &= nodes.depth <= upto
+    if waiting is not None:
+        keep &= ~waiting
     idx = np.flatnonzero(keep)
     new = np.full(len(nodes.type), -1, np.int64)
     new[idx] = np.arange(len(idx))
@@ -374,11 +362,7 @@ def view(
         quat=nodes.quat[idx],
         n_scenes=nodes.n_scenes,
         index=idx,
-        fresh=fresh[idx]
-        if fresh is not None
-        else None
-        if upto is None
-        else nodes.depth[idx] == upto,
+        fresh=None if fresh is None else fresh[idx],
     )
 
 
@@ -749,25 +733,23 @@ def rejection_batch(
     read = np.zeros(len(grammar.types), bool)
     for c in pose:
         read |= c.reads(len(grammar.types))
-    late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
     deferred = np.zeros(len(nodes.type), bool)
-    deferred[late] = True
-    pose_stage(grammar, nodes, pose, alive, rng, logp, stats, deferred)
+    deferred[pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]] = True
+    todo = np.flatnonzero((nodes.parent >= 0) & ~deferred)
+    pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
     _check(deadline)
-    # 3. the rest of each surviving tree, with poses; every pose constraint on the terms
-    # with a node of the rest (the partial tree passed on the others), then each kept
-    # tree's margins in full
+    # 3. the rest of each surviving tree: its structure, then its poses (and the deferred
+    # ones) depth by depth, judged on the partial trees as in 2 (the nodes of 2 passed, so
+    # only the terms with a node of the rest are new); then each kept tree's margins in full
     pending = nodes.compact(alive, pending)
     late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
-    pose_nodes(grammar, nodes, late, rng, logp)
     grown_from = len(nodes.type)
-    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), True, rng, logp)
-    if np.any(alive) and len(nodes.type) > grown_from:
-        fresh = np.arange(len(nodes.type)) >= grown_from
-        fresh[late] = True
-        rest = view(nodes, alive, fresh=fresh)
-        for c in pose:
-            alive &= stats.judge(c, c.margin(rest), alive)
+    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), False, rng, logp)
+    grown = len(nodes.type) - grown_from
+    nodes.xyz = np.concatenate([nodes.xyz, np.zeros((grown, 3))])
+    nodes.quat = np.concatenate([nodes.quat, np.zeros((grown, 4))])
+    todo = np.r_[late, np.arange(grown_from, len(nodes.type))]
+    pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
     full = view(nodes, alive)
     margins = {c.name: c.margin(full) for c in constraints}
     trees = _as_trees(nodes, alive)
