@@ -47,6 +47,9 @@ FloatArray = NDArray[np.float64]
 # judgement rejects fewer than this share of the candidates it judged, the following depths
 # are posed first and judged together.  (Cost only: the verdicts are the same either way.)
 SKIP_BELOW = 0.05
+# The pose stage compacts its store once fewer than this share of the candidates in it are
+# still alive.  (Cost only.)
+COMPACT_BELOW = 0.5
 
 
 @dataclass
@@ -94,6 +97,11 @@ class Nodes:
     def compact(self, keep_scene: NDArray[np.bool_], pending: IntArray) -> IntArray:
         """Keep only the nodes of the kept candidates (scene ids unchanged); returns the
         kept pending nodes, renumbered."""
+        return renumber(self.keep(keep_scene), pending)
+
+    def keep(self, keep_scene: NDArray[np.bool_]) -> IntArray:
+        """Keep only the nodes of the kept candidates (scene ids unchanged); returns each old
+        node's new number (-1: dropped)."""
         idx = np.flatnonzero(keep_scene[self.scene])
         new = np.full(len(self.type), -1, np.int64)
         new[idx] = np.arange(len(idx))
@@ -103,8 +111,13 @@ class Nodes:
             setattr(self, key, getattr(self, key)[idx])
         if self.xyz is not None and self.quat is not None:
             self.xyz, self.quat = self.xyz[idx], self.quat[idx]
-        pending = new[pending]
-        return pending[pending >= 0]
+        return new
+
+
+def renumber(new: IntArray, ids: IntArray) -> IntArray:
+    """The nodes `ids` that were kept, by their new numbers (`Nodes.keep`)."""
+    ids = new[ids]
+    return ids[ids >= 0]
 
 
 def roots(grammar: Grammar, size: int) -> Nodes:
@@ -242,7 +255,7 @@ def pose_stage(
     logp: FloatArray,
     stats: _Stats,
     todo: IntArray,
-) -> None:
+) -> IntArray | None:
     """Draw the poses of the nodes `todo` (their ancestors posed or among them) of the
     candidates `alive`, depth by depth, judging the pose constraints on the partial trees
     (every posed node) after each depth that posed nodes they read; `alive` is updated in
@@ -251,10 +264,16 @@ def pose_stage(
     and the deeper nodes of a candidate already rejected are never drawn (in the dimsum
     table, two stacks' bottom trays that overlap reject the candidate before any tray above
     them gets a pose; a teapot on a stack, before the plates).  Constraints whose evaluation
-    is costly (`progressive` False: FCL) are judged once, after the last depth."""
+    is costly (`progressive` False: FCL) are judged once, after the last depth.
+
+    When most of the candidates in the store have been rejected, the store is compacted to
+    the others (views and draws cost what the store holds); the map from old to new node
+    numbers is returned then (None if the store was not compacted)."""
     order = todo[np.lexsort((nodes.rule[todo], nodes.depth[todo]))]
+    moved: IntArray | None = None
     if not len(order):
-        return
+        return moved
+    stored = np.count_nonzero(alive)  # candidates with nodes in the store
     waiting = np.zeros(len(nodes.type), bool)  # not posed yet: left out of the views
     waiting[order] = True
     fresh = np.zeros(len(nodes.type), bool)  # posed since the last judgement
@@ -314,12 +333,23 @@ def pose_stage(
             touched[c.name][:] = False
         rate = 1.0 - np.count_nonzero(among & alive) / before
         fresh[:] = False
-    done = np.zeros(len(nodes.type), bool)
-    done[order] = True
+        if np.count_nonzero(alive) < COMPACT_BELOW * stored and start < len(cuts) - 1:
+            new = nodes.keep(alive)
+            moved = new if moved is None else np.where(moved >= 0, new[moved], -1)
+            order = renumber(new, order[cuts[start] :])
+            key = nodes.depth[order] * n_rules + nodes.rule[order]
+            cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+            depth_of_cut = nodes.depth[order[cuts[:-1]]]
+            start = 0
+            waiting = np.zeros(len(nodes.type), bool)
+            waiting[order] = True
+            fresh = np.zeros(len(nodes.type), bool)
+            stored = np.count_nonzero(alive)
     for c in constraints:
         if not c.progressive and np.any(alive):
-            whole = view(nodes, alive, fresh=done, waiting=waiting)
+            whole = view(nodes, alive, waiting=waiting)
             alive &= stats.judge(c, c.margin(whole), alive)
+    return moved
 
 
 @dataclass
@@ -736,7 +766,9 @@ def rejection_batch(
     deferred = np.zeros(len(nodes.type), bool)
     deferred[pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]] = True
     todo = np.flatnonzero((nodes.parent >= 0) & ~deferred)
-    pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
+    moved = pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
+    if moved is not None:
+        pending = renumber(moved, pending)
     _check(deadline)
     # 3. the rest of each surviving tree: its structure, then its poses (and the deferred
     # ones) depth by depth, judged on the partial trees as in 2 (the nodes of 2 passed, so
