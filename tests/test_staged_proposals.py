@@ -13,9 +13,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import GRAMMARS
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from ssgc.compile import compile_text, load_grammar
+from ssgc.constraints.base import depths, fresh_pairs, lineal, lineal_few, tree_pairs
 from ssgc.constraints.structural import chain_runs
 from ssgc.sample.constrained import sample_blocks
 from ssgc.sample.forward import sample_trees
@@ -172,3 +175,27 @@ def test_bench_constrained_with_two_jobs_reports_wall_and_cpu_rates() -> None:
     assert data["jobs"] == 2 and row["scenes"] == 600 and row["exact"] is True
     assert row["valid_scenes_per_second"] > 0 and row["valid_scenes_per_cpu_second"] > 0
     assert 0 < row["cores_busy"] <= data["cpus"] + 0.05
+
+
+@given(st.data())
+@settings(max_examples=60, deadline=None)
+def test_fresh_pairs_and_lineal_shortcuts_agree_with_the_plain_versions(data) -> None:  # type: ignore[no-untyped-def]
+    """The pose stage's shortcuts enumerate the same pairs (those with a fresh node, once
+    each) and find the same lineal pairs (walking up from the deeper node only)."""
+    n = data.draw(st.integers(1, 40))
+    parent = np.array(
+        [-1] + [data.draw(st.integers(-1, k - 1)) for k in range(1, n)], dtype=np.int64
+    )
+    scene = np.array(data.draw(st.lists(st.integers(0, 4), min_size=n, max_size=n)))
+    fresh = np.array(data.draw(st.lists(st.booleans(), min_size=n, max_size=n)))
+    nodes = np.flatnonzero(np.array(data.draw(st.lists(st.booleans(), min_size=n, max_size=n))))
+    i, j = tree_pairs(nodes, scene)
+    new = fresh[i] | fresh[j]
+    want = {frozenset(p) for p in zip(i[new], j[new], strict=True)}
+    a, b = fresh_pairs(nodes, scene, fresh)
+    got = [frozenset(p) for p in zip(a, b, strict=True)]
+    assert len(got) == len(set(got)) and set(got) == want
+    x = np.array(data.draw(st.lists(st.integers(0, n - 1), max_size=30)), dtype=np.int64)
+    y = np.array(data.draw(st.lists(st.integers(0, n - 1), min_size=len(x), max_size=len(x))))
+    y = y.astype(np.int64)
+    assert np.array_equal(lineal_few(x, y, parent, depths(parent)), lineal(x, y, parent))

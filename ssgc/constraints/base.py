@@ -180,9 +180,26 @@ def lineal(a: IntArray, b: IntArray, parent: IntArray) -> NDArray[np.bool_]:
     return (da != db) & (table[lo, np.minimum(da, db)] == hi)
 
 
-def lineal_few(a: IntArray, b: IntArray, parent: IntArray) -> NDArray[np.bool_]:
+def lineal_few(
+    a: IntArray, b: IntArray, parent: IntArray, depth: IntArray | None = None
+) -> NDArray[np.bool_]:
     """`lineal` for a few pairs: walks up from both nodes (one step per level), without the
-    whole batch's ancestor table."""
+    whole batch's ancestor table.  With the nodes' depths, only from the deeper node of a
+    pair and only up to the other's depth (nodes at one depth are never lineal)."""
+    if depth is not None:
+        da, db = depth[a], depth[b]
+        low, high = np.where(da > db, a, b), np.where(da > db, b, a)
+        steps = np.abs(da - db)
+        out = np.zeros(len(a), bool)
+        live = np.flatnonzero(steps > 0)
+        cur, steps = low[live], steps[live]
+        while len(live):
+            cur = parent[cur]
+            steps = steps - 1
+            done = steps == 0
+            out[live[done]] = cur[done] == high[live[done]]
+            live, cur, steps = live[~done], cur[~done], steps[~done]
+        return out
     out = np.zeros(len(a), bool)
     for x, y in ((a, b), (b, a)):
         cur = parent[y]

@@ -160,12 +160,14 @@ class Clearance(Constraint):
         # parts overlap), then each tree's closest pair until it is not a lineal one.
         live = np.ones(len(i), bool)
         near = np.flatnonzero(gap < 0)
-        live[near[lineal_few(i[near], j[near], batch.parent)]] = False
+        depth = getattr(batch, "depth", None)  # node depths, where the batch keeps them
+        depth = depth if isinstance(depth, np.ndarray) else None
+        live[near[lineal_few(i[near], j[near], batch.parent, depth)]] = False
         scene = batch.scene[i]
         while True:
             best = per_scene_min(scene[live], gap[live], batch.n_scenes)
             at = np.flatnonzero(live & (gap == best[scene]) & (gap >= 0))
-            related = at[lineal_few(i[at], j[at], batch.parent)]
+            related = at[lineal_few(i[at], j[at], batch.parent, depth)]
             if not len(related):
                 return best
             live[related] = False

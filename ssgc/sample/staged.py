@@ -363,6 +363,7 @@ class View:
     quat: FloatArray
     n_scenes: int
     index: IntArray  # position of each node in the store
+    depth: IntArray  # of each node (lineal pairs are found by walking up from the deeper)
     # Nodes posed since the view's trees were last judged (None: all).  Their trees passed
     # on the older nodes, so a constraint may judge only the terms that involve a fresh node.
     fresh: NDArray[np.bool_] | None = None
@@ -392,6 +393,7 @@ def view(
         quat=nodes.quat[idx],
         n_scenes=nodes.n_scenes,
         index=idx,
+        depth=nodes.depth[idx],
         fresh=None if fresh is None else fresh[idx],
     )
 
