@@ -269,15 +269,19 @@ def pose_stage(
     When most of the candidates in the store have been rejected, the store is compacted to
     the others (views and draws cost what the store holds); the map from old to new node
     numbers is returned then (None if the store was not compacted)."""
-    order = todo[np.lexsort((nodes.rule[todo], nodes.depth[todo]))]
     moved: IntArray | None = None
-    if not len(order):
+    if not len(todo):
         return moved
+    n_rules = len(grammar.rules) + 1
+    depth = nodes.depth[todo]
+    if np.all(depth[1:] >= depth[:-1]):
+        order = todo  # level-major already (the structure stage's store): runs of one rule
+    else:
+        order = todo[np.argsort(depth * n_rules + nodes.rule[todo], kind="stable")]
     stored = np.count_nonzero(alive)  # candidates with nodes in the store
     waiting = np.zeros(len(nodes.type), bool)  # not posed yet: left out of the views
     waiting[order] = True
     fresh = np.zeros(len(nodes.type), bool)  # posed since the last judgement
-    n_rules = len(grammar.rules) + 1
     key = nodes.depth[order] * n_rules + nodes.rule[order]
     cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
     depth_of_cut = nodes.depth[order[cuts[:-1]]]
