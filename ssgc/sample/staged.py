@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.constraints.base import Constraint, range_margin
-from ssgc.constraints.structural import Children, Count, LongestChain
+from ssgc.constraints.structural import Children, Count, LongestChain, chain_runs
 from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
 from ssgc.sample.forward import MAX_CHUNK_NODES, MAX_LEVELS, _choose_rules
@@ -65,6 +65,7 @@ class Nodes:
     rule: IntArray
     depth: IntArray
     nest: IntArray  # (N, B) nesting depth of every bounded type
+    force: IntArray  # links of the chain proposal's forced chain a node must still make
     n_scenes: int
     xyz: FloatArray | None = None
     quat: FloatArray | None = None
@@ -86,7 +87,7 @@ class Nodes:
         keep = np.concatenate(masks)
         new = np.cumsum(keep) - 1
         new[~keep] = -1
-        for key in ("scene", "type", "parent", "rule", "depth", "nest"):
+        for key in ("scene", "type", "parent", "rule", "depth", "nest", "force"):
             parts = [getattr(self, key)[masks[0]]]
             parts += [lv[key][m] for lv, m in zip(levels, masks[1:], strict=True)]
             setattr(self, key, np.concatenate(parts))
@@ -107,7 +108,7 @@ class Nodes:
         new[idx] = np.arange(len(idx))
         par = self.parent[idx]
         self.parent = np.where(par >= 0, new[np.maximum(par, 0)], -1)
-        for key in ("scene", "type", "rule", "depth", "nest"):
+        for key in ("scene", "type", "rule", "depth", "nest", "force"):
             setattr(self, key, getattr(self, key)[idx])
         if self.xyz is not None and self.quat is not None:
             self.xyz, self.quat = self.xyz[idx], self.quat[idx]
@@ -132,6 +133,7 @@ def roots(grammar: Grammar, size: int) -> Nodes:
         rule=np.full(size, -1, np.int64),
         depth=np.zeros(size, np.int64),
         nest=nest,
+        force=np.zeros(size, np.int64),
         n_scenes=size,
     )
 
@@ -166,9 +168,8 @@ def grow(
         "type": nodes.type[f_id],
         "nest": nodes.nest[f_id],
         "depth": nodes.depth[f_id],
+        "force": nodes.force[f_id],
     }
-    if chain is not None:  # per node: how many more links of the forced chain it must make
-        f["force"] = np.zeros(len(f_id), np.int64)
     if poses:
         assert nodes.xyz is not None and nodes.quat is not None
         f["xyz"], f["quat"] = nodes.xyz[f_id], nodes.quat[f_id]
@@ -213,8 +214,11 @@ def grow(
             "parent": f_id[at],
             "rule": rid,
         }
-        if chain is not None:
-            level["force"] = chain.child_force(f["force"], at, rid, rng)
+        level["force"] = (
+            np.zeros(len(at), np.int64)
+            if chain is None
+            else chain.child_force(f["force"], at, rid, rng)
+        )
         if poses:
             xyz, quat = [], []
             for r, where in fires:
@@ -229,7 +233,6 @@ def grow(
         f_id = next_id + np.arange(len(at))
         next_id += len(at)
         f = {k: level[k] for k in f}
-        level.pop("force", None)  # the store does not keep it
         if watch is not None:
             watch.step(at, level["type"], level["scene"], f["type"])
     if not keep_levels:
@@ -732,8 +735,22 @@ def rejection_batch(
     restricted = count_proposals(grammar, constraints)
     forced = forced_rules(grammar, constraints)
     chain = chain_proposal(grammar, constraints, restricted)
-    watch = Watch(grammar, constraints, size, stats, chain)
     relevant = relevant_types(grammar, constraints)
+    # The proposed chains' trays above their roots are grown with the rest (step 3), for
+    # the candidates whose roots' poses pass, when no other structural constraint needs them.
+    late_chain = (
+        chain is not None
+        and not relevant_types(grammar, [c for c in constraints if c.name != chain.constraint])[
+            chain.chain_type
+        ]
+    )
+    if late_chain:
+        assert chain is not None
+        relevant[chain.chain_type] = False
+        watched = [c for c in constraints if c.name != chain.constraint]
+    else:
+        watched = constraints
+    watch = Watch(grammar, watched, size, stats, chain)
     levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
     pending = grow(
         grammar,
@@ -751,11 +768,8 @@ def rejection_batch(
     )
     watch.finish()
     alive = watch.alive
-    if chain is not None:  # keep a proposed candidate with probability 1/K
-        assert np.all(watch.tall[alive] >= 1), "the proposal forces one chain"
-        unlucky = alive & (rng.random(size) * watch.tall >= 1)
-        stats.rejected[chain.constraint] += int(np.count_nonzero(unlucky))
-        alive &= ~unlucky
+    if chain is not None and not late_chain:  # keep a candidate with probability 1/K
+        _keep_one_in_k(chain, watch.tall, alive, rng, stats)
     pending = nodes.extend_kept(levels, alive, pending)
     for c in constraints:  # registered structural kinds that Watch does not follow
         if c.kind == "structure" and not _watched(c) and np.any(alive):
@@ -782,7 +796,14 @@ def rejection_batch(
     pending = nodes.compact(alive, pending)
     late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
     grown_from = len(nodes.type)
-    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), False, rng, logp)
+    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), False, rng, logp, chain=chain)
+    if late_chain and np.any(alive):
+        assert chain is not None
+        (c,) = [c for c in constraints if c.name == chain.constraint]
+        alive &= stats.judge(c, c.margin(nodes), alive)
+        run = chain_runs(nodes.type, nodes.parent, chain.chain_type)
+        tall = np.bincount(nodes.scene[run == chain.length], minlength=size)
+        _keep_one_in_k(chain, tall, alive, rng, stats)
     grown = len(nodes.type) - grown_from
     nodes.xyz = np.concatenate([nodes.xyz, np.zeros((grown, 3))])
     nodes.quat = np.concatenate([nodes.quat, np.zeros((grown, 4))])
@@ -801,6 +822,21 @@ def rejection_batch(
         best=stats.best,
         drawn=size,
     )
+
+
+def _keep_one_in_k(
+    chain: ChainProposal,
+    tall: IntArray,
+    alive: NDArray[np.bool_],
+    rng: np.random.Generator,
+    stats: _Stats,
+) -> None:
+    """The chain proposal's coin: keep each candidate with probability 1/K, K (`tall`) its
+    number of chains at least the proposal's length (>= 1: one is forced)."""
+    assert np.all(tall[alive] >= 1), "the proposal forces one chain"
+    unlucky = alive & (rng.random(len(alive)) * tall >= 1)
+    stats.rejected[chain.constraint] += int(np.count_nonzero(unlucky))
+    alive &= ~unlucky
 
 
 class _Stats:
