@@ -6,18 +6,20 @@ accept/reject decision for each candidate, but draws as little of the candidate 
 
 1. **Structure of the relevant part.**  Only nodes of types from which a structurally
    constrained type can be reached are expanded (no poses).  Other nodes stay *pending*: they
-   can never add or remove a constrained node, so the structural margins are final.  Two exact
-   proposals make fewer candidates fail here (`count_proposals`, `forced_rules`).
+   can never add or remove a constrained node, so the structural margins are final.  Three
+   exact proposals make fewer candidates fail here (`count_proposals`, `forced_rules`,
+   `chain_proposal`); a proposed chain's links above its root wait for step 3.
 2. **Poses of that part**, for the candidates whose structure passed, drawn from the
    grammar's own rules depth by depth (`pose_stage`).  Pose margins are minima over nodes or
    pairs, so they can only fall when more nodes are added: a partial tree that already
    violates one is rejected, judged on the terms with a freshly posed node.
-3. **The rest**: pending nodes of the survivors are expanded with poses (forward sampling
-   from them), and every pose constraint judges the terms with a node of the rest.
+3. **The rest**: pending nodes of the survivors are expanded (structure first), then posed
+   depth by depth as in 2, every pose constraint judging the terms with a node of the rest.
 
 Every random choice of a candidate is drawn from the grammar's law given what was drawn
 before (subtrees are independent given their root's pose, so the order does not matter),
-except the proposals, which multiply the probability of every accepted tree by one constant;
+except the proposals, which multiply the probability of every accepted tree by one constant
+(the chain proposal after its 1/K coin);
 and a candidate is kept iff its complete tree satisfies every constraint: the kept candidates
 are i.i.d. draws of P(T | C).  A rejected structure is never reused with new poses: that would
 sample structures by P(S) instead of P(S) P(poses ok | S) (thesis 2.7.3; docs/constraints.md).
