@@ -199,3 +199,15 @@ def test_fresh_pairs_and_lineal_shortcuts_agree_with_the_plain_versions(data) ->
     y = np.array(data.draw(st.lists(st.integers(0, n - 1), min_size=len(x), max_size=len(x))))
     y = y.astype(np.int64)
     assert np.array_equal(lineal_few(x, y, parent, depths(parent)), lineal(x, y, parent))
+
+
+def test_size_biased_restricted_counts_follow_k_times_the_law() -> None:
+    """The chain proposal's count: P(k) * k restricted to [lo, hi], normalised."""
+    from ssgc.sample.forward import _restricted_counts
+
+    p = np.array([0.1, 0.3, 0.25, 0.2, 0.1, 0.05])
+    counts = _restricted_counts(p, 2, 4, np.random.default_rng(3), 20_000, size_biased=True)
+    assert set(np.unique(counts)) == {2, 3, 4}
+    want = np.array([2 * 0.25, 3 * 0.2, 4 * 0.1])
+    got = np.bincount(counts, minlength=5)[2:5]
+    assert stats.chisquare(got, want / want.sum() * len(counts)).pvalue > 1e-3
