@@ -189,6 +189,8 @@ def bench_constrained(
             "valid_scenes_per_cpu_second": round(m / cpu, 1) if cpu > 0 else None,
             "seconds": round(seconds, 3),
             "cpu_seconds": round(cpu, 3),
+            # CPU seconds per wall-clock second: near `jobs` when every worker had a core
+            "cores_busy": round(cpu / seconds, 2) if seconds > 0 else None,
             "candidates": tally.drawn,
             "candidates_per_second": round(tally.drawn / seconds, 1),
             "acceptance_rate": tally.kept / tally.drawn if tally.drawn else None,

@@ -180,9 +180,26 @@ def lineal(a: IntArray, b: IntArray, parent: IntArray) -> NDArray[np.bool_]:
     return (da != db) & (table[lo, np.minimum(da, db)] == hi)
 
 
-def lineal_few(a: IntArray, b: IntArray, parent: IntArray) -> NDArray[np.bool_]:
+def lineal_few(
+    a: IntArray, b: IntArray, parent: IntArray, depth: IntArray | None = None
+) -> NDArray[np.bool_]:
     """`lineal` for a few pairs: walks up from both nodes (one step per level), without the
-    whole batch's ancestor table."""
+    whole batch's ancestor table.  With the nodes' depths, only from the deeper node of a
+    pair and only up to the other's depth (nodes at one depth are never lineal)."""
+    if depth is not None:
+        da, db = depth[a], depth[b]
+        low, high = np.where(da > db, a, b), np.where(da > db, b, a)
+        steps = np.abs(da - db)
+        out = np.zeros(len(a), bool)
+        live = np.flatnonzero(steps > 0)
+        cur, steps = low[live], steps[live]
+        while len(live):
+            cur = parent[cur]
+            steps = steps - 1
+            done = steps == 0
+            out[live[done]] = cur[done] == high[live[done]]
+            live, cur, steps = live[~done], cur[~done], steps[~done]
+        return out
     out = np.zeros(len(a), bool)
     for x, y in ((a, b), (b, a)):
         cur = parent[y]
@@ -208,6 +225,30 @@ def tree_pairs(nodes: IntArray, scene: IntArray) -> tuple[IntArray, IntArray]:
     first = np.repeat(np.arange(len(order)), partners)
     offset = np.arange(len(first)) - np.repeat(np.cumsum(partners) - partners, partners)
     return order[first], order[first + 1 + offset]
+
+
+def fresh_pairs(
+    nodes: IntArray, scene: IntArray, fresh: NDArray[np.bool_]
+) -> tuple[IntArray, IntArray]:
+    """The pairs of `tree_pairs` with at least one fresh node, each once, without
+    enumerating the others: within a tree the old nodes come first, and each fresh node is
+    paired with the nodes before it (trees with no fresh node are left out)."""
+    has = np.zeros(int(scene.max(initial=-1)) + 1, bool)
+    has[scene[nodes[fresh[nodes]]]] = True
+    nodes = nodes[has[scene[nodes]]]
+    if len(nodes) < 2:
+        empty = np.zeros(0, np.int64)
+        return empty, empty
+    order = nodes[np.lexsort((fresh[nodes], scene[nodes]))]
+    s = scene[order]
+    start = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
+    size = np.diff(np.r_[start, len(order)])
+    first_of = np.repeat(start, size)
+    pos = np.arange(len(order)) - first_of  # position within its tree
+    partners = np.where(fresh[order], pos, 0)  # the nodes before it
+    later = np.repeat(np.arange(len(order)), partners)
+    offset = np.arange(len(later)) - np.repeat(np.cumsum(partners) - partners, partners)
+    return order[later], order[first_of[later] + offset]
 
 
 def type_mask(type_ids: list[int], n_types: int) -> NDArray[np.bool_]:

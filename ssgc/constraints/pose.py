@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from ssgc.constraints.base import (
     Constraint,
     FloatArray,
+    fresh_pairs,
     lineal,
     lineal_few,
     nearest_ancestor,
@@ -134,18 +135,22 @@ class Clearance(Constraint):
         np.add.at(grad, j[k], -unit)
         return per_scene_min(batch.scene[i], gap, batch.n_scenes), grad
 
-    def typed_pairs(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        i, j = tree_pairs(_selected(batch, self.types), batch.scene)
+    def typed_pairs(
+        self, batch: Any, fresh: NDArray[np.bool_] | None = None
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The pairs of `types` nodes of a tree (with `fresh`, only those with a fresh node),
+        exempt type pairs left out."""
+        nodes = _selected(batch, self.types)
+        if fresh is None:
+            i, j = tree_pairs(nodes, batch.scene)
+        else:
+            i, j = fresh_pairs(nodes, batch.scene, fresh)
         keep = ~self.exempt[batch.type[i], batch.type[j]]
         return i[keep], j[keep]
 
     def margin(self, batch: Any) -> FloatArray:
         """Per tree, the smallest gap; with `batch.fresh`, over the pairs with a fresh node."""
-        i, j = self.typed_pairs(batch)
-        fresh = getattr(batch, "fresh", None)
-        if fresh is not None:
-            new = fresh[i] | fresh[j]
-            i, j = i[new], j[new]
+        i, j = self.typed_pairs(batch, getattr(batch, "fresh", None))
         x, y = batch.xyz[:, 0], batch.xyz[:, 1]  # 1-D gathers are much cheaper than 2-D
         r = self.radius[batch.type]
         gap = np.hypot(x[i] - x[j], y[i] - y[j]) - r[i] - r[j]
@@ -155,12 +160,14 @@ class Clearance(Constraint):
         # parts overlap), then each tree's closest pair until it is not a lineal one.
         live = np.ones(len(i), bool)
         near = np.flatnonzero(gap < 0)
-        live[near[lineal_few(i[near], j[near], batch.parent)]] = False
+        depth = getattr(batch, "depth", None)  # node depths, where the batch keeps them
+        depth = depth if isinstance(depth, np.ndarray) else None
+        live[near[lineal_few(i[near], j[near], batch.parent, depth)]] = False
         scene = batch.scene[i]
         while True:
             best = per_scene_min(scene[live], gap[live], batch.n_scenes)
             at = np.flatnonzero(live & (gap == best[scene]) & (gap >= 0))
-            related = at[lineal_few(i[at], j[at], batch.parent)]
+            related = at[lineal_few(i[at], j[at], batch.parent, depth)]
             if not len(related):
                 return best
             live[related] = False

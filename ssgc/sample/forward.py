@@ -127,6 +127,8 @@ def _choose_rules(
     budget: int | None = None,
     counts_in: dict[int, tuple[int, int | None]] | None = None,
     forced: frozenset[int] = frozenset(),
+    biased: frozenset[int] = frozenset(),
+    must: tuple[NDArray[np.bool_], int, int] | None = None,
 ) -> tuple[list[tuple[int, NDArray[np.int64]]], NDArray[np.float64]]:
     """Which rules fire at each frontier node: [(rule id, frontier positions)], log-probs.
 
@@ -134,7 +136,11 @@ def _choose_rules(
     `counts_in` {type: (lo, hi)} draws the count of those `repeat` types from their law
     restricted to [lo, hi] (the constrained sampler's proposal, `ssgc.sample.staged`); the
     log-probabilities stay those of the unrestricted law.  Likewise the `independent` rules in
-    `forced` always fire (where not blocked), with their log-probability log p.
+    `forced` always fire (where not blocked), with their log-probability log p.  The
+    restricted counts of the `repeat` types in `biased` are drawn size-biased (weight k), and
+    `must` = (mask over the frontier, `or` type, rule index) makes the masked nodes of that
+    type choose that rule (with its log-probability), for the chain proposal of
+    `ssgc.sample.staged`; the caller guarantees no rule of those nodes is blocked.
     """
     tb = grammar.tables
     fires: list[tuple[int, NDArray[np.int64]]] = []
@@ -164,6 +170,9 @@ def _choose_rules(
             fires += [(int(r), sel[~blocked[:, k]]) for k, r in enumerate(rules)]
         elif node.kind == Kind.OR:
             choice, live, lp = _choose_or(node.probs, blocked, rng)
+            if must is not None and must[1] == t:
+                fix = must[0][sel]
+                choice[fix], live[fix], lp[fix] = must[2], True, tb.type_logp[t, must[2]]
             logp[sel] = lp
             spend(int(np.count_nonzero(live)))
             fires += [(int(r), sel[live & (choice == k)]) for k, r in enumerate(rules)]
@@ -178,7 +187,8 @@ def _choose_rules(
             fires += [(int(r), sel[fire[:, k]]) for k, r in enumerate(rules)]
         else:  # REPEAT
             if counts_in is not None and t in counts_in:
-                counts = _restricted_counts(node.count.probs, *counts_in[t], rng, len(sel))
+                lo, hi = counts_in[t]
+                counts = _restricted_counts(node.count.probs, lo, hi, rng, len(sel), t in biased)
             else:
                 counts = node.count.sample(rng, len(sel))
             counts[blocked[:, 0]] = 0
@@ -222,11 +232,19 @@ def _choose_or(
 
 
 def _restricted_counts(
-    probs: NDArray[np.float64], lo: int, hi: int | None, rng: np.random.Generator, n: int
+    probs: NDArray[np.float64],
+    lo: int,
+    hi: int | None,
+    rng: np.random.Generator,
+    n: int,
+    size_biased: bool = False,
 ) -> NDArray[np.int64]:
-    """`n` counts of the law `probs` (P(count = k) = probs[k]) conditioned on lo <= k <= hi."""
+    """`n` counts of the law `probs` (P(count = k) = probs[k]) conditioned on lo <= k <= hi;
+    `size_biased`: of the law k * probs[k] so conditioned."""
     k = np.arange(len(probs))
     weights = np.where((k >= lo) & (k <= (len(probs) if hi is None else hi)), probs, 0.0)
+    if size_biased:
+        weights = weights * k
     cum = np.cumsum(weights)
     if cum[-1] <= 0:  # no count in range (validation refuses such bounds): all rejected
         return np.zeros(n, np.int64)

@@ -6,18 +6,20 @@ accept/reject decision for each candidate, but draws as little of the candidate 
 
 1. **Structure of the relevant part.**  Only nodes of types from which a structurally
    constrained type can be reached are expanded (no poses).  Other nodes stay *pending*: they
-   can never add or remove a constrained node, so the structural margins are final.  Two exact
-   proposals make fewer candidates fail here (`count_proposals`, `forced_rules`).
+   can never add or remove a constrained node, so the structural margins are final.  Three
+   exact proposals make fewer candidates fail here (`count_proposals`, `forced_rules`,
+   `chain_proposal`); a proposed chain's links above its root wait for step 3.
 2. **Poses of that part**, for the candidates whose structure passed, drawn from the
    grammar's own rules depth by depth (`pose_stage`).  Pose margins are minima over nodes or
    pairs, so they can only fall when more nodes are added: a partial tree that already
    violates one is rejected, judged on the terms with a freshly posed node.
-3. **The rest**: pending nodes of the survivors are expanded with poses (forward sampling
-   from them), and every pose constraint judges the terms with a node of the rest.
+3. **The rest**: pending nodes of the survivors are expanded (structure first), then posed
+   depth by depth as in 2, every pose constraint judging the terms with a node of the rest.
 
 Every random choice of a candidate is drawn from the grammar's law given what was drawn
 before (subtrees are independent given their root's pose, so the order does not matter),
-except the proposals, which multiply the probability of every accepted tree by one constant;
+except the proposals, which multiply the probability of every accepted tree by one constant
+(the chain proposal after its 1/K coin);
 and a candidate is kept iff its complete tree satisfies every constraint: the kept candidates
 are i.i.d. draws of P(T | C).  A rejected structure is never reused with new poses: that would
 sample structures by P(S) instead of P(S) P(poses ok | S) (thesis 2.7.3; docs/constraints.md).
@@ -35,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.constraints.base import Constraint, range_margin
-from ssgc.constraints.structural import Children, Count, LongestChain
+from ssgc.constraints.structural import Children, Count, LongestChain, chain_runs
 from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
 from ssgc.sample.forward import MAX_CHUNK_NODES, MAX_LEVELS, _choose_rules
@@ -47,6 +49,9 @@ FloatArray = NDArray[np.float64]
 # judgement rejects fewer than this share of the candidates it judged, the following depths
 # are posed first and judged together.  (Cost only: the verdicts are the same either way.)
 SKIP_BELOW = 0.05
+# The pose stage compacts its store once fewer than this share of the candidates in it are
+# still alive.  (Cost only.)
+COMPACT_BELOW = 0.5
 
 
 @dataclass
@@ -62,6 +67,7 @@ class Nodes:
     rule: IntArray
     depth: IntArray
     nest: IntArray  # (N, B) nesting depth of every bounded type
+    force: IntArray  # links of the chain proposal's forced chain a node must still make
     n_scenes: int
     xyz: FloatArray | None = None
     quat: FloatArray | None = None
@@ -83,7 +89,7 @@ class Nodes:
         keep = np.concatenate(masks)
         new = np.cumsum(keep) - 1
         new[~keep] = -1
-        for key in ("scene", "type", "parent", "rule", "depth", "nest"):
+        for key in ("scene", "type", "parent", "rule", "depth", "nest", "force"):
             parts = [getattr(self, key)[masks[0]]]
             parts += [lv[key][m] for lv, m in zip(levels, masks[1:], strict=True)]
             setattr(self, key, np.concatenate(parts))
@@ -94,17 +100,27 @@ class Nodes:
     def compact(self, keep_scene: NDArray[np.bool_], pending: IntArray) -> IntArray:
         """Keep only the nodes of the kept candidates (scene ids unchanged); returns the
         kept pending nodes, renumbered."""
+        return renumber(self.keep(keep_scene), pending)
+
+    def keep(self, keep_scene: NDArray[np.bool_]) -> IntArray:
+        """Keep only the nodes of the kept candidates (scene ids unchanged); returns each old
+        node's new number (-1: dropped)."""
         idx = np.flatnonzero(keep_scene[self.scene])
         new = np.full(len(self.type), -1, np.int64)
         new[idx] = np.arange(len(idx))
         par = self.parent[idx]
         self.parent = np.where(par >= 0, new[np.maximum(par, 0)], -1)
-        for key in ("scene", "type", "rule", "depth", "nest"):
+        for key in ("scene", "type", "rule", "depth", "nest", "force"):
             setattr(self, key, getattr(self, key)[idx])
         if self.xyz is not None and self.quat is not None:
             self.xyz, self.quat = self.xyz[idx], self.quat[idx]
-        pending = new[pending]
-        return pending[pending >= 0]
+        return new
+
+
+def renumber(new: IntArray, ids: IntArray) -> IntArray:
+    """The nodes `ids` that were kept, by their new numbers (`Nodes.keep`)."""
+    ids = new[ids]
+    return ids[ids >= 0]
 
 
 def roots(grammar: Grammar, size: int) -> Nodes:
@@ -119,6 +135,7 @@ def roots(grammar: Grammar, size: int) -> Nodes:
         rule=np.full(size, -1, np.int64),
         depth=np.zeros(size, np.int64),
         nest=nest,
+        force=np.zeros(size, np.int64),
         n_scenes=size,
     )
 
@@ -135,6 +152,7 @@ def grow(
     levels: list[dict[str, NDArray]] | None = None,  # type: ignore[type-arg]
     counts_in: dict[int, tuple[int, int | None]] | None = None,
     forced: frozenset[int] = frozenset(),
+    chain: ChainProposal | None = None,
 ) -> IntArray:
     """Expand the nodes `start` level by level, only nodes whose type is in `expand`; with
     `poses`, children get poses drawn by their rules (the store must have poses).  Adds the
@@ -142,7 +160,8 @@ def grow(
     level and may kill candidates (their nodes stop growing).  Returns the nodes left
     unexpanded (pending).  With `levels`, the new nodes are put there, not in the store
     (for `Nodes.extend_kept`).  `counts_in` restricts `repeat` counts (`count_proposals`),
-    `forced` makes `independent` rules fire (`forced_rules`)."""
+    `forced` makes `independent` rules fire (`forced_rules`), `chain` forces one chain of
+    each candidate to its constraint's length (`chain_proposal`)."""
     tb = grammar.tables
     kind = tb.type_kind
     f_id = start
@@ -151,6 +170,7 @@ def grow(
         "type": nodes.type[f_id],
         "nest": nodes.nest[f_id],
         "depth": nodes.depth[f_id],
+        "force": nodes.force[f_id],
     }
     if poses:
         assert nodes.xyz is not None and nodes.quat is not None
@@ -175,7 +195,11 @@ def grow(
         if watch is not None:
             watch.select(live)
         budget = MAX_CHUNK_NODES - next_id  # memory bound, as in forward sampling
-        fires, lp = _choose_rules(grammar, f["type"], f["nest"], rng, budget, counts_in, forced)
+        must = None if chain is None else chain.must(f["force"])
+        biased = frozenset() if chain is None else frozenset([chain.repeat])
+        fires, lp = _choose_rules(
+            grammar, f["type"], f["nest"], rng, budget, counts_in, forced, biased, must
+        )
         logp += np.bincount(f["scene"], lp, minlength=len(logp))
         if not fires:
             break
@@ -192,6 +216,11 @@ def grow(
             "parent": f_id[at],
             "rule": rid,
         }
+        level["force"] = (
+            np.zeros(len(at), np.int64)
+            if chain is None
+            else chain.child_force(f["force"], at, rid, rng)
+        )
         if poses:
             xyz, quat = [], []
             for r, where in fires:
@@ -230,27 +259,40 @@ def pose_stage(
     rng: np.random.Generator,
     logp: FloatArray,
     stats: _Stats,
-) -> None:
-    """Draw the poses of the candidates `alive` depth by depth, judging the pose constraints
-    on the partial trees after each depth that posed nodes they read; `alive` is updated in
-    place.  A pose margin is a minimum over nodes or pairs, so the nodes posed so far can only
-    lower it when more are added: a partial tree that fails is a candidate that fails, and
-    the deeper nodes of a candidate already rejected are never drawn (in the dimsum table,
-    two stacks' bottom trays that overlap reject the candidate before any tray above them
-    gets a pose).  Constraints whose evaluation is costly (`progressive` False: FCL) are
-    judged once, after the last depth."""
-    which = np.flatnonzero(nodes.parent >= 0)
-    order = which[np.lexsort((nodes.rule[which], nodes.depth[which]))]
-    if not len(order):
-        return
+    todo: IntArray,
+) -> IntArray | None:
+    """Draw the poses of the nodes `todo` (their ancestors posed or among them) of the
+    candidates `alive`, depth by depth, judging the pose constraints on the partial trees
+    (every posed node) after each depth that posed nodes they read; `alive` is updated in
+    place.  A pose margin is a minimum over nodes or pairs, so the nodes posed so far can
+    only lower it when more are added: a partial tree that fails is a candidate that fails,
+    and the deeper nodes of a candidate already rejected are never drawn (in the dimsum
+    table, two stacks' bottom trays that overlap reject the candidate before any tray above
+    them gets a pose; a teapot on a stack, before the plates).  Constraints whose evaluation
+    is costly (`progressive` False: FCL) are judged once, after the last depth.
+
+    When most of the candidates in the store have been rejected, the store is compacted to
+    the others (views and draws cost what the store holds); the map from old to new node
+    numbers is returned then (None if the store was not compacted)."""
+    moved: IntArray | None = None
+    if not len(todo):
+        return moved
     n_rules = len(grammar.rules) + 1
+    depth = nodes.depth[todo]
+    if np.all(depth[1:] >= depth[:-1]):
+        order = todo  # level-major already (the structure stage's store): runs of one rule
+    else:
+        order = todo[np.argsort(depth * n_rules + nodes.rule[todo], kind="stable")]
+    stored = np.count_nonzero(alive)  # candidates with nodes in the store
+    waiting = np.zeros(len(nodes.type), bool)  # not posed yet: left out of the views
+    waiting[order] = True
+    fresh = np.zeros(len(nodes.type), bool)  # posed since the last judgement
     key = nodes.depth[order] * n_rules + nodes.rule[order]
     cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
     depth_of_cut = nodes.depth[order[cuts[:-1]]]
     early = [c for c in constraints if c.progressive]
     reads = {c.name: c.reads(len(grammar.types)) for c in early}
     touched = {c.name: np.zeros(len(alive), bool) for c in early}
-    since = -1  # nodes deeper than this were posed after the last judgement
     rate = 1.0  # share of the judged candidates the last judgement rejected
     start = 0
     while start < len(cuts) - 1:
@@ -272,12 +314,14 @@ def pose_stage(
             logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
             posed.append(idx)
         start = stop
-        if not early:
-            continue
         if posed:
             new = np.concatenate(posed)
+            waiting[new] = False
+            fresh[new] = True
             for c in early:
                 touched[c.name][nodes.scene[new[reads[c.name][nodes.type[new]]]]] = True
+        if not early:
+            continue
         # Judging costs a pass over the partial trees: after a judgement that rejected few,
         # the next depths are posed first and judged together (always after the last one).
         if rate < SKIP_BELOW and start < len(cuts) - 1:
@@ -285,8 +329,7 @@ def pose_stage(
         among = np.logical_or.reduce(list(touched.values())) & alive
         if not np.any(among):
             continue
-        fresh = nodes.depth > since
-        partial = view(nodes, among, int(d), fresh)  # one view for every constraint
+        partial = view(nodes, among, fresh=fresh, waiting=waiting)  # one for every constraint
         before = int(np.count_nonzero(among))
         fresh_here = partial.fresh
         assert fresh_here is not None
@@ -298,10 +341,24 @@ def pose_stage(
                 alive &= stats.judge(c, c.margin(partial), judged)
             touched[c.name][:] = False
         rate = 1.0 - np.count_nonzero(among & alive) / before
-        since = int(d)
+        fresh[:] = False
+        if np.count_nonzero(alive) < COMPACT_BELOW * stored and start < len(cuts) - 1:
+            new = nodes.keep(alive)
+            moved = new if moved is None else np.where(moved >= 0, new[moved], -1)
+            order = renumber(new, order[cuts[start] :])
+            key = nodes.depth[order] * n_rules + nodes.rule[order]
+            cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+            depth_of_cut = nodes.depth[order[cuts[:-1]]]
+            start = 0
+            waiting = np.zeros(len(nodes.type), bool)
+            waiting[order] = True
+            fresh = np.zeros(len(nodes.type), bool)
+            stored = np.count_nonzero(alive)
     for c in constraints:
         if not c.progressive and np.any(alive):
-            alive &= stats.judge(c, c.margin(view(nodes, alive)), alive)
+            whole = view(nodes, alive, waiting=waiting)
+            alive &= stats.judge(c, c.margin(whole), alive)
+    return moved
 
 
 @dataclass
@@ -315,6 +372,7 @@ class View:
     quat: FloatArray
     n_scenes: int
     index: IntArray  # position of each node in the store
+    depth: IntArray  # of each node (lineal pairs are found by walking up from the deeper)
     # Nodes posed since the view's trees were last judged (None: all).  Their trees passed
     # on the older nodes, so a constraint may judge only the terms that involve a fresh node.
     fresh: NDArray[np.bool_] | None = None
@@ -323,14 +381,14 @@ class View:
 def view(
     nodes: Nodes,
     keep_scene: NDArray[np.bool_],
-    upto: int | None = None,
     fresh: NDArray[np.bool_] | None = None,
+    waiting: NDArray[np.bool_] | None = None,
 ) -> View:
-    """The nodes of the candidates `keep_scene` (only those at depth <= `upto` if given, the
-    ones at depth `upto` fresh); `fresh` (per node of the store) marks fresh nodes instead."""
+    """The nodes of the candidates `keep_scene`, except those `waiting` for their poses;
+    `fresh` (per node of the store) marks the nodes posed since the trees were last judged."""
     keep = keep_scene[nodes.scene]
-    if upto is not None:
-        keep &= nodes.depth <= upto
+    if waiting is not None:
+        keep &= ~waiting
     idx = np.flatnonzero(keep)
     new = np.full(len(nodes.type), -1, np.int64)
     new[idx] = np.arange(len(idx))
@@ -344,11 +402,8 @@ def view(
         quat=nodes.quat[idx],
         n_scenes=nodes.n_scenes,
         index=idx,
-        fresh=fresh[idx]
-        if fresh is not None
-        else None
-        if upto is None
-        else nodes.depth[idx] == upto,
+        depth=nodes.depth[idx],
+        fresh=None if fresh is None else fresh[idx],
     )
 
 
@@ -443,6 +498,90 @@ def forced_rules(grammar: Grammar, constraints: list[Constraint]) -> frozenset[i
     return frozenset(out)
 
 
+@dataclass(frozen=True)
+class ChainProposal:
+    """Draw the structure with one chain of `chain_type` nodes at least `length` long.
+
+    Under the `repeat` node (type `repeat`, rule `root_rule` makes the chain roots), the
+    count n is drawn size-biased (weight n, on top of its restriction by `count_proposals`),
+    one of the n roots J is picked uniformly, and J and the next `length` - 2 nodes of its
+    chain choose the self rule `self_rule` (index `self_index` among the `or` type's rules);
+    everything else is drawn from the grammar.  A candidate is then kept with probability
+    1/K, K the number of its chains at least `length` long (`chain_proposal` says when and
+    docs/constraints.md why the kept candidates follow the grammar's law given the
+    constraint)."""
+
+    constraint: str
+    repeat: int
+    root_rule: int
+    chain_type: int
+    self_rule: int
+    self_index: int
+    length: int
+
+    def must(self, force: IntArray) -> tuple[NDArray[np.bool_], int, int]:
+        return force > 0, self.chain_type, self.self_index
+
+    def child_force(
+        self, force: IntArray, at: IntArray, rid: IntArray, rng: np.random.Generator
+    ) -> IntArray:
+        """The forced links left to each child: one less than its parent's along the self
+        rule, `length` - 1 for the one chain root picked among each `repeat` node's roots."""
+        out = np.where(rid == self.self_rule, np.maximum(force[at] - 1, 0), 0)
+        new = np.flatnonzero(rid == self.root_rule)
+        if len(new):
+            par = at[new]  # sorted: a repeat node's children are consecutive
+            starts = np.flatnonzero(np.r_[True, par[1:] != par[:-1]])
+            sizes = np.diff(np.r_[starts, len(par)])
+            picked = starts + (rng.random(len(starts)) * sizes).astype(np.int64)
+            out[new[picked]] = self.length - 1
+        return out
+
+
+def chain_proposal(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    counts: dict[int, tuple[int, int | None]],
+) -> ChainProposal | None:
+    """The chain proposal for the first `longest_chain` constraint where it is exact.
+
+    It needs: `min` = m >= 2 on a chain type X of kind `or` with one self rule X -> X of
+    probability p > 0; X produced otherwise only by a `repeat` node R whose count is drawn
+    from a restricted law (`count_proposals`: every accepted tree has exactly one R node,
+    n >= 1 roots); no other rule of X leads back to X (so chains are paths from R's
+    children, one per root) and none has a nesting-bounded child; and m <= X's
+    `max_nesting` (so the m - 1 forced choices are never blocked: each has probability p).
+    Then the proposal's probability of a tree ω is P(ω) K(ω) / (Z p^(m-1)) with Z the
+    size-biased count law's normaliser, and keeping ω with probability 1/K makes it a
+    constant times P(ω) on every tree with K >= 1 (docs/constraints.md)."""
+    tb = grammar.tables
+    reach = reachers(grammar)
+    for c in constraints:
+        if not isinstance(c, LongestChain) or c.lo < 2:
+            continue
+        x = c.type_id
+        node = grammar.types[x]
+        if node.kind != Kind.OR:
+            continue
+        own = [k for k, r in enumerate(node.rules) if grammar.rules[r].child == x]
+        producers = [rid for rid, r in enumerate(grammar.rules) if r.child == x and r.parent != x]
+        if len(own) != 1 or len(producers) != 1 or not node.probs[own[0]] > 0:
+            continue
+        repeat = grammar.rules[producers[0]].parent
+        if repeat not in counts or grammar.types[repeat].kind != Kind.REPEAT:
+            continue
+        others = [grammar.rules[r].child for k, r in enumerate(node.rules) if k != own[0]]
+        if any(reach[o, x] or o == x or tb.nesting_slot[o] >= 0 for o in others):
+            continue
+        slot = tb.nesting_slot[x]
+        if slot >= 0 and c.lo > tb.nesting_max[slot]:
+            continue
+        return ChainProposal(
+            c.name, repeat, producers[0], x, int(node.rules[own[0]]), own[0], int(c.lo)
+        )
+    return None
+
+
 def _named(c: Constraint) -> list[int]:
     return [
         int(v) for v in (getattr(c, a, None) for a in ("type_id", "of", "child")) if v is not None
@@ -454,9 +593,18 @@ class Watch:
     candidate is rejected as soon as its fate is sealed: a bound `max` is exceeded (counts
     only grow), or no node that could still change the statistic is left to expand."""
 
-    def __init__(self, grammar: Grammar, constraints: list[Constraint], n: int, stats: _Stats):
+    def __init__(
+        self,
+        grammar: Grammar,
+        constraints: list[Constraint],
+        n: int,
+        stats: _Stats,
+        chain: ChainProposal | None = None,
+    ):
         reach = reachers(grammar)
         self.stats = stats
+        self.chain = chain
+        self.tall = np.zeros(n, np.int64)  # chains reaching the proposal's length (K)
         self.alive = np.ones(n, bool)
         self.items = []
         for c in constraints:
@@ -510,6 +658,10 @@ class Watch:
                 run = np.where(is_t, np.where(p_type == c.type_id, self.runs[id(c)][at] + 1, 1), 0)
                 self.runs[id(c)] = run
                 np.maximum.at(it["stat"], c_scene[is_t], run[is_t])
+                if self.chain is not None and self.chain.constraint == c.name:
+                    self.tall += np.bincount(
+                        c_scene[is_t & (run == self.chain.length)], minlength=len(self.alive)
+                    )
         self.f_type = c_type
         self.check(next_type, c_scene)
 
@@ -582,11 +734,26 @@ def rejection_batch(
     logp = np.zeros(size)
 
     # 1. the structure of the part that structural constraints depend on
-    watch = Watch(grammar, constraints, size, stats)
-    relevant = relevant_types(grammar, constraints)
-    levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
     restricted = count_proposals(grammar, constraints)
     forced = forced_rules(grammar, constraints)
+    chain = chain_proposal(grammar, constraints, restricted)
+    relevant = relevant_types(grammar, constraints)
+    # The proposed chains' trays above their roots are grown with the rest (step 3), for
+    # the candidates whose roots' poses pass, when no other structural constraint needs them.
+    late_chain = (
+        chain is not None
+        and not relevant_types(grammar, [c for c in constraints if c.name != chain.constraint])[
+            chain.chain_type
+        ]
+    )
+    if late_chain:
+        assert chain is not None
+        relevant[chain.chain_type] = False
+        watched = [c for c in constraints if c.name != chain.constraint]
+    else:
+        watched = constraints
+    watch = Watch(grammar, watched, size, stats, chain)
+    levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
     pending = grow(
         grammar,
         nodes,
@@ -599,9 +766,12 @@ def rejection_batch(
         levels,
         restricted,
         forced,
+        chain,
     )
     watch.finish()
     alive = watch.alive
+    if chain is not None and not late_chain:  # keep a candidate with probability 1/K
+        _keep_one_in_k(chain, watch.tall, alive, rng, stats)
     pending = nodes.extend_kept(levels, alive, pending)
     for c in constraints:  # registered structural kinds that Watch does not follow
         if c.kind == "structure" and not _watched(c) and np.any(alive):
@@ -610,18 +780,37 @@ def rejection_batch(
     # 2. its poses, depth by depth, and the pose constraints on the partial trees
     nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
     nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
-    pose_stage(grammar, nodes, pose, alive, rng, logp, stats)
+    # Pending nodes that no pose constraint reads get their poses with the rest (below):
+    # they are not needed to judge the partial trees, and most candidates die first.
+    read = np.zeros(len(grammar.types), bool)
+    for c in pose:
+        read |= c.reads(len(grammar.types))
+    deferred = np.zeros(len(nodes.type), bool)
+    deferred[pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]] = True
+    todo = np.flatnonzero((nodes.parent >= 0) & ~deferred)
+    moved = pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
+    if moved is not None:
+        pending = renumber(moved, pending)
     _check(deadline)
-    # 3. the rest of each surviving tree, with poses; every pose constraint on the terms
-    # with a node of the rest (the partial tree passed on the others), then each kept
-    # tree's margins in full
+    # 3. the rest of each surviving tree: its structure, then its poses (and the deferred
+    # ones) depth by depth, judged on the partial trees as in 2 (the nodes of 2 passed, so
+    # only the terms with a node of the rest are new); then each kept tree's margins in full
     pending = nodes.compact(alive, pending)
+    late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
     grown_from = len(nodes.type)
-    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), True, rng, logp)
-    if np.any(alive) and len(nodes.type) > grown_from:
-        rest = view(nodes, alive, fresh=np.arange(len(nodes.type)) >= grown_from)
-        for c in pose:
-            alive &= stats.judge(c, c.margin(rest), alive)
+    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), False, rng, logp, chain=chain)
+    if late_chain and np.any(alive):
+        assert chain is not None
+        (c,) = [c for c in constraints if c.name == chain.constraint]
+        alive &= stats.judge(c, c.margin(nodes), alive)
+        run = chain_runs(nodes.type, nodes.parent, chain.chain_type)
+        tall = np.bincount(nodes.scene[run == chain.length], minlength=size)
+        _keep_one_in_k(chain, tall, alive, rng, stats)
+    grown = len(nodes.type) - grown_from
+    nodes.xyz = np.concatenate([nodes.xyz, np.zeros((grown, 3))])
+    nodes.quat = np.concatenate([nodes.quat, np.zeros((grown, 4))])
+    todo = np.r_[late, np.arange(grown_from, len(nodes.type))]
+    pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
     full = view(nodes, alive)
     margins = {c.name: c.margin(full) for c in constraints}
     trees = _as_trees(nodes, alive)
@@ -635,6 +824,21 @@ def rejection_batch(
         best=stats.best,
         drawn=size,
     )
+
+
+def _keep_one_in_k(
+    chain: ChainProposal,
+    tall: IntArray,
+    alive: NDArray[np.bool_],
+    rng: np.random.Generator,
+    stats: _Stats,
+) -> None:
+    """The chain proposal's coin: keep each candidate with probability 1/K, K (`tall`) its
+    number of chains at least the proposal's length (>= 1: one is forced)."""
+    assert np.all(tall[alive] >= 1), "the proposal forces one chain"
+    unlucky = alive & (rng.random(len(alive)) * tall >= 1)
+    stats.rejected[chain.constraint] += int(np.count_nonzero(unlucky))
+    alive &= ~unlucky
 
 
 class _Stats:
