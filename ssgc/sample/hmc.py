@@ -24,13 +24,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ssgc.constraints.base import Constraint
-from ssgc.constraints.gradients import penalty_gradient
+from ssgc.constraints.gradients import penalty_gradient, penalty_pose_gradient
 from ssgc.ir import Grammar
 from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.forward import sample_chunk
 from ssgc.sample.lawspace import Coords
 from ssgc.sample.nuts import DualAveraging, Nuts
-from ssgc.sample.poses import Levels, local_poses, pullback, world_poses
+from ssgc.sample.poses import Levels, local_poses, pullback, pullback_poses, world_poses
+from ssgc.sample.rotspace import RotCoords
 from ssgc.sample.staged import _check
 from ssgc.tree import Trees
 
@@ -43,32 +44,62 @@ class HmcSettings:
     max_depth: int = 6
     max_chains: int = 64  # chains per attempt; candidates beyond are dropped
     first_step: float = 0.1
+    rotations: bool = True  # move rotations too (False: held at their draw)
 
 
 SETTINGS = HmcSettings()
 
 
 class FixedTrees:
-    """Trees whose structure and rotations are held: z -> their poses, log-density, gradient."""
+    """Trees whose structure is held: z -> their poses, log-density and its gradient.
 
-    def __init__(self, grammar: Grammar, trees: Trees, constraints: list[Constraint], eps: float):
+    z is (N, 7): columns 0-2 the local translation's coordinates (`ssgc.sample.lawspace`),
+    3-6 the local rotation's (`ssgc.sample.rotspace`).  With `rotations=False` the rotations
+    are held at their draw (z is (N, 3)), as before rotations could move."""
+
+    def __init__(
+        self,
+        grammar: Grammar,
+        trees: Trees,
+        constraints: list[Constraint],
+        eps: float,
+        rotations: bool = True,
+    ):
         self.grammar, self.trees, self.eps = grammar, trees, eps
         self.constraints = [c for c in constraints if c.kind != "structure"]
         self.levels = Levels.of(trees)
         self.u, self.r = local_poses(grammar, trees)
         self.coords = Coords.of(grammar, trees.rule)
-        self.z0 = self.coords.to_z(self.u)
+        self.rot = RotCoords.of(grammar, trees.rule) if rotations else None
+        self.parent = np.maximum(trees.parent, 0)
+        z0 = self.coords.to_z(self.u)
+        free = self.coords.free
+        if self.rot is not None:
+            z0 = np.concatenate([z0, self.rot.to_w(self.r)], axis=1)
+            free = np.concatenate([free, self.rot.free], axis=1)
+        self.z0, self.free = z0, free
 
     def at(self, z: np.ndarray) -> Trees:
-        u = self.coords.to_u(z, self.u)
-        return world_poses(self.grammar, self.trees, u, self.r, self.levels)
+        u = self.coords.to_u(z[:, :3], self.u)
+        r = self.r if self.rot is None else self.rot.to_rot(z[:, 3:], self.r)
+        return world_poses(self.grammar, self.trees, u, r, self.levels)
 
     def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = self.at(z)
-        pen, g_xyz, _ = penalty_gradient(self.constraints, t, self.eps)
-        g_u = pullback(self.grammar, t, g_xyz, self.levels)
-        lp = self.coords.log_density(z, t.scene, t.n_scenes) + pen
-        grad = self.coords.pull_to_z(z, g_u) + self.coords.grad_log_density(z)
+        zt = z[:, :3]
+        lp = self.coords.log_density(zt, t.scene, t.n_scenes)
+        if self.rot is None:
+            pen, g_xyz, _ = penalty_gradient(self.constraints, t, self.eps)
+            g_u = pullback(self.grammar, t, g_xyz, self.levels)
+            return lp + pen, self.coords.pull_to_z(zt, g_u) + self.coords.grad_log_density(zt)
+        pen, g_xyz, g_rot, _ = penalty_pose_gradient(self.constraints, t, self.eps)
+        g_u, torque = pullback_poses(self.grammar, t, g_xyz, g_rot, self.levels)
+        w = z[:, 3:]
+        lp += self.rot.log_density(w, t.scene, t.n_scenes) + pen
+        grad = np.empty_like(z)
+        grad[:, :3] = self.coords.pull_to_z(zt, g_u) + self.coords.grad_log_density(zt)
+        g_w = self.rot.pull_to_w(w, torque, t.quat[self.parent])
+        grad[:, 3:] = g_w + self.rot.grad_log_density(w)
         return lp, grad
 
 
@@ -101,9 +132,9 @@ def run_chains(
 ) -> tuple[Trees, dict[str, np.ndarray], np.ndarray]:
     """(each chain's reported trees, its statistics, whether it met every constraint)."""
     n = trees.n_scenes
-    target = FixedTrees(grammar, trees, constraints, settings.eps)
+    target = FixedTrees(grammar, trees, constraints, settings.eps, settings.rotations)
     exact_cs = target.constraints
-    free = target.coords.free
+    free = target.free
     nuts = Nuts(target, trees.scene, free, n, rng, settings.max_depth)
     z = target.z0
     lp, g = target(z)

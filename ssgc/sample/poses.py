@@ -128,3 +128,38 @@ def choose(a: Trees, b: Trees, take_b: NDArray[np.bool_]) -> Trees:
         quat=cat([a.quat[na], b.quat[nb]])[order],
         n_scenes=a.n_scenes,
     )
+
+
+def pullback_poses(
+    grammar: Grammar, trees: Trees, g_xyz: FloatArray, g_rot: FloatArray, levels: Levels
+) -> tuple[FloatArray, FloatArray]:
+    """(d f / d u, d f / d ω) given d f / d xyz and the torques d f / d ω of every node, where
+    the first is w.r.t. each node's local translation (as `pullback`) and the second w.r.t. a
+    small world-frame turn ω of each node's rotation carried down the tree as the grammar
+    carries it: children whose rotation law is not in the world frame turn with it, and
+    children whose translation is in its frame swing about its origin.
+
+    Summed from the deepest level up: torque(n) = own(n) + Σ_c (x_c - x_n) × adjoint(c) over
+    children c in n's frame + Σ_c torque(c) over children c whose rotation follows n."""
+    child = trees.parent >= 0
+    rules = np.maximum(trees.rule, 0)
+    tframe = np.where(child, grammar.tables.translation.frame[rules], Frame.WORLD)
+    rframe = np.where(child, grammar.tables.rotation.frame[rules], Frame.WORLD)
+    adj, torque = g_xyz.copy(), g_rot.copy()
+    for at in reversed(levels.by_depth):
+        p = trees.parent[at]
+        carry = tframe[at] != Frame.WORLD
+        np.add.at(adj, p[carry], adj[at[carry]])
+        swing = tframe[at] == Frame.PARENT
+        arm = trees.xyz[at[swing]] - trees.xyz[p[swing]]
+        np.add.at(torque, p[swing], np.cross(arm, adj[at[swing]]))
+        turn = rframe[at] != Frame.WORLD
+        np.add.at(torque, p[turn], torque[at[turn]])
+    out = adj.copy()
+    par = np.flatnonzero(tframe == Frame.PARENT)
+    if len(par):
+        conj = trees.quat[trees.parent[par]] * np.array([1.0, -1.0, -1.0, -1.0])
+        out[par] = quat_rotate(conj, adj[par])
+    out[~child] = 0.0
+    torque[~child] = 0.0
+    return out, torque
