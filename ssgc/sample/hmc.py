@@ -24,12 +24,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ssgc.constraints.base import Constraint
-from ssgc.constraints.gradients import penalty_gradient, penalty_pose_gradient
+from ssgc.constraints.gradients import penalty_gradient
 from ssgc.ir import Grammar
 from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.forward import sample_chunk
 from ssgc.sample.lawspace import Coords
 from ssgc.sample.nuts import DualAveraging, Nuts
+from ssgc.sample.penalty import Penalty
 from ssgc.sample.poses import Levels, local_poses, pullback, pullback_poses, world_poses
 from ssgc.sample.rotspace import RotCoords
 from ssgc.sample.staged import _check
@@ -72,6 +73,7 @@ class FixedTrees:
         self.coords = Coords.of(grammar, trees.rule)
         self.rot = RotCoords.of(grammar, trees.rule) if rotations else None
         self.parent = np.maximum(trees.parent, 0)
+        self.penalty = Penalty(self.constraints, trees, eps)
         z0 = self.coords.to_z(self.u)
         free = self.coords.free
         if self.rot is not None:
@@ -92,7 +94,7 @@ class FixedTrees:
             pen, g_xyz, _ = penalty_gradient(self.constraints, t, self.eps)
             g_u = pullback(self.grammar, t, g_xyz, self.levels)
             return lp + pen, self.coords.pull_to_z(zt, g_u) + self.coords.grad_log_density(zt)
-        pen, g_xyz, g_rot, _ = penalty_pose_gradient(self.constraints, t, self.eps)
+        pen, g_xyz, g_rot = self.penalty(t)
         g_u, torque = pullback_poses(self.grammar, t, g_xyz, g_rot, self.levels)
         w = z[:, 3:]
         lp += self.rot.log_density(w, t.scene, t.n_scenes) + pen
