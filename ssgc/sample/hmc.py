@@ -41,9 +41,10 @@ from ssgc.tree import Trees
 class HmcSettings:
     eps: float = 1e-3  # penalty scale (m)
     warmup: int = 60
-    samples: int = 20
+    samples: int = 10  # transitions per draw: a draw is the window's last feasible state
+    draws: int = 4  # scenes reported per chain, one per window of `samples` transitions
     max_depth: int = 6
-    max_chains: int = 64  # chains per attempt; candidates beyond are dropped
+    max_chains: int = 256  # chains per attempt; candidates beyond are dropped
     first_step: float = 0.1
     rotations: bool = True  # move rotations too (False: held at their draw)
 
@@ -146,29 +147,37 @@ def run_chains(
         adapt.update(st["accept"])
         _check(deadline)
     step = np.clip(adapt.final(), 1e-6, 10.0)  # a chain with nothing to move never rejects
-    best = z.copy()
-    found = np.zeros(n, bool)
     acc, leap, div = np.zeros(n), np.zeros(n), np.zeros(n)
-    for _ in range(settings.samples):
-        z, lp, g, st = nuts.step(z, lp, g, step)
-        acc += st["accept"]
-        leap += st["steps"]
-        div += st["diverging"]
-        t = target.at(z)
-        good = np.ones(n, bool)
-        for c in exact_cs:
-            good &= c.margin(t) >= 0
-        best = np.where(good[trees.scene][:, None], z, best)
-        found |= good
-        _check(deadline)
-    stats = {
-        "acceptance": acc / max(settings.samples, 1),
+    draws, found = [], []
+    for _ in range(settings.draws):
+        best = z.copy()
+        ok = np.zeros(n, bool)
+        for _ in range(settings.samples):
+            z, lp, g, st = nuts.step(z, lp, g, step)
+            acc += st["accept"]
+            leap += st["steps"]
+            div += st["diverging"]
+            t = target.at(z)
+            good = np.ones(n, bool)
+            for c in exact_cs:
+                good &= c.margin(t) >= 0
+            best = np.where(good[trees.scene][:, None], z, best)
+            ok |= good
+            _check(deadline)
+        draws.append(replace(target.at(best), rule=trees.rule))
+        found.append(ok)
+    runs = max(settings.samples * settings.draws, 1)
+    per_chain = {
+        "acceptance": acc / runs,
         "step_size": step,
-        "leapfrog_steps": leap / max(settings.samples, 1),
+        "leapfrog_steps": leap / runs,
         "divergences": div,
         "warmup": np.full(n, settings.warmup, float),
         "samples": np.full(n, settings.samples, float),
         "penalty_eps": np.full(n, settings.eps),
     }
-    final = replace(target.at(best), rule=trees.rule)
-    return final, stats, found
+    k = len(draws)
+    stats = {name: np.tile(v, k) for name, v in per_chain.items()}
+    stats["draw"] = np.repeat(np.arange(k, dtype=float), n)
+    final = Trees.concatenate(draws) if k > 1 else draws[0]
+    return final, stats, np.concatenate(found)

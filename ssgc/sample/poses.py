@@ -163,3 +163,22 @@ def pullback_poses(
     out[~child] = 0.0
     torque[~child] = 0.0
     return out, torque
+
+
+def pullback_many(grammar: Grammar, trees: Trees, g_xyz: FloatArray, levels: Levels) -> FloatArray:
+    """`pullback` of K gradients at once: g_xyz is (K, N, 3), the result (K, N, 3).  The
+    projection method needs one per term of a margin (each pair, each box face)."""
+    frame = np.full(len(trees), Frame.WORLD, np.int64)
+    child = trees.parent >= 0
+    frame[child] = grammar.tables.translation.frame[trees.rule[child]]
+    adj = np.moveaxis(g_xyz, 0, 1).copy()  # (N, K, 3): nodes first, for the sums over them
+    for at in reversed(levels.by_depth):
+        carry = at[frame[at] != Frame.WORLD]
+        np.add.at(adj, trees.parent[carry], adj[carry])
+    out = adj.copy()
+    par = np.flatnonzero(frame == Frame.PARENT)
+    if len(par):
+        q = trees.quat[trees.parent[par]] * np.array([1.0, -1.0, -1.0, -1.0])
+        out[par] = quat_rotate(q[:, None, :], adj[par])
+    out[~child] = 0.0
+    return np.moveaxis(out, 1, 0)
