@@ -171,10 +171,12 @@ def _compare(n_hmc: int, n_ref: int, settings: HmcSettings, seed: int) -> dict[s
 
 def test_hmc_rotation_statistics_match_rejection_small() -> None:
     """A small run of the slow comparison: the arms' tilts, the tips' headings and the markers'
-    positions under HMC over rotations are those of rejection (KS, p > 1e-3 for each)."""
-    settings = HmcSettings(warmup=40, samples=10, max_chains=128, max_depth=5)
-    p = _compare(128, 1024, settings, 70)
-    assert p.pop("scenes") > 90
+    positions under HMC over rotations are those of rejection (KS, p > 1e-3 for each); and
+    most chains end feasible, which needs the rotations to move (85% of the arms' drawn tilts
+    break `arms_upright`: with rotations held, 32 of these 192 draws are feasible)."""
+    settings = HmcSettings(warmup=30, samples=8, draws=2, max_chains=96, max_depth=5)
+    p = _compare(96, 1024, settings, 70)
+    assert p.pop("scenes") > 140
     assert min(p.values()) > 1e-3, p
 
 
