@@ -28,10 +28,10 @@ from ssgc.constraints.gradients import penalty_gradient
 from ssgc.ir import Grammar
 from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.forward import sample_chunk
-from ssgc.sample.lawspace import Coords
+from ssgc.sample.lawspace import BOX, NORMAL, Coords
 from ssgc.sample.nuts import DualAveraging, Nuts
 from ssgc.sample.penalty import Penalty
-from ssgc.sample.poses import Levels, local_poses, pullback, pullback_poses, world_poses
+from ssgc.sample.poses import Levels, PullbackPlan, WorldPlan, local_poses, pullback
 from ssgc.sample.rotspace import RotCoords
 from ssgc.sample.staged import _check
 from ssgc.tree import Trees
@@ -75,6 +75,12 @@ class FixedTrees:
         self.rot = RotCoords.of(grammar, trees.rule) if rotations else None
         self.parent = np.maximum(trees.parent, 0)
         self.penalty = Penalty(self.constraints, trees, eps)
+        self.world = WorldPlan(grammar, trees, self.levels)
+        c = self.coords
+        self.normal = ((c.kind == NORMAL)[:, None] & c.free).astype(float)
+        self.box = np.flatnonzero(c.kind == BOX)
+        self.box_free = c.free[self.box].astype(float)
+        self.pull = PullbackPlan(grammar, trees, self.levels)
         z0 = self.coords.to_z(self.u)
         free = self.coords.free
         if self.rot is not None:
@@ -85,25 +91,37 @@ class FixedTrees:
     def at(self, z: np.ndarray) -> Trees:
         u = self.coords.to_u(z[:, :3], self.u)
         r = self.r if self.rot is None else self.rot.to_rot(z[:, 3:], self.r)
-        return world_poses(self.grammar, self.trees, u, r, self.levels)
+        return self.world(self.trees, u, r)
 
     def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = self.at(z)
         zt = z[:, :3]
-        lp = self.coords.log_density(zt, t.scene, t.n_scenes)
         if self.rot is None:
+            lp = self.coords.log_density(zt, t.scene, t.n_scenes)
             pen, g_xyz, _ = penalty_gradient(self.constraints, t, self.eps)
             g_u = pullback(self.grammar, t, g_xyz, self.levels)
             return lp + pen, self.coords.pull_to_z(zt, g_u) + self.coords.grad_log_density(zt)
         pen, g_xyz, g_rot = self.penalty(t)
-        g_u, torque = pullback_poses(self.grammar, t, g_xyz, g_rot, self.levels)
+        g_u, torque = self.pull(t, g_xyz, g_rot)
         w = z[:, 3:]
-        lp += self.rot.log_density(w, t.scene, t.n_scenes) + pen
+        lp_u, grad_u = self._translation_density(zt)
+        lp = lp_u + self.rot.log_density(w, t.scene, t.n_scenes) + pen
         grad = np.empty_like(z)
-        grad[:, :3] = self.coords.pull_to_z(zt, g_u) + self.coords.grad_log_density(zt)
+        grad[:, :3] = self.coords.pull_to_z(zt, g_u) + grad_u
         g_w = self.rot.pull_to_w(w, torque, t.quat[self.parent])
         grad[:, 3:] = g_w + self.rot.grad_log_density(w)
         return lp, grad
+
+    def _translation_density(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`Coords.log_density` and `grad_log_density` on the rows that have them."""
+        terms = -0.5 * np.sum(self.normal * z**2, axis=1)
+        grad = -self.normal * z
+        zb = z[self.box]
+        terms[self.box] -= np.sum(
+            self.box_free * (np.logaddexp(0.0, -zb) + np.logaddexp(0.0, zb)), axis=1
+        )
+        grad[self.box] += self.box_free * (1.0 - 2.0 * (0.5 * (1.0 + np.tanh(0.5 * zb))))
+        return np.bincount(self.trees.scene, terms, minlength=self.trees.n_scenes), grad
 
 
 def hmc_batch(

@@ -30,15 +30,31 @@ IntArray = NDArray[np.int64]
 UNIT = np.eye(3)
 
 
-def _smallest(value: FloatArray, scene: IntArray, n: int) -> tuple[FloatArray, IntArray]:
-    """Per tree, the smallest term (+inf without terms) and the index of one term reaching it
-    (-1 without terms)."""
-    low = np.full(n, np.inf)
-    np.minimum.at(low, scene, value)
-    hit = np.flatnonzero(value == low[scene])
-    at = np.full(n, -1, np.int64)
-    at[scene[hit][::-1]] = hit[::-1]  # the first term reaching the minimum
-    return low, at
+class _Groups:
+    """Terms grouped by tree once: per-tree minima by one `reduceat` over the sorted terms."""
+
+    def __init__(self, scene: IntArray, n: int) -> None:
+        self.order = np.argsort(scene, kind="stable")
+        sorted_scene = scene[self.order]
+        self.starts = np.flatnonzero(np.r_[True, sorted_scene[1:] != sorted_scene[:-1]])
+        self.trees = sorted_scene[self.starts] if len(scene) else np.zeros(0, np.int64)
+        self.scene, self.n = scene, n
+
+    def smallest(self, value: FloatArray) -> tuple[FloatArray, IntArray]:
+        """Per tree, the smallest term (+inf without terms) and the index of one term
+        reaching it (-1 without terms)."""
+        low = np.full(self.n, np.inf)
+        at = np.full(self.n, -1, np.int64)
+        if not len(value):
+            return low, at
+        v = value[self.order]
+        low[self.trees] = np.minimum.reduceat(v, self.starts)
+        hit = np.flatnonzero(v == low[self.scene[self.order]])
+        first = hit[
+            np.r_[True, self.scene[self.order][hit[1:]] != self.scene[self.order][hit[:-1]]]
+        ]
+        at[self.scene[self.order][first]] = self.order[first]
+        return low, at
 
 
 class _ClearanceTerms:
@@ -154,12 +170,15 @@ class Penalty:
     def __init__(self, constraints: list[Constraint], trees: Trees, eps: float) -> None:
         self.eps, self.n = eps, trees.n_scenes
         self.prepared = [(c, _prepare(c, trees)) for c in constraints]
+        self.groups = [
+            None if terms is None else _Groups(terms.scene, self.n) for _, terms in self.prepared
+        ]
 
     def __call__(self, t: Trees) -> tuple[FloatArray, FloatArray, FloatArray]:
         total = np.zeros(self.n)
         gx, gr = np.zeros((len(t), 3)), np.zeros((len(t), 3))
-        for c, terms in self.prepared:
-            if terms is None:
+        for (c, terms), groups in zip(self.prepared, self.groups, strict=True):
+            if terms is None or groups is None:
                 m, cx, cr = pose_gradient(c, t)
                 short = np.where(np.isfinite(m), np.minimum(m, 0.0), 0.0)
                 total -= short**2 / (2 * self.eps**2)
@@ -168,7 +187,7 @@ class Penalty:
                 gr -= w * cr
                 continue
             value = terms.values(t)
-            low, at = _smallest(value, terms.scene, self.n)
+            low, at = groups.smallest(value)
             bad = np.flatnonzero((low < 0) & np.isfinite(low))
             if not len(bad):
                 continue

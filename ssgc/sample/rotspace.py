@@ -142,53 +142,67 @@ class RotCoords:
 
     def log_density(self, w: FloatArray, scene: NDArray[np.int64], n: int) -> FloatArray:
         """Per tree: log p(local rotations) in w, without constants."""
-        norm = np.linalg.norm(w, axis=1)
-        safe = np.maximum(norm, 1e-300)
-        q = w / safe[:, None]
-        quad = np.einsum("ni,nij,nj->n", q, self.laws.quadratic[self.rule], q)
-        radial = -0.5 * (norm - self.laws.radius[self.rule]) ** 2
-        arc = -np.logaddexp(0.0, -w[:, 0]) - np.logaddexp(0.0, w[:, 0])
-        terms = np.select(
-            [self.kind == SPHERE, self.kind == CIRCLE, self.kind == ARC],
-            [quad + radial, -0.5 * (norm - CIRCLE_RADIUS) ** 2, arc],
-            0.0,
-        )
+        terms = np.zeros(len(w))
+        s, c, a = self.rows
+        ws = w[s]
+        norm = np.linalg.norm(ws, axis=1)
+        q = ws / np.maximum(norm, 1e-300)[:, None]
+        quad = np.einsum("ni,nij,nj->n", q, self.laws.quadratic[self.rule[s]], q)
+        terms[s] = quad - 0.5 * (norm - self.laws.radius[self.rule[s]]) ** 2
+        terms[c] = -0.5 * (np.hypot(w[c, 0], w[c, 1]) - CIRCLE_RADIUS) ** 2
+        terms[a] = -np.logaddexp(0.0, -w[a, 0]) - np.logaddexp(0.0, w[a, 0])
         return np.bincount(scene, terms, minlength=n)
 
+    @property
+    def rows(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        """The nodes of each kind with coordinates: (sphere, circle, arc)."""
+        cached = self.__dict__.get("_rows")
+        if cached is None:
+            cached = tuple(np.flatnonzero(self.kind == k) for k in (SPHERE, CIRCLE, ARC))
+            object.__setattr__(self, "_rows", cached)
+        return cached  # type: ignore[no-any-return]
+
     def grad_log_density(self, w: FloatArray) -> FloatArray:
-        norm = np.linalg.norm(w, axis=1, keepdims=True)
-        safe = np.maximum(norm, 1e-300)
-        q = w / safe
-        aq = 2.0 * np.einsum("nij,nj->ni", self.laws.quadratic[self.rule], q)
-        tangent = (aq - np.sum(aq * q, axis=1, keepdims=True) * q) / safe
-        sphere = tangent - (norm - self.laws.radius[self.rule][:, None]) * q
-        circle = -(norm - CIRCLE_RADIUS) * q  # w's last two entries are zero for a circle
-        arc = np.zeros_like(w)
-        arc[:, 0] = 1.0 - 2.0 * _sigmoid(w[:, 0])
-        kind = self.kind[:, None]
-        out = np.where(kind == SPHERE, sphere, np.where(kind == CIRCLE, circle, arc))
-        return np.where(self.free, out, 0.0)
+        out = np.zeros_like(w)
+        s, c, a = self.rows
+        ws = w[s]
+        norm = np.maximum(np.linalg.norm(ws, axis=1, keepdims=True), 1e-300)
+        q = ws / norm
+        aq = 2.0 * np.einsum("nij,nj->ni", self.laws.quadratic[self.rule[s]], q)
+        tangent = (aq - np.sum(aq * q, axis=1, keepdims=True) * q) / norm
+        out[s] = tangent - (norm - self.laws.radius[self.rule[s]][:, None]) * q
+        wc = w[c, :2]
+        nc = np.maximum(np.hypot(wc[:, 0], wc[:, 1]), 1e-300)[:, None]
+        out[c, :2] = -(nc - CIRCLE_RADIUS) * wc / nc
+        out[a, 0] = 1.0 - 2.0 * _sigmoid(w[a, 0])
+        return out
 
     def pull_to_w(self, w: FloatArray, torque: FloatArray, parent_quat: FloatArray) -> FloatArray:
-        """d f / d w from each node's world-frame torque d f / d ω (`pull_rotations` in
+        """d f / d w from each node's world-frame torque d f / d ω (`pullback_poses` in
         `ssgc.sample.poses`); `parent_quat` is each node's parent's world rotation."""
-        world = self.laws.world[self.rule][:, None]
-        conj = parent_quat * np.array([1.0, -1.0, -1.0, -1.0])
-        b = np.where(world, torque, quat_rotate(conj, torque))
-        norm = np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-300)
-        q = w / norm
-        pure = np.concatenate([np.zeros((len(b), 1)), b], axis=1)
-        sphere = 2.0 * quat_multiply(pure, q) / norm
-        d_theta = np.sum(b * self.laws.axis[self.rule], axis=1)
-        circle = np.zeros_like(w)
-        circle[:, 0], circle[:, 1] = -w[:, 1], w[:, 0]
-        circle *= (d_theta / np.maximum(norm[:, 0] ** 2, 1e-300))[:, None]
-        s = _sigmoid(w[:, 0])
-        arc = np.zeros_like(w)
-        arc[:, 0] = d_theta * (self.laws.hi - self.laws.lo)[self.rule] * s * (1 - s)
-        kind = self.kind[:, None]
-        out = np.where(kind == SPHERE, sphere, np.where(kind == CIRCLE, circle, arc))
-        return np.where(self.free, out, 0.0)
+        out = np.zeros_like(w)
+        s, c, a = self.rows
+        moved = np.concatenate([s, c, a])
+        b = torque[moved]
+        local = ~self.laws.world[self.rule[moved]]
+        conj = parent_quat[moved[local]] * np.array([1.0, -1.0, -1.0, -1.0])
+        b[local] = quat_rotate(conj, b[local])
+        bs, br = b[: len(s)], b[len(s) :]
+        ws = w[s]
+        norm = np.maximum(np.linalg.norm(ws, axis=1, keepdims=True), 1e-300)
+        pure = np.concatenate([np.zeros((len(s), 1)), bs], axis=1)
+        out[s] = 2.0 * quat_multiply(pure, ws / norm) / norm
+        rev = moved[len(s) :]
+        d_theta = np.sum(br * self.laws.axis[self.rule[rev]], axis=1)
+        dc = d_theta[: len(c)]
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            r2 = w[c, 0] ** 2 + w[c, 1] ** 2
+            out[c, 0] = -w[c, 1] * dc / r2
+            out[c, 1] = w[c, 0] * dc / r2
+        sa = _sigmoid(w[a, 0])
+        width = (self.laws.hi - self.laws.lo)[self.rule[a]]
+        out[a, 0] = d_theta[len(c) :] * width * sa * (1 - sa)
+        return out
 
 
 def _sigmoid(x: FloatArray) -> FloatArray:
