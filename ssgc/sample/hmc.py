@@ -1,20 +1,21 @@
 """`--method hmc`: thesis 2.4.1, NUTS over the poses of fixed trees with penalty terms.
 
 Candidate trees are drawn from P(T); those that satisfy the structural constraints each get a
-chain (all chains run together, `ssgc.sample.nuts`) over the local translations of their
-nodes, in the unconstrained coordinates of `ssgc.sample.lawspace`, targeting
+chain (all chains run together, `ssgc.sample.nuts`) over the local translations and rotations
+of their nodes, in the unconstrained coordinates of `ssgc.sample.lawspace` (translations) and
+`ssgc.sample.rotspace` (rotations), targeting
 
     P(poses | structure) · Π_C N(min(C(T), 0); 0, ε)     (ε = 1e-3 m by default).
 
-Rotations are held at their draw (translations are what the thesis's table constraints move;
-`upright` is left as drawn, and a tree that violates it is not reported).  After `warmup`
-transitions adapting each chain's step size (dual averaging), `samples` more are run and the
-chain's last state that satisfies every constraint exactly is reported; a chain with none
-reports nothing.
+After `warmup` transitions adapting each chain's step size (dual averaging), each chain gives
+`draws` scenes, one per window of `samples` transitions: the window's last state that
+satisfies every constraint exactly (a window with none gives nothing).  The penalty is 1 on the
+feasible set, so a feasible state of a chain at its stationary law is a draw of
+P(poses | structure, C).
 
 Not exact: each chain keeps its structure, so structures follow P(S | structural
 constraints), not P(S | all constraints) — big scenes are over-represented (thesis 2.7.3,
-docs/constraints.md) — and the penalised law only approaches the constrained one as ε → 0.
+docs/constraints.md) — and a finite chain started from P(T) only approaches its stationary law.
 """
 
 from __future__ import annotations

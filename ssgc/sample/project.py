@@ -5,7 +5,8 @@ translations of its nodes (rotations held), minimise the squared distance of eve
 world position to its drawn one, subject to every pose constraint's margin ≥ 0 and to the
 support of each uniform-box law, with scipy's SLSQP (one problem per tree: scipy's
 optimisers take one problem at a time).  Margins and their gradients come from
-`ssgc.constraints.gradients`, pulled back to the local coordinates (`ssgc.sample.poses`).
+`ssgc.constraints.gradients`, carried to the local coordinates by the Jacobian of the (affine)
+map from local translations to positions (`ssgc.sample.poses.pullback_many`).
 A projection is reported only if every constraint then holds exactly.
 
 Biased: trees that violated a constraint are moved onto its boundary, so scenes pile up
