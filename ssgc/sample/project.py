@@ -30,7 +30,7 @@ from ssgc.sample.poses import Levels, local_poses, pullback_many
 from ssgc.sample.staged import _check
 from ssgc.tree import Trees
 
-MAX_ITER = 40  # SLSQP iterations: a tree that needs more is dropped (infeasible bins never converge)
+MAX_ITER = 40  # SLSQP iterations; a tree needing more is dropped (overfull bins never converge)
 MAX_TREES = 64
 SAFETY = 1e-7  # m: aim this far inside, so that the projection satisfies them exactly
 ACTIVE = 0.05  # m: terms farther than this from violation are left out of a round
