@@ -120,9 +120,11 @@ def _summary(name: str, seed: int, run: SampleRun, plan: Plan, unsettled: int) -
     if plan.constrained:
         tally = plan.tally
         rate = tally.kept / tally.drawn if tally.drawn else 0.0
+        # HMC gives several draws per chain, so a candidate can give several scenes
+        share = f"{rate:.3%} accepted" if rate <= 1 else f"{rate:.2f} scenes per candidate"
         summary = (
             f"wrote {run.written} scene(s) of grammar '{name}' (seed {seed}, {plan.method}) to "
-            f"{run.directory}; {tally.drawn:,} candidates, {rate:.3%} accepted"
+            f"{run.directory}; {tally.drawn:,} candidates, {share}"
         )
     else:
         first, last = run.first, run.last

@@ -20,9 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from ssgc.constraints.base import Constraint, FloatArray
+from ssgc.constraints.base import Constraint, FloatArray, nearest_ancestor, per_scene_argmin
 from ssgc.constraints.penetration import NonPenetration
 from ssgc.constraints.pose import Clearance, InsideBox, Upright
+from ssgc.geometry import quat_multiply, quat_rotate
 
 FD_STEP = 1e-5  # m
 
@@ -125,3 +126,128 @@ def _rotate_axes(q: FloatArray, axis: Any) -> FloatArray:
     from ssgc.geometry import quat_rotate
 
     return quat_rotate(q, np.eye(3)[axis])
+
+
+# ------------------------------------------------------------- with rotations moving ---
+#
+# A rotation's gradient is a torque: for every node, d margin / d ω, where ω is a small
+# world-frame rotation applied to that node's orientation alone, its position and every other
+# pose held (q -> exp(ω) ⊗ q).  `ssgc.sample.poses.pullback_poses` carries torques and position
+# gradients to the law coordinates of the rotations.
+
+FD_ANGLE = 1e-6  # rad
+
+
+def pose_gradient(c: Constraint, batch: Any) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(margins (n_scenes,), d margin / d xyz (n_nodes, 3), d margin / d ω (n_nodes, 3))."""
+    n = len(batch.type)
+    if isinstance(c, InsideBox):
+        return _inside_box_gradient(c, batch)
+    if isinstance(c, Clearance):
+        m, g = c.gradient(batch)
+        return m, g, np.zeros((n, 3))
+    if isinstance(c, Upright):
+        return _upright_gradient(c, batch)
+    if isinstance(c, NonPenetration):
+        assert c.pairs_of is not None
+        types = c.pairs_of.types
+        m = c.margin(batch)
+        return m, finite_difference(c, batch, types), rotation_difference(c, batch, types)
+    raise TypeError(f"no gradient for constraint kind '{c.word}'")
+
+
+def _inside_box_gradient(c: InsideBox, batch: Any) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The closest node's face distance: local = Rᵀ (x - p), so the frame's rotation turns
+    the node about the frame's origin: d gap / d ω_frame = direction × (x - p)."""
+    m, g_xyz = c.gradient(batch)
+    g_rot = np.zeros((len(batch.type), 3))
+    if c.frame is None:
+        return m, g_xyz, g_rot
+    nodes, q, ok, gaps = c._gaps(batch)
+    gaps = np.where(np.isnan(gaps) | ~ok[:, None], np.inf, gaps)
+    face = np.argmin(gaps, axis=1)
+    value = gaps[np.arange(len(nodes)), face]
+    best = per_scene_argmin(batch.scene[nodes], value, batch.n_scenes)
+    k = best[best >= 0]
+    k = k[np.isfinite(value[k])]
+    axis, sign = face[k] % 3, np.where(face[k] < 3, 1.0, -1.0)
+    direction = quat_rotate(q[k], np.eye(3)[axis]) * sign[:, None]
+    anc = nearest_ancestor(batch.parent, batch.type, c.frame, nodes[k])
+    offset = batch.xyz[nodes[k]] - batch.xyz[anc]
+    np.add.at(g_rot, anc, np.cross(direction, offset))
+    return m, g_xyz, g_rot
+
+
+def _upright_gradient(c: Upright, batch: Any) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """margin = max_angle - arccos(a · b), a the node's axis, b its frame's: turning the node
+    by ω moves a by ω × a, so d margin / d ω = (a × b) / sin; the frame gets the opposite."""
+    n = len(batch.type)
+    nodes = np.flatnonzero(c.types[batch.type])
+    anc = (
+        nearest_ancestor(batch.parent, batch.type, c.frame, nodes)
+        if c.frame is not None
+        else np.full(len(nodes), -1)
+    )
+    ok = (anc >= 0) | (c.frame is None)
+    q_ref = np.where((anc >= 0)[:, None], batch.quat[np.maximum(anc, 0)], [1.0, 0, 0, 0])
+    a = quat_rotate(batch.quat[nodes], np.broadcast_to(np.eye(3)[c.axis], (len(nodes), 3)))
+    b = quat_rotate(q_ref, np.broadcast_to(np.eye(3)[c.frame_axis], (len(nodes), 3)))
+    cos = np.clip(np.sum(a * b, axis=1), -1.0, 1.0)
+    value = np.where(ok, c.max_angle - np.arccos(cos), -np.inf)
+    m = c.margin(batch)
+    best = per_scene_argmin(batch.scene[nodes], value, batch.n_scenes)
+    k = best[best >= 0]
+    k = k[np.isfinite(value[k])]
+    sin = np.maximum(np.sqrt(np.maximum(1.0 - cos[k] ** 2, 0.0)), 1e-12)
+    torque = np.cross(a[k], b[k]) / sin[:, None]
+    g_rot = np.zeros((n, 3))
+    np.add.at(g_rot, nodes[k], torque)
+    with_frame = anc[k] >= 0
+    np.add.at(g_rot, anc[k][with_frame], -torque[with_frame])
+    return m, np.zeros((n, 3)), g_rot
+
+
+def rotation_difference(c: Constraint, batch: Any, types: Any) -> FloatArray:
+    """Central differences of every tree's margin w.r.t. small world-frame turns of its
+    nodes of the selected `types` (the k-th such node of every tree turned at once)."""
+    grad = np.zeros((len(batch.type), 3))
+    nodes = np.flatnonzero(types[batch.type])
+    if not len(nodes):
+        return grad
+    scene = batch.scene[nodes]
+    order = np.argsort(scene, kind="stable")
+    rank = np.empty(len(nodes), np.int64)
+    rank[order] = np.arange(len(nodes)) - np.searchsorted(scene[order], scene[order], "left")
+    for k in range(int(rank.max()) + 1):
+        at = nodes[rank == k]
+        for axis in range(3):
+            diff = np.zeros(batch.n_scenes)
+            for sign in (1.0, -1.0):
+                turn = np.zeros(4)
+                turn[0], turn[1 + axis] = np.cos(FD_ANGLE / 2), sign * np.sin(FD_ANGLE / 2)
+                quat = batch.quat.copy()
+                quat[at] = quat_multiply(turn, quat[at])
+                m = c.margin(replace(batch, quat=quat))
+                diff += sign * np.where(np.isfinite(m), m, 0.0)
+            grad[at, axis] = diff[batch.scene[at]] / (2 * FD_ANGLE)
+    return grad
+
+
+def penalty_pose_gradient(
+    constraints: list[Constraint], batch: Any, eps: float
+) -> tuple[FloatArray, FloatArray, FloatArray, dict[str, FloatArray]]:
+    """`penalty_gradient` with the torques too: (log-penalty per tree, d / d xyz, d / d ω,
+    each constraint's margins)."""
+    total = np.zeros(batch.n_scenes)
+    g_xyz = np.zeros((len(batch.type), 3))
+    g_rot = np.zeros((len(batch.type), 3))
+    margins = {}
+    for c in constraints:
+        m, gx, gr = pose_gradient(c, batch)
+        margins[c.name] = m
+        short = np.where(np.isfinite(m), np.minimum(m, 0.0), 0.0)
+        total -= short**2 / (2 * eps**2)
+        w = (short / eps**2)[batch.scene][:, None]
+        g_xyz -= w * gx
+        g_rot -= w * gr
+    return total, g_xyz, g_rot, margins

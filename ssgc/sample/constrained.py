@@ -55,7 +55,7 @@ METHODS: dict[str, Method] = {
 # finite chain's final state only approaches it, so its scenes say "exact": false too.
 EXACT = {"rejection": True, "rjmcmc": False, "hmc": False, "project": False}
 # (first, largest) attempt, in candidates; chain methods run one chain per (kept) candidate
-ATTEMPTS = {"rjmcmc": (256, 256), "hmc": (256, 1024), "project": (256, 1024)}
+ATTEMPTS = {"rjmcmc": (256, 256), "hmc": (128, 8192), "project": (256, 1024)}
 # `auto`'s choice per constraint kind: the fastest exact method measured on the bundled
 # grammars (docs/constraints.md); a kind missing here would go to RJMCMC.
 AUTO = {

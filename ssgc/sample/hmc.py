@@ -1,20 +1,21 @@
 """`--method hmc`: thesis 2.4.1, NUTS over the poses of fixed trees with penalty terms.
 
 Candidate trees are drawn from P(T); those that satisfy the structural constraints each get a
-chain (all chains run together, `ssgc.sample.nuts`) over the local translations of their
-nodes, in the unconstrained coordinates of `ssgc.sample.lawspace`, targeting
+chain (all chains run together, `ssgc.sample.nuts`) over the local translations and rotations
+of their nodes, in the unconstrained coordinates of `ssgc.sample.lawspace` (translations) and
+`ssgc.sample.rotspace` (rotations), targeting
 
     P(poses | structure) · Π_C N(min(C(T), 0); 0, ε)     (ε = 1e-3 m by default).
 
-Rotations are held at their draw (translations are what the thesis's table constraints move;
-`upright` is left as drawn, and a tree that violates it is not reported).  After `warmup`
-transitions adapting each chain's step size (dual averaging), `samples` more are run and the
-chain's last state that satisfies every constraint exactly is reported; a chain with none
-reports nothing.
+After `warmup` transitions adapting each chain's step size (dual averaging), each chain gives
+`draws` scenes, one per window of `samples` transitions: the window's last state that
+satisfies every constraint exactly (a window with none gives nothing).  The penalty is 1 on the
+feasible set, so a feasible state of a chain at its stationary law is a draw of
+P(poses | structure, C).
 
 Not exact: each chain keeps its structure, so structures follow P(S | structural
 constraints), not P(S | all constraints) — big scenes are over-represented (thesis 2.7.3,
-docs/constraints.md) — and the penalised law only approaches the constrained one as ε → 0.
+docs/constraints.md) — and a finite chain started from P(T) only approaches its stationary law.
 """
 
 from __future__ import annotations
@@ -28,9 +29,11 @@ from ssgc.constraints.gradients import penalty_gradient
 from ssgc.ir import Grammar
 from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.forward import sample_chunk
-from ssgc.sample.lawspace import Coords
+from ssgc.sample.lawspace import BOX, NORMAL, Coords
 from ssgc.sample.nuts import DualAveraging, Nuts
-from ssgc.sample.poses import Levels, local_poses, pullback, world_poses
+from ssgc.sample.penalty import Penalty
+from ssgc.sample.poses import Levels, PullbackPlan, WorldPlan, local_poses, pullback
+from ssgc.sample.rotspace import RotCoords
 from ssgc.sample.staged import _check
 from ssgc.tree import Trees
 
@@ -39,37 +42,87 @@ from ssgc.tree import Trees
 class HmcSettings:
     eps: float = 1e-3  # penalty scale (m)
     warmup: int = 60
-    samples: int = 20
+    samples: int = 10  # transitions per draw: a draw is the window's last feasible state
+    draws: int = 4  # scenes reported per chain, one per window of `samples` transitions
     max_depth: int = 6
-    max_chains: int = 64  # chains per attempt; candidates beyond are dropped
+    max_chains: int = 256  # chains per attempt; candidates beyond are dropped
     first_step: float = 0.1
+    rotations: bool = True  # move rotations too (False: held at their draw)
 
 
 SETTINGS = HmcSettings()
 
 
 class FixedTrees:
-    """Trees whose structure and rotations are held: z -> their poses, log-density, gradient."""
+    """Trees whose structure is held: z -> their poses, log-density and its gradient.
 
-    def __init__(self, grammar: Grammar, trees: Trees, constraints: list[Constraint], eps: float):
+    z is (N, 7): columns 0-2 the local translation's coordinates (`ssgc.sample.lawspace`),
+    3-6 the local rotation's (`ssgc.sample.rotspace`).  With `rotations=False` the rotations
+    are held at their draw (z is (N, 3)), as before rotations could move."""
+
+    def __init__(
+        self,
+        grammar: Grammar,
+        trees: Trees,
+        constraints: list[Constraint],
+        eps: float,
+        rotations: bool = True,
+    ):
         self.grammar, self.trees, self.eps = grammar, trees, eps
         self.constraints = [c for c in constraints if c.kind != "structure"]
         self.levels = Levels.of(trees)
         self.u, self.r = local_poses(grammar, trees)
         self.coords = Coords.of(grammar, trees.rule)
-        self.z0 = self.coords.to_z(self.u)
+        self.rot = RotCoords.of(grammar, trees.rule) if rotations else None
+        self.parent = np.maximum(trees.parent, 0)
+        self.penalty = Penalty(self.constraints, trees, eps)
+        self.world = WorldPlan(grammar, trees, self.levels)
+        c = self.coords
+        self.normal = ((c.kind == NORMAL)[:, None] & c.free).astype(float)
+        self.box = np.flatnonzero(c.kind == BOX)
+        self.box_free = c.free[self.box].astype(float)
+        self.pull = PullbackPlan(grammar, trees, self.levels)
+        z0 = self.coords.to_z(self.u)
+        free = self.coords.free
+        if self.rot is not None:
+            z0 = np.concatenate([z0, self.rot.to_w(self.r)], axis=1)
+            free = np.concatenate([free, self.rot.free], axis=1)
+        self.z0, self.free = z0, free
 
     def at(self, z: np.ndarray) -> Trees:
-        u = self.coords.to_u(z, self.u)
-        return world_poses(self.grammar, self.trees, u, self.r, self.levels)
+        u = self.coords.to_u(z[:, :3], self.u)
+        r = self.r if self.rot is None else self.rot.to_rot(z[:, 3:], self.r)
+        return self.world(self.trees, u, r)
 
     def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = self.at(z)
-        pen, g_xyz, _ = penalty_gradient(self.constraints, t, self.eps)
-        g_u = pullback(self.grammar, t, g_xyz, self.levels)
-        lp = self.coords.log_density(z, t.scene, t.n_scenes) + pen
-        grad = self.coords.pull_to_z(z, g_u) + self.coords.grad_log_density(z)
+        zt = z[:, :3]
+        if self.rot is None:
+            lp = self.coords.log_density(zt, t.scene, t.n_scenes)
+            pen, g_xyz, _ = penalty_gradient(self.constraints, t, self.eps)
+            g_u = pullback(self.grammar, t, g_xyz, self.levels)
+            return lp + pen, self.coords.pull_to_z(zt, g_u) + self.coords.grad_log_density(zt)
+        pen, g_xyz, g_rot = self.penalty(t)
+        g_u, torque = self.pull(t, g_xyz, g_rot)
+        w = z[:, 3:]
+        lp_u, grad_u = self._translation_density(zt)
+        lp = lp_u + self.rot.log_density(w, t.scene, t.n_scenes) + pen
+        grad = np.empty_like(z)
+        grad[:, :3] = self.coords.pull_to_z(zt, g_u) + grad_u
+        g_w = self.rot.pull_to_w(w, torque, t.quat[self.parent])
+        grad[:, 3:] = g_w + self.rot.grad_log_density(w)
         return lp, grad
+
+    def _translation_density(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`Coords.log_density` and `grad_log_density` on the rows that have them."""
+        terms = -0.5 * np.sum(self.normal * z**2, axis=1)
+        grad = -self.normal * z
+        zb = z[self.box]
+        terms[self.box] -= np.sum(
+            self.box_free * (np.logaddexp(0.0, -zb) + np.logaddexp(0.0, zb)), axis=1
+        )
+        grad[self.box] += self.box_free * (1.0 - 2.0 * (0.5 * (1.0 + np.tanh(0.5 * zb))))
+        return np.bincount(self.trees.scene, terms, minlength=self.trees.n_scenes), grad
 
 
 def hmc_batch(
@@ -101,9 +154,9 @@ def run_chains(
 ) -> tuple[Trees, dict[str, np.ndarray], np.ndarray]:
     """(each chain's reported trees, its statistics, whether it met every constraint)."""
     n = trees.n_scenes
-    target = FixedTrees(grammar, trees, constraints, settings.eps)
+    target = FixedTrees(grammar, trees, constraints, settings.eps, settings.rotations)
     exact_cs = target.constraints
-    free = target.coords.free
+    free = target.free
     nuts = Nuts(target, trees.scene, free, n, rng, settings.max_depth)
     z = target.z0
     lp, g = target(z)
@@ -113,29 +166,37 @@ def run_chains(
         adapt.update(st["accept"])
         _check(deadline)
     step = np.clip(adapt.final(), 1e-6, 10.0)  # a chain with nothing to move never rejects
-    best = z.copy()
-    found = np.zeros(n, bool)
     acc, leap, div = np.zeros(n), np.zeros(n), np.zeros(n)
-    for _ in range(settings.samples):
-        z, lp, g, st = nuts.step(z, lp, g, step)
-        acc += st["accept"]
-        leap += st["steps"]
-        div += st["diverging"]
-        t = target.at(z)
-        good = np.ones(n, bool)
-        for c in exact_cs:
-            good &= c.margin(t) >= 0
-        best = np.where(good[trees.scene][:, None], z, best)
-        found |= good
-        _check(deadline)
-    stats = {
-        "acceptance": acc / max(settings.samples, 1),
+    draws, found = [], []
+    for _ in range(settings.draws):
+        best = z.copy()
+        ok = np.zeros(n, bool)
+        for _ in range(settings.samples):
+            z, lp, g, st = nuts.step(z, lp, g, step)
+            acc += st["accept"]
+            leap += st["steps"]
+            div += st["diverging"]
+            t = target.at(z)
+            good = np.ones(n, bool)
+            for c in exact_cs:
+                good &= c.margin(t) >= 0
+            best = np.where(good[trees.scene][:, None], z, best)
+            ok |= good
+            _check(deadline)
+        draws.append(replace(target.at(best), rule=trees.rule))
+        found.append(ok)
+    runs = max(settings.samples * settings.draws, 1)
+    per_chain = {
+        "acceptance": acc / runs,
         "step_size": step,
-        "leapfrog_steps": leap / max(settings.samples, 1),
+        "leapfrog_steps": leap / runs,
         "divergences": div,
         "warmup": np.full(n, settings.warmup, float),
         "samples": np.full(n, settings.samples, float),
         "penalty_eps": np.full(n, settings.eps),
     }
-    final = replace(target.at(best), rule=trees.rule)
-    return final, stats, found
+    k = len(draws)
+    stats = {name: np.tile(v, k) for name, v in per_chain.items()}
+    stats["draw"] = np.repeat(np.arange(k, dtype=float), n)
+    final = Trees.concatenate(draws) if k > 1 else draws[0]
+    return final, stats, np.concatenate(found)
