@@ -44,6 +44,7 @@ from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse.milp import Milp
 from ssgc.parse.posed import (
+    FREE_CHILD,
     MAX_INSTANCES,
     Instances,
     PosedProblem,
@@ -569,6 +570,12 @@ class SetBound:
     quat: FloatArray  # (A, 4)
     parent: tuple[FloatArray, FloatArray] | None  # the pose the set's own rule is scored at
     decoupled: bool = False  # the parent's pose is unknown: its rule counts its supremum
+    free: NDArray[np.bool_] | None = None  # (A,) rows at a pose an observed member implies
+
+    @property
+    def free_rows(self) -> NDArray[np.bool_]:
+        """Rows whose children are not restricted and scored exactly (`_implied_rows`)."""
+        return np.zeros(len(self.upper), bool) if self.free is None else self.free
 
 
 def set_bounds(
@@ -587,10 +594,13 @@ def set_bounds(
             int(st.type[st.set_top[e]]),
             int(st.rule[st.set_top[e]]),
             parent if parent in (None, False) else (parent[0].tobytes(), parent[1].tobytes()),
-            tuple((cand.xyz[c].tobytes(), cand.quat[c].tobytes()) for *_, c, _ in groups if c >= 0),
             tuple(
-                (k, r, len(kids), st.offset_xyz[v].tobytes(), st.offset_quat[v].tobytes())
-                for k, v, r, c, kids in groups
+                (cand.xyz[c].tobytes(), cand.quat[c].tobytes()) for *_, c, _, _ in groups if c >= 0
+            ),
+            (cand.xyz[e].tobytes(), cand.quat[e].tobytes()),
+            tuple(
+                (k, r, len(kids), o, st.offset_xyz[v].tobytes(), st.offset_quat[v].tobytes())
+                for k, v, r, c, kids, o in groups
             ),
         )  # the copies of a `repeat` share one computation
         if key not in memo:
@@ -601,7 +611,7 @@ def set_bounds(
         m = _copies_apart(memo[key], _copies(st, int(e)))
         placed = None if parent is False else parent
         out[int(e)] = SetBound(
-            _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False
+            _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False, m.free
         )
     return out
 
@@ -620,7 +630,7 @@ def _copies_apart(bound: SetBound, copies: int) -> SetBound:
     an object are distinct by nature (an object has one parent), but several copies may take
     the same childless assignment (two latent nodes with the same best pose): without the
     repeats, a tree using it twice would have no encoding and the bound could miss it."""
-    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1))
+    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1) & ~bound.free_rows)
     if copies < 2 or not len(empty):
         return bound
     rows = np.concatenate([np.arange(len(bound.assignment)), np.repeat(empty, copies - 1)])
@@ -632,20 +642,26 @@ def _copies_apart(bound: SetBound, copies: int) -> SetBound:
         bound.quat[rows],
         bound.parent,
         bound.decoupled,
+        bound.free_rows[rows],
     )
 
 
 def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):  # type: ignore[no-untyped-def]
-    """(kind, member, rule, child set, copies) per rule leaving the set, or None when the set
-    is out of scope: a member that may be inactive while the top is active (below an `or` or a
-    `repeat` inside the set), or a latent child set placed relative to this one."""
+    """(kind, member, rule, child set, copies, optional) per rule leaving the set.
+
+    A member is *optional* when it may be inactive while the set's top is active (below an
+    `or`, a `repeat` or an `independent` inside the set): its columns may then all be empty
+    as well (`_member_rows`).  Rows that switch a member's columns on while the MILP leaves
+    the member off encode no tree the rows do not already hold at an exact score (the
+    member's children stay off), so they only add encodings: the bound stays an upper bound.
+    A latent child set holds its own edge (its bound: see `set_bounds`), so it has no column.
+    """
     groups = []
     sure = {int(st.set_top[e])}
     for v in np.flatnonzero(st.set_of == e):
         v = int(v)
         node = grammar.types[st.type[v]]
-        if v not in sure:
-            return None
+        optional = v not in sure
         by_rule: dict[int, list[int]] = {}
         for c in st.children[v]:
             by_rule.setdefault(int(st.rule[c]), []).append(int(c))
@@ -654,15 +670,15 @@ def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):
             e_c = int(st.set_of[kids[0]])
             if e_c == e:
                 inner = True
-                if node.kind == Kind.AND:
+                if node.kind == Kind.AND and not optional:
                     sure.update(kids)
                 continue
             if latent[e_c]:  # its own bound holds the edge (see `set_bounds`): no column here
                 inner = True
                 continue
-            groups.append((node.kind, v, r, e_c, tuple(kids)))
+            groups.append((node.kind, v, r, e_c, tuple(kids), optional))
         if node.kind == Kind.OR and inner:
-            groups.append((Kind.OR, v, -1, -1, ()))  # the option that stays inside the set
+            groups.append((Kind.OR, v, -1, -1, (), optional))  # the option staying inside
     return tuple(groups)
 
 
@@ -681,7 +697,7 @@ def _columns(groups) -> tuple[tuple[int, int, int], ...]:  # type: ignore[no-unt
         members.setdefault(g[1], []).append(g)
     cols = []
     for v, gs in members.items():
-        for kind, _, r, e_c, kids in gs:
+        for kind, _, r, e_c, kids, _ in gs:
             if r >= 0:
                 cols += [(v, r, e_c)] * (len(kids) if kind == Kind.REPEAT else 1)
     return tuple(cols)
@@ -699,7 +715,7 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
         members.setdefault(g[1], []).append(g)
     cols_all, rows_all = [], []
     for v, gs in members.items():
-        kind = gs[0][0]
+        kind, optional = gs[0][0], gs[0][5]
         real = [g for g in gs if g[2] >= 0]
         cols = []
         if kind == Kind.AND:
@@ -726,7 +742,7 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
             rows = np.stack([gr.ravel() for gr in grids], axis=1).reshape(-1, len(real))
             cols = [(v, g[2], g[3]) for g in real]
         else:  # REPEAT: one rule, `copies` columns
-            (_, _, r, e_c, kids), k = real[0], len(cand.xyz[real[0][3]])
+            (_, _, r, e_c, kids, _), k = real[0], len(cand.xyz[real[0][3]])
             copies = len(kids)
             cols = [(v, r, e_c)] * copies
             subsets = [s for j in range(min(copies, k) + 1) for s in combinations(range(k), j)]
@@ -735,8 +751,11 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
             rows = np.full((len(subsets), copies), -1)
             for i, s in enumerate(subsets):
                 rows[i, : len(s)] = s
+        rows = np.asarray(rows, np.int64).reshape(-1, len(cols))
+        if optional and not np.any(np.all(rows < 0, axis=1)):
+            rows = np.vstack([rows, np.full((1, len(cols)), -1)])  # the member is off
         cols_all.append(cols)
-        rows_all.append(np.asarray(rows, np.int64))
+        rows_all.append(rows)
     return cols_all, rows_all
 
 
@@ -796,7 +815,50 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     if np.any(terms.revolute):
         edges = local_edges(grammar, st, cand, top_rule, bound)
         xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat)
-    return SetBound(columns, assignment, upper, xyz, quat, *_placed(parent))
+    bound = SetBound(columns, assignment, upper, xyz, quat, *_placed(parent))
+    return _with_implied(bound, _implied_rows(grammar, cand, e, top_rule, parent, len(columns)))
+
+
+FREE = FREE_CHILD  # a free row's columns: any candidate child, scored exactly
+
+
+def _implied_rows(grammar, cand, e, top_rule, parent, n_cols):  # type: ignore[no-untyped-def]
+    """The set's poses implied by an optional observed member (`candidate_poses`), as rows
+    whose children the MILP chooses freely at their exact scores: a tree with such a member
+    on has its set at one of these poses, so the assignments (bounded with every optional
+    member's constraint dropped) and these rows hold every tree.  Their `upper` is the set's
+    own edge at its parent's pose, exact, or its rule's supremum when that pose is unknown."""
+    xyz, quat = cand.xyz[e], cand.quat[e]
+    n = len(xyz)
+    rule = grammar.rules[top_rule]
+    if parent is False:
+        upper = np.full(n, rule.translation.supremum() + rule.rotation.supremum())
+    else:
+        px, pq = parent if parent is not None else (np.zeros(3), IDENTITY)
+        rules = np.full(n, top_rule)
+        upper = translation_log_density(
+            grammar, rules, np.tile(px, (n, 1)), np.tile(pq, (n, 1)), xyz
+        )
+        upper = upper + rotation_log_density(grammar, rules, np.tile(pq, (n, 1)), quat)
+    return np.full((n, n_cols), FREE, np.int64), upper, xyz.copy(), quat.copy()
+
+
+def _with_implied(bound: SetBound, rows) -> SetBound:  # type: ignore[no-untyped-def]
+    assignment, upper, xyz, quat = rows
+    if not len(upper):
+        return bound
+    cat = np.concatenate
+    free = cat([bound.free_rows, np.ones(len(upper), bool)])
+    return SetBound(
+        bound.slots,
+        cat([bound.assignment, assignment]),
+        cat([bound.upper, upper]),
+        cat([bound.xyz, xyz]),
+        cat([bound.quat, quat]),
+        bound.parent,
+        bound.decoupled,
+        free,
+    )
 
 
 REVOLUTE_GRID = 48  # angles tried along a revolute law's arc, then as many around the best
@@ -947,7 +1009,8 @@ class AssignmentReduction:
     def _count(request: Request) -> int:
         assert request.bounds is not None
         posed = assignment_candidates(request.cand, request.bounds)
-        return instance_count(request.supertree, posed, frozenset(request.bounds))
+        restricted = frozenset(e for e, b in request.bounds.items() if not np.any(b.free_rows))
+        return instance_count(request.supertree, posed, restricted)
 
 
 def certify_only(bounds: dict[int, SetBound]) -> bool:
@@ -1000,7 +1063,7 @@ def assignment_problem(
 
     restrict = {
         e: (tuple((v, r) for v, r, _ in sb.slots), sb.assignment) for e, sb in bounds.items()
-    }
+    }  # a free row (FREE) leaves its children to the MILP
 
     def adjust(inst: Instances) -> None:
         set_of = st.set_of[inst.st_node]
@@ -1010,6 +1073,10 @@ def assignment_problem(
         parent_set = set_of[np.maximum(inst.parent, 0)]
         head = inst.top == np.arange(len(set_of))
         counted = (inst.parent >= 0) & np.isin(parent_set, list(bounds)) & (parent_set != set_of)
+        parent_row = inst.cand_k[inst.top[np.maximum(inst.parent, 0)]]
+        for e, sb in bounds.items():  # a free row's children are scored exactly, not bounded
+            of_e = counted & (parent_set == e)
+            counted[of_e] = ~sb.free_rows[parent_row[of_e]]
         counted &= ~(head & np.isin(set_of, list(bounds)))  # a latent child's bound holds it
         inst.score[counted] = 0.0  # the assignment's bound already counts these edges
 
