@@ -130,6 +130,23 @@ class _Terms:
         return off <= 1e-12 * (1.0 + np.abs(P).max(axis=(1, 2), initial=0.0))
 
 
+def _plane(base: FloatArray, axis: FloatArray, post: FloatArray) -> FloatArray:
+    """(n, 4, 2): the orthonormal basis (base ⊗ post, base ⊗ axis ⊗ post) of the plane whose
+    unit vectors are the family q = base ⊗ rot(axis, φ) ⊗ post, q = U (cos φ/2, sin φ/2)."""
+    axis_q = np.hstack([np.zeros((len(axis), 1)), axis])
+    u = quat_multiply(base, post)
+    w = quat_multiply(quat_multiply(base, axis_q), post)
+    return np.stack([u, w], axis=-1)
+
+
+def _on_arc(s: FloatArray, arc: FloatArray) -> NDArray[np.bool_]:
+    """Whether the plane point s = ±(cos ψ, sin ψ) has ψ in the half-angle arc (mod π, the
+    sign of a quaternion), within ROT_TOL."""
+    psi = np.arctan2(s[:, 1], s[:, 0])
+    rel = np.mod(psi - arc[:, 0], np.pi)
+    return (rel <= arc[:, 1] - arc[:, 0] + ROT_TOL) | (rel >= np.pi - ROT_TOL)
+
+
 def _isotropic(precision: FloatArray) -> bool:
     """Whether a Normal's precision is a multiple of the identity (no axis pinned)."""
     return bool(precision[0, 0] > 0 and np.allclose(precision, precision[0, 0] * np.eye(3)))
@@ -204,11 +221,46 @@ class _LocalBounds:
         """q = base ⊗ rot(axis, φ) ⊗ post, φ in the law's range, on the rows `on` that have no
         family yet (a later one is left to the exact scorer: the relaxation ignores it)."""
         free = on & np.isnan(self.fam_base[:, 0])
+        self._meet(law, base, axis, post, on & ~free & ~self.pinned)
         self.fam_base = np.where(free[:, None], _rows(base, self.n, 4), self.fam_base)
         self.fam_axis = np.where(free[:, None], _rows(axis, self.n, 3), self.fam_axis)
         self.fam_post = np.where(free[:, None], _rows(post, self.n, 4), self.fam_post)
         span = np.array([law.revolute.lo, law.revolute.hi])
         self.fam_range = np.where(free[:, None], span, self.fam_range)
+
+    def _meet(self, law, base, axis, post, rows) -> None:  # type: ignore[no-untyped-def]
+        """A second revolute law on rows that already hold a family: the rotations both
+        allow.  Each family is a great circle of unit quaternions, the unit vectors of a plane
+        of R⁴ (`_plane`); two distinct planes meet in a line or not at all (their principal
+        angles, from the SVD of UᵀU').  Meeting in a line on both arcs pins the rotation; not
+        within 2·ROT_TOL of each other, or off an arc by more than ROT_TOL, rules the row out
+        (no rotation is within ROT_TOL of both, the scorer's tolerance).  Coincident planes
+        keep the first family (the second law is then left to the exact scorer)."""
+        if not np.any(rows):
+            return
+        idx = np.flatnonzero(rows)
+        U = _plane(self.fam_base[idx], self.fam_axis[idx], self.fam_post[idx])
+        n = len(idx)
+        U2 = _plane(
+            _rows(base, self.n, 4)[idx], _rows(axis, self.n, 3)[idx], _rows(post, self.n, 4)[idx]
+        )
+        a, sigma, bt = np.linalg.svd(np.einsum("nai,naj->nij", U, U2))
+        near = np.arccos(np.clip(sigma, -1.0, 1.0))  # principal angles (quaternion half-angles)
+        same = near[:, 1] <= 2 * ROT_TOL
+        apart = near[:, 0] > ROT_TOL
+        s_old, s_new = a[:, :, 0], bt[:, 0, :]
+        q = quat_normalize(np.einsum("nai,ni->na", U, s_old))
+        half = np.array([law.revolute.lo, law.revolute.hi]) * 0.5
+        on_old = _on_arc(s_old, 0.5 * self.fam_range[idx])
+        on_new = _on_arc(s_new, np.broadcast_to(half, (n, 2)))
+        clash = ~same & (apart | ~on_old | ~on_new)
+        pin = ~same & ~clash
+        self.clash[idx[clash]] = True
+        mask = np.zeros(self.n, bool)
+        mask[idx[pin]] = True
+        full = np.tile(IDENTITY, (self.n, 1))
+        full[idx] = q
+        self.pin_rotation(full, mask)
 
     @property
     def pinned(self) -> NDArray[np.bool_]:
