@@ -147,6 +147,35 @@ def _on_arc(s: FloatArray, arc: FloatArray) -> NDArray[np.bool_]:
     return (rel <= arc[:, 1] - arc[:, 0] + ROT_TOL) | (rel >= np.pi - ROT_TOL)
 
 
+def _arc_meet(
+    arc: FloatArray, M: FloatArray, half: FloatArray
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Two revolute laws on one plane of quaternions: the old family's half-angle arc (n, 2)
+    narrowed to the new law's (`half`, its own half-angles, carried into the old family's
+    angle by M = UᵀU', a rotation ψ = ψ' + δ or a reflection ψ = δ - ψ'), and the rows where
+    the arcs (mod π, widened by ROT_TOL) do not meet.  Where they meet in two pieces the old
+    arc is kept (a larger set: the bound stays valid)."""
+    delta = np.arctan2(M[:, 1, 0], M[:, 0, 0])
+    turn = np.linalg.det(M) > 0
+    b_lo = np.where(turn, half[0] + delta, delta - half[1]) - ROT_TOL
+    wb = np.full(len(M), half[1] - half[0] + 2 * ROT_TOL)
+    a_lo, wa = arc[:, 0], arc[:, 1] - arc[:, 0]
+    if half[1] - half[0] >= np.pi - 1e-12:  # the new law is a full turn: nothing to narrow
+        return arc, np.zeros(len(M), bool)
+    b0 = a_lo + np.mod(b_lo - a_lo, np.pi)  # the new arc's start, in [a_lo, a_lo + π)
+    first = b0 <= a_lo + wa  # a piece from b0 on
+    wrap = b0 + wb - np.pi >= a_lo  # a piece from a_lo (the new arc wraps past a_lo + π)
+    out = arc.copy()
+    full = wa >= np.pi - 1e-12
+    one = ~full & (first ^ wrap)
+    out[full] = np.stack([b0, b0 + wb], axis=1)[full]
+    lo1, hi1 = b0, np.minimum(b0 + wb, a_lo + wa)
+    lo2, hi2 = a_lo, np.minimum(a_lo + wa, b0 + wb - np.pi)
+    piece = np.where(first[:, None], np.stack([lo1, hi1], 1), np.stack([lo2, hi2], 1))
+    out[one] = piece[one]
+    return out, ~full & ~first & ~wrap
+
+
 def _isotropic(precision: FloatArray) -> bool:
     """Whether a Normal's precision is a multiple of the identity (no axis pinned)."""
     return bool(precision[0, 0] > 0 and np.allclose(precision, precision[0, 0] * np.eye(3)))
@@ -255,6 +284,11 @@ class _LocalBounds:
         on_new = _on_arc(s_new, np.broadcast_to(half, (n, 2)))
         clash = ~same & (apart | ~on_old | ~on_new)
         pin = ~same & ~clash
+        if np.any(same):
+            M = np.einsum("nai,naj->nij", U[same], U2[same])
+            arc, empty = _arc_meet(0.5 * self.fam_range[idx[same]], M, half)
+            self.fam_range[idx[same]] = 2.0 * arc
+            clash[np.flatnonzero(same)[empty]] = True
         self.clash[idx[clash]] = True
         mask = np.zeros(self.n, bool)
         mask[idx[pin]] = True
@@ -526,7 +560,7 @@ def relaxed_upper_bound(
     valid bound.
     """
     pinned, fam = terms.pinned, terms.revolute
-    w, v = np.linalg.eigh(terms.B)
+    v = np.linalg.eigh(terms.B)[1]
     top = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
     top = np.where(fam[:, None], _arc_point(terms, terms.arc.mean(axis=1)), top)
     X = np.einsum("na,nb->nab", top, top)
@@ -534,6 +568,39 @@ def relaxed_upper_bound(
     if np.any(pinned):
         best[pinned] = _pinned_bound(_subset(terms, pinned), X[pinned])
     free = ~pinned
+    h = _frank_wolfe(terms, X, best, free, iterations, deadline)
+    # rows whose iterate is not yet within the certificate's tolerance of its bound go on
+    # alone (their relaxation is usually tight, and the bound then closes on the exact value)
+    for _ in range(FW_EXTRA_ROUNDS):
+        slack = best - h
+        late = free & (slack > FW_TOL * np.maximum(1.0, np.abs(h)))
+        if not np.any(late) or (deadline is not None and time.perf_counter() >= deadline):
+            break
+        part = _subset(terms, late)
+        sub_best, sub_X = best[late], X[late]
+        h[late] = _frank_wolfe(
+            part, sub_X, sub_best, np.ones(len(sub_X), bool), iterations, deadline
+        )
+        best[late], X[late] = sub_best, sub_X
+    v = np.linalg.eigh(X)[1]
+    q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
+    if np.any(fam):  # the family's rotation nearest the leading eigenvector
+        c = np.einsum("nab,na->nb", terms.V, q)
+        psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
+        q = np.where(fam[:, None], _arc_point(terms, psi), q)
+    t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
+    return best, t, q
+
+
+FW_TOL = 2e-7  # relative slack under which a row's Frank–Wolfe bound is left as it is
+FW_EXTRA_ROUNDS = 6  # further rounds of FW_ITERATIONS for the rows above it
+
+
+def _frank_wolfe(terms, X, best, free, iterations, deadline):  # type: ignore[no-untyped-def]
+    """Frank–Wolfe steps on the rows `free`, updating X and `best` (the lowest duality-gap
+    bound seen) in place; returns h at the last iterate (the relaxation's value there)."""
+    fam = terms.revolute
+    h = np.full(len(X), -np.inf)
     for _ in range(iterations if np.any(free) else 0):
         if deadline is not None and time.perf_counter() >= deadline and np.all(best < np.inf):
             break
@@ -546,7 +613,7 @@ def relaxed_upper_bound(
             top = np.where(fam[:, None], s_fam, top)
             lmo = np.where(fam, lmo_fam, lmo)
         bound = h + lmo - np.einsum("nab,nab->n", G, X)
-        best = np.where(free, np.minimum(best, bound), best)
+        best[:] = np.where(free, np.minimum(best, bound), best)
         S = np.einsum("na,nb->nab", top, top)
         S = np.where(free[:, None, None], S, X)
         h_half = _h_and_gradient(terms, 0.5 * (X + S))[0]
@@ -556,15 +623,8 @@ def relaxed_upper_bound(
         slope = 4 * h_half - 3 * h - h_one
         gamma = np.where(curv < -1e-15, np.clip(-slope / np.minimum(curv, -1e-15), 0, 1), 1.0)
         gamma = np.where((curv >= -1e-15) & (h_one < h), 0.0, gamma)
-        X = X + gamma[:, None, None] * (S - X)
-    w, v = np.linalg.eigh(X)
-    q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
-    if np.any(fam):  # the family's rotation nearest the leading eigenvector
-        c = np.einsum("nab,na->nb", terms.V, q)
-        psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
-        q = np.where(fam[:, None], _arc_point(terms, psi), q)
-    t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
-    return best, t, q
+        X += gamma[:, None, None] * (S - X)
+    return h
 
 
 def _arc_point(terms: _Terms, psi: FloatArray) -> FloatArray:
