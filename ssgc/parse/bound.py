@@ -584,12 +584,60 @@ def relaxed_upper_bound(
         best[late], X[late] = sub_best, sub_X
     v = np.linalg.eigh(X)[1]
     q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
+    exact = free & _isotropic_rows(terms)
+    if np.any(exact):  # the rotation's exact optimum: an eigenvector (or an arc's best point)
+        part = _subset(terms, exact)
+        value, q_best = _isotropic_bound(part)
+        best[exact] = np.minimum(best[exact], value)
+        X[exact] = np.einsum("na,nb->nab", q_best, q_best)
+        q[exact] = q_best
     if np.any(fam):  # the family's rotation nearest the leading eigenvector
         c = np.einsum("nab,na->nb", terms.V, q)
         psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
         q = np.where(fam[:, None], _arc_point(terms, psi), q)
     t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
     return best, t, q
+
+
+def _isotropic_rows(terms: _Terms) -> NDArray[np.bool_]:
+    """Rows whose translation terms all have isotropic precision and whose position has no
+    box: there max over t of g(t, R) is linear in R on rotations (`_isotropic_bound`)."""
+    P = terms.P
+    iso = np.all(np.abs(P - P[..., :1, :1] * np.eye(3)) <= 1e-12 * (1 + np.abs(P)), axis=(1, 2, 3))
+    unboxed = np.all(np.isinf(terms.lo) & np.isinf(terms.hi), axis=1)
+    return iso & unboxed
+
+
+def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
+    """The exact maximum over rotations (and t) of g for rows of `_isotropic_rows`, and the
+    rotation reaching it.
+
+    With P_k = p_k I, the best t is Σ p_k e_k / P (P = Σ p_k, e_k = c_k - R m_k), and
+    max_t g = -½ [Σ p_k |e_k|² - |Σ p_k e_k|² / P] + tr(B X) + const.  On rotations
+    |R m|² = |m|², so this is const' + ⟨Σ p_k c_k m_kᵀ - a bᵀ / P, R⟩ + tr(B X) with
+    a = Σ p_k c_k, b = Σ p_k m_k: linear in R, hence in X = q qᵀ, and its maximum over unit q
+    is the top eigenvalue of a 4×4 matrix (over a revolute family, the arc's best point,
+    `_arc_lmo`).  The relaxation of X is then exact: no gap from the rotation at all."""
+    p = terms.P[..., 0, 0]  # (A, K)
+    total = p.sum(axis=1)
+    inv = np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0)
+    a = np.einsum("nk,nki->ni", p, terms.c)
+    b = np.einsum("nk,ki->ni", p, terms.m)
+    G_R = np.einsum("nk,nki,kj->nij", p, terms.c, terms.m) - inv[:, None, None] * np.einsum(
+        "ni,nj->nij", a, b
+    )
+    C = np.einsum("nij,ijab->nab", G_R, K_ROT) + terms.B
+    square = np.einsum("nk,nki,nki->n", p, terms.c, terms.c) + np.einsum(
+        "nk,ki,ki->n", p, terms.m, terms.m
+    )
+    const = -0.5 * (square - inv * (np.einsum("ni,ni->n", a, a) + np.einsum("ni,ni->n", b, b)))
+    w, v = np.linalg.eigh(C)
+    value, q = w[:, -1], v[..., -1]
+    if np.any(terms.revolute):
+        q_arc, value_arc = _arc_lmo(terms, C)
+        q = np.where(terms.revolute[:, None], q_arc, q)
+        value = np.where(terms.revolute, value_arc, value)
+    return value + const + terms.const, q
 
 
 FW_TOL = 2e-7  # relative slack under which a row's Frank–Wolfe bound is left as it is
