@@ -568,29 +568,28 @@ def relaxed_upper_bound(
     if np.any(pinned):
         best[pinned] = _pinned_bound(_subset(terms, pinned), X[pinned])
     free = ~pinned
-    h = _frank_wolfe(terms, X, best, free, iterations, deadline)
-    # rows whose iterate is not yet within the certificate's tolerance of its bound go on
-    # alone (their relaxation is usually tight, and the bound then closes on the exact value)
-    for _ in range(FW_EXTRA_ROUNDS):
-        slack = best - h
-        late = free & (slack > FW_TOL * np.maximum(1.0, np.abs(h)))
-        if not np.any(late) or (deadline is not None and time.perf_counter() >= deadline):
-            break
-        part = _subset(terms, late)
-        sub_best, sub_X = best[late], X[late]
-        h[late] = _frank_wolfe(
-            part, sub_X, sub_best, np.ones(len(sub_X), bool), iterations, deadline
-        )
-        best[late], X[late] = sub_best, sub_X
-    v = np.linalg.eigh(X)[1]
-    q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
     exact = free & _isotropic_rows(terms)
     if np.any(exact):  # the rotation's exact optimum: an eigenvector (or an arc's best point)
-        part = _subset(terms, exact)
-        value, q_best = _isotropic_bound(part)
-        best[exact] = np.minimum(best[exact], value)
+        value, q_best = _isotropic_bound(_subset(terms, exact))
+        best[exact] = value
         X[exact] = np.einsum("na,nb->nab", q_best, q_best)
-        q[exact] = q_best
+    rest = free & ~exact
+    # rows whose iterate is not yet within the certificate's tolerance of its bound go on
+    # alone (where their relaxation is tight, the bound then closes on the exact value)
+    for _ in range(1 + FW_EXTRA_ROUNDS):
+        if not np.any(rest):
+            break
+        part = _subset(terms, rest)
+        sub_best, sub_X = best[rest], X[rest]
+        every = np.ones(len(sub_X), bool)
+        h = _frank_wolfe(part, sub_X, sub_best, every, iterations, deadline)
+        best[rest], X[rest] = sub_best, sub_X
+        late = (sub_best - h) > FW_TOL * np.maximum(1.0, np.abs(h))
+        rest[np.flatnonzero(rest)[~late]] = False
+        if deadline is not None and time.perf_counter() >= deadline:
+            break
+    v = np.linalg.eigh(X)[1]
+    q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
     if np.any(fam):  # the family's rotation nearest the leading eigenvector
         c = np.einsum("nab,na->nb", terms.V, q)
         psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
@@ -1022,6 +1021,7 @@ def _with_implied(bound: SetBound, rows) -> SetBound:  # type: ignore[no-untyped
 
 
 REVOLUTE_GRID = 48  # angles tried along a revolute law's arc, then as many around the best
+REVOLUTE_LEVELS = 4  # grids, each 24 times finer: the last step is ~1e-6 of the arc
 
 
 def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyped-def]
@@ -1038,8 +1038,8 @@ def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyp
     best_v = _owned_values(grammar, sub, sub_owner, best_x, best_q)
     lo, hi = part.arc[:, 0], part.arc[:, 1]
     centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    for width in (1.0, 2.0 / REVOLUTE_GRID):
-        psi0 = np.zeros(len(rows))
+    for width in (2.0 / REVOLUTE_GRID) ** np.arange(REVOLUTE_LEVELS):
+        psi0 = centre.copy()  # a grid that finds nothing better keeps its centre
         for f in np.linspace(-1.0, 1.0, REVOLUTE_GRID):
             psi = np.clip(centre + f * half * width, lo, hi)
             q = _arc_point(part, psi)
