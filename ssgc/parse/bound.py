@@ -574,20 +574,11 @@ def relaxed_upper_bound(
         best[exact] = value
         X[exact] = np.einsum("na,nb->nab", q_best, q_best)
     rest = free & ~exact
-    # rows whose iterate is not yet within the certificate's tolerance of its bound go on
-    # alone (where their relaxation is tight, the bound then closes on the exact value)
-    for _ in range(1 + FW_EXTRA_ROUNDS):
-        if not np.any(rest):
-            break
+    if np.any(rest):  # Frank–Wolfe on the other free rows only
         part = _subset(terms, rest)
         sub_best, sub_X = best[rest], X[rest]
-        every = np.ones(len(sub_X), bool)
-        h = _frank_wolfe(part, sub_X, sub_best, every, iterations, deadline)
+        _frank_wolfe(part, sub_X, sub_best, np.ones(len(sub_X), bool), iterations, deadline)
         best[rest], X[rest] = sub_best, sub_X
-        late = (sub_best - h) > FW_TOL * np.maximum(1.0, np.abs(h))
-        rest[np.flatnonzero(rest)[~late]] = False
-        if deadline is not None and time.perf_counter() >= deadline:
-            break
     v = np.linalg.eigh(X)[1]
     q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
     if np.any(fam):  # the family's rotation nearest the leading eigenvector
@@ -637,10 +628,6 @@ def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
         q = np.where(terms.revolute[:, None], q_arc, q)
         value = np.where(terms.revolute, value_arc, value)
     return value + const + terms.const, q
-
-
-FW_TOL = 2e-7  # relative slack under which a row's Frank–Wolfe bound is left as it is
-FW_EXTRA_ROUNDS = 6  # further rounds of FW_ITERATIONS for the rows above it
 
 
 def _frank_wolfe(terms, X, best, free, iterations, deadline):  # type: ignore[no-untyped-def]
