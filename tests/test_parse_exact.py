@@ -205,6 +205,23 @@ SHAPES = {
         translation: {world_box_offset: {min: [-0.5, -0.5, -0.5], max: [0.5, 0.5, 0.5]}}
         rotation: {revolute: {axis: [0, 1, 1], min: -0.4, max: 0.7}}
 """,
+    # a fixed offset to a child under a revolute rotation, with L's position fixed: the
+    # child's position fixes the angle (a pin), where the arc's grid never hits it exactly
+    "fixed_offset_under_revolute": """
+  R:
+    and:
+      - child: L
+        translation: {offset: [1.0, 0.5, 0.0]}
+        rotation: {revolute: {axis: [1, 0, 0]}}
+  L:
+    and:
+      - child: B
+        translation: {offset: [0.3, -0.2, 0.1]}
+        rotation: {revolute: {axis: [1, 0, 0]}}
+      - child: A
+        translation: {world_normal_offset: {mean: [0.0, 0.0, 0.3], variance: 0.01}}
+        rotation: {parent_bingham: {mode: {rpy_deg: [0, 0, 0]}, concentration: 20}}
+""",
     # two revolute laws about one axis: the family's arc is narrowed to both ranges
     "coaxial_revolutes": """
   R:

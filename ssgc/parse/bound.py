@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.geometry import (
+    axis_angle_to_quat,
     quat_angle,
     quat_conjugate,
     quat_multiply,
@@ -216,6 +217,7 @@ class _LocalBounds:
         self.fam_axis = np.zeros((n, 3))
         self.fam_post = np.tile(IDENTITY, (n, 1))
         self.fam_range = np.zeros((n, 2))
+        self.fixed_children: list = []  # (rule, off_t, off_q, cx, on) per column
 
     # ---------------------------------------------------------------- building blocks ---
 
@@ -366,7 +368,50 @@ class _LocalBounds:
         else:
             self.const += law.supremum()
             self._translation_exact(False)
+        self.translation_pins()
         self._prior_rotation(r, pq)
+
+    def translation_pins(self) -> None:
+        """Rows whose position is pinned and whose rotation is held to a revolute family: a
+        child placed by a fixed parent-frame translation (cx = t + R(q) m) then fixes the
+        angle, R(axis, φ) u = v with u = post·m and v = base⁻¹·(cx - t), wherever the parts
+        of u and v across the axis are long enough (PIN_LEVER) to fix φ to ~POS_TOL / |u⊥|
+        and agree.  Elsewhere the steep quadratic of `_child_translation` stays (a bound)."""
+        rows = ~np.isnan(self.fam_base[:, 0]) & ~self.pinned
+        rows &= np.all(self.hi - self.lo <= 4 * BOX_MARGIN, axis=1)
+        if not np.any(rows):
+            return
+        with np.errstate(invalid="ignore"):  # rows without a family or a pinned position
+            self._pin_by_offsets(rows)
+
+    def _pin_by_offsets(self, rows: NDArray[np.bool_]) -> None:
+        for r, off_t, off_q, cx, on in self.fixed_children:
+            law = self.g.rules[r].translation
+            sel = rows & on & ~self.pinned
+            if law.point is None or law.frame != Frame.PARENT or not np.any(sel):
+                continue
+            m = off_t + quat_rotate(off_q, law.point)
+            t = 0.5 * (self.lo + self.hi)
+            a = self.fam_axis
+            u = quat_rotate(self.fam_post, np.broadcast_to(m, (self.n, 3)))
+            v = quat_rotate(quat_conjugate(self.fam_base), cx - np.where(sel[:, None], t, 0.0))
+            u_perp = u - np.sum(u * a, axis=1)[:, None] * a
+            v_perp = v - np.sum(v * a, axis=1)[:, None] * a
+            lever, reach = np.linalg.norm(u_perp, axis=1), np.linalg.norm(v_perp, axis=1)
+            agree = np.abs(lever - reach) <= PIN_AGREE
+            agree &= np.abs(np.sum((u - v) * a, axis=1)) <= PIN_AGREE
+            phi = np.arctan2(
+                np.sum(a * np.cross(u_perp, v_perp), axis=1), np.sum(u_perp * v_perp, axis=1)
+            )
+            lo, hi = self.fam_range[:, 0], self.fam_range[:, 1]
+            rel = np.mod(phi - lo, 2 * np.pi)
+            inside = (rel <= hi - lo + ROT_TOL) | (rel >= 2 * np.pi - ROT_TOL)
+            pin = sel & (lever >= PIN_LEVER) & agree & inside
+            if np.any(pin):
+                axis = np.where(pin[:, None], a, [0.0, 0.0, 1.0])  # rows without a family
+                turn = axis_angle_to_quat(axis, np.where(pin, phi, 0.0))
+                q = quat_multiply(quat_multiply(self.fam_base, turn), self.fam_post)
+                self.pin_rotation(np.where(pin[:, None], q, IDENTITY), pin)
 
     def _prior_rotation(self, r: int, pq: FloatArray) -> None:
         rot, rform = self.g.rules[r].rotation, self.g.rules[r].rotation.concave_form()
@@ -496,6 +541,8 @@ class _LocalBounds:
 
 
 BOX_MARGIN = 1e-9  # metres: rounding allowed on a box constraint in the bound
+PIN_LEVER = 0.1  # metres: an offset this far from a revolute axis fixes its angle (to ~1e-5)
+PIN_AGREE = 1e-7  # metres: how well a fixed offset must fit the family to pin it
 STEEP = 1e8  # precision standing in for a fixed child translation under a free rotation
 
 
@@ -944,6 +991,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
         cx = cand.xyz[e_c][idx] if len(cand.xyz[e_c]) else np.zeros((n, 3))
         cq = cand.quat[e_c][idx] if len(cand.quat[e_c]) else np.tile(IDENTITY, (n, 1))
         picked.append((v, r, on, cx, cq))
+        local.fixed_children.append((r, st.offset_xyz[v], st.offset_quat[v], cx, on))
         local.child_pin(r, st.offset_quat[v], cq, on)
         local.child_family(r, st.offset_quat[v], cq, on)
     local.prior(top_rule, parent)
