@@ -148,6 +148,9 @@ def test_long_profile_has_no_false_answers():
     assert report["false_answers"] == 0, report["false_examples"]
 
 
+MICP_CERTIFIED_FLOOR = 0.975  # measured 98.05% (1961 of 2000); a little room for time limits
+
+
 @pytest.mark.slow
 def test_micp_certifies_the_profile_grammars():
     """`micp` on the 200-grammar profile (seed 0, 2,000 scene parses): no false answer, and
@@ -159,9 +162,6 @@ def test_micp_certifies_the_profile_grammars():
     assert report["false_answers"] == 0, report["false_examples"]
     certified = report["counts"].get("micp:certified", 0) / report["scene_parses"]
     assert certified >= MICP_CERTIFIED_FLOOR, report["micp_causes"]
-
-
-MICP_CERTIFIED_FLOOR = 0.98
 
 
 @pytest.mark.slow
