@@ -9,11 +9,16 @@ its slots (an *assignment*: one per rule of an `and`, one option of an `or`, a s
 candidates for a `repeat`).  Writing the set's rotation as X = q qᵀ (the rotation matrix and
 every Bingham log-density are linear in X) and relaxing X to {X ⪰ 0, tr X = 1}, Normal
 translations are concave quadratics of (t, X), box laws are constraints on t, fixed rotations
-pin X, a revolute law holds q to an arc, and any other term is replaced by its supremum.  The
-maximum over t is closed-form (clipped to the box); over X, Frank–Wolfe, whose duality gap is
-a valid upper bound at every iterate.  The MILP over structures, with each latent node's edge
+pin X, a revolute law holds q to an arc (a second one meets it exactly: a pin, a narrower arc,
+or no rotation at all), a fixed offset to a child can pin the arc's angle, and any other term
+is replaced by its supremum.  The maximum over t is closed-form (clipped to the box); over X,
+where every Normal term is isotropic and t has no box, the score is linear in R on rotations
+and its maximum an eigenvector (exact); elsewhere Frank–Wolfe, whose duality gap is a valid
+upper bound at every iterate.  The MILP over structures, with each latent node's edge
 terms replaced by the bound of its assignment, then bounds the MAP score from above.
 
+A member of the set that may be inactive adds an "off" row; the poses an optional observed
+member implies join as free rows, scored exactly (`_implied_rows`).
 A latent child placed in the world frame holds its own edge; a latent set whose parent's pose
 is not known (a latent parent) counts its rule's supremum (`decoupled`: such bounds only
 certify, `certify_only`).  Grammars outside the scope get no bound (gap unknown), never a
