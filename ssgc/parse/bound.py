@@ -1013,7 +1013,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     xyz, quat = _snap(terms, xyz, quat, t, q)
     if np.any(terms.revolute):
         edges = local_edges(grammar, st, cand, top_rule, bound)
-        xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat)
+        xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat, deadline)
     bound = SetBound(columns, assignment, upper, xyz, quat, *_placed(parent))
     return _with_implied(bound, _implied_rows(grammar, cand, e, top_rule, parent, len(columns)))
 
@@ -1064,11 +1064,12 @@ REVOLUTE_GRID = 48  # angles tried along a revolute law's arc, then as many arou
 REVOLUTE_LEVELS = 4  # grids, each 24 times finer: the last step is ~1e-6 of the arc
 
 
-def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyped-def]
+def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: ignore[no-untyped-def]
     """For rows held to a revolute family, the best rotation along its arc under the exact
     densities (a grid, then a finer grid around its best point), each with its best position;
     a row keeps its pose unless the search finds a better one.  The Newton polish cannot move
-    along the arc: off it the law's density is -inf."""
+    along the arc: off it the law's density is -inf.  Past the deadline the finer grids are
+    skipped (the pose found so far stands: the bound does not depend on it)."""
     rows = np.flatnonzero(terms.revolute)
     owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
     sub, _ = _sub_edges(edges, owner, rows)
@@ -1078,7 +1079,9 @@ def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyp
     best_v = _owned_values(grammar, sub, sub_owner, best_x, best_q)
     lo, hi = part.arc[:, 0], part.arc[:, 1]
     centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    for width in (2.0 / REVOLUTE_GRID) ** np.arange(REVOLUTE_LEVELS):
+    for level, width in enumerate((2.0 / REVOLUTE_GRID) ** np.arange(REVOLUTE_LEVELS)):
+        if level and deadline is not None and time.perf_counter() >= deadline:
+            break
         psi0 = centre.copy()  # a grid that finds nothing better keeps its centre
         for f in np.linspace(-1.0, 1.0, REVOLUTE_GRID):
             psi = np.clip(centre + f * half * width, lo, hi)
