@@ -547,7 +547,8 @@ class _LocalBounds:
 
 BOX_MARGIN = 1e-9  # metres: rounding allowed on a box constraint in the bound
 PIN_LEVER = 0.1  # metres: an offset this far from a revolute axis fixes its angle (to ~1e-5)
-PIN_AGREE = 1e-7  # metres: how well a fixed offset must fit the family to pin it
+PIN_AGREE = 0.5 * BOX_MARGIN  # metres: how well a fixed offset must fit the family to pin
+# it, so that the pinned child's box (`_child_translation`) still meets the position's own
 STEEP = 1e8  # precision standing in for a fixed child translation under a free rotation
 
 
