@@ -655,25 +655,21 @@ def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
     """The exact maximum over rotations (and t) of g for rows of `_isotropic_rows`, and the
     rotation reaching it.
 
-    With P_k = p_k I, the best t is Σ p_k e_k / P (P = Σ p_k, e_k = c_k - R m_k), and
-    max_t g = -½ [Σ p_k |e_k|² - |Σ p_k e_k|² / P] + tr(B X) + const.  On rotations
-    |R m|² = |m|², so this is const' + ⟨Σ p_k c_k m_kᵀ - a bᵀ / P, R⟩ + tr(B X) with
-    a = Σ p_k c_k, b = Σ p_k m_k: linear in R, hence in X = q qᵀ, and its maximum over unit q
-    is the top eigenvalue of a 4×4 matrix (over a revolute family, the arc's best point,
-    `_arc_lmo`).  The relaxation of X is then exact: no gap from the rotation at all."""
+    With P_k = p_k I (P = Σ p_k, e_k = c_k - R m_k), the best t is Σ p_k e_k / P = c̄ - R m̄
+    (c̄, m̄ the p-weighted means), so e_k - t = c'_k - R m'_k with c'_k = c_k - c̄ and
+    m'_k = m_k - m̄, and max_t g = -½ Σ p_k (|c'_k|² + |m'_k|²) + ⟨Σ p_k c'_k m'_kᵀ, R⟩
+    + tr(B X) + const, using |R m'|² = |m'|² on rotations: linear in R, hence in X = q qᵀ,
+    and its maximum over unit q is the top eigenvalue of a 4×4 matrix (over a revolute
+    family, the arc's best point, `_arc_lmo`).  No relaxation gap.  The centred form keeps
+    the sums small where one term is steep (STEEP)."""
     p = terms.P[..., 0, 0]  # (A, K)
     total = p.sum(axis=1)
-    inv = np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0)
-    a = np.einsum("nk,nki->ni", p, terms.c)
-    b = np.einsum("nk,ki->ni", p, terms.m)
-    G_R = np.einsum("nk,nki,kj->nij", p, terms.c, terms.m) - inv[:, None, None] * np.einsum(
-        "ni,nj->nij", a, b
-    )
+    weight = p / np.where(total > 0, total, 1.0)[:, None]
+    c = terms.c - np.einsum("nk,nki->ni", weight, terms.c)[:, None, :]
+    m = terms.m[None] - np.einsum("nk,ki->ni", weight, terms.m)[:, None, :]
+    G_R = np.einsum("nk,nki,nkj->nij", p, c, m)
     C = np.einsum("nij,ijab->nab", G_R, K_ROT) + terms.B
-    square = np.einsum("nk,nki,nki->n", p, terms.c, terms.c) + np.einsum(
-        "nk,ki,ki->n", p, terms.m, terms.m
-    )
-    const = -0.5 * (square - inv * (np.einsum("ni,ni->n", a, a) + np.einsum("ni,ni->n", b, b)))
+    const = -0.5 * np.einsum("nk,nki,nki->n", p, c, c) - 0.5 * np.einsum("nk,nki,nki->n", p, m, m)
     w, v = np.linalg.eigh(C)
     value, q = w[:, -1], v[..., -1]
     if np.any(terms.revolute):
