@@ -376,3 +376,53 @@ def test_two_revolute_laws_keep_the_rotation_both_allow(seed, coaxial, bounded):
         lo, hi = 0.5 * local.fam_range[0]
         rel = np.mod(0.5 * phi - lo, np.pi)
         assert rel <= hi - lo + 1e-9 or rel >= np.pi - 1e-9, (phi, lo, hi)
+
+
+# An `or` whose options all stay in the set or lead to a latent set (L1): a member with no
+# column at all, which crashed the bound once (the long profile's grammar 293).
+NO_COLUMNS = """
+grammar: no_columns
+root: L0
+types:
+  A: {observed: true}
+  B: {observed: true}
+  L0:
+    or:
+      - child: L1
+        p: 1.0
+        translation: {parent_normal_offset: {mean: [1.0, 0.5, 0.0], variance: 0.05}}
+        rotation: uniform
+      - {child: B, translation: same, rotation: same, p: 3.0}
+  L1:
+    or:
+      - child: L2
+        p: 2.0
+        translation: {offset: [0.3, -0.2, 0.1]}
+        rotation: {offset: {rpy_deg: [0, 90, 0]}}
+      - child: L2
+        p: 3.0
+        translation: {parent_normal_offset: {mean: [0.0, 0.0, 0.0], variance: 0.01}}
+        rotation: {revolute: {axis: [0, 0, 1], min: -0.4, max: 0.7}}
+  L2:
+    independent:
+      - child: A
+        p: 0.3
+        translation: {parent_normal_offset: {mean: [0, 0, 0], variance: [0.02, 0.01, 0.04]}}
+        rotation: uniform
+      - child: A
+        p: 1.0
+        translation: {world_normal_offset: {mean: [1.0, 0.5, 0.0], variance: 0.05}}
+        rotation: uniform
+"""
+
+
+def test_member_without_columns_parses():
+    grammar = compile_text(NO_COLUMNS, "no_columns.yaml")
+    parser = Parser(grammar, method="micp")
+    for scene, truth in _sampled(grammar, 4, 293):
+        result = parser.parse(scene, time_limit=30)
+        assert result.status in ("optimal", "feasible"), result.message
+        assert result.parses[0].score >= truth - TOL * max(1.0, abs(truth)) or (
+            result.status == "feasible"
+        )
+        _check_sound(result, truth)

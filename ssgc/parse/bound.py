@@ -946,7 +946,7 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
             rows = np.full((len(subsets), copies), -1)
             for i, s in enumerate(subsets):
                 rows[i, : len(s)] = s
-        rows = np.asarray(rows, np.int64).reshape(-1, len(cols))
+        rows = np.asarray(rows, np.int64)
         if optional and not np.any(np.all(rows < 0, axis=1)):
             rows = np.vstack([rows, np.full((1, len(cols)), -1)])  # the member is off
         cols_all.append(cols)
