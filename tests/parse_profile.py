@@ -47,6 +47,7 @@ class Verdict:
     truth: float
     false: list[str] = field(default_factory=list)
     brute: float | None = None  # the brute-force MAP score, when it could be enumerated
+    result: Any = None  # the parser's answer
 
 
 def certified(result: Any) -> bool:
@@ -70,7 +71,7 @@ def check_scene(
     truth = float(scene.log_prob)
     result = parser.parse(scene, time_limit=time_limit)
     best = result.parses[0].score if result.parses else None
-    v = Verdict(result.status, certified(result), best, truth, brute=brute)
+    v = Verdict(result.status, certified(result), best, truth, brute=brute, result=result)
     tol = SCORE_TOL * max(1.0, abs(truth))
     if result.status == "infeasible":
         v.false.append("infeasible")
@@ -98,6 +99,55 @@ def brute_force_map(grammar: Grammar, scene: Scene) -> float | None:
     return parses[0][0] if parses else None
 
 
+def micp_cause(grammar: Grammar, parser: Parser, scene: Scene, result: Any) -> str:
+    """Why a scene parsed with `micp` is not certified (issue 11's breakdown): the step that
+    gave up (`no_parse:PHASE`), the bound's scope (`out_of_scope`: some latent set has no
+    assignments; `decoupled`: a latent set under a latent parent got its rule's supremum), or
+    the size of the gap of an in-scope bound (`gap>1e-2`, ...), or `gap_unknown`."""
+    from ssgc.parse.bound import certify_only, set_bounds
+    from ssgc.parse.posed import candidate_poses
+
+    if certified(result):
+        return "certified"
+    if result.status == "no_parse":
+        return f"no_parse:{result.phase}"
+    if result.status != "feasible":
+        return result.status
+    cand = candidate_poses(grammar, parser.supertree, scene)
+    bounds = set_bounds(grammar, parser.supertree, cand)
+    if bounds is None:
+        return "out_of_scope"
+    scope = "decoupled" if certify_only(bounds) else "coupled"
+    gap = result.parses[0].gap
+    if not np.isfinite(gap):
+        return f"{scope}:gap_unknown"
+    for edge in (1e-1, 1e-2, 1e-4):
+        if gap > edge:
+            return f"{scope}:gap>{edge:g}"
+    return f"{scope}:gap<=1e-4"
+
+
+def shape(grammar: Grammar, parser: Parser) -> str:
+    """A grammar's latent shape: the depth of latent sets (a latent set under another latent
+    set is depth 2) and whether such a set is placed relative to its latent parent
+    (`relative`) or in the world frame."""
+    from ssgc.laws.base import Frame
+
+    st = parser.supertree
+    latent = parser.latent
+    depth = np.zeros(st.n_sets, np.int64)
+    relative = False
+    for e in np.flatnonzero(latent):  # sets are numbered parents first
+        top = int(st.set_top[e])
+        p_set = int(st.set_of[st.parent[top]])
+        depth[e] = depth[p_set] + 1 if latent[p_set] else 1
+        rule = grammar.rules[int(st.rule[top])]
+        world = rule.translation.frame == Frame.WORLD and rule.rotation.frame == Frame.WORLD
+        relative |= bool(latent[p_set] and not world)
+    d = int(depth.max(initial=0))
+    return f"depth{d}" + (":relative" if relative else "")
+
+
 def category(v: Verdict) -> str:
     if v.certified:
         return "certified"
@@ -117,6 +167,8 @@ def run_profile(
     rng = np.random.default_rng(seed)
     counts: Counter[str] = Counter()
     by_law: dict[str, Counter[str]] = defaultdict(Counter)
+    causes: Counter[str] = Counter()  # micp: why not certified (`micp_cause`)
+    by_shape: dict[str, Counter[str]] = defaultdict(Counter)  # micp: by latent shape
     false: list[dict[str, Any]] = []
     times: list[float] = []
     scenes_tried = 0
@@ -127,6 +179,7 @@ def run_profile(
         grammar = gg.compile_spec(spec)
         scenes = gg.sampled_scenes(grammar, scenes_per, seed + gi)
         used = gg.laws(spec)
+        form = shape(grammar, Parser(grammar, method="micp"))
         all_parsed = True
         for scene in scenes:
             brute = brute_force_map(grammar, scene)
@@ -144,6 +197,10 @@ def run_profile(
                 counts[cat] += 1
                 counts[f"{method}:{cat}"] += 1
                 all_parsed &= v.score is not None
+                if method == "micp" and v.result is not None:
+                    cause = micp_cause(grammar, parser, scene, v.result)
+                    causes[cause] += 1
+                    by_shape[form][cause] += 1
                 for law in used:
                     by_law[law][cat] += 1
                     by_law[law]["false"] += bool(v.false)
@@ -175,6 +232,8 @@ def run_profile(
         "false_kinds": dict(Counter(k.split(":")[0] for f in false for k in f["false"])),
         "parse_seconds": _quantiles(times),
         "by_law": {law: _shares(c) for law, c in sorted(by_law.items())},
+        "micp_causes": dict(causes.most_common()),
+        "micp_by_shape": {k: dict(c.most_common()) for k, c in sorted(by_shape.items())},
         "false_examples": false[:5],
     }
 

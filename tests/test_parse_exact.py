@@ -153,3 +153,276 @@ def test_bound_never_below_a_sampled_tree(seed):
 @given(seed=hs.integers(0, 10**6))
 def test_bound_never_below_a_sampled_tree_long(seed):
     _check_random(seed, 5)
+
+
+# Shapes the micp bound used to leave uncertified in the random-grammar profile
+# (tests/parse_profile.py, docs/parsing.md "Why micp does not certify"), each written as the
+# latent type L under the root R and two observed types A, B.
+SHAPES = {
+    # L's set holds optional observed members (B by fixed rules under a `repeat`): it was out
+    # of the bound's scope; now the poses B implies are exact rows beside the assignments
+    "optional_members_repeat": """
+  R:
+    and:
+      - child: L
+        translation: same
+        rotation: {revolute: {axis: [0, 0, 1], min: -0.4, max: 0.7}}
+  L:
+    repeat:
+      count: {probs: [0.3, 0.4, 0.3]}
+      rule:
+        child: B
+        translation: {offset: [1.0, 0.5, 0.0]}
+        rotation: {offset: {rpy_deg: [0, 90, 0]}}
+""",
+    "optional_members_or": """
+  R:
+    and:
+      - child: L
+        translation: {world_normal: {mean: [0.5, 0, 0], variance: 0.05}}
+        rotation: {world_bingham: {mode: {rpy_deg: [0, 0, 0]}, concentration: [100, 100, 0]}}
+  L:
+    or:
+      - child: B
+        p: 1.0
+        translation: {offset: [0.3, -0.2, 0.1]}
+        rotation: {offset: {rpy_deg: [0, 90, 0]}}
+      - child: A
+        p: 2.0
+        translation: {world_normal_offset: {mean: [0.3, -0.2, 0.1], variance: 0.05}}
+        rotation: {parent_bingham: {mode: {rpy_deg: [0, 90, 0]}, concentration: 20}}
+""",
+    # two revolute laws on L's rotation (its own and its child's): they meet in one rotation
+    "two_revolutes": """
+  R:
+    and:
+      - child: L
+        translation: {offset: [1.0, 0.5, 0.0]}
+        rotation: {revolute: {axis: [0, 0, 1], min: -0.4, max: 0.7}}
+  L:
+    and:
+      - child: B
+        translation: {world_box_offset: {min: [-0.5, -0.5, -0.5], max: [0.5, 0.5, 0.5]}}
+        rotation: {revolute: {axis: [0, 1, 1], min: -0.4, max: 0.7}}
+""",
+    # a fixed offset to a child under a revolute rotation, with L's position fixed: the
+    # child's position fixes the angle (a pin), where the arc's grid never hits it exactly
+    "fixed_offset_under_revolute": """
+  R:
+    and:
+      - child: L
+        translation: {offset: [1.0, 0.5, 0.0]}
+        rotation: {revolute: {axis: [1, 0, 0]}}
+  L:
+    and:
+      - child: B
+        translation: {offset: [0.3, -0.2, 0.1]}
+        rotation: {revolute: {axis: [1, 0, 0]}}
+      - child: A
+        translation: {world_normal_offset: {mean: [0.0, 0.0, 0.3], variance: 0.01}}
+        rotation: {parent_bingham: {mode: {rpy_deg: [0, 0, 0]}, concentration: 20}}
+""",
+    # two revolute laws about one axis: the family's arc is narrowed to both ranges
+    "coaxial_revolutes": """
+  R:
+    and:
+      - child: L
+        translation: {world_box_offset: {min: [-0.5, -0.5, -0.5], max: [0.5, 0.5, 0.5]}}
+        rotation: {revolute: {axis: [0, 0, 1]}}
+  L:
+    and:
+      - child: A
+        translation: {world_box: {min: [-0.1, -0.1, -0.1], max: [0.1, 0.1, 0.1]}}
+        rotation: {parent_bingham: {mode: {rpy_deg: [20, 0, 45]}, concentration: 20}}
+      - child: B
+        translation: {world_normal: {mean: [1.0, 0.5, 0.0], variance: [0.02, 0.01, 0.04]}}
+        rotation: {revolute: {axis: [0, 0, 1], min: -0.4, max: 0.7}}
+""",
+    # a rotation free about an axis with a parent-frame Normal offset to its child: the best
+    # position makes the score linear in R, so the rotation's maximum is an eigenvector
+    "free_rotation_parent_normal": """
+  R:
+    and:
+      - child: L
+        translation: {world_normal: {mean: [0.3, -0.2, 0.1], variance: 0.05}}
+        rotation: {parent_bingham: {mode: {rpy_deg: [0, 0, 0]}, concentration: [100, 100, 0]}}
+  L:
+    or:
+      - child: A
+        p: 3.0
+        translation: {parent_normal_offset: {mean: [1.0, 0.5, 0.0], variance: 0.01}}
+        rotation: {world_bingham: {mode: {rpy_deg: [0, 90, 0]}, concentration: [100, 100, 0]}}
+""",
+    "uniform_rotation_two_children": """
+  R:
+    and:
+      - child: L
+        translation: {world_normal: {mean: [0, 0, 0], variance: 0.05}}
+        rotation: uniform
+  L:
+    and:
+      - child: A
+        translation: {parent_normal_offset: {mean: [1.0, 0.5, 0.0], variance: 0.01}}
+        rotation: uniform
+      - child: B
+        translation: {parent_normal_offset: {mean: [0.0, -0.5, 0.3], variance: 0.02}}
+        rotation: {offset: {rpy_deg: [20, 0, 45]}}
+""",
+}
+
+
+def _shape(name: str) -> str:
+    return (
+        f"grammar: {name}\nroot: {{type: R}}\ntypes:\n  A: {{observed: true}}\n"
+        f"  B: {{observed: true}}\n{SHAPES[name].strip(chr(10))}\n"
+    )
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_fixed_shapes_certified(name):
+    """Every sampled scene of each shape is certified (gap <= 1e-6) and matches or beats the
+    tree it was sampled from; the bound is never below that tree."""
+    grammar = compile_text(_shape(name), f"{name}.yaml")
+    parser = Parser(grammar, method="micp")
+    scenes = _sampled(grammar, 8, 3)
+    assert scenes
+    for scene, truth in scenes:
+        result = parser.parse(scene, time_limit=30)
+        assert result.status == "optimal", (name, scene.name, result.message)
+        assert result.parses[0].gap <= TOL, (name, scene.name, result.parses[0].gap)
+        assert result.parses[0].score >= truth - TOL * max(1.0, abs(truth))
+        _check_sound(result, truth)
+
+
+def _terms(c, m, p, B, lo=None, hi=None):  # type: ignore[no-untyped-def]
+    """One-row-per-assignment `_Terms` of isotropic Normal terms, for the bound's own tests."""
+    from ssgc.parse.bound import _Terms
+
+    n = c.shape[0]
+    P = p[:, :, None, None] * np.eye(3)
+    lo = np.full((n, 3), -np.inf) if lo is None else lo
+    hi = np.full((n, 3), np.inf) if hi is None else hi
+    return _Terms(
+        c, m, P, B, np.zeros(n), lo, hi, np.full((n, 4), np.nan), True, True,
+        np.zeros((n, 4, 2)), np.zeros((n, 2)), np.zeros(n, bool),
+    )  # fmt: skip
+
+
+def _exact_at(terms, q):  # type: ignore[no-untyped-def]
+    """max over t of the terms' score at the rotations q (exact: X = q qᵀ is a rotation)."""
+    from ssgc.parse.bound import _h_and_gradient
+
+    return _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[0]
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=hs.integers(0, 2**32 - 1), k=hs.integers(1, 3))
+def test_isotropic_bound_is_the_exact_maximum(seed, k):
+    """For isotropic Normal terms and no box, the rotation's maximum is an eigenvector: the
+    bound is reached at its own rotation and no rotation scores above it."""
+    from ssgc.parse.bound import _isotropic_bound
+
+    rng = np.random.default_rng(seed)
+    n = 4
+    c, m = rng.normal(size=(n, k, 3)), rng.normal(size=(k, 3))
+    p = rng.choice([0.0, 1.0, 20.0, 100.0], size=(n, k))
+    A = rng.normal(size=(n, 4, 4))
+    terms = _terms(c, m, p, A + np.swapaxes(A, 1, 2))
+    value, q = _isotropic_bound(terms)
+    assert np.allclose(_exact_at(terms, q), value, rtol=1e-9, atol=1e-9)
+    for _ in range(20):
+        r = rng.normal(size=(n, 4))
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        assert np.all(_exact_at(terms, r) <= value + 1e-9 * (1 + np.abs(value)))
+
+
+def _law(lo, hi):  # type: ignore[no-untyped-def]
+    from types import SimpleNamespace
+
+    return SimpleNamespace(revolute=SimpleNamespace(lo=lo, hi=hi))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=hs.integers(0, 2**32 - 1),
+    coaxial=hs.booleans(),
+    bounded=hs.booleans(),
+)
+def test_two_revolute_laws_keep_the_rotation_both_allow(seed, coaxial, bounded):
+    """A rotation q0 on two revolute families (q0 = rot(a1, φ) = base ⊗ rot(-a2, θ)) is never
+    ruled out: two axes pin the row to ±q0, one axis narrows the arc to one holding φ."""
+    from ssgc.geometry import axis_angle_to_quat, quat_angle, quat_multiply
+    from ssgc.parse.bound import IDENTITY, _LocalBounds
+
+    rng = np.random.default_rng(seed)
+    a1 = rng.normal(size=3)
+    a1 /= np.linalg.norm(a1)
+    a2 = a1 if coaxial else rng.normal(size=3) / 1.0
+    a2 = a2 / np.linalg.norm(a2)
+    lo1, hi1 = (-0.4, 0.7) if bounded else (-np.pi, np.pi)
+    lo2, hi2 = -0.5, 0.9
+    phi, theta = rng.uniform(lo1, hi1), rng.uniform(lo2, hi2)
+    q0 = axis_angle_to_quat(a1, np.array([phi]))[0]
+    base = quat_multiply(q0, axis_angle_to_quat(a2, np.array([theta]))[0])
+    local = _LocalBounds(None, 1)  # type: ignore[arg-type]
+    on = np.ones(1, bool)
+    local.family(_law(lo1, hi1), IDENTITY, a1, IDENTITY, on)
+    local.family(_law(lo2, hi2), base, -a2, IDENTITY, on)
+    assert local.feasible()[0]
+    if local.pinned[0]:
+        assert quat_angle(local.pin, q0[None])[0] <= 1e-6
+    else:
+        assert coaxial
+        lo, hi = 0.5 * local.fam_range[0]
+        rel = np.mod(0.5 * phi - lo, np.pi)
+        assert rel <= hi - lo + 1e-9 or rel >= np.pi - 1e-9, (phi, lo, hi)
+
+
+# An `or` whose options all stay in the set or lead to a latent set (L1): a member with no
+# column at all, which crashed the bound once (the long profile's grammar 293).
+NO_COLUMNS = """
+grammar: no_columns
+root: L0
+types:
+  A: {observed: true}
+  B: {observed: true}
+  L0:
+    or:
+      - child: L1
+        p: 1.0
+        translation: {parent_normal_offset: {mean: [1.0, 0.5, 0.0], variance: 0.05}}
+        rotation: uniform
+      - {child: B, translation: same, rotation: same, p: 3.0}
+  L1:
+    or:
+      - child: L2
+        p: 2.0
+        translation: {offset: [0.3, -0.2, 0.1]}
+        rotation: {offset: {rpy_deg: [0, 90, 0]}}
+      - child: L2
+        p: 3.0
+        translation: {parent_normal_offset: {mean: [0.0, 0.0, 0.0], variance: 0.01}}
+        rotation: {revolute: {axis: [0, 0, 1], min: -0.4, max: 0.7}}
+  L2:
+    independent:
+      - child: A
+        p: 0.3
+        translation: {parent_normal_offset: {mean: [0, 0, 0], variance: [0.02, 0.01, 0.04]}}
+        rotation: uniform
+      - child: A
+        p: 1.0
+        translation: {world_normal_offset: {mean: [1.0, 0.5, 0.0], variance: 0.05}}
+        rotation: uniform
+"""
+
+
+def test_member_without_columns_parses():
+    grammar = compile_text(NO_COLUMNS, "no_columns.yaml")
+    parser = Parser(grammar, method="micp")
+    for scene, truth in _sampled(grammar, 4, 293):
+        result = parser.parse(scene, time_limit=30)
+        assert result.status in ("optimal", "feasible"), result.message
+        assert result.parses[0].score >= truth - TOL * max(1.0, abs(truth)) or (
+            result.status == "feasible"
+        )
+        _check_sound(result, truth)

@@ -9,11 +9,16 @@ its slots (an *assignment*: one per rule of an `and`, one option of an `or`, a s
 candidates for a `repeat`).  Writing the set's rotation as X = q qᵀ (the rotation matrix and
 every Bingham log-density are linear in X) and relaxing X to {X ⪰ 0, tr X = 1}, Normal
 translations are concave quadratics of (t, X), box laws are constraints on t, fixed rotations
-pin X, a revolute law holds q to an arc, and any other term is replaced by its supremum.  The
-maximum over t is closed-form (clipped to the box); over X, Frank–Wolfe, whose duality gap is
-a valid upper bound at every iterate.  The MILP over structures, with each latent node's edge
+pin X, a revolute law holds q to an arc (a second one meets it exactly: a pin, a narrower arc,
+or no rotation at all), a fixed offset to a child can pin the arc's angle, and any other term
+is replaced by its supremum.  The maximum over t is closed-form (clipped to the box); over X,
+where every Normal term is isotropic and t has no box, the score is linear in R on rotations
+and its maximum an eigenvector (exact); elsewhere Frank–Wolfe, whose duality gap is a valid
+upper bound at every iterate.  The MILP over structures, with each latent node's edge
 terms replaced by the bound of its assignment, then bounds the MAP score from above.
 
+A member of the set that may be inactive adds an "off" row; the poses an optional observed
+member implies join as free rows, scored exactly (`_implied_rows`).
 A latent child placed in the world frame holds its own edge; a latent set whose parent's pose
 is not known (a latent parent) counts its rule's supremum (`decoupled`: such bounds only
 certify, `certify_only`).  Grammars outside the scope get no bound (gap unknown), never a
@@ -30,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.geometry import (
+    axis_angle_to_quat,
     quat_angle,
     quat_conjugate,
     quat_multiply,
@@ -44,6 +50,7 @@ from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse.milp import Milp
 from ssgc.parse.posed import (
+    FREE_CHILD,
     MAX_INSTANCES,
     Instances,
     PosedProblem,
@@ -129,6 +136,52 @@ class _Terms:
         return off <= 1e-12 * (1.0 + np.abs(P).max(axis=(1, 2), initial=0.0))
 
 
+def _plane(base: FloatArray, axis: FloatArray, post: FloatArray) -> FloatArray:
+    """(n, 4, 2): the orthonormal basis (base ⊗ post, base ⊗ axis ⊗ post) of the plane whose
+    unit vectors are the family q = base ⊗ rot(axis, φ) ⊗ post, q = U (cos φ/2, sin φ/2)."""
+    axis_q = np.hstack([np.zeros((len(axis), 1)), axis])
+    u = quat_multiply(base, post)
+    w = quat_multiply(quat_multiply(base, axis_q), post)
+    return np.stack([u, w], axis=-1)
+
+
+def _on_arc(s: FloatArray, arc: FloatArray) -> NDArray[np.bool_]:
+    """Whether the plane point s = ±(cos ψ, sin ψ) has ψ in the half-angle arc (mod π, the
+    sign of a quaternion), within ROT_TOL."""
+    psi = np.arctan2(s[:, 1], s[:, 0])
+    rel = np.mod(psi - arc[:, 0], np.pi)
+    return (rel <= arc[:, 1] - arc[:, 0] + ROT_TOL) | (rel >= np.pi - ROT_TOL)
+
+
+def _arc_meet(
+    arc: FloatArray, M: FloatArray, half: FloatArray
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Two revolute laws on one plane of quaternions: the old family's half-angle arc (n, 2)
+    narrowed to the new law's (`half`, its own half-angles, carried into the old family's
+    angle by M = UᵀU', a rotation ψ = ψ' + δ or a reflection ψ = δ - ψ'), and the rows where
+    the arcs (mod π, widened by ROT_TOL) do not meet.  Where they meet in two pieces the old
+    arc is kept (a larger set: the bound stays valid)."""
+    delta = np.arctan2(M[:, 1, 0], M[:, 0, 0])
+    turn = np.linalg.det(M) > 0
+    b_lo = np.where(turn, half[0] + delta, delta - half[1]) - ROT_TOL
+    wb = np.full(len(M), half[1] - half[0] + 2 * ROT_TOL)
+    a_lo, wa = arc[:, 0], arc[:, 1] - arc[:, 0]
+    if half[1] - half[0] >= np.pi - 1e-12:  # the new law is a full turn: nothing to narrow
+        return arc, np.zeros(len(M), bool)
+    b0 = a_lo + np.mod(b_lo - a_lo, np.pi)  # the new arc's start, in [a_lo, a_lo + π)
+    first = b0 <= a_lo + wa  # a piece from b0 on
+    wrap = b0 + wb - np.pi >= a_lo  # a piece from a_lo (the new arc wraps past a_lo + π)
+    out = arc.copy()
+    full = wa >= np.pi - 1e-12
+    one = ~full & (first ^ wrap)
+    out[full] = np.stack([b0, b0 + wb], axis=1)[full]
+    lo1, hi1 = b0, np.minimum(b0 + wb, a_lo + wa)
+    lo2, hi2 = a_lo, np.minimum(a_lo + wa, b0 + wb - np.pi)
+    piece = np.where(first[:, None], np.stack([lo1, hi1], 1), np.stack([lo2, hi2], 1))
+    out[one] = piece[one]
+    return out, ~full & ~first & ~wrap
+
+
 def _isotropic(precision: FloatArray) -> bool:
     """Whether a Normal's precision is a multiple of the identity (no axis pinned)."""
     return bool(precision[0, 0] > 0 and np.allclose(precision, precision[0, 0] * np.eye(3)))
@@ -169,6 +222,7 @@ class _LocalBounds:
         self.fam_axis = np.zeros((n, 3))
         self.fam_post = np.tile(IDENTITY, (n, 1))
         self.fam_range = np.zeros((n, 2))
+        self.fixed_children: list = []  # (rule, off_t, off_q, cx, on) per column
 
     # ---------------------------------------------------------------- building blocks ---
 
@@ -203,11 +257,51 @@ class _LocalBounds:
         """q = base ⊗ rot(axis, φ) ⊗ post, φ in the law's range, on the rows `on` that have no
         family yet (a later one is left to the exact scorer: the relaxation ignores it)."""
         free = on & np.isnan(self.fam_base[:, 0])
+        self._meet(law, base, axis, post, on & ~free & ~self.pinned)
         self.fam_base = np.where(free[:, None], _rows(base, self.n, 4), self.fam_base)
         self.fam_axis = np.where(free[:, None], _rows(axis, self.n, 3), self.fam_axis)
         self.fam_post = np.where(free[:, None], _rows(post, self.n, 4), self.fam_post)
         span = np.array([law.revolute.lo, law.revolute.hi])
         self.fam_range = np.where(free[:, None], span, self.fam_range)
+
+    def _meet(self, law, base, axis, post, rows) -> None:  # type: ignore[no-untyped-def]
+        """A second revolute law on rows that already hold a family: the rotations both
+        allow.  Each family is a great circle of unit quaternions, the unit vectors of a plane
+        of R⁴ (`_plane`); two distinct planes meet in a line or not at all (their principal
+        angles, from the SVD of UᵀU').  Meeting in a line on both arcs pins the rotation; not
+        within 2·ROT_TOL of each other, or off an arc by more than ROT_TOL, rules the row out
+        (no rotation is within ROT_TOL of both, the scorer's tolerance).  Coincident planes
+        keep the first family (the second law is then left to the exact scorer)."""
+        if not np.any(rows):
+            return
+        idx = np.flatnonzero(rows)
+        U = _plane(self.fam_base[idx], self.fam_axis[idx], self.fam_post[idx])
+        n = len(idx)
+        U2 = _plane(
+            _rows(base, self.n, 4)[idx], _rows(axis, self.n, 3)[idx], _rows(post, self.n, 4)[idx]
+        )
+        a, sigma, bt = np.linalg.svd(np.einsum("nai,naj->nij", U, U2))
+        near = np.arccos(np.clip(sigma, -1.0, 1.0))  # principal angles (quaternion half-angles)
+        same = near[:, 1] <= 2 * ROT_TOL
+        apart = near[:, 0] > ROT_TOL
+        s_old, s_new = a[:, :, 0], bt[:, 0, :]
+        q = quat_normalize(np.einsum("nai,ni->na", U, s_old))
+        half = np.array([law.revolute.lo, law.revolute.hi]) * 0.5
+        on_old = _on_arc(s_old, 0.5 * self.fam_range[idx])
+        on_new = _on_arc(s_new, np.broadcast_to(half, (n, 2)))
+        clash = ~same & (apart | ~on_old | ~on_new)
+        pin = ~same & ~clash
+        if np.any(same):
+            M = np.einsum("nai,naj->nij", U[same], U2[same])
+            arc, empty = _arc_meet(0.5 * self.fam_range[idx[same]], M, half)
+            self.fam_range[idx[same]] = 2.0 * arc
+            clash[np.flatnonzero(same)[empty]] = True
+        self.clash[idx[clash]] = True
+        mask = np.zeros(self.n, bool)
+        mask[idx[pin]] = True
+        full = np.tile(IDENTITY, (self.n, 1))
+        full[idx] = q
+        self.pin_rotation(full, mask)
 
     @property
     def pinned(self) -> NDArray[np.bool_]:
@@ -279,7 +373,50 @@ class _LocalBounds:
         else:
             self.const += law.supremum()
             self._translation_exact(False)
+        self.translation_pins()
         self._prior_rotation(r, pq)
+
+    def translation_pins(self) -> None:
+        """Rows whose position is pinned and whose rotation is held to a revolute family: a
+        child placed by a fixed parent-frame translation (cx = t + R(q) m) then fixes the
+        angle, R(axis, φ) u = v with u = post·m and v = base⁻¹·(cx - t), wherever the parts
+        of u and v across the axis are long enough (PIN_LEVER) to fix φ to ~POS_TOL / |u⊥|
+        and agree.  Elsewhere the steep quadratic of `_child_translation` stays (a bound)."""
+        rows = ~np.isnan(self.fam_base[:, 0]) & ~self.pinned
+        rows &= np.all(self.hi - self.lo <= 4 * BOX_MARGIN, axis=1)
+        if not np.any(rows):
+            return
+        with np.errstate(invalid="ignore"):  # rows without a family or a pinned position
+            self._pin_by_offsets(rows)
+
+    def _pin_by_offsets(self, rows: NDArray[np.bool_]) -> None:
+        for r, off_t, off_q, cx, on in self.fixed_children:
+            law = self.g.rules[r].translation
+            sel = rows & on & ~self.pinned
+            if law.point is None or law.frame != Frame.PARENT or not np.any(sel):
+                continue
+            m = off_t + quat_rotate(off_q, law.point)
+            t = 0.5 * (self.lo + self.hi)
+            a = self.fam_axis
+            u = quat_rotate(self.fam_post, np.broadcast_to(m, (self.n, 3)))
+            v = quat_rotate(quat_conjugate(self.fam_base), cx - np.where(sel[:, None], t, 0.0))
+            u_perp = u - np.sum(u * a, axis=1)[:, None] * a
+            v_perp = v - np.sum(v * a, axis=1)[:, None] * a
+            lever, reach = np.linalg.norm(u_perp, axis=1), np.linalg.norm(v_perp, axis=1)
+            agree = np.abs(lever - reach) <= PIN_AGREE
+            agree &= np.abs(np.sum((u - v) * a, axis=1)) <= PIN_AGREE
+            phi = np.arctan2(
+                np.sum(a * np.cross(u_perp, v_perp), axis=1), np.sum(u_perp * v_perp, axis=1)
+            )
+            lo, hi = self.fam_range[:, 0], self.fam_range[:, 1]
+            rel = np.mod(phi - lo, 2 * np.pi)
+            inside = (rel <= hi - lo + ROT_TOL) | (rel >= 2 * np.pi - ROT_TOL)
+            pin = sel & (lever >= PIN_LEVER) & agree & inside
+            if np.any(pin):
+                axis = np.where(pin[:, None], a, [0.0, 0.0, 1.0])  # rows without a family
+                turn = axis_angle_to_quat(axis, np.where(pin, phi, 0.0))
+                q = quat_multiply(quat_multiply(self.fam_base, turn), self.fam_post)
+                self.pin_rotation(np.where(pin[:, None], q, IDENTITY), pin)
 
     def _prior_rotation(self, r: int, pq: FloatArray) -> None:
         rot, rform = self.g.rules[r].rotation, self.g.rules[r].rotation.concave_form()
@@ -409,6 +546,9 @@ class _LocalBounds:
 
 
 BOX_MARGIN = 1e-9  # metres: rounding allowed on a box constraint in the bound
+PIN_LEVER = 0.1  # metres: an offset this far from a revolute axis fixes its angle (to ~1e-5)
+PIN_AGREE = 0.5 * BOX_MARGIN  # metres: how well a fixed offset must fit the family to pin
+# it, so that the pinned child's box (`_child_translation`) still meets the position's own
 STEEP = 1e8  # precision standing in for a fixed child translation under a free rotation
 
 
@@ -473,7 +613,7 @@ def relaxed_upper_bound(
     valid bound.
     """
     pinned, fam = terms.pinned, terms.revolute
-    w, v = np.linalg.eigh(terms.B)
+    v = np.linalg.eigh(terms.B)[1]
     top = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
     top = np.where(fam[:, None], _arc_point(terms, terms.arc.mean(axis=1)), top)
     X = np.einsum("na,nb->nab", top, top)
@@ -481,6 +621,69 @@ def relaxed_upper_bound(
     if np.any(pinned):
         best[pinned] = _pinned_bound(_subset(terms, pinned), X[pinned])
     free = ~pinned
+    exact = free & _isotropic_rows(terms)
+    if np.any(exact):  # the rotation's exact optimum: an eigenvector (or an arc's best point)
+        value, q_best = _isotropic_bound(_subset(terms, exact))
+        best[exact] = value
+        X[exact] = np.einsum("na,nb->nab", q_best, q_best)
+    rest = free & ~exact
+    if np.any(rest):  # Frank–Wolfe on the other free rows only
+        part = _subset(terms, rest)
+        sub_best, sub_X = best[rest], X[rest]
+        _frank_wolfe(part, sub_X, sub_best, np.ones(len(sub_X), bool), iterations, deadline)
+        best[rest], X[rest] = sub_best, sub_X
+    v = np.linalg.eigh(X)[1]
+    q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
+    if np.any(fam):  # the family's rotation nearest the leading eigenvector
+        c = np.einsum("nab,na->nb", terms.V, q)
+        psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
+        q = np.where(fam[:, None], _arc_point(terms, psi), q)
+    t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
+    return best, t, q
+
+
+def _isotropic_rows(terms: _Terms) -> NDArray[np.bool_]:
+    """Rows whose translation terms all have isotropic precision and whose position has no
+    box: there max over t of g(t, R) is linear in R on rotations (`_isotropic_bound`)."""
+    P = terms.P
+    iso = np.all(np.abs(P - P[..., :1, :1] * np.eye(3)) <= 1e-12 * (1 + np.abs(P)), axis=(1, 2, 3))
+    unboxed = np.all(np.isinf(terms.lo) & np.isinf(terms.hi), axis=1)
+    return iso & unboxed
+
+
+def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
+    """The exact maximum over rotations (and t) of g for rows of `_isotropic_rows`, and the
+    rotation reaching it.
+
+    With P_k = p_k I (P = Σ p_k, e_k = c_k - R m_k), the best t is Σ p_k e_k / P = c̄ - R m̄
+    (c̄, m̄ the p-weighted means), so e_k - t = c'_k - R m'_k with c'_k = c_k - c̄ and
+    m'_k = m_k - m̄, and max_t g = -½ Σ p_k (|c'_k|² + |m'_k|²) + ⟨Σ p_k c'_k m'_kᵀ, R⟩
+    + tr(B X) + const, using |R m'|² = |m'|² on rotations: linear in R, hence in X = q qᵀ,
+    and its maximum over unit q is the top eigenvalue of a 4×4 matrix (over a revolute
+    family, the arc's best point, `_arc_lmo`).  No relaxation gap.  The centred form keeps
+    the sums small where one term is steep (STEEP)."""
+    p = terms.P[..., 0, 0]  # (A, K)
+    total = p.sum(axis=1)
+    weight = p / np.where(total > 0, total, 1.0)[:, None]
+    c = terms.c - np.einsum("nk,nki->ni", weight, terms.c)[:, None, :]
+    m = terms.m[None] - np.einsum("nk,ki->ni", weight, terms.m)[:, None, :]
+    G_R = np.einsum("nk,nki,nkj->nij", p, c, m)
+    C = np.einsum("nij,ijab->nab", G_R, K_ROT) + terms.B
+    const = -0.5 * np.einsum("nk,nki,nki->n", p, c, c) - 0.5 * np.einsum("nk,nki,nki->n", p, m, m)
+    w, v = np.linalg.eigh(C)
+    value, q = w[:, -1], v[..., -1]
+    if np.any(terms.revolute):
+        q_arc, value_arc = _arc_lmo(terms, C)
+        q = np.where(terms.revolute[:, None], q_arc, q)
+        value = np.where(terms.revolute, value_arc, value)
+    return value + const + terms.const, q
+
+
+def _frank_wolfe(terms, X, best, free, iterations, deadline):  # type: ignore[no-untyped-def]
+    """Frank–Wolfe steps on the rows `free`, updating X and `best` (the lowest duality-gap
+    bound seen) in place; returns h at the last iterate (the relaxation's value there)."""
+    fam = terms.revolute
+    h = np.full(len(X), -np.inf)
     for _ in range(iterations if np.any(free) else 0):
         if deadline is not None and time.perf_counter() >= deadline and np.all(best < np.inf):
             break
@@ -493,7 +696,7 @@ def relaxed_upper_bound(
             top = np.where(fam[:, None], s_fam, top)
             lmo = np.where(fam, lmo_fam, lmo)
         bound = h + lmo - np.einsum("nab,nab->n", G, X)
-        best = np.where(free, np.minimum(best, bound), best)
+        best[:] = np.where(free, np.minimum(best, bound), best)
         S = np.einsum("na,nb->nab", top, top)
         S = np.where(free[:, None, None], S, X)
         h_half = _h_and_gradient(terms, 0.5 * (X + S))[0]
@@ -503,15 +706,8 @@ def relaxed_upper_bound(
         slope = 4 * h_half - 3 * h - h_one
         gamma = np.where(curv < -1e-15, np.clip(-slope / np.minimum(curv, -1e-15), 0, 1), 1.0)
         gamma = np.where((curv >= -1e-15) & (h_one < h), 0.0, gamma)
-        X = X + gamma[:, None, None] * (S - X)
-    w, v = np.linalg.eigh(X)
-    q = np.where(pinned[:, None], np.nan_to_num(terms.pin), v[..., -1])
-    if np.any(fam):  # the family's rotation nearest the leading eigenvector
-        c = np.einsum("nab,na->nb", terms.V, q)
-        psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
-        q = np.where(fam[:, None], _arc_point(terms, psi), q)
-    t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
-    return best, t, q
+        X += gamma[:, None, None] * (S - X)
+    return h
 
 
 def _arc_point(terms: _Terms, psi: FloatArray) -> FloatArray:
@@ -569,6 +765,12 @@ class SetBound:
     quat: FloatArray  # (A, 4)
     parent: tuple[FloatArray, FloatArray] | None  # the pose the set's own rule is scored at
     decoupled: bool = False  # the parent's pose is unknown: its rule counts its supremum
+    free: NDArray[np.bool_] | None = None  # (A,) rows at a pose an observed member implies
+
+    @property
+    def free_rows(self) -> NDArray[np.bool_]:
+        """Rows whose children are not restricted and scored exactly (`_implied_rows`)."""
+        return np.zeros(len(self.upper), bool) if self.free is None else self.free
 
 
 def set_bounds(
@@ -587,10 +789,13 @@ def set_bounds(
             int(st.type[st.set_top[e]]),
             int(st.rule[st.set_top[e]]),
             parent if parent in (None, False) else (parent[0].tobytes(), parent[1].tobytes()),
-            tuple((cand.xyz[c].tobytes(), cand.quat[c].tobytes()) for *_, c, _ in groups if c >= 0),
             tuple(
-                (k, r, len(kids), st.offset_xyz[v].tobytes(), st.offset_quat[v].tobytes())
-                for k, v, r, c, kids in groups
+                (cand.xyz[c].tobytes(), cand.quat[c].tobytes()) for *_, c, _, _ in groups if c >= 0
+            ),
+            (cand.xyz[e].tobytes(), cand.quat[e].tobytes()),
+            tuple(
+                (k, r, len(kids), o, st.offset_xyz[v].tobytes(), st.offset_quat[v].tobytes())
+                for k, v, r, c, kids, o in groups
             ),
         )  # the copies of a `repeat` share one computation
         if key not in memo:
@@ -601,7 +806,7 @@ def set_bounds(
         m = _copies_apart(memo[key], _copies(st, int(e)))
         placed = None if parent is False else parent
         out[int(e)] = SetBound(
-            _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False
+            _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False, m.free
         )
     return out
 
@@ -620,7 +825,7 @@ def _copies_apart(bound: SetBound, copies: int) -> SetBound:
     an object are distinct by nature (an object has one parent), but several copies may take
     the same childless assignment (two latent nodes with the same best pose): without the
     repeats, a tree using it twice would have no encoding and the bound could miss it."""
-    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1))
+    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1) & ~bound.free_rows)
     if copies < 2 or not len(empty):
         return bound
     rows = np.concatenate([np.arange(len(bound.assignment)), np.repeat(empty, copies - 1)])
@@ -632,20 +837,26 @@ def _copies_apart(bound: SetBound, copies: int) -> SetBound:
         bound.quat[rows],
         bound.parent,
         bound.decoupled,
+        bound.free_rows[rows],
     )
 
 
 def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):  # type: ignore[no-untyped-def]
-    """(kind, member, rule, child set, copies) per rule leaving the set, or None when the set
-    is out of scope: a member that may be inactive while the top is active (below an `or` or a
-    `repeat` inside the set), or a latent child set placed relative to this one."""
+    """(kind, member, rule, child set, copies, optional) per rule leaving the set.
+
+    A member is *optional* when it may be inactive while the set's top is active (below an
+    `or`, a `repeat` or an `independent` inside the set): its columns may then all be empty
+    as well (`_member_rows`).  Rows that switch a member's columns on while the MILP leaves
+    the member off encode no tree the rows do not already hold at an exact score (the
+    member's children stay off), so they only add encodings: the bound stays an upper bound.
+    A latent child set holds its own edge (its bound: see `set_bounds`), so it has no column.
+    """
     groups = []
     sure = {int(st.set_top[e])}
     for v in np.flatnonzero(st.set_of == e):
         v = int(v)
         node = grammar.types[st.type[v]]
-        if v not in sure:
-            return None
+        optional = v not in sure
         by_rule: dict[int, list[int]] = {}
         for c in st.children[v]:
             by_rule.setdefault(int(st.rule[c]), []).append(int(c))
@@ -654,15 +865,15 @@ def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):
             e_c = int(st.set_of[kids[0]])
             if e_c == e:
                 inner = True
-                if node.kind == Kind.AND:
+                if node.kind == Kind.AND and not optional:
                     sure.update(kids)
                 continue
             if latent[e_c]:  # its own bound holds the edge (see `set_bounds`): no column here
                 inner = True
                 continue
-            groups.append((node.kind, v, r, e_c, tuple(kids)))
+            groups.append((node.kind, v, r, e_c, tuple(kids), optional))
         if node.kind == Kind.OR and inner:
-            groups.append((Kind.OR, v, -1, -1, ()))  # the option that stays inside the set
+            groups.append((Kind.OR, v, -1, -1, (), optional))  # the option staying inside
     return tuple(groups)
 
 
@@ -681,7 +892,7 @@ def _columns(groups) -> tuple[tuple[int, int, int], ...]:  # type: ignore[no-unt
         members.setdefault(g[1], []).append(g)
     cols = []
     for v, gs in members.items():
-        for kind, _, r, e_c, kids in gs:
+        for kind, _, r, e_c, kids, _ in gs:
             if r >= 0:
                 cols += [(v, r, e_c)] * (len(kids) if kind == Kind.REPEAT else 1)
     return tuple(cols)
@@ -699,7 +910,7 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
         members.setdefault(g[1], []).append(g)
     cols_all, rows_all = [], []
     for v, gs in members.items():
-        kind = gs[0][0]
+        kind, optional = gs[0][0], gs[0][5]
         real = [g for g in gs if g[2] >= 0]
         cols = []
         if kind == Kind.AND:
@@ -726,7 +937,7 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
             rows = np.stack([gr.ravel() for gr in grids], axis=1).reshape(-1, len(real))
             cols = [(v, g[2], g[3]) for g in real]
         else:  # REPEAT: one rule, `copies` columns
-            (_, _, r, e_c, kids), k = real[0], len(cand.xyz[real[0][3]])
+            (_, _, r, e_c, kids, _), k = real[0], len(cand.xyz[real[0][3]])
             copies = len(kids)
             cols = [(v, r, e_c)] * copies
             subsets = [s for j in range(min(copies, k) + 1) for s in combinations(range(k), j)]
@@ -735,8 +946,11 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
             rows = np.full((len(subsets), copies), -1)
             for i, s in enumerate(subsets):
                 rows[i, : len(s)] = s
+        rows = np.asarray(rows, np.int64)
+        if optional and not np.any(np.all(rows < 0, axis=1)):
+            rows = np.vstack([rows, np.full((1, len(cols)), -1)])  # the member is off
         cols_all.append(cols)
-        rows_all.append(np.asarray(rows, np.int64))
+        rows_all.append(rows)
     return cols_all, rows_all
 
 
@@ -779,6 +993,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
         cx = cand.xyz[e_c][idx] if len(cand.xyz[e_c]) else np.zeros((n, 3))
         cq = cand.quat[e_c][idx] if len(cand.quat[e_c]) else np.tile(IDENTITY, (n, 1))
         picked.append((v, r, on, cx, cq))
+        local.fixed_children.append((r, st.offset_xyz[v], st.offset_quat[v], cx, on))
         local.child_pin(r, st.offset_quat[v], cq, on)
         local.child_family(r, st.offset_quat[v], cq, on)
     local.prior(top_rule, parent)
@@ -795,18 +1010,63 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     xyz, quat = _snap(terms, xyz, quat, t, q)
     if np.any(terms.revolute):
         edges = local_edges(grammar, st, cand, top_rule, bound)
-        xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat)
-    return SetBound(columns, assignment, upper, xyz, quat, *_placed(parent))
+        xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat, deadline)
+    bound = SetBound(columns, assignment, upper, xyz, quat, *_placed(parent))
+    return _with_implied(bound, _implied_rows(grammar, cand, e, top_rule, parent, len(columns)))
+
+
+FREE = FREE_CHILD  # a free row's columns: any candidate child, scored exactly
+
+
+def _implied_rows(grammar, cand, e, top_rule, parent, n_cols):  # type: ignore[no-untyped-def]
+    """The set's poses implied by an optional observed member (`candidate_poses`), as rows
+    whose children the MILP chooses freely at their exact scores: a tree with such a member
+    on has its set at one of these poses, so the assignments (bounded with every optional
+    member's constraint dropped) and these rows hold every tree.  Their `upper` is the set's
+    own edge at its parent's pose, exact, or its rule's supremum when that pose is unknown."""
+    xyz, quat = cand.xyz[e], cand.quat[e]
+    n = len(xyz)
+    rule = grammar.rules[top_rule]
+    if parent is False:
+        upper = np.full(n, rule.translation.supremum() + rule.rotation.supremum())
+    else:
+        px, pq = parent if parent is not None else (np.zeros(3), IDENTITY)
+        rules = np.full(n, top_rule)
+        upper = translation_log_density(
+            grammar, rules, np.tile(px, (n, 1)), np.tile(pq, (n, 1)), xyz
+        )
+        upper = upper + rotation_log_density(grammar, rules, np.tile(pq, (n, 1)), quat)
+    return np.full((n, n_cols), FREE, np.int64), upper, xyz.copy(), quat.copy()
+
+
+def _with_implied(bound: SetBound, rows) -> SetBound:  # type: ignore[no-untyped-def]
+    assignment, upper, xyz, quat = rows
+    if not len(upper):
+        return bound
+    cat = np.concatenate
+    free = cat([bound.free_rows, np.ones(len(upper), bool)])
+    return SetBound(
+        bound.slots,
+        cat([bound.assignment, assignment]),
+        cat([bound.upper, upper]),
+        cat([bound.xyz, xyz]),
+        cat([bound.quat, quat]),
+        bound.parent,
+        bound.decoupled,
+        free,
+    )
 
 
 REVOLUTE_GRID = 48  # angles tried along a revolute law's arc, then as many around the best
+REVOLUTE_LEVELS = 4  # grids, each 24 times finer: the last step is ~1e-6 of the arc
 
 
-def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyped-def]
+def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: ignore[no-untyped-def]
     """For rows held to a revolute family, the best rotation along its arc under the exact
     densities (a grid, then a finer grid around its best point), each with its best position;
     a row keeps its pose unless the search finds a better one.  The Newton polish cannot move
-    along the arc: off it the law's density is -inf."""
+    along the arc: off it the law's density is -inf.  Past the deadline the finer grids are
+    skipped (the pose found so far stands: the bound does not depend on it)."""
     rows = np.flatnonzero(terms.revolute)
     owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
     sub, _ = _sub_edges(edges, owner, rows)
@@ -816,8 +1076,10 @@ def _revolute_search(grammar, terms, edges, xyz, quat):  # type: ignore[no-untyp
     best_v = _owned_values(grammar, sub, sub_owner, best_x, best_q)
     lo, hi = part.arc[:, 0], part.arc[:, 1]
     centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    for width in (1.0, 2.0 / REVOLUTE_GRID):
-        psi0 = np.zeros(len(rows))
+    for level, width in enumerate((2.0 / REVOLUTE_GRID) ** np.arange(REVOLUTE_LEVELS)):
+        if level and deadline is not None and time.perf_counter() >= deadline:
+            break
+        psi0 = centre.copy()  # a grid that finds nothing better keeps its centre
         for f in np.linspace(-1.0, 1.0, REVOLUTE_GRID):
             psi = np.clip(centre + f * half * width, lo, hi)
             q = _arc_point(part, psi)
@@ -947,7 +1209,8 @@ class AssignmentReduction:
     def _count(request: Request) -> int:
         assert request.bounds is not None
         posed = assignment_candidates(request.cand, request.bounds)
-        return instance_count(request.supertree, posed, frozenset(request.bounds))
+        restricted = frozenset(e for e, b in request.bounds.items() if not np.any(b.free_rows))
+        return instance_count(request.supertree, posed, restricted)
 
 
 def certify_only(bounds: dict[int, SetBound]) -> bool:
@@ -1000,7 +1263,7 @@ def assignment_problem(
 
     restrict = {
         e: (tuple((v, r) for v, r, _ in sb.slots), sb.assignment) for e, sb in bounds.items()
-    }
+    }  # a free row (FREE) leaves its children to the MILP
 
     def adjust(inst: Instances) -> None:
         set_of = st.set_of[inst.st_node]
@@ -1010,6 +1273,10 @@ def assignment_problem(
         parent_set = set_of[np.maximum(inst.parent, 0)]
         head = inst.top == np.arange(len(set_of))
         counted = (inst.parent >= 0) & np.isin(parent_set, list(bounds)) & (parent_set != set_of)
+        parent_row = inst.cand_k[inst.top[np.maximum(inst.parent, 0)]]
+        for e, sb in bounds.items():  # a free row's children are scored exactly, not bounded
+            of_e = counted & (parent_set == e)
+            counted[of_e] = ~sb.free_rows[parent_row[of_e]]
         counted &= ~(head & np.isin(set_of, list(bounds)))  # a latent child's bound holds it
         inst.score[counted] = 0.0  # the assignment's bound already counts these edges
 

@@ -72,6 +72,7 @@ class Instances:
 
 # Per set e: the (member node, rule) child slots and, per candidate pose a of e, the candidate
 # index of the child allowed in each slot (the latent-pose assignments of ssgc.parse.bound).
+FREE_CHILD = -2  # in a restriction's row: any candidate child (`ssgc.parse.bound.FREE`)
 Restriction = dict[int, tuple[tuple[tuple[int, int], ...], IntArray]]
 
 
@@ -186,6 +187,8 @@ class _Unroll:
             if not cols:  # a rule the assignment does not name (an independent latent child)
                 return range(len(self.cand_xyz[e]))
             named = assignment[a, cols]  # -1: this column has no child
+            if np.any(named == FREE_CHILD):  # a row whose children are free (bound.FREE)
+                return range(len(self.cand_xyz[e]))
             return sorted({int(k) for k in named if k >= 0})
         return range(len(self.cand_xyz[e]))
 
