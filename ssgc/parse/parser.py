@@ -253,6 +253,7 @@ class Parser:
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
         if bounds is not None:  # they only certify; their poses join the proposals
             add_assignment_poses(cand, bounds)
+            _repeat_empty_poses(cand, bounds)
         return bounds
 
     def reduce(
@@ -514,6 +515,21 @@ class _Run:
             )
             for e in np.flatnonzero(same):
                 self.cand.add(int(e), tree.xyz[i], tree.quat[i])
+
+
+def _repeat_empty_poses(cand: Candidates, bounds: dict[int, SetBound]) -> None:
+    """Give a latent set its childless assignment's pose once per copy of its `repeat`.
+
+    The model over proposals gives each candidate pose of a `repeat`'s child set to at most
+    one copy, so two childless latent copies (each best at its rule's mode) could not both sit
+    at that pose, while the bound counts them both (its `_copies_apart` repeats the row): the
+    tree found would fall short of the bound.  Candidates.add would merge the repeats, so they
+    are appended as they are."""
+    for e, sb in bounds.items():
+        empty = np.flatnonzero(np.all(sb.assignment < 0, axis=1))
+        if len(empty) > 1:
+            cand.xyz[e] = np.vstack([cand.xyz[e], sb.xyz[empty[1:]]])
+            cand.quat[e] = np.vstack([cand.quat[e], sb.quat[empty[1:]]])
 
 
 def tree_signature(grammar: Grammar, tree: Trees) -> bytes:

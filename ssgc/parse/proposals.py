@@ -32,6 +32,7 @@ from ssgc.geometry import (
 )
 from ssgc.ir import Grammar
 from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
+from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import sample_children
@@ -108,6 +109,58 @@ def child_mode(
     return xyz, quat
 
 
+def revolute_arc(grammar: Grammar, r: int) -> tuple[FloatArray, float, float] | None:
+    """(axis, lo, hi) of rule r's revolute rotation law, None for any other law."""
+    law = grammar.rules[r].rotation
+    if not isinstance(law, RevoluteRotation):
+        return None
+    return np.asarray(law.axis, float), float(law.revolute.lo), float(law.revolute.hi)
+
+
+def _clip_angle(alpha: FloatArray, lo: float, hi: float) -> FloatArray:
+    """Each angle moved into [lo, hi] (modulo 2π), to the nearer end when outside."""
+    rel = np.mod(alpha - lo, 2 * np.pi)
+    width = hi - lo
+    past = rel - width  # how far beyond hi; 2π - rel: how far before lo
+    rel = np.where(rel <= width, rel, np.where(past <= 2 * np.pi - rel, width, 0.0))
+    return lo + rel
+
+
+def onto_arc(
+    parent_quat: FloatArray,
+    arc: tuple[FloatArray, float, float],
+    quat: FloatArray,
+    axis_from: FloatArray | None = None,
+    axis_to: FloatArray | None = None,
+) -> FloatArray:
+    """Rotations parent ∘ Ra(α), α in the arc's range, one per row: the one that maps
+    `axis_from` (a unit vector in the rotated frame) onto `axis_to` (world) when given and
+    possible (a child placed by a revolute law about that axis: Paden–Kahan's first
+    subproblem), else the one closest to `quat`.
+
+    Why: a latent pose whose own rule is revolute has density zero off its arc, and a proposal
+    made from its children (or averaged from two) is almost never on it; Newton cannot reach
+    the arc from outside, where every step is -inf."""
+    a, lo, hi = arc
+    n = len(quat)
+    pq = np.broadcast_to(parent_quat, (n, 4))
+    # closest: <p ∘ (cos h, sin h a), q> = A cos h + B sin h, largest in |.| at h = atan2(B, A)
+    pa = quat_multiply(pq, np.r_[0.0, a])
+    alpha = 2 * np.arctan2(np.sum(pa * quat, axis=1), np.sum(pq * quat, axis=1))
+    if axis_from is not None and axis_to is not None:
+        b = np.broadcast_to(axis_from, (n, 3))
+        w = quat_rotate(quat_conjugate(pq), axis_to)  # Ra(α) b = w in the parent's frame
+        b_perp = b - np.outer(b @ a, a)
+        w_perp = w - np.outer(w @ a, a)
+        cross = np.cross(b_perp, w_perp) @ a
+        turn = np.arctan2(cross, np.sum(b_perp * w_perp, axis=1))
+        ok = (np.linalg.norm(b_perp, axis=1) > 1e-6) & (np.linalg.norm(w_perp, axis=1) > 1e-6)
+        alpha = np.where(ok, turn, alpha)
+    alpha = _clip_angle(alpha, lo, hi)
+    half = 0.5 * alpha[:, None]
+    return quat_multiply(pq, np.hstack([np.cos(half), np.sin(half) * a]))
+
+
 def known_parent(grammar: Grammar, st: Supertree, cand: Candidates, e: int):  # type: ignore[no-untyped-def]
     """The pose of set e's parent node, at which the set's own rule is scored: None if the rule
     ignores its parent (world frame), False if the parent's set has other than one pose."""
@@ -140,6 +193,9 @@ class _SetProposer:
         self.top = int(st.set_top[e])
         self.slots = self._slots()
         self.prior = self._prior_parent()
+        own_arc = revolute_arc(grammar, int(st.rule[self.top]))
+        known = known_parent(grammar, st, cand, e) not in (None, False)
+        self.arc = own_arc if known else None  # the own rule's arc about a known parent
 
     def _slots(self) -> list[tuple[int, int, int, int]]:
         """(member node, rule, child set, copies) for each rule leaving the set."""
@@ -196,7 +252,34 @@ class _SetProposer:
         )
         rel = rotation_mode(g, r)
         q_v = default_quat if rel is None else quat_multiply(child_quat, quat_conjugate(rel))
-        centre, frame = translation_mode(g, r)
+        if self.arc is not None:  # the set's own rule holds it to an arc: put it there
+            q_top = quat_multiply(q_v, quat_conjugate(self.st.offset_quat[v]))
+            q_v = quat_multiply(self._onto_arc(q_top, slot, child_quat), self.st.offset_quat[v])
+        return self._translation(slot, child_xyz, q_v, default_xyz)
+
+    def _onto_arc(
+        self, q_top: FloatArray, slot: tuple[int, int, int, int], child_quat: FloatArray
+    ) -> FloatArray:
+        """`onto_arc` for this set: through the slot's child when its rule is revolute too."""
+        assert self.arc is not None and self.prior is not None
+        v, r, _, _ = slot
+        child_arc = revolute_arc(self.g, r)
+        if child_arc is None:
+            return onto_arc(self.prior[1], self.arc, q_top)
+        b = quat_rotate(self.st.offset_quat[v], child_arc[0])  # its axis in the top's frame
+        return onto_arc(self.prior[1], self.arc, q_top, b, quat_rotate(child_quat, child_arc[0]))
+
+    def _translation(
+        self,
+        slot: tuple[int, int, int, int],
+        child_xyz: FloatArray,
+        q_v: FloatArray,
+        default_xyz: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Set-top poses with member v at rotation q_v that put each child at the mode of the
+        slot's translation law."""
+        v, r, _, _ = slot
+        centre, frame = translation_mode(self.g, r)
         if frame == Frame.PARENT:
             t_v = child_xyz - quat_rotate(q_v, centre)
         elif frame == Frame.WORLD_OFFSET:
@@ -205,6 +288,14 @@ class _SetProposer:
             t_v = default_xyz
         q_top = quat_multiply(q_v, quat_conjugate(self.st.offset_quat[v]))
         return t_v - quat_rotate(q_top, self.st.offset_xyz[v]), q_top
+
+    def _at(self, slot: tuple[int, int, int, int], child_xyz: FloatArray, q_top: FloatArray):  # type: ignore[no-untyped-def]
+        """The set-top positions, at rotation q_top, that put each child at its law's mode."""
+        default_xyz, _ = child_mode(
+            self.g, int(self.st.rule[self.top]), *self._default_parent(len(child_xyz))
+        )
+        q_v = quat_multiply(q_top, self.st.offset_quat[slot[0]])
+        return self._translation(slot, child_xyz, q_v, default_xyz)[0]
 
     def _default_parent(self, n: int) -> tuple[FloatArray, FloatArray]:
         if self.prior is not None:
@@ -270,6 +361,9 @@ class _SetProposer:
         sign = np.where(np.sum(qa[i] * qb[j], axis=1) < 0, -1.0, 1.0)[:, None]
         q = quat_normalize(qa[i] + sign * qb[j])
         t = 0.5 * (ta[i] + tb_[j])
+        if self.arc is not None and len(q):  # the average is off the arc: back onto it
+            q = onto_arc(self.prior[1], self.arc, q)  # type: ignore[index]
+            t = 0.5 * (self._at(self.slots[a], ax[i], q) + self._at(self.slots[b], bx[j], q))
         disagreement = np.linalg.norm(ta[i] - tb_[j], axis=1) + quat_angle(qa[i], qb[j])
         sa, sb = self.slots[a], self.slots[b]
         return [
