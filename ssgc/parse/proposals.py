@@ -130,32 +130,35 @@ def onto_arc(
     parent_quat: FloatArray,
     arc: tuple[FloatArray, float, float],
     quat: FloatArray,
-    axis_from: FloatArray | None = None,
-    axis_to: FloatArray | None = None,
+    aligns: tuple[tuple[FloatArray, FloatArray], ...] = (),
 ) -> FloatArray:
-    """Rotations parent ∘ Ra(α), α in the arc's range, one per row: the one that maps
-    `axis_from` (a unit vector in the rotated frame) onto `axis_to` (world) when given and
-    possible (a child placed by a revolute law about that axis: Paden–Kahan's first
-    subproblem), else the one closest to `quat`.
+    """Rotations parent ∘ Ra(α), α in the arc's range, one per row: the first of `aligns`
+    (vector in the rotated frame, its world direction) that fixes α decides it (the rotation
+    about the axis that takes one onto the other, Paden–Kahan's first subproblem); where none
+    does (a vector along the axis), the rotation closest to `quat`.
 
     Why: a latent pose whose own rule is revolute has density zero off its arc, and a proposal
     made from its children (or averaged from two) is almost never on it; Newton cannot reach
-    the arc from outside, where every step is -inf."""
+    the arc from outside, where every step is -inf.  A child placed by a revolute law about
+    axis b needs the pose to map b onto the child's b; a child at a fixed offset m from a
+    pinned position needs it to map m onto the child's direction."""
     a, lo, hi = arc
     n = len(quat)
     pq = np.broadcast_to(parent_quat, (n, 4))
     # closest: <p ∘ (cos h, sin h a), q> = A cos h + B sin h, largest in |.| at h = atan2(B, A)
     pa = quat_multiply(pq, np.r_[0.0, a])
     alpha = 2 * np.arctan2(np.sum(pa * quat, axis=1), np.sum(pq * quat, axis=1))
-    if axis_from is not None and axis_to is not None:
-        b = np.broadcast_to(axis_from, (n, 3))
-        w = quat_rotate(quat_conjugate(pq), axis_to)  # Ra(α) b = w in the parent's frame
+    decided = np.zeros(n, bool)
+    for vec_from, vec_to in aligns:
+        b = np.broadcast_to(vec_from, (n, 3))
+        w = quat_rotate(quat_conjugate(pq), vec_to)  # Ra(α) b = w in the parent's frame
         b_perp = b - np.outer(b @ a, a)
         w_perp = w - np.outer(w @ a, a)
-        cross = np.cross(b_perp, w_perp) @ a
-        turn = np.arctan2(cross, np.sum(b_perp * w_perp, axis=1))
+        turn = np.arctan2(np.cross(b_perp, w_perp) @ a, np.sum(b_perp * w_perp, axis=1))
         ok = (np.linalg.norm(b_perp, axis=1) > 1e-6) & (np.linalg.norm(w_perp, axis=1) > 1e-6)
+        ok &= ~decided
         alpha = np.where(ok, turn, alpha)
+        decided |= ok
     alpha = _clip_angle(alpha, lo, hi)
     half = 0.5 * alpha[:, None]
     return quat_multiply(pq, np.hstack([np.cos(half), np.sin(half) * a]))
@@ -196,6 +199,7 @@ class _SetProposer:
         own_arc = revolute_arc(grammar, int(st.rule[self.top]))
         known = known_parent(grammar, st, cand, e) not in (None, False)
         self.arc = own_arc if known else None  # the own rule's arc about a known parent
+        self.pinned_xyz, self.pinned_quat = self._pinned() if known else (None, None)
 
     def _slots(self) -> list[tuple[int, int, int, int]]:
         """(member node, rule, child set, copies) for each rule leaving the set."""
@@ -210,6 +214,18 @@ class _SetProposer:
             for (v, r), kids in seen.items()
             if len(self.cand.xyz[st.set_of[kids[0]]])
         ]
+
+    def _pinned(self) -> tuple[FloatArray | None, FloatArray | None]:
+        """The position and the rotation the set's own rule fixes at its known parent (a
+        fixed offset), each None when its law is not a point: proposals must sit there."""
+        assert self.prior is not None
+        r = int(self.st.rule[self.top])
+        rule = self.g.rules[r]
+        mx, mq = child_mode(self.g, r, self.prior[0][None], self.prior[1][None])
+        return (
+            mx[0] if rule.translation.point is not None else None,
+            mq[0] if rule.rotation.point is not None else None,
+        )
 
     def _prior_parent(self) -> tuple[FloatArray, FloatArray] | None:
         """The parent pose at which the set's own rule is scored during proposal refinement
@@ -252,22 +268,37 @@ class _SetProposer:
         )
         rel = rotation_mode(g, r)
         q_v = default_quat if rel is None else quat_multiply(child_quat, quat_conjugate(rel))
-        if self.arc is not None:  # the set's own rule holds it to an arc: put it there
+        if self.pinned_quat is not None:  # the set's own rule fixes its rotation
+            q_v = quat_multiply(
+                np.broadcast_to(self.pinned_quat, (len(child_xyz), 4)), self.st.offset_quat[v]
+            )
+        elif self.arc is not None:  # the set's own rule holds it to an arc: put it there
             q_top = quat_multiply(q_v, quat_conjugate(self.st.offset_quat[v]))
-            q_v = quat_multiply(self._onto_arc(q_top, slot, child_quat), self.st.offset_quat[v])
+            q_top = self._onto_arc(q_top, slot, child_xyz, child_quat)
+            q_v = quat_multiply(q_top, self.st.offset_quat[v])
         return self._translation(slot, child_xyz, q_v, default_xyz)
 
     def _onto_arc(
-        self, q_top: FloatArray, slot: tuple[int, int, int, int], child_quat: FloatArray
+        self,
+        q_top: FloatArray,
+        slot: tuple[int, int, int, int],
+        child_xyz: FloatArray,
+        child_quat: FloatArray,
     ) -> FloatArray:
-        """`onto_arc` for this set: through the slot's child when its rule is revolute too."""
+        """`onto_arc` for this set, aligned with the slot's child: its revolute axis, or
+        its fixed offset from the set's pinned position."""
         assert self.arc is not None and self.prior is not None
         v, r, _, _ = slot
+        st, aligns = self.st, []
         child_arc = revolute_arc(self.g, r)
-        if child_arc is None:
-            return onto_arc(self.prior[1], self.arc, q_top)
-        b = quat_rotate(self.st.offset_quat[v], child_arc[0])  # its axis in the top's frame
-        return onto_arc(self.prior[1], self.arc, q_top, b, quat_rotate(child_quat, child_arc[0]))
+        if child_arc is not None:  # its axis in the top's frame, and in the world
+            b = quat_rotate(st.offset_quat[v], child_arc[0])
+            aligns.append((b, quat_rotate(child_quat, child_arc[0])))
+        law = self.g.rules[r].translation
+        if self.pinned_xyz is not None and law.point is not None and law.frame == Frame.PARENT:
+            m = st.offset_xyz[v] + quat_rotate(st.offset_quat[v], law.point)
+            aligns.append((m, child_xyz - self.pinned_xyz))
+        return onto_arc(self.prior[1], self.arc, q_top, tuple(aligns))
 
     def _translation(
         self,
@@ -287,6 +318,8 @@ class _SetProposer:
         else:
             t_v = default_xyz
         q_top = quat_multiply(q_v, quat_conjugate(self.st.offset_quat[v]))
+        if self.pinned_xyz is not None:  # the set's own rule fixes its position
+            return np.broadcast_to(self.pinned_xyz, (len(q_top), 3)).copy(), q_top
         return t_v - quat_rotate(q_top, self.st.offset_xyz[v]), q_top
 
     def _at(self, slot: tuple[int, int, int, int], child_xyz: FloatArray, q_top: FloatArray):  # type: ignore[no-untyped-def]
@@ -361,8 +394,11 @@ class _SetProposer:
         sign = np.where(np.sum(qa[i] * qb[j], axis=1) < 0, -1.0, 1.0)[:, None]
         q = quat_normalize(qa[i] + sign * qb[j])
         t = 0.5 * (ta[i] + tb_[j])
-        if self.arc is not None and len(q):  # the average is off the arc: back onto it
+        if self.pinned_quat is not None and len(q):  # the own rule fixes the rotation
+            q = np.tile(self.pinned_quat, (len(q), 1))
+        elif self.arc is not None and len(q):  # the average is off the arc: back onto it
             q = onto_arc(self.prior[1], self.arc, q)  # type: ignore[index]
+        if (self.arc is not None or self.pinned_quat is not None) and len(q):
             t = 0.5 * (self._at(self.slots[a], ax[i], q) + self._at(self.slots[b], bx[j], q))
         disagreement = np.linalg.norm(ta[i] - tb_[j], axis=1) + quat_angle(qa[i], qb[j])
         sa, sb = self.slots[a], self.slots[b]
