@@ -22,7 +22,7 @@ from hypothesis import strategies as hs
 from latent_grammars import random_grammar
 
 from ssgc.compile import compile_text, load_grammar
-from ssgc.io.scene import parse_scene_text, scene_from_tree
+from ssgc.io.scene import Scene, parse_scene_text, scene_from_tree
 from ssgc.parse.parser import Parser
 from ssgc.sample.forward import sample_trees
 
@@ -270,3 +270,66 @@ def test_ip_and_micp_certificates_agree(spec):
                     m,
                     to_yaml(spec),
                 )
+
+
+unit = hs.lists(hs.floats(-1, 1), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 0.3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    parent=hs.lists(hs.floats(-1, 1), min_size=4, max_size=4).filter(
+        lambda q: np.linalg.norm(q) > 0.3
+    ),
+    a=unit,
+    b=unit,
+    alpha=hs.floats(-0.4, 0.7),
+    beta=hs.floats(-3.0, 3.0),
+)
+def test_onto_arc_finds_the_pose_through_a_revolute_child(parent, a, b, alpha, beta):
+    """P Ra(α) with α in [-0.4, 0.7], its child C = P Ra(α) Rb(β): from C alone (and any guess),
+    `onto_arc` recovers P Ra(α) whenever b is not along a (Paden–Kahan: the angle that maps b
+    onto C's b is unique)."""
+    from ssgc.geometry import axis_angle_to_quat, quat_angle, quat_multiply, quat_rotate
+    from ssgc.parse.proposals import onto_arc
+
+    p = np.asarray(parent) / np.linalg.norm(parent)
+    a, b = np.asarray(a) / np.linalg.norm(a), np.asarray(b) / np.linalg.norm(b)
+    if np.linalg.norm(np.cross(a, b)) < 0.1:
+        return  # b along a: every angle maps b onto itself
+    pose = quat_multiply(p, axis_angle_to_quat(a, alpha))
+    child = quat_multiply(pose, axis_angle_to_quat(b, beta))
+    found = onto_arc(p, (a, -0.4, 0.7), child[None], ((b, quat_rotate(child, b)),))
+    assert quat_angle(found, pose[None])[0] < 1e-6
+
+
+BOX_FACE = """
+grammar: box_face
+root: R
+types:
+  R:
+    and:
+    - {child: L, translation: {world_normal: {mean: [0, 0, 0], variance: 0.01}}, rotation: same}
+  L:
+    and:
+    - child: B
+      translation: {world_box_offset: {min: [-0.1, -0.1, -0.1], max: [0.1, 0.1, 0.1]}}
+      rotation: same
+  B: {observed: true}
+"""
+
+
+@pytest.mark.parametrize("x", [0.5, 0.15, -0.3])
+def test_ip_refines_onto_the_box_face(x):
+    """B at (x, 0, 0) and L within 0.1 of it: L's Normal pulls it to the face nearest the
+    origin, (x - 0.1 sign x, 0, 0) when |x| > 0.1: exactly there, and certified."""
+    grammar = compile_text(BOX_FACE)
+    b = grammar.type_ids["B"]
+    scene = Scene("b", np.array([b]), np.array([[x, 0.0, 0.0]]), np.array([[1.0, 0, 0, 0]]))
+    result = Parser(grammar, method="ip").parse(scene, time_limit=10)
+    assert result.status == "optimal", result.message
+    tree = result.parses[0].tree
+    (ell,) = [i for i in range(len(tree)) if grammar.types[tree.type[i]].name == "L"]
+    want = x - 0.1 * np.sign(x)
+    assert tree.xyz[ell] == pytest.approx([want, 0.0, 0.0], abs=1e-6)
+    normal = -0.5 * want**2 / 0.01 - 1.5 * np.log(2 * np.pi * 0.01)
+    assert result.parses[0].score == pytest.approx(normal - np.log(0.2**3), abs=1e-6)
