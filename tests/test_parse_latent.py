@@ -159,7 +159,8 @@ def test_parser_matches_or_beats_brute_force_and_bound_lies_above(grammar, parse
 @pytest.mark.parametrize("method", ["auto", "ip"])
 def test_sampled_constituency_scenes_match_or_beat_ground_truth(grammar, method):
     parser = Parser(grammar, method=method)
-    for scene in sampled(grammar, 40, seed=11):
+    n = 40 if method == "auto" else 20  # ip computes the bound too, after its own model
+    for scene in sampled(grammar, n, seed=11):
         result = parser.parse(scene)
         best = result.parses[0]
         # optimal only with a certificate: the bound, for ip's refined tree as for auto's
