@@ -32,6 +32,7 @@ from ssgc.geometry import (
 )
 from ssgc.ir import Grammar
 from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
+from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.supertree import Supertree
@@ -478,3 +479,35 @@ def add_proposals(
             cand.add(int(e), *memo[key])
         else:
             cand.xyz[e], cand.quat[e] = memo[key][0].copy(), memo[key][1].copy()
+    for e in np.flatnonzero(latent_sets(st)):  # parents first: into their boxes
+        _clip_into_box(grammar, st, cand, int(e))
+
+
+BOX_PARENTS = 10  # parent poses whose box a latent set's proposals are clipped into
+BOX_OWN = 20  # of the set's own proposals, the first
+
+
+def _clip_into_box(grammar: Grammar, st: Supertree, cand: Candidates, e: int) -> None:
+    """Add set e's first proposals moved into its own rule's box (around each of the first
+    parent poses, for a box offset).
+
+    Why: proposals are made from children, bottom-up, and the best pose given the children is
+    often outside the box its parent's candidates allow; the model over proposals then has no
+    tree at all (`no_parse`).  A clipped pose is feasible, and refinement optimises it."""
+    top = int(st.set_top[e])
+    law = grammar.rules[int(st.rule[top])].translation
+    if not isinstance(law, BoxTranslation) or not len(cand.xyz[e]):
+        return
+    own_xyz, own_quat = cand.xyz[e][:BOX_OWN], cand.quat[e][:BOX_OWN]
+    if law.frame == Frame.WORLD:
+        cand.add(e, np.clip(own_xyz, law.box.lo, law.box.hi), own_quat)
+        return
+    p = int(st.parent[top])
+    e_p = int(st.set_of[p])
+    bx, bq = cand.xyz[e_p][:BOX_PARENTS], cand.quat[e_p][:BOX_PARENTS]
+    if not len(bx):
+        return
+    px = bx + quat_rotate(bq, st.offset_xyz[p])  # the parent node's positions
+    lo, hi = px[:, None, :] + law.box.lo, px[:, None, :] + law.box.hi
+    clipped = np.clip(own_xyz[None, :, :], lo, hi).reshape(-1, 3)
+    cand.add(e, clipped, np.tile(own_quat, (len(px), 1)))
