@@ -251,6 +251,46 @@ def _quantiles(times: list[float]) -> dict[str, float]:
     return {k: round(float(x), 4) for k, x in zip(("median", "p90", "p99", "max"), q, strict=True)}
 
 
+def ip_breakdown(
+    n_grammars: int, scenes_per: int, seed: int, time_limit: float | None = 10.0
+) -> dict[str, Any]:
+    """Why `ip` leaves scenes uncertified, one cause per scene (the grammars and scenes of
+    `run_profile`): `no_parse:<phase>`, `infeasible`, `below_truth` (the tree scores below
+    the sampled one: a structure or pose was missed), `time:<step>` (a time limit cut a step
+    short), `no_bound` (no upper bound for the grammar's shape: gap null), `gap` (at or above
+    the sampled tree, but below the bound).  `examples` holds a few of each."""
+    rng = np.random.default_rng(seed)
+    causes: Counter[str] = Counter()
+    examples: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for gi in range(n_grammars):
+        spec = gg.random_spec(rng)
+        grammar = gg.compile_spec(spec)
+        parser = Parser(grammar, method="ip")
+        for scene in gg.sampled_scenes(grammar, scenes_per, seed + gi):
+            result = parser.parse(scene, time_limit=time_limit)
+            cause = _ip_cause(result, float(scene.log_prob))
+            causes[cause] += 1
+            if cause != "certified" and len(examples[cause]) < 3:
+                examples[cause].append(
+                    {"grammar": gi, "scene": scene.name, "message": result.message}
+                )
+    return {"causes": dict(causes.most_common()), "examples": dict(examples)}
+
+
+def _ip_cause(result: Any, truth: float) -> str:
+    if certified(result):
+        return "certified"
+    if not result.parses:
+        return f"no_parse:{result.phase}" if result.status == "no_parse" else result.status
+    if result.parses[0].score < truth - SCORE_TOL * max(1.0, abs(truth)):
+        return "below_truth"
+    if result.timed_out_in:
+        return f"time:{result.timed_out_in}"
+    if not np.isfinite(result.extra.get("bound", np.nan)):
+        return "no_bound"
+    return "gap"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--grammars", type=int, default=100)
@@ -258,7 +298,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--time-limit", type=float, default=10.0)
     ap.add_argument("--methods", default="ip,micp")
+    ap.add_argument("--ip-breakdown", action="store_true", help="why `ip` is uncertified")
     a = ap.parse_args()
+    if a.ip_breakdown:
+        causes = ip_breakdown(a.grammars, a.scenes, a.seed, a.time_limit or None)
+        print(json.dumps(causes, indent=1))
+        return
     out = run_profile(
         a.grammars, a.scenes, a.seed, tuple(a.methods.split(",")), a.time_limit or None
     )

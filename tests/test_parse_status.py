@@ -74,14 +74,32 @@ def test_time_limit_in_model_building_says_no_parse_and_the_step():
     assert "time limit" in result.message
 
 
+# A latent set with a `repeat` inside it: outside the assignment bound's scope.
+NO_BOUND = """
+grammar: no_bound
+root: L0
+types:
+  B: {observed: true}
+  L0:
+    and:
+    - {child: L1, translation: same, rotation: {revolute: {axis: [0, 0, 1], min: -0.4, max: 0.7}}}
+  L1:
+    repeat:
+      count: {probs: [0.3, 0.4, 0.3]}
+      rule: {child: B, translation: {offset: [1.0, 0.5, 0.0]}, rotation: same}
+"""
+
+
 def test_feasible_is_a_tree_without_a_certificate():
-    """`ip` on latent poses has no bound: its trees are `feasible`, gap unknown."""
-    grammar = compile_text(LATENT_AND_CHAIN)
-    x = grammar.type_ids["X"]
-    scene = Scene("one", np.array([x]), np.array([[0.05, 0.0, 0.0]]), np.array([[1.0, 0, 0, 0]]))
-    result = Parser(grammar, method="ip").parse(scene)
-    assert result.status == "feasible" and result.parses
-    assert result.parses[0].status == "feasible" and np.isnan(result.parses[0].gap)
+    """Latent poses in a shape the bound does not cover: the tree is `feasible`, gap unknown
+    (`ip`, and `micp`, which falls back to it)."""
+    grammar = compile_text(NO_BOUND)
+    b = grammar.type_ids["B"]
+    scene = Scene("one", np.array([b]), np.array([[1.0, 0.5, 0.0]]), np.array([[1.0, 0, 0, 0]]))
+    for method in ("ip", "micp"):
+        result = Parser(grammar, method=method).parse(scene)
+        assert result.status == "feasible" and result.parses, (method, result.message)
+        assert result.parses[0].status == "feasible" and np.isnan(result.parses[0].gap)
 
 
 def test_exit_codes_rank_proofs_first():
@@ -108,8 +126,8 @@ def test_cli_parse_time_limit_exits_4_with_the_phase(tmp_path):
 def test_cli_parse_and_explain_exit_3_when_no_parse_is_found_unproven(tmp_path, monkeypatch):
     """Proposals that find no latent pose near the object: nothing found, nothing proven.
 
-    The exact bound now places L for every scene of this grammar, so `ip` is used, with its
-    proposals emptied: the model then holds no tree, and that proves nothing."""
+    The exact bound now places L for every scene of this grammar (and its poses join `ip`'s
+    proposals), so both are emptied: the model then holds no tree, and that proves nothing."""
     monkeypatch.setattr("ssgc.parse.parser.add_proposals", lambda *args, **kwargs: None)
     grammar_path = tmp_path / "chain.yaml"
     grammar_path.write_text(LATENT_AND_CHAIN)
@@ -117,6 +135,8 @@ def test_cli_parse_and_explain_exit_3_when_no_parse_is_found_unproven(tmp_path, 
     x = grammar.type_ids["X"]
     scene = Scene("far", np.array([x]), np.array([[3.0, 0.0, 0.0]]), np.array([[1.0, 0, 0, 0]]))
     path = write_scene(tmp_path / "far.json", grammar, scene)
+    assert Parser(grammar, method="micp").parse(scene).status == "optimal"  # the exact bound
+    monkeypatch.setattr("ssgc.parse.parser.set_bounds", lambda *args, **kwargs: None)
     parsed = Parser(grammar, method="ip").parse(scene)
     assert (parsed.status, parsed.phase) == ("no_parse", "proposals")
     assert not parsed.parses
@@ -124,8 +144,6 @@ def test_cli_parse_and_explain_exit_3_when_no_parse_is_found_unproven(tmp_path, 
     assert result.exit_code == 3, result.output
     assert "far: no_parse: " in result.stderr and "not proven" in result.stderr
     assert "diagnosis" not in json.loads(result.stdout)["scenes"][0]  # only for a proof
-    assert Parser(grammar, method="micp").parse(scene).status == "optimal"  # the exact bound
-    monkeypatch.setattr("ssgc.parse.parser.set_bounds", lambda *args, **kwargs: None)
     result = run("explain", path, "-g", grammar_path, "--json")  # auto: micp, no bound now
     assert result.exit_code == 3, result.output
     assert json.loads(result.stdout)["scenes"][0]["phase"] == "proposals"

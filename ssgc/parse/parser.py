@@ -176,7 +176,7 @@ class Parser:
         run.solve(top)
         if bounds is not None and run.parses:
             run.certify()
-        elif self.has_latent and not complete and self.method == "micp":
+        elif self.has_latent and not complete:
             run.message = (
                 run.message or "no upper bound for this grammar's shape: the gap is unknown"
             )
@@ -241,18 +241,19 @@ class Parser:
         self, cand: Candidates, deadline: float | None = None
     ) -> dict[int, SetBound] | None:
         """Add the latent sets' candidate poses to `cand` (stopping at `deadline`): the bound's
-        assignments (returned, `micp` when the grammar's shape allows it), else proposals."""
+        assignments (`micp` when the grammar's shape allows it), else proposals.  The bounds
+        are returned whenever the shape allows them: `ip` (and `micp` with `certify_only`
+        bounds) parses over the proposals and uses them only to certify its refined tree."""
         g, st = self.grammar, self.supertree
         if not self.has_latent:
             return None
-        bounds = None
-        if self.method != "ip":
-            bounds = set_bounds(g, st, cand, deadline)
-            if bounds is not None and not certify_only(bounds):
-                return bounds
+        bounds = set_bounds(g, st, cand, deadline)
+        if self.method != "ip" and bounds is not None and not certify_only(bounds):
+            return bounds
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
         if bounds is not None:  # they only certify; their poses join the proposals
             add_assignment_poses(cand, bounds)
+            _repeat_empty_poses(cand, bounds)
         return bounds
 
     def reduce(
@@ -277,6 +278,8 @@ class Parser:
         bounds: dict[int, SetBound] | None,
         deadline: float | None,
     ) -> Request:
+        if self.method == "ip":
+            bounds = None  # the bounds only certify: the model is over the proposals
         return Request(self.grammar, self.supertree, scene, cand, self.has_latent, bounds, deadline)
 
     def open_session(self, milp: Milp, time_limit: float | None = None) -> Session:
@@ -347,6 +350,12 @@ class _Run:
         self.bound_s = 0.0
         self.session = parser.open_session(problem.milp)
 
+    @property
+    def _assignment_model(self) -> bool:
+        """Whether the MILP is the assignment model (its latent poses are each assignment's
+        best already), not the model over proposals whose trees are refined."""
+        return self.p.method != "ip" and self.bounds is not None and not certify_only(self.bounds)
+
     def _solve_once(self):  # type: ignore[no-untyped-def]
         if self.deadline is not None:
             left = self.deadline - time.perf_counter()
@@ -373,7 +382,7 @@ class _Run:
             if not self.parses and np.isnan(self.raw_score):
                 self.raw_score = parse.score
             certified = self.complete and sol.status == "optimal" and sol.gap <= GAP_TOL
-            if self.p.has_latent and (self.bounds is None or certify_only(self.bounds)):
+            if self.p.has_latent and not self._assignment_model:
                 parse = self._refined(parse, sol)
                 if parse is None:
                     continue  # the MILP was rebuilt with better proposals: solve again
@@ -506,6 +515,21 @@ class _Run:
             )
             for e in np.flatnonzero(same):
                 self.cand.add(int(e), tree.xyz[i], tree.quat[i])
+
+
+def _repeat_empty_poses(cand: Candidates, bounds: dict[int, SetBound]) -> None:
+    """Give a latent set its childless assignment's pose once per copy of its `repeat`.
+
+    The model over proposals gives each candidate pose of a `repeat`'s child set to at most
+    one copy, so two childless latent copies (each best at its rule's mode) could not both sit
+    at that pose, while the bound counts them both (its `_copies_apart` repeats the row): the
+    tree found would fall short of the bound.  Candidates.add would merge the repeats, so they
+    are appended as they are."""
+    for e, sb in bounds.items():
+        empty = np.flatnonzero(np.all(sb.assignment < 0, axis=1))
+        if len(empty) > 1:
+            cand.xyz[e] = np.vstack([cand.xyz[e], sb.xyz[empty[1:]]])
+            cand.quat[e] = np.vstack([cand.quat[e], sb.quat[empty[1:]]])
 
 
 def tree_signature(grammar: Grammar, tree: Trees) -> bytes:

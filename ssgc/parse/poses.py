@@ -25,6 +25,9 @@ from scipy.optimize import minimize
 
 from ssgc.geometry import quat_conjugate, quat_multiply, quat_normalize, quat_rotate
 from ssgc.ir import Grammar
+from ssgc.laws.base import Frame
+from ssgc.laws.position_box import BoxTranslation
+from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.rules import rotation_log_density, translation_log_density
 from ssgc.tree import Trees
 
@@ -145,10 +148,53 @@ def _value_and_gradient(
     for j in range(6):
         for blocks, first in ends:
             hi, lo = values[1 + 4 * j + first - 1], values[1 + 4 * j + first]
-            d = (hi - lo) / (2 * STEP)
+            d = _difference(values[0], hi, lo)
             d = np.where((blocks >= 0) & np.isfinite(d), d, 0.0)
             grad[:, j] += np.bincount(np.maximum(blocks, 0), d, minlength=n_blocks)
     return values[0], grad
+
+
+def _difference(mid: FloatArray, hi: FloatArray, lo: FloatArray) -> FloatArray:
+    """Per edge, the central difference; one-sided where one side leaves the law's support
+    (a box's face), so that a pose on the face still sees the slope on its inner side."""
+    with np.errstate(invalid="ignore"):
+        central = (hi - lo) / (2 * STEP)
+        upper = (hi - mid) / STEP
+        lower = (mid - lo) / STEP
+    return np.where(np.isfinite(central), central, np.where(np.isfinite(upper), upper, lower))
+
+
+def box_limits(
+    grammar: Grammar, edges: PoseEdges, x0: FloatArray, q0: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """(lo, hi), each (B, 3): the positions each block may take under the box laws of its
+    edges whose other end is fixed (±inf elsewhere), with the block's rotation at q0.
+
+    Why: a box law's density is flat inside and -inf outside, so an unconstrained optimiser
+    stops where its next step would leave the box, short of the face where a Normal term pulls
+    the exact optimum.  L-BFGS-B reaches the face when it is a bound."""
+    n_blocks = len(x0)
+    lo, hi = np.full((n_blocks, 3), -np.inf), np.full((n_blocks, 3), np.inf)
+    table = grammar.tables.translation
+    is_box = np.array([isinstance(r.translation, BoxTranslation) for r in grammar.rules], bool)
+    rules = edges.rule
+    if not np.any(is_box[rules]):
+        return lo, hi
+    frame = table.frame[rules]
+    for m in np.flatnonzero(is_box[rules]):
+        law = grammar.rules[int(rules[m])].translation
+        assert isinstance(law, BoxTranslation)
+        pb, cb = int(edges.p_block[m]), int(edges.c_block[m])
+        if cb >= 0 and pb < 0:  # the child moves: child position in [a, b]
+            off = quat_rotate(q0[cb], edges.c_xyz[m])
+            base = 0.0 if frame[m] == Frame.WORLD else edges.p_xyz[m]
+            a, b = base + law.box.lo - off, base + law.box.hi - off
+            lo[cb], hi[cb] = np.maximum(lo[cb], a), np.minimum(hi[cb], b)
+        elif pb >= 0 and cb < 0 and frame[m] == Frame.WORLD_OFFSET:  # the parent moves
+            off = quat_rotate(q0[pb], edges.p_xyz[m])
+            a, b = edges.c_xyz[m] - law.box.hi - off, edges.c_xyz[m] - law.box.lo - off
+            lo[pb], hi[pb] = np.maximum(lo[pb], a), np.minimum(hi[pb], b)
+    return lo, hi
 
 
 def maximize(
@@ -188,6 +234,7 @@ def maximize(
         np.zeros(6 * n_blocks),
         jac=True,
         method="L-BFGS-B",
+        bounds=_theta_bounds(grammar, edges, x0, q0),
         callback=stop_at_deadline,
         options={"maxiter": max_iter, "ftol": 1e-12, "gtol": 1e-7},
     )
@@ -195,6 +242,41 @@ def maximize(
         return x0, q0
     bx, bq = _moved(x0, q0, res.x.reshape(n_blocks, 6))
     return bx, quat_normalize(bq)
+
+
+def rigid_rotation(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> NDArray[np.bool_]:
+    """Blocks with an edge whose rotation law is a fixed offset or revolute: off a point or
+    an arc its density is -inf, so a step in rotation is never taken; holding the rotation
+    lets the position converge to the exact optimum for it."""
+    held = np.array(
+        [
+            r.rotation.point is not None or isinstance(r.rotation, RevoluteRotation)
+            for r in grammar.rules
+        ],
+        bool,
+    )
+    out = np.zeros(n_blocks, bool)
+    on = held[edges.rule]
+    for blocks in (edges.p_block, edges.c_block):
+        hit = on & (blocks >= 0)
+        out[blocks[hit]] = True
+    return out
+
+
+def _theta_bounds(
+    grammar: Grammar, edges: PoseEdges, x0: FloatArray, q0: FloatArray
+) -> list[tuple[float | None, float | None]]:
+    """L-BFGS-B's bounds on the blocks' moves: box laws on the positions (`box_limits`, never
+    excluding the start); a rigid block's rotation (`rigid_rotation`) stays."""
+    lo, hi = box_limits(grammar, edges, x0, q0)
+    lo, hi = np.minimum(lo - x0, 0.0), np.maximum(hi - x0, 0.0)
+    turn = np.where(rigid_rotation(grammar, edges, len(x0))[:, None], 0.0, np.inf)
+    theta_lo = np.hstack([lo, np.broadcast_to(-turn, (len(x0), 3))]).ravel()
+    theta_hi = np.hstack([hi, np.broadcast_to(turn, (len(x0), 3))]).ravel()
+    return [
+        (None if not np.isfinite(a) else float(a), None if not np.isfinite(b) else float(b))
+        for a, b in zip(theta_lo, theta_hi, strict=True)
+    ]
 
 
 def maximize_independent(
@@ -220,6 +302,9 @@ def maximize_independent(
     current = _owned_values(grammar, edges, owner, bx, bq)
     damping = np.full(n_blocks, 1e-3)
     active = np.isfinite(current)
+    lo, hi = box_limits(grammar, edges, bx, bq)
+    limits = np.minimum(lo, bx), np.maximum(hi, bx)  # never excluding the start
+    rigid = rigid_rotation(grammar, edges, n_blocks)
     for _ in range(max_iter):
         if not np.any(active) or (deadline is not None and time.perf_counter() >= deadline):
             break
@@ -227,7 +312,9 @@ def maximize_independent(
             if start and deadline is not None and time.perf_counter() >= deadline:
                 break
             idx = np.flatnonzero(active)[start : start + NEWTON_CHUNK]
-            _newton_update(grammar, edges, owner, idx, bx, bq, current, damping, active)
+            _newton_update(
+                grammar, edges, owner, idx, bx, bq, current, damping, active, limits, rigid
+            )
     return bx, bq
 
 
@@ -244,10 +331,14 @@ def _newton_update(
     current: FloatArray,
     damping: FloatArray,
     active: NDArray[np.bool_],
+    limits: tuple[FloatArray, FloatArray],
+    rigid: NDArray[np.bool_],
 ) -> None:
-    """One damped Newton step on blocks idx, updating the arrays in place."""
+    """One damped Newton step on blocks idx, updating the arrays in place; positions stay
+    within `limits` (the box laws', `box_limits`)."""
     sub, sub_owner = _sub_edges(edges, owner, idx)
-    tx, tq, predicted = _newton_step(grammar, sub, bx[idx], bq[idx], damping[idx])
+    tx, tq, predicted = _newton_step(grammar, sub, bx[idx], bq[idx], damping[idx], rigid[idx])
+    tx = np.clip(tx, limits[0][idx], limits[1][idx])
     trial = _owned_values(grammar, sub, sub_owner, tx, tq)
     now = current[idx]
     better = np.isfinite(trial) & (trial > now) & (predicted > 0)
@@ -289,9 +380,15 @@ def _sub_edges(edges: PoseEdges, owner: IntArray, blocks: IntArray) -> tuple[Pos
 
 
 def _newton_step(
-    grammar: Grammar, edges: PoseEdges, bx: FloatArray, bq: FloatArray, damping: FloatArray
+    grammar: Grammar,
+    edges: PoseEdges,
+    bx: FloatArray,
+    bq: FloatArray,
+    damping: FloatArray,
+    rigid: NDArray[np.bool_] | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """A Levenberg–Marquardt step per block: poses after it, and the first-order gain."""
+    """A Levenberg–Marquardt step per block: poses after it, and the first-order gain.
+    `rigid` blocks keep their rotation (`rigid_rotation`)."""
     n_blocks = len(bx)
     tiled = _tiled(edges, n_blocks, N_VARIANTS)
 
@@ -305,6 +402,10 @@ def _newton_step(
         step[:, j] = 1e-4
         hess[:, :, j] = (gradient(*_moved(bx, bq, step)) - g) / 1e-4
     hess = 0.5 * (hess + np.swapaxes(hess, 1, 2))
+    if rigid is not None:  # these blocks move their positions only
+        g[rigid, 3:] = 0.0
+        hess[rigid, 3:, :] = 0.0
+        hess[rigid, :, 3:] = 0.0
     scale = np.maximum(np.abs(np.diagonal(hess, axis1=1, axis2=2)).max(axis=1), 1.0)
     lhs = -hess + (damping * scale)[:, None, None] * np.eye(6)
     delta = np.linalg.solve(lhs, g[:, :, None])[:, :, 0]

@@ -32,6 +32,8 @@ from ssgc.geometry import (
 )
 from ssgc.ir import Grammar
 from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
+from ssgc.laws.position_box import BoxTranslation
+from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import sample_children
@@ -108,6 +110,61 @@ def child_mode(
     return xyz, quat
 
 
+def revolute_arc(grammar: Grammar, r: int) -> tuple[FloatArray, float, float] | None:
+    """(axis, lo, hi) of rule r's revolute rotation law, None for any other law."""
+    law = grammar.rules[r].rotation
+    if not isinstance(law, RevoluteRotation):
+        return None
+    return np.asarray(law.axis, float), float(law.revolute.lo), float(law.revolute.hi)
+
+
+def _clip_angle(alpha: FloatArray, lo: float, hi: float) -> FloatArray:
+    """Each angle moved into [lo, hi] (modulo 2π), to the nearer end when outside."""
+    rel = np.mod(alpha - lo, 2 * np.pi)
+    width = hi - lo
+    past = rel - width  # how far beyond hi; 2π - rel: how far before lo
+    rel = np.where(rel <= width, rel, np.where(past <= 2 * np.pi - rel, width, 0.0))
+    return lo + rel
+
+
+def onto_arc(
+    parent_quat: FloatArray,
+    arc: tuple[FloatArray, float, float],
+    quat: FloatArray,
+    aligns: tuple[tuple[FloatArray, FloatArray], ...] = (),
+) -> FloatArray:
+    """Rotations parent ∘ Ra(α), α in the arc's range, one per row: the first of `aligns`
+    (vector in the rotated frame, its world direction) that fixes α decides it (the rotation
+    about the axis that takes one onto the other, Paden–Kahan's first subproblem); where none
+    does (a vector along the axis), the rotation closest to `quat`.
+
+    Why: a latent pose whose own rule is revolute has density zero off its arc, and a proposal
+    made from its children (or averaged from two) is almost never on it; Newton cannot reach
+    the arc from outside, where every step is -inf.  A child placed by a revolute law about
+    axis b needs the pose to map b onto the child's b; a child at a fixed offset m from a
+    pinned position needs it to map m onto the child's direction."""
+    a, lo, hi = arc
+    n = len(quat)
+    pq = np.broadcast_to(parent_quat, (n, 4))
+    # closest: <p ∘ (cos h, sin h a), q> = A cos h + B sin h, largest in |.| at h = atan2(B, A)
+    pa = quat_multiply(pq, np.r_[0.0, a])
+    alpha = 2 * np.arctan2(np.sum(pa * quat, axis=1), np.sum(pq * quat, axis=1))
+    decided = np.zeros(n, bool)
+    for vec_from, vec_to in aligns:
+        b = np.broadcast_to(vec_from, (n, 3))
+        w = quat_rotate(quat_conjugate(pq), vec_to)  # Ra(α) b = w in the parent's frame
+        b_perp = b - np.outer(b @ a, a)
+        w_perp = w - np.outer(w @ a, a)
+        turn = np.arctan2(np.cross(b_perp, w_perp) @ a, np.sum(b_perp * w_perp, axis=1))
+        ok = (np.linalg.norm(b_perp, axis=1) > 1e-6) & (np.linalg.norm(w_perp, axis=1) > 1e-6)
+        ok &= ~decided
+        alpha = np.where(ok, turn, alpha)
+        decided |= ok
+    alpha = _clip_angle(alpha, lo, hi)
+    half = 0.5 * alpha[:, None]
+    return quat_multiply(pq, np.hstack([np.cos(half), np.sin(half) * a]))
+
+
 def known_parent(grammar: Grammar, st: Supertree, cand: Candidates, e: int):  # type: ignore[no-untyped-def]
     """The pose of set e's parent node, at which the set's own rule is scored: None if the rule
     ignores its parent (world frame), False if the parent's set has other than one pose."""
@@ -140,6 +197,10 @@ class _SetProposer:
         self.top = int(st.set_top[e])
         self.slots = self._slots()
         self.prior = self._prior_parent()
+        own_arc = revolute_arc(grammar, int(st.rule[self.top]))
+        known = known_parent(grammar, st, cand, e) not in (None, False)
+        self.arc = own_arc if known else None  # the own rule's arc about a known parent
+        self.pinned_xyz, self.pinned_quat = self._pinned() if known else (None, None)
 
     def _slots(self) -> list[tuple[int, int, int, int]]:
         """(member node, rule, child set, copies) for each rule leaving the set."""
@@ -154,6 +215,18 @@ class _SetProposer:
             for (v, r), kids in seen.items()
             if len(self.cand.xyz[st.set_of[kids[0]]])
         ]
+
+    def _pinned(self) -> tuple[FloatArray | None, FloatArray | None]:
+        """The position and the rotation the set's own rule fixes at its known parent (a
+        fixed offset), each None when its law is not a point: proposals must sit there."""
+        assert self.prior is not None
+        r = int(self.st.rule[self.top])
+        rule = self.g.rules[r]
+        mx, mq = child_mode(self.g, r, self.prior[0][None], self.prior[1][None])
+        return (
+            mx[0] if rule.translation.point is not None else None,
+            mq[0] if rule.rotation.point is not None else None,
+        )
 
     def _prior_parent(self) -> tuple[FloatArray, FloatArray] | None:
         """The parent pose at which the set's own rule is scored during proposal refinement
@@ -196,7 +269,49 @@ class _SetProposer:
         )
         rel = rotation_mode(g, r)
         q_v = default_quat if rel is None else quat_multiply(child_quat, quat_conjugate(rel))
-        centre, frame = translation_mode(g, r)
+        if self.pinned_quat is not None:  # the set's own rule fixes its rotation
+            q_v = quat_multiply(
+                np.broadcast_to(self.pinned_quat, (len(child_xyz), 4)), self.st.offset_quat[v]
+            )
+        elif self.arc is not None:  # the set's own rule holds it to an arc: put it there
+            q_top = quat_multiply(q_v, quat_conjugate(self.st.offset_quat[v]))
+            q_top = self._onto_arc(q_top, slot, child_xyz, child_quat)
+            q_v = quat_multiply(q_top, self.st.offset_quat[v])
+        return self._translation(slot, child_xyz, q_v, default_xyz)
+
+    def _onto_arc(
+        self,
+        q_top: FloatArray,
+        slot: tuple[int, int, int, int],
+        child_xyz: FloatArray,
+        child_quat: FloatArray,
+    ) -> FloatArray:
+        """`onto_arc` for this set, aligned with the slot's child: its revolute axis, or
+        its fixed offset from the set's pinned position."""
+        assert self.arc is not None and self.prior is not None
+        v, r, _, _ = slot
+        st, aligns = self.st, []
+        child_arc = revolute_arc(self.g, r)
+        if child_arc is not None:  # its axis in the top's frame, and in the world
+            b = quat_rotate(st.offset_quat[v], child_arc[0])
+            aligns.append((b, quat_rotate(child_quat, child_arc[0])))
+        law = self.g.rules[r].translation
+        if self.pinned_xyz is not None and law.point is not None and law.frame == Frame.PARENT:
+            m = st.offset_xyz[v] + quat_rotate(st.offset_quat[v], law.point)
+            aligns.append((m, child_xyz - self.pinned_xyz))
+        return onto_arc(self.prior[1], self.arc, q_top, tuple(aligns))
+
+    def _translation(
+        self,
+        slot: tuple[int, int, int, int],
+        child_xyz: FloatArray,
+        q_v: FloatArray,
+        default_xyz: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Set-top poses with member v at rotation q_v that put each child at the mode of the
+        slot's translation law."""
+        v, r, _, _ = slot
+        centre, frame = translation_mode(self.g, r)
         if frame == Frame.PARENT:
             t_v = child_xyz - quat_rotate(q_v, centre)
         elif frame == Frame.WORLD_OFFSET:
@@ -204,7 +319,17 @@ class _SetProposer:
         else:
             t_v = default_xyz
         q_top = quat_multiply(q_v, quat_conjugate(self.st.offset_quat[v]))
+        if self.pinned_xyz is not None:  # the set's own rule fixes its position
+            return np.broadcast_to(self.pinned_xyz, (len(q_top), 3)).copy(), q_top
         return t_v - quat_rotate(q_top, self.st.offset_xyz[v]), q_top
+
+    def _at(self, slot: tuple[int, int, int, int], child_xyz: FloatArray, q_top: FloatArray):  # type: ignore[no-untyped-def]
+        """The set-top positions, at rotation q_top, that put each child at its law's mode."""
+        default_xyz, _ = child_mode(
+            self.g, int(self.st.rule[self.top]), *self._default_parent(len(child_xyz))
+        )
+        q_v = quat_multiply(q_top, self.st.offset_quat[slot[0]])
+        return self._translation(slot, child_xyz, q_v, default_xyz)[0]
 
     def _default_parent(self, n: int) -> tuple[FloatArray, FloatArray]:
         if self.prior is not None:
@@ -270,6 +395,12 @@ class _SetProposer:
         sign = np.where(np.sum(qa[i] * qb[j], axis=1) < 0, -1.0, 1.0)[:, None]
         q = quat_normalize(qa[i] + sign * qb[j])
         t = 0.5 * (ta[i] + tb_[j])
+        if self.pinned_quat is not None and len(q):  # the own rule fixes the rotation
+            q = np.tile(self.pinned_quat, (len(q), 1))
+        elif self.arc is not None and len(q):  # the average is off the arc: back onto it
+            q = onto_arc(self.prior[1], self.arc, q)  # type: ignore[index]
+        if (self.arc is not None or self.pinned_quat is not None) and len(q):
+            t = 0.5 * (self._at(self.slots[a], ax[i], q) + self._at(self.slots[b], bx[j], q))
         disagreement = np.linalg.norm(ta[i] - tb_[j], axis=1) + quat_angle(qa[i], qb[j])
         sa, sb = self.slots[a], self.slots[b]
         return [
@@ -348,3 +479,35 @@ def add_proposals(
             cand.add(int(e), *memo[key])
         else:
             cand.xyz[e], cand.quat[e] = memo[key][0].copy(), memo[key][1].copy()
+    for e in np.flatnonzero(latent_sets(st)):  # parents first: into their boxes
+        _clip_into_box(grammar, st, cand, int(e))
+
+
+BOX_PARENTS = 10  # parent poses whose box a latent set's proposals are clipped into
+BOX_OWN = 20  # of the set's own proposals, the first
+
+
+def _clip_into_box(grammar: Grammar, st: Supertree, cand: Candidates, e: int) -> None:
+    """Add set e's first proposals moved into its own rule's box (around each of the first
+    parent poses, for a box offset).
+
+    Why: proposals are made from children, bottom-up, and the best pose given the children is
+    often outside the box its parent's candidates allow; the model over proposals then has no
+    tree at all (`no_parse`).  A clipped pose is feasible, and refinement optimises it."""
+    top = int(st.set_top[e])
+    law = grammar.rules[int(st.rule[top])].translation
+    if not isinstance(law, BoxTranslation) or not len(cand.xyz[e]):
+        return
+    own_xyz, own_quat = cand.xyz[e][:BOX_OWN], cand.quat[e][:BOX_OWN]
+    if law.frame == Frame.WORLD:
+        cand.add(e, np.clip(own_xyz, law.box.lo, law.box.hi), own_quat)
+        return
+    p = int(st.parent[top])
+    e_p = int(st.set_of[p])
+    bx, bq = cand.xyz[e_p][:BOX_PARENTS], cand.quat[e_p][:BOX_PARENTS]
+    if not len(bx):
+        return
+    px = bx + quat_rotate(bq, st.offset_xyz[p])  # the parent node's positions
+    lo, hi = px[:, None, :] + law.box.lo, px[:, None, :] + law.box.hi
+    clipped = np.clip(own_xyz[None, :, :], lo, hi).reshape(-1, 3)
+    cand.add(e, clipped, np.tile(own_quat, (len(px), 1)))
