@@ -367,6 +367,17 @@ def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -
             w[i] = w[tree.parent[i]]
         else:
             w[i] = 1.0 / n_objects
+    # An `or` choice is about the child it chose: when that child has a pose of its own (an
+    # `or` whose rules place dishes right side up or upside down), the choice belongs to the
+    # child's owners, not to whatever object shares the `or` node's pose (the bin).
+    chosen = np.full(n, -1, np.int64)
+    is_or = np.array([grammar.types[t].kind == Kind.OR for t in tree.type])
+    kids = np.flatnonzero((tree.parent >= 0) & is_or[np.maximum(tree.parent, 0)])
+    chosen[tree.parent[kids]] = kids
+    for i in np.flatnonzero(chosen >= 0)[::-1]:  # children before parents: chains of `or`s
+        c = chosen[i]
+        if top[c] != top[i] and w[c].any():
+            w[i] = w[c]
     return w
 
 

@@ -19,6 +19,7 @@ from ssgc.compile import load_grammar
 from ssgc.explain import diagnose, explain_tree
 from ssgc.geometry import axis_angle_to_quat, quat_multiply
 from ssgc.io.scene import Scene, load_scenes
+from ssgc.ir import Grammar
 from ssgc.parse.parser import Parser
 
 KINDS = ("move", "flip", "retype", "move3d")
@@ -48,6 +49,12 @@ def perturb(
     return replace(scene, xyz=xyz, quat=quat, types=t, tree=None), o
 
 
+def category(grammar: Grammar, t: int) -> str:
+    """A dataset type's category, read from its model name: plate, bowl, cup or the bin."""
+    name = grammar.types[int(t)].name
+    return next((c for c in ("Plate", "Bowl", "Mug") if name.startswith(c)), name)
+
+
 def run(
     grammar_path: str,
     scenes_path: str = SINK,
@@ -75,6 +82,7 @@ def run(
             continue
         first = unparseable = named = detectable = first_detectable = above_natural = 0
         misses = []
+        retypes = {"within": [0, 0], "across": [0, 0]}  # [ranked first, changed] per kind
         for i, scene in enumerate(scenes):
             changed, o = perturb(scene, kind, np.random.default_rng([seed, k, i]), types)
             result = parser.parse(changed, top=1)
@@ -94,6 +102,11 @@ def run(
                 ok = d.objects == [o]
                 named += ok
             first += ok
+            if kind == "retype":
+                same = category(g, scene.types[o]) == category(g, changed.types[o])
+                tally = retypes["within" if same else "across"]
+                tally[0] += ok
+                tally[1] += 1
             detail = f"unusual {mine:.2f} natural {natural[i]:.2f}" if result.parses else ""
             print(
                 kind,
@@ -116,6 +129,9 @@ def run(
             "changed_above_natural_max": above_natural,
             "misses": misses,
         }
+        if kind == "retype":  # extra information: the issue's kind is "any other type"
+            for part, key in (("within", "within_category"), ("across", "across_categories")):
+                out[kind][key] = {"ranked_first": retypes[part][0], "of": retypes[part][1]}
     return out
 
 
