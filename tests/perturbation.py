@@ -89,9 +89,9 @@ def run(
             mine = 0.0
             if result.parses:
                 e = explain_tree(g, changed, result.parses[0].tree, parser)
-                ok = e.objects[0].index == o
+                ok = bool(e.objects[0].index == o)
                 mine = next(x.unusual for x in e.objects if x.index == o)
-                above_natural += mine > natural[i]
+                above_natural += bool(mine > natural[i])
                 drop = base[i].parses[0].score - result.parses[0].score
                 if drop >= DETECTABLE:
                     detectable += 1
@@ -99,7 +99,7 @@ def run(
             else:
                 unparseable += 1
                 d = diagnose(g, changed, parser, time_limit=60.0)
-                ok = d.objects == [o]
+                ok = bool(d.objects == [o])
                 named += ok
             first += ok
             if kind == "retype":
