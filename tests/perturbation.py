@@ -4,7 +4,7 @@ the world x axis through its position), or give it another of the dataset's type
 whether the explanation ranks it first.  A scene the change makes unparseable counts as ranked
 first only if the diagnosis (`ssgc.explain.diagnose`) names exactly that object.
 
-    python tests/perturbation.py GRAMMAR [SCENES] [--limit N] [--kinds move,flip,retype]
+    python tests/perturbation.py GRAMMAR [SCENES] [--start I] [--limit N] [--kinds move,flip,retype]
 """
 
 from __future__ import annotations
@@ -63,12 +63,14 @@ def run(
     grammar_path: str,
     scenes_path: str = SINK,
     limit: int | None = None,
+    start: int = 0,
     seed: int = 0,
     kinds: tuple[str, ...] = KINDS,
 ) -> dict:
     g = load_grammar(grammar_path)
-    scenes = load_scenes(scenes_path, g)[:limit]
-    types = np.unique(np.concatenate([s.types for s in scenes]))
+    every = load_scenes(scenes_path, g)
+    types = np.unique(np.concatenate([s.types for s in every]))
+    scenes = every[start:limit]  # scenes start..limit-1 (each perturbed as in the full run)
     parser = Parser(g)
     base = [parser.parse(s, top=1) for s in scenes]
     # the most unusual object of each unchanged scene: how unusual real objects already are
@@ -87,7 +89,8 @@ def run(
         first = unparseable = named = detectable = first_detectable = above_natural = 0
         misses = []
         retypes = {"within": [0, 0], "across": [0, 0]}  # [ranked first, changed] per kind
-        for i, scene in enumerate(scenes):
+        for j, scene in enumerate(scenes):
+            i = start + j  # the scene's index in the dataset seeds its change
             changed, o = perturb(scene, kind, np.random.default_rng([seed, k, i]), types)
             result = parser.parse(changed, top=1)
             mine = 0.0
@@ -95,8 +98,8 @@ def run(
                 e = explain_tree(g, changed, result.parses[0].tree, parser)
                 ok = bool(e.objects[0].index == o)
                 mine = next(x.unusual for x in e.objects if x.index == o)
-                above_natural += bool(mine > natural[i])
-                drop = base[i].parses[0].score - result.parses[0].score
+                above_natural += bool(mine > natural[j])
+                drop = base[j].parses[0].score - result.parses[0].score
                 if drop >= DETECTABLE:
                     detectable += 1
                     first_detectable += ok
@@ -111,7 +114,7 @@ def run(
                 tally = retypes["within" if same else "across"]
                 tally[0] += ok
                 tally[1] += 1
-            detail = f"unusual {mine:.2f} natural {natural[i]:.2f}" if result.parses else ""
+            detail = f"unusual {mine:.2f} natural {natural[j]:.2f}" if result.parses else ""
             print(
                 kind,
                 i,
@@ -141,7 +144,10 @@ def run(
 
 if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
-    lim, chosen = None, KINDS
+    lim, chosen, first_scene = None, KINDS, 0
+    if "--start" in sys.argv:
+        first_scene = int(sys.argv[sys.argv.index("--start") + 1])
+        args.remove(str(first_scene))
     if "--limit" in sys.argv:
         lim = int(sys.argv[sys.argv.index("--limit") + 1])
         args.remove(str(lim))
@@ -149,5 +155,5 @@ if __name__ == "__main__":
         given = sys.argv[sys.argv.index("--kinds") + 1]
         args.remove(given)
         chosen = tuple(given.split(","))
-    out = run(args[0], *(args[1:2] or [SINK]), limit=lim, kinds=chosen)
+    out = run(args[0], *(args[1:2] or [SINK]), limit=lim, kinds=chosen, start=first_scene)
     print(json.dumps(out, indent=1))
