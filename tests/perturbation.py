@@ -24,14 +24,11 @@ from ssgc.ir import Grammar
 from ssgc.parse.parser import Parser
 
 KINDS = ("move", "flip", "retype", "move3d")
-# What was measured when this was written (docs/explain.md), less a margin: a regression guard.
-# Issue 16 asks for 0.9 per kind; the sink grammar cannot tell most of these changes from real
-# scenes (see "detectable" in the output), so the rates are far below it.
-# How the check's grammar is fitted: `ssg fit ssgc/data/sink/saved_scenes.yaml -g
-# grammars/sink_detailed.yaml -o FIT.yaml --top 1 --iterations 3` (hard EM on each scene's best
-# tree: the default top 10 took minutes for single scenes of this grammar).
-FIT = ("--top", "1", "--iterations", "3")
-FLOORS = {"move": 0.55, "flip": 0.48, "retype": 0.33, "move3d": 0.55}
+# What was measured when this was written (docs/explain.md: grammars/sink_detailed.yaml fitted
+# with FIT; the first 36 scenes of each kind: move 25, flip 31, retype 25), less a margin: a
+# regression guard.  Issue 16 asks for 0.9 per kind; see docs/explain.md for why move and
+# retype fall short.
+FLOORS = {"move": 0.6, "flip": 0.75, "retype": 0.6}
 DETECTABLE = 2.0  # nats: the change lowers the best tree's log-probability at least this much
 SINK = "ssgc/data/sink/saved_scenes.yaml"
 
