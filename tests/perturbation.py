@@ -29,10 +29,10 @@ KINDS = ("move", "flip", "retype", "move3d")
 # tree: the default top 10 took minutes for single scenes of this grammar).
 FIT = ("--top", "1", "--iterations", "3")
 # What was measured when this was written (docs/explain.md: grammars/sink_detailed.yaml fitted
-# with FIT; the first 36 scenes of each kind: move 25, flip 31, retype 25), less a margin: a
-# regression guard.  Issue 16 asks for 0.9 per kind; see docs/explain.md for why move and
+# with FIT; not all 80 scenes finished: move 32 / 48, flip 36 / 48, retype 27 / 41), less a
+# margin: a regression guard.  Issue 16 asks for 0.9 per kind; see docs/explain.md for why move and
 # retype fall short.
-FLOORS = {"move": 0.6, "flip": 0.75, "retype": 0.6}
+FLOORS = {"move": 0.58, "flip": 0.65, "retype": 0.55}
 DETECTABLE = 2.0  # nats: the change lowers the best tree's log-probability at least this much
 SINK = "ssgc/data/sink/saved_scenes.yaml"
 
