@@ -83,6 +83,7 @@ class ObjectExplanation:
     unusual: float
     pose_gain: float
     reasons: list[Reason] = field(default_factory=list)
+    slot_surprise: float = 0.0  # placement by an `or` of placing rules vs. its expectation
     unexplained: bool = False  # the best parse leaves it to clutter (`observation: clutter`)
 
     @property
@@ -96,6 +97,7 @@ class ObjectExplanation:
             "share": self.share,
             "unusual": self.unusual,
             "pose_gain": self.pose_gain,
+            "slot_surprise": self.slot_surprise,
             "unexplained": self.unexplained,
             "reasons": [r.to_json() for r in self.reasons],
         }
@@ -225,12 +227,60 @@ def explain_tree(
             gain = max(gain, _reparsed_gain(parser, scene, o, fix, log_prob, time_limit))
         objects[o].pose_gain = gain
         objects[o].unusual += gain
+    for o, surprise in slot_surprises(grammar, tree, terms, obj_of, weights, expect).items():
+        objects[o].slot_surprise = surprise
+        objects[o].unusual = max(objects[o].unusual, surprise)
     for o in unexplained_objects(grammar, scene, tree):
         objects[o].unexplained = True
     unattributed = -log_prob if len(scene) == 0 else 0.0
     # what the grammar leaves unexplained comes first, then the most unusual
     objects.sort(key=lambda o: (not o.unexplained, -o.unusual, -o.share, o.index))
     return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed)
+
+
+def slot_surprise_nodes(grammar: Grammar, tree: Trees) -> list[tuple[int, int]]:
+    """(`or` node, chosen child) pairs where the `or` chooses how to place its child: the
+    chosen rule is not fixed, so the choice and the placement are one mixture law."""
+    top = blocks(grammar, tree)
+    kids = np.flatnonzero(tree.parent >= 0)
+    out = []
+    for c in kids:
+        i = int(tree.parent[c])
+        if grammar.types[tree.type[i]].kind == Kind.OR and top[c] != top[i]:
+            out.append((i, int(c)))
+    return out
+
+
+def slot_surprises(
+    grammar: Grammar,
+    tree: Trees,
+    terms: list[dict[str, Any]],
+    obj_of: IntArray,
+    weights: FloatArray,
+    expect: _Expectations,
+) -> dict[int, float]:
+    """Each object's *slot surprise*: −log of its `or` choice and placement together (one
+    draw of the mixture the `or` defines: right side up, upside down, on its side, ...) minus
+    the mixture's expected −log p, so 0 is a typical draw.  Calibrated per slot, it compares
+    objects whose rules have laws of different widths; and unlike the pose repair, which only
+    looks for a better pose under the rule that placed the object, it sees an object that the
+    parse had to put in an unlikely branch (a flipped dish in the catch-all "any rotation")."""
+    out: dict[int, float] = {}
+    pairs = slot_surprise_nodes(grammar, tree)
+    if not pairs:
+        return out
+    choice = dict.fromkeys((i for i, _ in pairs), 0.0)  # the `or` node's choice term
+    placement = dict.fromkeys((c for _, c in pairs), 0.0)  # the chosen child's edge terms
+    for t in terms:
+        if t["kind"] == "choice" and t["node"] in choice:
+            choice[t["node"]] += t["log_prob"]
+        elif t["kind"] in ("position", "rotation") and t["node"] in placement:
+            placement[t["node"]] += t["log_prob"]
+    for i, c in pairs:
+        surprise = -(choice[i] + placement[c]) - expect.mixture(int(tree.type[i]))
+        for o in np.flatnonzero(weights[c]):
+            out[int(o)] = max(out.get(int(o), -np.inf), float(weights[c][o]) * surprise)
+    return out
 
 
 def _reparsed_gain(
@@ -367,6 +417,17 @@ def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -
             w[i] = w[tree.parent[i]]
         else:
             w[i] = 1.0 / n_objects
+    # An `or` choice is about the child it chose: when that child has a pose of its own (an
+    # `or` whose rules place dishes right side up or upside down), the choice belongs to the
+    # child's owners, not to whatever object shares the `or` node's pose (the bin).
+    chosen = np.full(n, -1, np.int64)
+    is_or = np.array([grammar.types[t].kind == Kind.OR for t in tree.type])
+    kids = np.flatnonzero((tree.parent >= 0) & is_or[np.maximum(tree.parent, 0)])
+    chosen[tree.parent[kids]] = kids
+    for i in np.flatnonzero(chosen >= 0)[::-1]:  # children before parents: chains of `or`s
+        c = chosen[i]
+        if top[c] != top[i] and w[c].any():
+            w[i] = w[c]
     return w
 
 
@@ -538,6 +599,18 @@ class _Expectations:
             lt, lr = self.rule(term["rid"])
             return -float(np.mean(lt if term["kind"] == "position" else lr))
         return _entropy(self.g, term["rule"])
+
+    def mixture(self, type_id: int) -> float:
+        """E[−log p] of an `or` node's choice and its chosen rule's placement together: the
+        choice's entropy plus each rule's expected −log density, weighted by its probability."""
+        t = self.g.types[type_id]
+        probs = np.asarray(t.probs, float) / np.sum(t.probs)
+        expected = _entropy(self.g, t.name)
+        for p, r in zip(probs, t.rules, strict=True):
+            if p > 0:
+                lt, lr = self.rule(r)
+                expected -= p * float(np.mean(lt + lr))
+        return expected
 
     def percentile(self, r: int, log_prob: float) -> float:
         _, lr = self.rule(r)
