@@ -674,7 +674,8 @@ def _sentence(
         term["percentile"] = _discrete_tail(
             probs, int(grammar.tables.rule_index[tree.rule[kids[0]]])
         )
-    return f"{t.name} is a {chosen} (P = {np.exp(lp):.3g})"
+    verb = "is a" if t.kind == Kind.OR else "makes"  # an `or` picks one; `independent` a subset
+    return f"{t.name} {verb} {chosen} (P = {np.exp(lp):.3g})"
 
 
 def _discrete_tail(probs: FloatArray, k: int) -> float:

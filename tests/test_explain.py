@@ -432,3 +432,27 @@ def test_perturbed_sink_scenes(tmp_path):
     print(json.dumps(rates, indent=1))
     for kind, floor in perturbation.FLOORS.items():
         assert rates[kind]["rate"] >= floor, (kind, rates[kind])
+
+
+def test_choice_and_percent_wording_reads_as_english():
+    """An `independent` node *makes* a subset (possibly nothing); an `or` *is a* choice; a
+    probability of 1 prints as 100%, not 1e+02%."""
+    from ssgc.laws.base import percent
+
+    assert [percent(p) for p in (1.0, 0.994, 0.25, 0.0068)] == ["100%", "99%", "25%", "0.68%"]
+    grammar = compile_text(
+        """
+grammar: words
+root: {type: T}
+types:
+  T:
+    observed: true
+    independent:
+      - {child: A, p: 0.2, translation: {offset: [0.1, 0, 0]}}
+  A: {observed: true}
+"""
+    )
+    t = grammar.type_ids["T"]
+    scene = Scene("s", np.array([t]), np.zeros((1, 3)), np.array([[1.0, 0, 0, 0]]))
+    text = explain(grammar, scene).text()
+    assert "T makes nothing" in text and "is a nothing" not in text, text

@@ -92,8 +92,10 @@ class Orientation:
 
 
 def percent(p: float) -> str:
-    """A probability as a user reads it: 0.0068 -> "0.68%"."""
-    return f"{100 * p:.2g}%"
+    """A probability as a user reads it: 0.0068 -> "0.68%", 1.0 -> "100%" (two significant
+    digits below 10%, whole percents above: `.2g` alone would print 1e+02%)."""
+    v = 100 * p
+    return f"{v:.0f}%" if v >= 10 else f"{v:.2g}%"
 
 
 def frozen(a: object, dtype: Any = None) -> NDArray[Any]:
