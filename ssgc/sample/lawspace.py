@@ -11,7 +11,9 @@ only (`ssgc.sample.hmc`).  All constants are dropped.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,6 +21,8 @@ from numpy.typing import NDArray
 from ssgc.ir import Grammar
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.position_normal import NormalTranslation
+
+T = TypeVar("T")
 
 FloatArray = NDArray[np.float64]
 HELD, NORMAL, BOX = 0, 1, 2
@@ -56,14 +60,21 @@ class RuleLaws:
         return cls(kind, free, mean, chol, whiten, lo, hi)
 
 
-_CACHE: dict[int, tuple[Grammar, RuleLaws]] = {}
+def per_grammar(make: Callable[[Grammar], T]) -> Callable[[Grammar], T]:
+    """`make(grammar)` computed once per grammar: samplers ask for a grammar's law tables at
+    every step.  Keyed by id, checked by identity (an id may be reused once a grammar is gone)."""
+    cache: dict[int, tuple[Grammar, T]] = {}
+
+    def table(grammar: Grammar) -> T:
+        hit = cache.get(id(grammar))
+        if hit is None or hit[0] is not grammar:
+            hit = cache[id(grammar)] = (grammar, make(grammar))
+        return hit[1]
+
+    return table
 
 
-def rule_laws(grammar: Grammar) -> RuleLaws:
-    hit = _CACHE.get(id(grammar))
-    if hit is None or hit[0] is not grammar:
-        hit = _CACHE[id(grammar)] = (grammar, RuleLaws.of(grammar))
-    return hit[1]
+rule_laws = per_grammar(RuleLaws.of)
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ from ssgc.laws.base import Frame
 from ssgc.laws.rotation_bingham import BinghamRotation
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.laws.rotation_uniform import UniformRotation
+from ssgc.sample.lawspace import per_grammar
 
 FloatArray = NDArray[np.float64]
 HELD, SPHERE, CIRCLE, ARC = 0, 1, 2, 3
@@ -78,14 +79,7 @@ class RuleRotations:
         return cls(kind, quad, radius, axis, lo, hi, np.asarray(world, bool))
 
 
-_CACHE: dict[int, tuple[Grammar, RuleRotations]] = {}
-
-
-def rule_rotations(grammar: Grammar) -> RuleRotations:
-    hit = _CACHE.get(id(grammar))
-    if hit is None or hit[0] is not grammar:
-        hit = _CACHE[id(grammar)] = (grammar, RuleRotations.of(grammar))
-    return hit[1]
+rule_rotations = per_grammar(RuleRotations.of)
 
 
 @dataclass(frozen=True)
