@@ -17,6 +17,8 @@ sampler and the scorer define the same distribution.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -57,9 +59,11 @@ def chunk_rng(seed: int, chunk: int) -> np.random.Generator:
 def sample_chunk(
     grammar: Grammar, rng: np.random.Generator, size: int = CHUNK
 ) -> tuple[Trees, NDArray[np.float64]]:
-    """Draw `size` trees with one generator: the vectorised level-by-level expansion."""
+    """Draw `size` trees with one generator: the level-by-level expansion from their roots."""
     tb = grammar.tables
-    n_bounded = tb.nesting_max.shape[0]
+    nest = np.zeros((size, tb.nesting_max.shape[0]), np.int64)
+    if tb.nesting_slot[grammar.root] >= 0:
+        nest[:, tb.nesting_slot[grammar.root]] = 1
     # Per node (accumulated level by level): scene, type, parent, rule, pose.
     scene = [np.arange(size)]
     ntype = [np.full(size, grammar.root, np.int64)]
@@ -69,54 +73,83 @@ def sample_chunk(
     quat = [np.broadcast_to(grammar.root_quat, (size, 4)).copy()]
     lp_scene: list[NDArray[np.int64]] = []
     lp_value: list[NDArray[np.float64]] = []
+    for origin, logp_choice, level in grow(
+        grammar, ntype[0], xyz[0], quat[0], nest, rng, MAX_CHUNK_NODES
+    ):
+        lp_scene.append(origin)
+        lp_value.append(logp_choice)
+        if level is None:
+            break
+        lp_scene.append(level["origin"])
+        lp_value.append(level["lp"])
+        scene.append(level["origin"])
+        ntype.append(level["type"])
+        parent.append(level["parent"])
+        rule.append(level["rule"])
+        xyz.append(level["xyz"])
+        quat.append(level["quat"])
+    logp = np.bincount(np.concatenate(lp_scene), np.concatenate(lp_value), minlength=size)
+    return _group_by_scene(scene, ntype, parent, rule, xyz, quat, size), logp
 
-    nest = np.zeros((size, n_bounded), np.int64)
-    if tb.nesting_slot[grammar.root] >= 0:
-        nest[:, tb.nesting_slot[grammar.root]] = 1
-    first_id = 0  # global id of the frontier's first node
-    total = size  # nodes drawn so far
-    while len(ntype[-1]):
-        if len(ntype) > MAX_LEVELS:
+
+LEVEL_KEYS = ("origin", "type", "parent", "rule", "xyz", "quat", "nest", "lp")
+
+
+def grow(
+    grammar: Grammar,
+    f_type: NDArray[np.int64],
+    f_xyz: NDArray[np.float64],
+    f_quat: NDArray[np.float64],
+    f_nest: NDArray[np.int64],
+    rng: np.random.Generator,
+    max_nodes: int | None = None,
+) -> Iterator[tuple[NDArray[np.int64], NDArray[np.float64], dict[str, NDArray] | None]]:  # type: ignore[type-arg]
+    """Forward-sample the subtrees below a frontier of nodes, level by level: whole trees
+    (`sample_chunk`, the frontier being their roots) and RJMCMC's regrown subtrees alike.
+
+    Yields, per level, (each frontier node's origin, the log-probability of its rule choice,
+    the new level or None when nothing fired).  A level holds per new node its `origin` (the
+    first frontier's node it descends from), `type`, `parent`, `rule`, pose, `nest` and `lp`
+    (its pose's log-density).  Node ids run in level order: the first frontier is
+    0..F-1, the next level's nodes F, F+1, ...  `max_nodes` caps the nodes drawn in all."""
+    tb = grammar.tables
+    origin = ids = np.arange(len(f_type))
+    cur_type, cur_xyz, cur_quat, nest = f_type, f_xyz, f_quat, f_nest
+    total, depth = len(f_type), 0
+    while len(cur_type):
+        depth += 1
+        if depth > MAX_LEVELS:
             raise SsgError.single(
                 f"grammar '{grammar.name}' makes trees deeper than {MAX_LEVELS} levels, "
                 "too deep to sample; lower its `max_nesting` bounds",
                 grammar.file,
             )
-        f_scene, f_type, f_xyz, f_quat = scene[-1], ntype[-1], xyz[-1], quat[-1]
-        fires, logp_choice = _choose_rules(grammar, f_type, nest, rng, MAX_CHUNK_NODES - total)
-        total += sum(len(where) for _, where in fires)
-        lp_scene.append(f_scene)
-        lp_value.append(logp_choice)
-        next_id = first_id + len(f_type)
-        new = {"scene": [], "type": [], "parent": [], "rule": [], "xyz": [], "quat": [], "nest": []}
+        budget = None if max_nodes is None else max_nodes - total
+        fires, logp_choice = _choose_rules(grammar, cur_type, nest, rng, budget)
+        new: dict[str, list[NDArray]] = {k: [] for k in LEVEL_KEYS}  # type: ignore[type-arg]
         for rid, where in fires:
-            c_xyz, c_quat, lp = sample_children(grammar, rid, f_xyz[where], f_quat[where], rng)
-            child_type = tb.rule_child[rid]
+            xyz, quat, lp = sample_children(grammar, rid, cur_xyz[where], cur_quat[where], rng)
+            child = tb.rule_child[rid]
             c_nest = nest[where].copy()
-            if tb.nesting_slot[child_type] >= 0:
-                c_nest[:, tb.nesting_slot[child_type]] += 1
-            new["scene"].append(f_scene[where])
-            new["type"].append(np.full(len(where), child_type, np.int64))
-            new["parent"].append(where + first_id)
+            if tb.nesting_slot[child] >= 0:
+                c_nest[:, tb.nesting_slot[child]] += 1
+            new["origin"].append(origin[where])
+            new["type"].append(np.full(len(where), child, np.int64))
+            new["parent"].append(ids[where])
             new["rule"].append(np.full(len(where), rid, np.int64))
-            new["xyz"].append(c_xyz)
-            new["quat"].append(c_quat)
+            new["xyz"].append(xyz)
+            new["quat"].append(quat)
             new["nest"].append(c_nest)
-            lp_scene.append(f_scene[where])
-            lp_value.append(lp)
-        first_id = next_id
+            new["lp"].append(lp)
         if not new["type"]:
-            break
-        scene.append(np.concatenate(new["scene"]))
-        ntype.append(np.concatenate(new["type"]))
-        parent.append(np.concatenate(new["parent"]))
-        rule.append(np.concatenate(new["rule"]))
-        xyz.append(np.concatenate(new["xyz"]))
-        quat.append(np.concatenate(new["quat"]))
-        nest = np.concatenate(new["nest"])
-
-    logp = np.bincount(np.concatenate(lp_scene), np.concatenate(lp_value), minlength=size)
-    return _group_by_scene(scene, ntype, parent, rule, xyz, quat, size), logp
+            yield origin, logp_choice, None
+            return
+        level = {k: np.concatenate(v) for k, v in new.items()}
+        yield origin, logp_choice, level
+        ids = ids[-1] + 1 + np.arange(len(level["type"]))  # the frontier is never empty here
+        total += len(ids)
+        origin, cur_type, cur_xyz = level["origin"], level["type"], level["xyz"]
+        cur_quat, nest = level["quat"], level["nest"]
 
 
 def _choose_rules(

@@ -48,7 +48,7 @@ from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
 from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.diagnostics import Summary, summary
-from ssgc.sample.forward import _choose_rules, sample_chunk
+from ssgc.sample.forward import grow, sample_chunk
 from ssgc.sample.lawspace import Coords
 from ssgc.sample.poses import choose, local_poses, world_poses
 from ssgc.sample.staged import _check, rejection_batch
@@ -495,45 +495,16 @@ def _grow(
     f_nest: IntArray,
     rng: np.random.Generator,
 ) -> dict[str, NDArray]:  # type: ignore[type-arg]
-    """Forward-sample the subtrees below a frontier of nodes, level by level.  Node ids:
-    the frontier is 0..F-1, new nodes F, F+1, ... in level order; `root` is the frontier node
-    each new node descends from."""
-    tb = grammar.tables
-    f = len(f_type)
-    ids, roots = np.arange(f), np.arange(f)
-    cur = (f_type, f_xyz, f_quat, f_nest)
+    """The subtrees below a frontier of nodes (`ssgc.sample.forward.grow`), all levels
+    together: node ids as there, `root` the frontier node each new node descends from."""
     out: dict[str, list[NDArray]] = {
         k: [] for k in ("type", "parent", "rule", "xyz", "quat", "root")
     }  # type: ignore[type-arg]
-    next_id = f
-    while len(cur[0]):
-        c_type, c_xyz, c_quat, c_nest = cur
-        fires, _ = _choose_rules(grammar, c_type, c_nest, rng)
-        lv: dict[str, list[NDArray]] = {
-            k: [] for k in ("type", "parent", "rule", "xyz", "quat", "root", "nest")
-        }  # type: ignore[type-arg]
-        for rid, where in fires:
-            xyz, quat, _ = sample_children(grammar, rid, c_xyz[where], c_quat[where], rng)
-            child = tb.rule_child[rid]
-            nest = c_nest[where].copy()
-            if tb.nesting_slot[child] >= 0:
-                nest[:, tb.nesting_slot[child]] += 1
-            lv["type"].append(np.full(len(where), child, np.int64))
-            lv["parent"].append(ids[where])
-            lv["rule"].append(np.full(len(where), rid, np.int64))
-            lv["xyz"].append(xyz)
-            lv["quat"].append(quat)
-            lv["root"].append(roots[where])
-            lv["nest"].append(nest)
-        if not lv["type"]:
+    for _, _, level in grow(grammar, f_type, f_xyz, f_quat, f_nest, rng):
+        if level is None:
             break
-        level = {k: np.concatenate(v) for k, v in lv.items()}
-        ids = next_id + np.arange(len(level["type"]))
-        next_id += len(ids)
-        roots = level["root"]
         for k in out:
-            out[k].append(level[k])
-        cur = (level["type"], level["xyz"], level["quat"], level["nest"])
+            out[k].append(level["origin" if k == "root" else k])
     empty = {
         "type": (0,),
         "parent": (0,),
