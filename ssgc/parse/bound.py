@@ -684,9 +684,13 @@ def _frank_wolfe(terms, X, best, free, iterations, deadline):  # type: ignore[no
     bound seen) in place; returns h at the last iterate (the relaxation's value there)."""
     fam = terms.revolute
     h = np.full(len(X), -np.inf)
+    seen: list[FloatArray] = []  # `best` at each iteration, for the stall test
     for _ in range(iterations if np.any(free) else 0):
         if deadline is not None and time.perf_counter() >= deadline and np.all(best < np.inf):
             break
+        if _settled(best, h, seen):
+            break
+        seen.append(best.copy())
         h, G, _ = _h_and_gradient(terms, X)
         Gs = 0.5 * (G + np.swapaxes(G, 1, 2))
         w, v = np.linalg.eigh(Gs)
@@ -708,6 +712,26 @@ def _frank_wolfe(terms, X, best, free, iterations, deadline):  # type: ignore[no
         gamma = np.where((curv >= -1e-15) & (h_one < h), 0.0, gamma)
         X += gamma[:, None, None] * (S - X)
     return h
+
+
+FW_STALL = 10  # Frank–Wolfe iterations over which a bound must still fall to go on
+FW_TOL = 1e-10  # relative: a bound within this of the iterate's value, or falling by less
+
+
+def _settled(best: FloatArray, h: FloatArray, seen: list[FloatArray]) -> bool:
+    """Whether more Frank–Wolfe steps would no longer move any row's bound: each row's bound
+    meets the relaxation's value at the iterate (converged), or fell by less than FW_TOL over
+    the last FW_STALL iterations (a relaxation gap the steps do not close).
+
+    Why: the bound certifies to GAP_TOL = 1e-6; most rows settle in 10–40 of the 150 steps,
+    and the rest of the steps were a third of `ip`'s time on the constituency benchmark.
+    Stopping leaves every row's bound valid (each iterate gives one) and the best seen."""
+    if len(seen) < FW_STALL or not np.all(np.isfinite(best)):
+        return False
+    scale = FW_TOL * np.maximum(1.0, np.abs(best))
+    converged = best - h <= scale
+    stalled = seen[-FW_STALL] - best <= scale
+    return bool(np.all(converged | stalled))
 
 
 def _arc_point(terms: _Terms, psi: FloatArray) -> FloatArray:

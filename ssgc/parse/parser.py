@@ -31,10 +31,11 @@ from ssgc.parse.bound import (
     certify_only,
     set_bounds,
 )
+from ssgc.parse.clock import OutOfTime, check_deadline
 from ssgc.parse.highs import HighsSession
 from ssgc.parse.ip import SetReduction, UnparseableScene
 from ssgc.parse.milp import Milp, Session
-from ssgc.parse.posed import OutOfTime, PosedProblem, PosedReduction, candidate_poses
+from ssgc.parse.posed import PosedProblem, PosedReduction, candidate_poses
 from ssgc.parse.poses import free_blocks, refine_tree
 from ssgc.parse.proposals import Candidates, add_proposals, latent_sets
 from ssgc.parse.reduction import ModelTooLarge, Problem, Reduction, Request, choose
@@ -154,9 +155,10 @@ class Parser:
             step = "proposals"
             # proposals get part of a time limit; the MILP needs the rest
             bounds = self.latent_candidates(
-                cand, None if time_limit is None else t0 + PROPOSAL_SHARE * time_limit
+                cand, None if time_limit is None else t0 + PROPOSAL_SHARE * time_limit, deadline
             )
             propose_s = time.perf_counter() - t0
+            check_deadline(deadline)
             step = "build"
             request = self.request(scene, cand, bounds, deadline)
             reduction = choose(self.reductions, request)
@@ -238,19 +240,21 @@ class Parser:
         return cand, self.latent_candidates(cand, deadline)
 
     def latent_candidates(
-        self, cand: Candidates, deadline: float | None = None
+        self, cand: Candidates, deadline: float | None = None, stop: float | None = None
     ) -> dict[int, SetBound] | None:
-        """Add the latent sets' candidate poses to `cand` (stopping at `deadline`): the bound's
-        assignments (`micp` when the grammar's shape allows it), else proposals.  The bounds
-        are returned whenever the shape allows them: `ip` (and `micp` with `certify_only`
-        bounds) parses over the proposals and uses them only to certify its refined tree."""
+        """Add the latent sets' candidate poses to `cand` (optimising them until `deadline`):
+        the bound's assignments (`micp` when the grammar's shape allows it), else proposals.
+        The bounds are returned whenever the shape allows them: `ip` (and `micp` with
+        `certify_only` bounds) parses over the proposals and uses them only to certify its
+        refined tree.  Past `stop` (the parse's own deadline) it raises OutOfTime."""
         g, st = self.grammar, self.supertree
         if not self.has_latent:
             return None
         bounds = set_bounds(g, st, cand, deadline)
+        check_deadline(stop)
         if self.method != "ip" and bounds is not None and not certify_only(bounds):
             return bounds
-        add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
+        add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline, stop)
         if bounds is not None:  # they only certify; their poses join the proposals
             add_assignment_poses(cand, bounds)
             _repeat_empty_poses(cand, bounds)

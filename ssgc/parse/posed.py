@@ -27,6 +27,7 @@ from ssgc.errors import Diagnostic
 from ssgc.geometry import quat_angle, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
+from ssgc.parse.clock import check_deadline
 from ssgc.parse.ip import UnparseableScene, implied_set_poses, unplaceable
 from ssgc.parse.milp import (
     ColumnBuilder,
@@ -47,16 +48,8 @@ FloatArray = NDArray[np.float64]
 MAX_INSTANCES = 60_000
 
 
-ADD_CHUNK = 128  # implied poses deduplicated at once (candidate_poses, between deadline checks)
-
-
-class OutOfTime(Exception):
-    """The deadline passed while the model was being built."""
-
-
-def check_deadline(deadline: float | None) -> None:
-    if deadline is not None and time.perf_counter() >= deadline:
-        raise OutOfTime
+ADD_CHUNK = 1024  # implied poses deduplicated at once (candidate_poses, between deadline checks)
+UNROLL_CHECK = 32  # instances unrolled between deadline checks (each costs ~0.1-1 ms)
 
 
 @dataclass(frozen=True)
@@ -173,7 +166,7 @@ class _Unroll:
                     e = st.set_of[c]
                     for k in self._allowed(i, n, int(st.rule[c]), e):
                         self._add(c, i, slot, self.cand_xyz[e][k], self.cand_quat[e][k], k)
-            if i % 512 == 0:
+            if i % UNROLL_CHECK == 0:
                 check_deadline(self.deadline)
             i += 1
 
@@ -414,7 +407,7 @@ class _Model:
             if kind in (Kind.OR, Kind.INDEPENDENT) and self._prob(i) <= 0:
                 can[i] = False
         for i in range(n - 1, -1, -1):
-            if i % 512 == 0:
+            if i % UNROLL_CHECK == 0:
                 check_deadline(self.deadline)
             if not can[i]:
                 continue

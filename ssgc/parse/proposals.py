@@ -34,6 +34,7 @@ from ssgc.ir import Grammar
 from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.parse.clock import check_deadline
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import sample_children
@@ -64,16 +65,53 @@ class Candidates:
         xyz, quat = xyz.reshape(-1, 3), quat.reshape(-1, 4)
         all_xyz = np.vstack([self.xyz[e], xyz])
         all_quat = np.vstack([self.quat[e], quat])
-        n_old = len(self.xyz[e])
         # a new pose is kept unless it matches an old one or an earlier new one
-        near = np.linalg.norm(all_xyz[:, None, :] - xyz[None, :, :], axis=2) <= POS_TOL
-        earlier = np.arange(len(all_xyz))[:, None] < (n_old + np.arange(len(xyz)))[None, :]
-        i, j = np.nonzero(near & earlier)
+        i, j = _near_earlier(all_xyz, len(self.xyz[e]))
         same = quat_angle(all_quat[i], quat[j]) <= ROT_TOL
         keep = np.ones(len(xyz), bool)
         keep[j[same]] = False
         self.xyz[e] = np.vstack([self.xyz[e], xyz[keep]])
         self.quat[e] = np.vstack([self.quat[e], quat[keep]])
+
+
+# A generic unit direction: positions within POS_TOL are within POS_TOL along it, and poses
+# that share a coordinate (clipped onto a box face, on an axis) still spread out along it.
+_SWEEP = np.array([1.0, np.sqrt(2.0), np.sqrt(3.0)]) / np.sqrt(6.0)
+NEAR_PAIRS_CHUNK = 1 << 20  # candidate pairs compared at once
+
+
+def _near_earlier(all_xyz: FloatArray, n_old: int) -> tuple[IntArray, IntArray]:
+    """Pairs (i, j): position i of `all_xyz` lies within POS_TOL of new position j (row
+    n_old + j) and comes before it.
+
+    Why not all pairs: a wide `repeat` of a 1,000-object scene adds a thousand poses to each of
+    a thousand sets, and comparing every pair took a minute.  Sorted along one direction, only
+    the poses in a 2·POS_TOL window of each new one are compared: O(n log n) unless many poses
+    share one position."""
+    s = all_xyz @ _SWEEP
+    order = np.argsort(s, kind="stable")
+    sorted_s = s[order]
+    new_s = s[n_old:]
+    lo = np.searchsorted(sorted_s, new_s - 2 * POS_TOL, "left")
+    counts = np.searchsorted(sorted_s, new_s + 2 * POS_TOL, "right") - lo
+    ends = np.cumsum(counts)
+    out_i, out_j = [], []
+    start = 0
+    while start < len(new_s):  # chunks of at most NEAR_PAIRS_CHUNK pairs (or one new pose)
+        base = ends[start - 1] if start else 0
+        stop = max(int(np.searchsorted(ends, base + NEAR_PAIRS_CHUNK, "right")), start + 1)
+        j = np.repeat(np.arange(start, stop), counts[start:stop])
+        first = np.repeat(ends[start:stop] - counts[start:stop], counts[start:stop])
+        i = order[np.repeat(lo[start:stop], counts[start:stop]) + np.arange(len(j)) - first + base]
+        keep = (i < n_old + j) & (
+            np.linalg.norm(all_xyz[i] - all_xyz[n_old + j], axis=1) <= POS_TOL
+        )
+        out_i.append(i[keep])
+        out_j.append(j[keep])
+        start = stop
+    if not out_i:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(out_i), np.concatenate(out_j)
 
 
 def rotation_mode(grammar: Grammar, r: int) -> FloatArray | None:
@@ -452,15 +490,18 @@ def add_proposals(
     cand: Candidates,
     rng: np.random.Generator,
     deadline: float | None = None,
+    stop: float | None = None,
 ) -> None:
     """Propose poses for every latent set, children's sets first (sets are numbered top-down).
 
     Sets whose top nodes share a type and whose child slots have the same candidates (the
     copies of a `repeat`) get the same proposals, computed once.  Past the deadline, proposals
-    are still made but no longer optimised.
+    are still made but no longer optimised; past `stop` (the parse's own deadline) it raises
+    OutOfTime before the next set: unoptimised proposals of many sets still take a while.
     """
     memo: dict[tuple, tuple[FloatArray, FloatArray]] = {}
     for e in np.flatnonzero(latent_sets(st))[::-1]:
+        check_deadline(stop)
         proposer = _SetProposer(grammar, st, cand, int(e), rng, deadline)
         parent_set = int(st.set_of[st.parent[st.set_top[e]]])
         key = (

@@ -1,0 +1,19 @@
+"""The parse's clock: one exception and one check shared by every step a time limit covers.
+
+A leaf module (no imports from the parser's own modules), so that proposals, the unrolled
+model and the bound can all stop at the same deadline without importing each other.
+"""
+
+from __future__ import annotations
+
+import time
+
+
+class OutOfTime(Exception):
+    """The deadline passed while a step was running (proposals, model building)."""
+
+
+def check_deadline(deadline: float | None) -> None:
+    """Raise OutOfTime once `deadline` (a `time.perf_counter()` value) has passed."""
+    if deadline is not None and time.perf_counter() >= deadline:
+        raise OutOfTime
