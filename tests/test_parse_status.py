@@ -167,7 +167,7 @@ def test_resume_refuses_a_journal_of_the_old_statuses(tmp_path):
 
 
 @pytest.mark.timing
-@pytest.mark.parametrize("limit", [1.0, 2.0])
+@pytest.mark.parametrize("limit", [1.0, 2.0, 5.0])
 def test_time_limit_holds_while_the_model_is_built(limit):
     """The issue's case: 1,000 objects under a grammar of up to 1,000 children ran 52 s
     under --time-limit 1."""
