@@ -23,6 +23,7 @@ from test_parse_property import LATENT_AND_CHAIN
 from test_parse_status import WIDE, run, wide_scene, write_scene
 
 import ssgc.parse.parser as parser_module
+import ssgc.parse.proposals as proposals
 from ssgc.compile import compile_text, load_grammar
 from ssgc.io.journal import journal_path
 from ssgc.io.scene import Scene, load_scenes, scene_from_tree
@@ -55,21 +56,20 @@ def _brute_near(xyz: np.ndarray, n_old: int) -> set[tuple[int, int]]:
 def test_near_pairs_match_every_pair_compared(n_old, n_new, sites, jitter, flat, chunk, seed):
     """The sorted sweep finds exactly the pairs within POS_TOL that comparing every pair finds,
     also where poses repeat, sit within a few POS_TOL of each other, or share a coordinate,
-    and whatever the chunk of pairs compared at once."""
+    and whatever the chunk of pairs compared at once (the sweep is forced: small inputs
+    compare every pair)."""
     rng = np.random.default_rng(seed)
     centres = rng.normal(size=(sites, 3))
     xyz = centres[rng.integers(0, sites, n_old + n_new)]
     xyz = xyz + rng.normal(size=xyz.shape) * POS_TOL * jitter
     if flat:
         xyz[:, 0] = 0.0
-    import ssgc.parse.proposals as proposals
-
-    old_chunk = proposals.NEAR_PAIRS_CHUNK
-    proposals.NEAR_PAIRS_CHUNK = chunk
-    try:
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(proposals, "NEAR_PAIRS_CHUNK", chunk)
+        m.setattr(proposals, "ALL_PAIRS_UP_TO", 0)
         i, j = _near_earlier(xyz, n_old)
-    finally:
-        proposals.NEAR_PAIRS_CHUNK = old_chunk
+    small = _near_earlier(xyz, n_old)  # every pair compared (the inputs are small)
+    assert set(zip(*small, strict=True)) == set(zip(i.tolist(), j.tolist(), strict=True))
     assert set(zip(i.tolist(), j.tolist(), strict=True)) == _brute_near(xyz, n_old)
 
 

@@ -78,6 +78,7 @@ class Candidates:
 # that share a coordinate (clipped onto a box face, on an axis) still spread out along it.
 _SWEEP = np.array([1.0, np.sqrt(2.0), np.sqrt(3.0)]) / np.sqrt(6.0)
 NEAR_PAIRS_CHUNK = 1 << 20  # candidate pairs compared at once
+ALL_PAIRS_UP_TO = 4096  # pairs below which every pair is compared (no sort)
 
 
 def _near_earlier(all_xyz: FloatArray, n_old: int) -> tuple[IntArray, IntArray]:
@@ -88,6 +89,12 @@ def _near_earlier(all_xyz: FloatArray, n_old: int) -> tuple[IntArray, IntArray]:
     a thousand sets, and comparing every pair took a minute.  Sorted along one direction, only
     the poses in a 2·POS_TOL window of each new one are compared: O(n log n) unless many poses
     share one position."""
+    new_xyz = all_xyz[n_old:]
+    if len(all_xyz) * len(new_xyz) <= ALL_PAIRS_UP_TO:  # small: one broadcast is quicker
+        near = np.linalg.norm(all_xyz[:, None, :] - new_xyz[None, :, :], axis=2) <= POS_TOL
+        earlier = np.arange(len(all_xyz))[:, None] < (n_old + np.arange(len(new_xyz)))[None, :]
+        i, j = np.nonzero(near & earlier)
+        return i.astype(np.int64), j.astype(np.int64)
     s = all_xyz @ _SWEEP
     order = np.argsort(s, kind="stable")
     sorted_s = s[order]
