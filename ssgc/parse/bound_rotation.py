@@ -42,7 +42,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 TOL_REL = 1e-7  # a row stops when its bound is within this of its best value (× max(1, |v|))
-MAX_CELLS = 400_000  # cell evaluations per call (all rows together)
+MAX_CELLS = 120_000  # cell evaluations per call (all rows together)
 BATCH = 4096  # cells split per step, the largest gaps first
 CUBE_SPLITS = 4  # the first grid of rotation vectors: 4³ cubes over [-π, π]³
 ARC_SPLITS = 8  # the first intervals of a revolute arc
@@ -80,18 +80,23 @@ class Rotating:
 @dataclass
 class _Problem:
     """Per row: type-A (rotating) and type-B (world-frame) Normal terms, the Bingham part as
-    ⟨G_B, R⟩, the constant, the position (free or pinned at t0) and the rotation domain."""
+    ⟨G_B, R⟩, the constant, the position's box (pinned at t0 where it is a point) and the
+    rotation domain."""
 
     cA: FloatArray
     mA: FloatArray
     PA: FloatArray
+    lamA: FloatArray  # (n, J, 2): λmin, λmax of each PA
     cB: FloatArray
     mB: FloatArray
     PB: FloatArray
-    lamB: FloatArray  # (n, K, 2): λmin, λmax of each PB
+    lamB: FloatArray  # (n, K, 2)
     GB: FloatArray
     const: FloatArray
+    lo: FloatArray
+    hi: FloatArray
     fixed: NDArray[np.bool_]
+    boxed: NDArray[np.bool_]
     t0: FloatArray
     arc_rows: NDArray[np.bool_]
     V: FloatArray
@@ -99,26 +104,36 @@ class _Problem:
     axis: FloatArray  # (n, 3) a revolute family's world axis
 
 
+def _extremes(P: FloatArray) -> FloatArray:
+    if not P.shape[1]:
+        return np.zeros((*P.shape[:2], 2))
+    return np.linalg.eigvalsh(P)[..., [0, -1]]
+
+
 def _problem(terms, rot: Rotating) -> _Problem:  # type: ignore[no-untyped-def]
     n = len(rot.c)
     coef = np.einsum("xf,nf->nx", _sym_basis(), terms.B.reshape(n, 16))
     fixed = np.all(terms.hi - terms.lo <= FIXED_WIDTH, axis=1)
+    boxed = ~fixed & np.any(np.isfinite(terms.lo) | np.isfinite(terms.hi), axis=1)
     with np.errstate(invalid="ignore"):
         t0 = np.where(fixed[:, None], 0.5 * (terms.lo + terms.hi), 0.0)
     u, w = terms.V[..., 0], terms.V[..., 1]
     axis = quat_multiply(w, quat_conjugate(u))[:, 1:]  # w ⊗ u⁻¹ = (0, R_base·axis)
-    lam = np.linalg.eigvalsh(terms.P) if terms.P.shape[1] else np.zeros((n, 0, 3))
     return _Problem(
         rot.c,
         rot.m,
         rot.P,
+        _extremes(rot.P),
         terms.c,
         terms.m,
         terms.P,
-        lam[..., [0, -1]],
+        _extremes(terms.P),
         coef[:, :9].reshape(n, 3, 3),
         terms.const - rot.lift + coef[:, 9],
+        terms.lo,
+        terms.hi,
         fixed,
+        boxed,
         np.nan_to_num(t0),
         terms.revolute.copy(),
         terms.V,
@@ -128,63 +143,141 @@ def _problem(terms, rot: Rotating) -> _Problem:  # type: ignore[no-untyped-def]
 
 
 def _solve(S: FloatArray, b: FloatArray) -> FloatArray:
+    """S⁻¹ b, with S = 0 (no Normal term at all) read as the identity (any s is best)."""
+    empty = np.trace(S, axis1=1, axis2=2) <= 0.0
+    S = S + empty[:, None, None] * np.eye(3)
     return np.linalg.solve(S, b[..., None])[..., 0]
 
 
-def _exact(p: _Problem, i: IntArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """The score at rotations R (N, 3, 3) of rows i, with its best position (or t0)."""
-    QA = np.einsum("nij,nkjl,nml->nkim", R, p.PA[i], R)
+BOX_SWEEPS = 40  # coordinate-ascent sweeps for the best position in a box
+
+
+def _best_position(
+    H: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray, boxed: NDArray[np.bool_]
+) -> FloatArray:
+    """argmax of -½ tᵀ H t + bᵀ t: the free solve, or, on `boxed` rows, coordinate ascent in
+    the box from its clipped point (any point of the box: `_box_slack` counts the rest)."""
+    t = _solve(H, b)
+    if not np.any(boxed):
+        return t
+    Hb, bb, lb, hb = H[boxed], b[boxed], lo[boxed], hi[boxed]
+    tb = np.clip(t[boxed], lb, hb)
+    diag = np.maximum(np.einsum("nii->ni", Hb), 1e-300)
+    for _ in range(BOX_SWEEPS):
+        for k in range(3):
+            rest = bb[:, k] - np.einsum("nj,nj->n", Hb[:, k], tb) + Hb[:, k, k] * tb[:, k]
+            tb[:, k] = np.clip(rest / diag[:, k], lb[:, k], hb[:, k])
+    t[boxed] = tb
+    return t
+
+
+def _box_slack(grad: FloatArray, t: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """max over s in the box of ∇·(s - t): what a concave function can gain on t (∞ where an
+    unbounded axis has a nonzero slope)."""
+    with np.errstate(invalid="ignore"):
+        up, down = grad * (hi - t), grad * (lo - t)
+    keep = {"nan": 0.0, "posinf": np.inf, "neginf": -np.inf}  # 0·∞: a flat unbounded axis
+    gain = np.maximum(np.nan_to_num(up, **keep), np.nan_to_num(down, **keep))
+    return gain.sum(axis=1)
+
+
+def _world_terms(p: _Problem, i: IntArray, R: FloatArray, QA: FloatArray):  # type: ignore[no-untyped-def]
+    """Residuals e = c - R m and precisions of every term in the world frame (QA: the
+    rotating terms' precisions, exact or lowered)."""
     c = np.concatenate([p.cA[i], p.cB[i]], axis=1)
     Rm = np.concatenate(
         [np.einsum("nij,kj->nki", R, p.mA), np.einsum("nij,kj->nki", R, p.mB)], axis=1
     )
-    Q = np.concatenate([QA, p.PB[i]], axis=1)
-    e = c - Rm
-    t_free = _solve(Q.sum(axis=1), np.einsum("nkij,nkj->ni", Q, e))
-    t = np.where(p.fixed[i][:, None], p.t0[i], t_free)
+    return c - Rm, np.concatenate([QA, p.PB[i]], axis=1)
+
+
+def _position(p: _Problem, i: IntArray, e: FloatArray, Q: FloatArray) -> FloatArray:
+    H, b = Q.sum(axis=1), np.einsum("nkij,nkj->ni", Q, e)
+    t = _best_position(H, b, p.lo[i], p.hi[i], p.boxed[i])
+    return np.where(p.fixed[i][:, None], p.t0[i], t)
+
+
+def _exact(p: _Problem, i: IntArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The score at rotations R (N, 3, 3) of rows i, at a position in the box (the best one,
+    up to the coordinate ascent's convergence): a feasible value."""
+    QA = np.einsum("nij,nkjl,nml->nkim", R, p.PA[i], R)
+    e, Q = _world_terms(p, i, R, QA)
+    t = _position(p, i, e, Q)
     d = e - t[:, None, :]
     value = -0.5 * np.einsum("nki,nkij,nkj->n", d, Q, d)
     return value + np.einsum("nij,nij->n", p.GB[i], R) + p.const[i], t
 
 
-def _lowered(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray) -> FloatArray:
-    """W ⪯ Rᵀ P R for every R within δ of R0 (the world-frame precisions in the top frame)."""
-    Q0 = np.einsum("nji,nkjl,nlm->nkim", R, p.PB[i], R)
-    lo, hi = p.lamB[i][..., 0], p.lamB[i][..., 1]
+def _lower(Q0: FloatArray, lam: FloatArray, delta: FloatArray) -> FloatArray:
+    """W ⪯ E Q0 Eᵀ for every turn E by at most δ: ‖E Q0 Eᵀ - Q0‖ ≤ 2 sin(δ/2)(λmax - λmin)
+    =: ε gives Q0 - εI (kept where ε ≤ λmin/2), and λmin I always holds."""
+    lo, hi = lam[..., 0], lam[..., 1]
     eps = 2 * np.sin(0.5 * np.minimum(delta, np.pi))[:, None] * (hi - lo)
     small = eps <= 0.5 * lo
     eye = np.eye(3)
-    return np.where(
-        small[..., None, None], Q0 - eps[..., None, None] * eye, lo[..., None, None] * eye
-    )
+    shifted = Q0 - eps[..., None, None] * eye
+    return np.where(small[..., None, None], shifted, lo[..., None, None] * eye)
 
 
-def _cell_bound(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray) -> FloatArray:
-    """An upper bound on the score over every rotation E R0 with ∠E ≤ δ (about the family's
-    axis on revolute rows): Φ(R0) + max ⟨∇Φ(R0), R - R0⟩ (module docstring)."""
-    fixed = p.fixed[i]
-    # free position: s = Rᵀ t, residuals r = R0ᵀ c - m - s under fixed precisions W
+def _bound_top_frame(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
+    """Φ(R0) and ∇Φ(R0) with s = Rᵀ t free (the box dropped): the rotating precisions are
+    exact, the world-frame ones lowered."""
     c = np.concatenate([p.cA[i], p.cB[i]], axis=1)
     m = np.concatenate([p.mA, p.mB], axis=0)
-    W = np.concatenate([p.PA[i], _lowered(p, i, R, delta)], axis=1)
+    QB = np.einsum("nji,nkjl,nlm->nkim", R, p.PB[i], R)
+    W = np.concatenate([p.PA[i], _lower(QB, p.lamB[i], delta)], axis=1)
     u = np.einsum("nji,nkj->nki", R, c) - m[None]
     s = _solve(W.sum(axis=1), np.einsum("nkij,nkj->ni", W, u))
     r = u - s[:, None, :]
     Wr = np.einsum("nkij,nkj->nki", W, r)
-    phi_free = -0.5 * np.einsum("nki,nki->n", r, Wr)
-    grad_free = -np.einsum("nki,nkj->nij", c, Wr)
-    # pinned position: the score is a concave quadratic of R itself
+    return -0.5 * np.einsum("nki,nki->n", r, Wr), -np.einsum("nki,nkj->nij", c, Wr)
+
+
+def _bound_world_frame(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
+    """Φ(R0) + box slack and ∇Φ(R0) with t in its box: the world-frame precisions are exact,
+    the rotating ones lowered.  g is jointly concave in (t, R), so for t0 in the box
+    g(t, R) ≤ g(t0, R0) + ∇_t·(t - t0) + ⟨∇_R, R - R0⟩."""
+    QA = np.einsum("nij,nkjl,nml->nkim", R, p.PA[i], R)
+    e, W = _world_terms(p, i, R, _lower(QA, p.lamA[i], delta))
+    t = _position(p, i, e, W)
+    d = e - t[:, None, :]
+    Wd = np.einsum("nkij,nkj->nki", W, d)
+    phi = -0.5 * np.einsum("nki,nki->n", d, Wd)
+    slack = np.where(p.boxed[i], _box_slack(Wd.sum(axis=1), t, p.lo[i], p.hi[i]), 0.0)
+    m = np.concatenate([p.mA, p.mB], axis=0)
+    return phi + slack, np.einsum("nki,kj->nij", Wd, m)
+
+
+def _bound_pinned(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
+    """Φ(R0) and ∇Φ(R0) at the pinned position t0: every term is a concave quadratic of R
+    itself, the rotating ones as -½ (Rᵀ(c - t0) - m)ᵀ P (…): nothing lowered."""
     t0 = p.t0[i][:, None, :]
     rA = np.einsum("nji,nkj->nki", R, p.cA[i] - t0) - p.mA[None]
     PrA = np.einsum("nkij,nkj->nki", p.PA[i], rA)
     rB = p.cB[i] - t0 - np.einsum("nij,kj->nki", R, p.mB)
     PrB = np.einsum("nkij,nkj->nki", p.PB[i], rB)
-    phi_fixed = -0.5 * (np.einsum("nki,nki->n", rA, PrA) + np.einsum("nki,nki->n", rB, PrB))
-    grad_fixed = -np.einsum("nki,nkj->nij", p.cA[i] - t0, PrA) + np.einsum("nki,kj->nij", PrB, p.mB)
-    phi = np.where(fixed, phi_fixed, phi_free)
-    grad = np.where(fixed[:, None, None], grad_fixed, grad_free) + p.GB[i]
-    value = phi + np.einsum("nij,nij->n", p.GB[i], R) + p.const[i]
-    return value + _linear_max(grad @ np.swapaxes(R, 1, 2), delta, p.axis[i], p.arc_rows[i])
+    phi = -0.5 * (np.einsum("nki,nki->n", rA, PrA) + np.einsum("nki,nki->n", rB, PrB))
+    grad = np.einsum("nki,kj->nij", PrB, p.mB) - np.einsum("nki,nkj->nij", p.cA[i] - t0, PrA)
+    return phi, grad
+
+
+def _cell_bound(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray) -> FloatArray:
+    """An upper bound on the score over every rotation E R0 with ∠E ≤ δ (about the family's
+    axis on revolute rows): Φ(R0) + max ⟨∇Φ(R0), R - R0⟩ for two valid Φ (module
+    docstring), the lowest of them: the world frame (t in its box), the top frame (the box
+    dropped: a larger set) and, for a pinned position, the exact quadratic of R."""
+    lin = p.GB[i]
+    base = np.einsum("nij,nij->n", lin, R) + p.const[i]
+    best = np.full(len(i), np.inf)
+    fixed = p.fixed[i]
+    for frame in (_bound_world_frame, _bound_top_frame, _bound_pinned):
+        if frame is _bound_pinned and not np.any(fixed):
+            continue
+        phi, grad = frame(p, i, R, delta)
+        M = (grad + lin) @ np.swapaxes(R, 1, 2)
+        value = base + phi + _linear_max(M, delta, p.axis[i], p.arc_rows[i])
+        best = np.minimum(best, np.where(fixed | (frame is not _bound_pinned), value, np.inf))
+    return best
 
 
 def _linear_max(
@@ -306,32 +399,47 @@ def rotation_search(
     deadline: float | None = None,
     max_cells: int = MAX_CELLS,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The rows with rotating terms: the lower of `upper` and the branch-and-bound's bound,
-    and the pose of its best cell centre (a start for the exact polish).  Other rows pass
-    through unchanged."""
-    rows = rot.rows & ~terms.pinned
+    """Rows whose relaxed bound is not exact (a free rotation with rotating terms, or with
+    anything but isotropic unboxed Normals) and not within tolerance of the score at their
+    pose: the lower of `upper` and the branch-and-bound's bound, and the pose of its best
+    cell (a start for the exact polish).  Other rows pass through unchanged."""
+    from ssgc.parse.bound import _isotropic_rows, _subset
+
+    rows = ~terms.pinned & (rot.rows | ~_isotropic_rows(terms))
     if not np.any(rows):
         return upper, xyz, quat
-    from ssgc.parse.bound import _subset
-
     p = _problem(_subset(terms, rows), rot.subset(rows))
-    bb, t_best, q_best = branch_and_bound(p, deadline, max_cells)
-    upper, xyz, quat = upper.copy(), xyz.copy(), quat.copy()
     idx = np.flatnonzero(rows)
+    start, t_start = _exact(p, np.arange(len(idx)), quat_to_matrix(quat[idx]))
+    open_ = upper[idx] - start > TOL_REL * np.maximum(1.0, np.abs(start))
+    if not np.any(open_):
+        return upper, xyz, quat
+    rows[idx[~open_]] = False
+    idx = idx[open_]
+    p = _problem(_subset(terms, rows), rot.subset(rows))
+    seed = (start[open_], t_start[open_], quat[idx])
+    bb, t_best, q_best = branch_and_bound(p, deadline, max_cells, seed)
+    upper, xyz, quat = upper.copy(), xyz.copy(), quat.copy()
     upper[idx] = np.minimum(upper[idx], bb)
     xyz[idx], quat[idx] = t_best, q_best
     return upper, xyz, quat
 
 
 def branch_and_bound(
-    p: _Problem, deadline: float | None = None, max_cells: int = MAX_CELLS
+    p: _Problem,
+    deadline: float | None = None,
+    max_cells: int = MAX_CELLS,
+    seed: tuple[FloatArray, FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Per row: an upper bound on the score over the rotation domain, and the best pose
-    found (module docstring).  Valid whenever it stops: pruned cells lie below the row's
-    best value, every other cell's bound is counted."""
+    found (module docstring), from the feasible poses `seed` (value, position, rotation) if
+    given.  Valid whenever it stops: pruned cells lie below the row's best value, every
+    other cell's bound is counted."""
     n = len(p.const)
     best = np.full(n, -np.inf)
     t_best, q_best = np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1))
+    if seed is not None:
+        best, t_best, q_best = (x.copy() for x in seed)
     settled = np.full(n, -np.inf)  # the largest bound of the cells that stopped splitting
     new = _first_cells(p)
     live, live_ub = new.take(np.zeros(0, np.int64)), np.zeros(0)
