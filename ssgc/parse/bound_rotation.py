@@ -399,13 +399,20 @@ def rotation_search(
     deadline: float | None = None,
     max_cells: int = MAX_CELLS,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Rows whose relaxed bound is not exact (a free rotation with rotating terms, or with
-    anything but isotropic unboxed Normals) and not within tolerance of the score at their
+    """Rows whose relaxed bound is not exact and not within tolerance of the score at their
     pose: the lower of `upper` and the branch-and-bound's bound, and the pose of its best
-    cell (a start for the exact polish).  Other rows pass through unchanged."""
+    cell (a start for the exact polish).  Other rows pass through unchanged.
+
+    Searched: a free rotation with rotating terms (the relaxation holds their supremum),
+    and a revolute arc (one dimension: cheap) with anything but isotropic unboxed Normals
+    (Frank–Wolfe's hull of the arc).  Not searched: Frank–Wolfe's rows over all rotations,
+    where many assignments have small gaps that the MILP never picks (the bundled
+    singles_pairs_constituency: a tenth of its rows, each over 1e-2) and a search of every
+    one would cost more than the parse."""
     from ssgc.parse.bound import _isotropic_rows, _subset
 
-    rows = ~terms.pinned & (rot.rows | ~_isotropic_rows(terms))
+    inexact = terms.revolute & ~_isotropic_rows(terms)
+    rows = ~terms.pinned & (rot.rows | inexact)
     if not np.any(rows):
         return upper, xyz, quat
     p = _problem(_subset(terms, rows), rot.subset(rows))
