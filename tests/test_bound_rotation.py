@@ -27,6 +27,7 @@ from ssgc.parse.bound_rotation import (
     Rotating,
     _exact,
     _problem,
+    branch_and_bound,
     rotation_search,
 )
 from ssgc.parse.parser import Parser
@@ -127,11 +128,8 @@ def _check_case(seed, rotating, aniso_world, position, arc, short):  # type: ign
     budget = 300 if short else (MAX_CELLS if second_order else 3000)
     terms, rot = _case(seed, rotating, aniso_world, position, arc)
     n = len(terms.c)
-    start = np.tile(IDENTITY, (n, 1))
-    upper, _, quat = rotation_search(
-        terms, rot, np.full(n, np.inf), np.zeros((n, 3)), start, max_cells=budget
-    )
     p = _problem(terms, rot)
+    upper, _, quat = branch_and_bound(p, max_cells=budget)
     R = quat_to_matrix(_rotations(np.random.default_rng(seed), arc, quat))
     for i in range(n):
         sampled, _ = _exact(p, np.full(len(R), i), R)
@@ -146,12 +144,16 @@ def _check_case(seed, rotating, aniso_world, position, arc, short):  # type: ign
         assert np.all(upper - at_pose <= tol), (upper - at_pose, tol)
 
 
-def test_bound_returns_input_without_free_rotation():
-    """Rows whose rotation is pinned pass through untouched."""
+def test_search_selects_rows():
+    """Rows with rotating terms are searched (their bound drops far below the supremum's);
+    rows whose rotation is pinned pass through untouched."""
     terms, rot = _case(3, 1, False, "free", False)
+    upper = np.array([1e3, 1e3])
+    start = np.tile(IDENTITY, (2, 1))
+    searched = rotation_search(terms, rot, upper, np.zeros((2, 3)), start)[0]
+    assert np.all(searched < 1e2)
     terms.pin[:] = IDENTITY
-    upper = np.array([1.0, 2.0])
-    out = rotation_search(terms, rot, upper, np.zeros((2, 3)), np.tile(IDENTITY, (2, 1)))
+    out = rotation_search(terms, rot, upper, np.zeros((2, 3)), start)
     assert np.array_equal(out[0], upper)
 
 
