@@ -37,18 +37,26 @@ ARC = (-0.2, 0.35)  # half-angles of a revolute arc about z
 
 
 def _case(seed: int, rotating: int, aniso_world: bool, position: str, arc: bool, n: int = 2):
-    """n rows of one random problem: (terms, rotating terms)."""
+    """n rows of one random problem (terms, rotating terms), its observations drawn around a
+    true pose as a sampled scene's are: the set's prior mean and its children near where
+    the pose puts them (0.2 m noise, about twice the laws' deviations)."""
     rng = np.random.default_rng(seed)
-    c = rng.normal(size=(n, 1, 3)) * 0.5
-    P = np.tile(ANISO if aniso_world else 100.0 * np.eye(3), (n, 1, 1, 1))
-    A = rng.normal(size=(4, 4))
-    B = np.tile(2.0 * (A + A.T), (n, 1, 1))
     lo, hi = np.full((n, 3), -np.inf), np.full((n, 3), np.inf)
+    t_true = rng.normal(size=(n, 3)) * 0.1
     if position == "box":
         lo, hi = np.tile([-0.1, -0.2, -0.1], (n, 1)), np.tile([0.2, 0.1, 0.3], (n, 1))
     elif position == "pinned":
-        t0 = rng.normal(size=(n, 3)) * 0.3
-        lo, hi = t0 - 1e-9, t0 + 1e-9
+        lo, hi = t_true - 1e-9, t_true + 1e-9
+    if arc:
+        psi = rng.uniform(*ARC, size=n)
+        q_true = np.stack([np.cos(psi), 0 * psi, 0 * psi, np.sin(psi)], axis=1)
+    else:
+        q_true = random_quat(rng, n)
+    R_true = quat_to_matrix(q_true)
+    c = (t_true + rng.normal(size=(n, 3)) * 0.2)[:, None, :]
+    P = np.tile(ANISO if aniso_world else 100.0 * np.eye(3), (n, 1, 1, 1))
+    A = rng.normal(size=(4, 4))
+    B = np.tile(2.0 * (A + A.T), (n, 1, 1))
     V = np.zeros((n, 4, 2))
     V[:, 0, 0], V[:, 3, 1] = 1.0, 1.0  # q = (cos ψ, 0, 0, sin ψ): turns about z
     terms = _Terms(
@@ -68,9 +76,11 @@ def _case(seed: int, rotating: int, aniso_world: bool, position: str, arc: bool,
     )
     off = quat_to_matrix(random_quat(rng, rotating))
     PA = np.einsum("jab,bc,jdc->jad", off, ANISO, off)
+    m = rng.normal(size=(rotating, 3)) * 0.7
+    cA = t_true[:, None, :] + np.einsum("nij,kj->nki", R_true, m)
     rot = Rotating(
-        rng.normal(size=(n, rotating, 3)),
-        rng.normal(size=(rotating, 3)) * 0.7,
+        cA + rng.normal(size=(n, rotating, 3)) * 0.2,
+        m,
         np.tile(PA, (n, 1, 1, 1)),
         np.zeros(n),
     )
