@@ -220,17 +220,29 @@ def _lower(Q0: FloatArray, lam: FloatArray, delta: FloatArray) -> FloatArray:
 
 
 def _bound_top_frame(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
-    """Φ(R0) and ∇Φ(R0) with s = Rᵀ t free (the box dropped): the rotating precisions are
-    exact, the world-frame ones lowered."""
+    """Φ(R0) + box slack and ∇Φ(R0) in the top frame, t = R s: the rotating precisions are
+    exact, the world-frame ones lowered.  The score is jointly concave in (R, u = R0 s), and
+    t = E u in the box puts u in the box widened by 2 sin(δ/2)·max |t| (|E u - u| ≤ that):
+    a box on u, so the world frame's slack argument holds (exact away from the box's faces)."""
     c = np.concatenate([p.cA[i], p.cB[i]], axis=1)
     m = np.concatenate([p.mA, p.mB], axis=0)
     QB = np.einsum("nji,nkjl,nlm->nkim", R, p.PB[i], R)
     W = np.concatenate([p.PA[i], _lower(QB, p.lamB[i], delta)], axis=1)
-    u = np.einsum("nji,nkj->nki", R, c) - m[None]
-    s = _solve(W.sum(axis=1), np.einsum("nkij,nkj->ni", W, u))
-    r = u - s[:, None, :]
+    a = np.einsum("nji,nkj->nki", R, c) - m[None]
+    H = np.einsum("nij,njk,nlk->nil", R, W.sum(axis=1), R)
+    b = np.einsum("nij,nkjl,nkl->ni", R, W, a)
+    boxed = p.boxed[i] | p.fixed[i]
+    with np.errstate(invalid="ignore"):
+        reach = np.linalg.norm(np.maximum(np.abs(p.lo[i]), np.abs(p.hi[i])), axis=1)
+    widen = 2 * np.sin(0.5 * np.minimum(delta, np.pi)) * np.where(boxed, reach, 0.0)
+    lo, hi = p.lo[i] - widen[:, None], p.hi[i] + widen[:, None]
+    u = _best_position(H, b, lo, hi, boxed)
+    r = a - np.einsum("nji,nj->ni", R, u)[:, None, :]
     Wr = np.einsum("nkij,nkj->nki", W, r)
-    return -0.5 * np.einsum("nki,nki->n", r, Wr), -np.einsum("nki,nkj->nij", c, Wr)
+    grad_u = np.einsum("nij,nj->ni", R, Wr.sum(axis=1))
+    slack = np.where(boxed, _box_slack(grad_u, u, lo, hi), 0.0)
+    phi = -0.5 * np.einsum("nki,nki->n", r, Wr)
+    return phi + slack, -np.einsum("nki,nkj->nij", c, Wr)
 
 
 def _bound_world_frame(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
@@ -264,8 +276,8 @@ def _bound_pinned(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  
 def _cell_bound(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray) -> FloatArray:
     """An upper bound on the score over every rotation E R0 with ∠E ≤ δ (about the family's
     axis on revolute rows): Φ(R0) + max ⟨∇Φ(R0), R - R0⟩ for two valid Φ (module
-    docstring), the lowest of them: the world frame (t in its box), the top frame (the box
-    dropped: a larger set) and, for a pinned position, the exact quadratic of R."""
+    docstring), the lowest of them: the world frame and the top frame (t in its box, or
+    near it) and, for a pinned position, the exact quadratic of R."""
     lin = p.GB[i]
     base = np.einsum("nij,nij->n", lin, R) + p.const[i]
     best = np.full(len(i), np.inf)
