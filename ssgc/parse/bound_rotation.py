@@ -10,28 +10,34 @@ branch-and-bound, with the position eliminated in closed form:
   or intervals of a revolute law's half-angle ψ; every R in a cell is E R0 with R0 the cell's
   centre and E a turn by at most δ (the cube's half-diagonal: ∠(exp ω, exp ω') ≤ |ω - ω'|;
   2·half-width on an arc, about the family's world axis);
-- on a cell, with s = Rᵀ t free, every Normal term is -½ rᵀ W r with r = Rᵀ c - m - s affine
-  in R; a world-frame precision P becomes Rᵀ P R, replaced on the cell by a lower bound W
-  (R0ᵀ P R0 - εI, ε = 2 sin(δ/2) (λmax - λmin), or λmin I): the score only grows.  With W
-  fixed, Φ(R) = max_s Σ -½ rᵀ W r + ⟨G_B, R⟩ (a Bingham density is linear in R) is concave
-  in R's entries, so Φ(R) ≤ Φ(R0) + ⟨∇Φ(R0), R - R0⟩, and the linear term's maximum over
-  the cell follows from Rodrigues' formula (`_linear_max`).  A pinned position (t = t0)
-  needs no W: the score is a concave quadratic of R exactly.  A box on t is dropped (a
-  larger set: still a bound; `bound.py`'s own bound is kept where it is lower);
+- on a cell, with the Normal terms' precisions held fixed, the score Φ(R) = max over the
+  position of Σ -½ rᵀ W r + ⟨G_B, R⟩ (a Bingham density is linear in R) is concave in R's
+  entries, so Φ(R) ≤ Φ(R0) + ⟨∇Φ(R0), R - R0⟩, and the linear term's maximum over the cell
+  follows from Rodrigues' formula (`_linear_max`).  Three versions, the lowest bound kept:
+  the *world frame* (residuals c - t - R m: world-frame precisions exact, rotating ones
+  R P Rᵀ replaced on the cell by a lower bound W, R0 P R0ᵀ - εI with ε = 2 sin(δ/2)
+  (λmax - λmin), or λmin I: the score only grows), the *top frame* (t = R s, residuals
+  Rᵀ c - m - s: the rotating precisions exact, the world-frame ones lowered) and, for a
+  pinned position, the exact quadratic of R.  A box on the position enters both frames as
+  a box (widened by the cell's turn in the top frame), with the slack max over the box of
+  ∇_t·(s - t) for a position that is not the box's exact optimum;
 - a cell's centre gives an exact value (a feasible rotation), the incumbent; cells whose bound
   is below it go, cells within the tolerance stop splitting, the rest split (8 cubes, 2
   intervals), best gap first, until every row is within tolerance or the cell budget or the
   deadline runs out.  The row's bound is then the largest of its incumbent and its cells'
   bounds: valid whenever it stops.
 
-With no world-frame anisotropic precision the cell bound's error is O(δ²) (only the dropped
-concave term), so cells near the optimum need only δ ~ √tolerance.
+Where nothing is lowered and no box is active at the optimum the cell bound's error is O(δ²)
+(only the dropped concave term), so cells near the optimum need only δ ~ √tolerance; a
+lowered precision or an active box makes it O(δ), and such rows usually end at the budget
+with a looser bound.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,9 +52,13 @@ MAX_CELLS = 120_000  # cell evaluations per call (all rows together)
 BATCH = 4096  # cells split per step, the largest gaps first
 CUBE_SPLITS = 4  # the first grid of rotation vectors: 4³ cubes over [-π, π]³
 ARC_SPLITS = 8  # the first intervals of a revolute arc
+CHUNK = 8192  # cells evaluated at once
+FIRST_CELLS = 4 * 64  # a row's first cells (4³ cubes), four times over: at most
+# max_cells // FIRST_CELLS rows are searched, the widest gaps first
 FIXED_WIDTH = 4e-9  # a position box this narrow is a pinned position (bound.BOX_MARGIN ×4)
 
 
+@cache
 def _sym_basis() -> FloatArray:
     """(10, 16) pseudo-inverse of the map (G, b) ↦ Σ G_ij K_ij + b I: a symmetric 4×4 B is
     then qᵀ B q = ⟨G, R(q)⟩ + b on unit quaternions (the 9 K_ij and I span the symmetric
@@ -389,7 +399,18 @@ def _split(p: _Problem, cells: _Cells) -> _Cells:
 
 
 def _evaluate(p: _Problem, cells: _Cells):  # type: ignore[no-untyped-def]
-    """Each cell's centre rotation (as q), its exact value and position, and its bound."""
+    """Each cell's centre rotation (as q), its exact value and position, and its bound, in
+    chunks of CHUNK cells (the per-term arrays stay small)."""
+    if len(cells) > CHUNK:
+        parts = [
+            _evaluate_chunk(p, cells.take(np.arange(k, min(k + CHUNK, len(cells)))))
+            for k in range(0, len(cells), CHUNK)
+        ]
+        return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
+    return _evaluate_chunk(p, cells)
+
+
+def _evaluate_chunk(p: _Problem, cells: _Cells):  # type: ignore[no-untyped-def]
     arc = p.arc_rows[cells.row]
     q_cube = _rotvec_quat(cells.centre)
     psi = cells.centre[:, 0]
@@ -430,9 +451,12 @@ def rotation_search(
     p = _problem(_subset(terms, rows), rot.subset(rows))
     idx = np.flatnonzero(rows)
     start, t_start = _exact(p, np.arange(len(idx)), quat_to_matrix(quat[idx]))
-    open_ = upper[idx] - start > TOL_REL * np.maximum(1.0, np.abs(start))
+    gap = upper[idx] - start
+    open_ = gap > TOL_REL * np.maximum(1.0, np.abs(start))
     if not np.any(open_):
         return upper, xyz, quat
+    widest = np.argsort(-gap, kind="stable")[: max(1, max_cells // FIRST_CELLS)]
+    open_ &= np.isin(np.arange(len(idx)), widest)  # the rest keep the relaxation's bound
     rows[idx[~open_]] = False
     idx = idx[open_]
     p = _problem(_subset(terms, rows), rot.subset(rows))
