@@ -12,6 +12,8 @@ parses certified and match-or-beat (on main: `feasible`, gap ~1, trees up to 130
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from grammar_gen import compile_spec
@@ -220,3 +222,16 @@ def test_anisotropic_offsets_certified(rotation):
         best = result.parses[0]
         assert best.gap <= 1e-6
         assert best.score >= scene.log_prob - 1e-6 * max(1.0, abs(scene.log_prob))
+
+
+def test_deadline_stops_with_a_valid_bound():
+    """Past its deadline the search stops after its first cells: a looser bound, still above
+    the score at every sampled rotation."""
+    terms, rot = _case(7, 2, False, "free", False)
+    p = _problem(terms, rot)
+    stopped = branch_and_bound(p, deadline=time.perf_counter())[0]
+    closed = branch_and_bound(p)[0]
+    assert np.all(stopped > closed + 1e-3)
+    R = quat_to_matrix(random_quat(np.random.default_rng(0), 20_000))
+    for i in range(len(stopped)):
+        assert stopped[i] >= _exact(p, np.full(len(R), i), R)[0].max()
