@@ -1023,6 +1023,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     terms = _subset(local.terms(), keep)
     assignment = assignment[keep]
     upper, t, q = relaxed_upper_bound(terms, FW_ITERATIONS, deadline)
+    # rows the relaxation holds loosely (rotating precisions, revolute arcs): branch-and-bound
     upper, t, q = rotation_search(terms, local.rotating().subset(keep), upper, t, q, deadline)
     bound = SetBound(columns, assignment, upper, t, q, *_placed(parent))
     xyz, quat = t, q
