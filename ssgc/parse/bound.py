@@ -48,6 +48,7 @@ from ssgc.ir import Grammar, Kind
 from ssgc.laws.base import ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.parse.bound_rotation import Rotating, rotation_search
 from ssgc.parse.milp import Milp
 from ssgc.parse.posed import (
     FREE_CHILD,
@@ -223,6 +224,8 @@ class _LocalBounds:
         self.fam_post = np.tile(IDENTITY, (n, 1))
         self.fam_range = np.zeros((n, 2))
         self.fixed_children: list = []  # (rule, off_t, off_q, cx, on) per column
+        self.rot_terms: list[tuple] = []  # rotating precisions (bound_rotation.Rotating)
+        self.rot_lift = np.zeros(n)
 
     # ---------------------------------------------------------------- building blocks ---
 
@@ -472,6 +475,8 @@ class _LocalBounds:
             Rc = R0 @ quat_to_matrix(off_q)
             self.quadratic(cx - R0 @ m, np.zeros(3), Rc @ P @ np.swapaxes(Rc, 1, 2), pinned)
             self.add(np.full(n, law.supremum() - c), on & ~pinned)
+            self._rotating(cx, m, quat_to_matrix(off_q) @ P @ quat_to_matrix(off_q).T, on & ~pinned)
+            self.rot_lift += np.where(on & ~pinned, law.supremum() - c, 0.0)
             self._translation_exact(bool(np.all(pinned == on)))
         elif isinstance(law, BoxTranslation) and law.frame == Frame.WORLD_OFFSET:
             at = R0 @ off_t  # the member's offset from the top, turned with the set
@@ -487,6 +492,21 @@ class _LocalBounds:
         else:
             self.add(np.full(n, law.supremum()), on)
             self._translation_exact(False)
+
+    def _rotating(self, cx, m, P, on) -> None:  # type: ignore[no-untyped-def]
+        """A precision that turns with the free rotation: its supremum stands in the
+        relaxation, the term itself goes to the rotation search (`bound_rotation`)."""
+        self.rot_terms.append((cx, m, np.where(on[:, None, None], P, 0.0)))
+
+    def rotating(self) -> Rotating:
+        n, cols = self.n, self.rot_terms
+        if not cols:
+            return Rotating(
+                np.zeros((n, 0, 3)), np.zeros((0, 3)), np.zeros((n, 0, 3, 3)), self.rot_lift
+            )
+        c = np.stack([_rows(cx, n, 3) for cx, _, _ in cols], axis=1)
+        m = np.stack([np.asarray(mm, float) for _, mm, _ in cols])
+        return Rotating(c, m, np.stack([P for *_, P in cols], axis=1), self.rot_lift)
 
     def _translation_exact(self, exact: bool) -> None:
         self.complete &= exact
@@ -1027,6 +1047,8 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
     terms = _subset(local.terms(), keep)
     assignment = assignment[keep]
     upper, t, q = relaxed_upper_bound(terms, FW_ITERATIONS, deadline)
+    # rows the relaxation holds loosely (rotating precisions, revolute arcs): branch-and-bound
+    upper, t, q = rotation_search(terms, local.rotating().subset(keep), upper, t, q, deadline)
     bound = SetBound(columns, assignment, upper, t, q, *_placed(parent))
     xyz, quat = t, q
     if not (terms.complete and np.all(terms.pinned)):  # else the relaxation's pose is exact

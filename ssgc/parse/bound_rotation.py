@@ -1,0 +1,521 @@
+"""A certified maximum over the latent rotation for rows with rotating precisions (issue 11).
+
+A child placed by a parent-frame Normal with unequal variances (`parent_normal_offset`) has a
+precision that turns with its latent parent: -½ (Rᵀ(c - t) - m)ᵀ P (Rᵀ(c - t) - m) is not
+a quadratic form of (t, X = q qᵀ), so `bound.py`'s relaxation counts its supremum.  Here the
+set's score, these *rotating* terms included, is maximised over the rotation by
+branch-and-bound, with the position eliminated in closed form:
+
+- cells are cubes of rotation vectors ω (R = exp ω, the ball |ω| ≤ π holds every rotation),
+  or intervals of a revolute law's half-angle ψ; every R in a cell is E R0 with R0 the cell's
+  centre and E a turn by at most δ (the cube's half-diagonal: ∠(exp ω, exp ω') ≤ |ω - ω'|;
+  2·half-width on an arc, about the family's world axis);
+- on a cell, with the Normal terms' precisions held fixed, the score Φ(R) = max over the
+  position of Σ -½ rᵀ W r + ⟨G_B, R⟩ (a Bingham density is linear in R) is concave in R's
+  entries, so Φ(R) ≤ Φ(R0) + ⟨∇Φ(R0), R - R0⟩, and the linear term's maximum over the cell
+  follows from Rodrigues' formula (`_linear_max`).  Three versions, the lowest bound kept:
+  the *world frame* (residuals c - t - R m: world-frame precisions exact, rotating ones
+  R P Rᵀ replaced on the cell by a lower bound W, R0 P R0ᵀ - εI with ε = 2 sin(δ/2)
+  (λmax - λmin), or λmin I: the score only grows), the *top frame* (t = R s, residuals
+  Rᵀ c - m - s: the rotating precisions exact, the world-frame ones lowered) and, for a
+  pinned position, the exact quadratic of R.  A box on the position enters both frames as
+  a box (widened by the cell's turn in the top frame), with the slack max over the box of
+  ∇_t·(s - t) for a position that is not the box's exact optimum;
+- a cell's centre gives an exact value (a feasible rotation), the incumbent; cells whose bound
+  is below it go, cells within the tolerance stop splitting, the rest split (8 cubes, 2
+  intervals), best gap first, until every row is within tolerance or the cell budget or the
+  deadline runs out.  The row's bound is then the largest of its incumbent and its cells'
+  bounds: valid whenever it stops.
+
+Where nothing is lowered and no box is active at the optimum the cell bound's error is O(δ²)
+(only the dropped concave term), so cells near the optimum need only δ ~ √tolerance; a
+lowered precision or an active box makes it O(δ), and such rows usually end at the budget
+with a looser bound.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.geometry import axis_angle_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+TOL_REL = 1e-7  # a row stops when its bound is within this of its best value (× max(1, |v|))
+MAX_CELLS = 120_000  # cell evaluations per call (all rows together)
+BATCH = 4096  # cells split per step, the largest gaps first
+CUBE_SPLITS = 4  # the first grid of rotation vectors: 4³ cubes over [-π, π]³
+ARC_SPLITS = 8  # the first intervals of a revolute arc
+CHUNK = 8192  # cells evaluated at once
+FIRST_CELLS = 4 * 64  # a row's first cells (4³ cubes), four times over: at most
+# max_cells // FIRST_CELLS rows are searched, the widest gaps first
+FIXED_WIDTH = 4e-9  # a position box this narrow is a pinned position (bound.BOX_MARGIN ×4)
+
+
+@cache
+def _sym_basis() -> FloatArray:
+    """(10, 16) pseudo-inverse of the map (G, b) ↦ Σ G_ij K_ij + b I: a symmetric 4×4 B is
+    then qᵀ B q = ⟨G, R(q)⟩ + b on unit quaternions (the 9 K_ij and I span the symmetric
+    matrices, so the expansion is exact)."""
+    from ssgc.parse.bound import K_ROT
+
+    design = np.concatenate([K_ROT.reshape(9, 16), np.eye(4).reshape(1, 16)]).T
+    return np.linalg.pinv(design)
+
+
+@dataclass
+class Rotating:
+    """The rotating terms of one set's rows: -½ (Rᵀ(c - t) - m)ᵀ P (…) per row and term,
+    where the rows' relaxation counts `lift` (their suprema less their normalisers) instead."""
+
+    c: FloatArray  # (A, J, 3) child positions
+    m: FloatArray  # (J, 3) the child's mean offset in the set's top frame
+    P: FloatArray  # (A, J, 3, 3) precision in the top frame; zero where absent or exact
+    lift: FloatArray  # (A,)
+
+    @property
+    def rows(self) -> NDArray[np.bool_]:
+        return np.any(self.P != 0.0, axis=(1, 2, 3))
+
+    def subset(self, keep: NDArray[np.bool_]) -> Rotating:
+        return Rotating(self.c[keep], self.m, self.P[keep], self.lift[keep])
+
+
+@dataclass
+class _Problem:
+    """Per row: type-A (rotating) and type-B (world-frame) Normal terms, the Bingham part as
+    ⟨G_B, R⟩, the constant, the position's box (pinned at t0 where it is a point) and the
+    rotation domain."""
+
+    cA: FloatArray
+    mA: FloatArray
+    PA: FloatArray
+    lamA: FloatArray  # (n, J, 2): λmin, λmax of each PA
+    cB: FloatArray
+    mB: FloatArray
+    PB: FloatArray
+    lamB: FloatArray  # (n, K, 2)
+    GB: FloatArray
+    const: FloatArray
+    lo: FloatArray
+    hi: FloatArray
+    fixed: NDArray[np.bool_]
+    boxed: NDArray[np.bool_]
+    t0: FloatArray
+    arc_rows: NDArray[np.bool_]
+    V: FloatArray
+    arc: FloatArray
+    axis: FloatArray  # (n, 3) a revolute family's world axis
+
+
+def _extremes(P: FloatArray) -> FloatArray:
+    if not P.shape[1]:
+        return np.zeros((*P.shape[:2], 2))
+    return np.linalg.eigvalsh(P)[..., [0, -1]]
+
+
+def _problem(terms, rot: Rotating) -> _Problem:  # type: ignore[no-untyped-def]
+    n = len(rot.c)
+    coef = np.einsum("xf,nf->nx", _sym_basis(), terms.B.reshape(n, 16))
+    fixed = np.all(terms.hi - terms.lo <= FIXED_WIDTH, axis=1)
+    boxed = ~fixed & np.any(np.isfinite(terms.lo) | np.isfinite(terms.hi), axis=1)
+    with np.errstate(invalid="ignore"):
+        t0 = np.where(fixed[:, None], 0.5 * (terms.lo + terms.hi), 0.0)
+    u, w = terms.V[..., 0], terms.V[..., 1]
+    axis = quat_multiply(w, quat_conjugate(u))[:, 1:]  # w ⊗ u⁻¹ = (0, R_base·axis)
+    return _Problem(
+        rot.c,
+        rot.m,
+        rot.P,
+        _extremes(rot.P),
+        terms.c,
+        terms.m,
+        terms.P,
+        _extremes(terms.P),
+        coef[:, :9].reshape(n, 3, 3),
+        terms.const - rot.lift + coef[:, 9],
+        terms.lo,
+        terms.hi,
+        fixed,
+        boxed,
+        np.nan_to_num(t0),
+        terms.revolute.copy(),
+        terms.V,
+        terms.arc,
+        axis,
+    )
+
+
+def _solve(S: FloatArray, b: FloatArray) -> FloatArray:
+    """S⁻¹ b, with S = 0 (no Normal term at all) read as the identity (any s is best)."""
+    empty = np.trace(S, axis1=1, axis2=2) <= 0.0
+    S = S + empty[:, None, None] * np.eye(3)
+    return np.linalg.solve(S, b[..., None])[..., 0]
+
+
+BOX_SWEEPS = 40  # coordinate-ascent sweeps for the best position in a box
+
+
+def _best_position(
+    H: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray, boxed: NDArray[np.bool_]
+) -> FloatArray:
+    """argmax of -½ tᵀ H t + bᵀ t: the free solve, or, on `boxed` rows, coordinate ascent in
+    the box from its clipped point (any point of the box: `_box_slack` counts the rest)."""
+    t = _solve(H, b)
+    if not np.any(boxed):
+        return t
+    Hb, bb, lb, hb = H[boxed], b[boxed], lo[boxed], hi[boxed]
+    tb = np.clip(t[boxed], lb, hb)
+    diag = np.maximum(np.einsum("nii->ni", Hb), 1e-300)
+    for _ in range(BOX_SWEEPS):
+        for k in range(3):
+            rest = bb[:, k] - np.einsum("nj,nj->n", Hb[:, k], tb) + Hb[:, k, k] * tb[:, k]
+            tb[:, k] = np.clip(rest / diag[:, k], lb[:, k], hb[:, k])
+    t[boxed] = tb
+    return t
+
+
+def _box_slack(grad: FloatArray, t: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """max over s in the box of ∇·(s - t): what a concave function can gain on t (∞ where an
+    unbounded axis has a nonzero slope)."""
+    with np.errstate(invalid="ignore"):
+        up, down = grad * (hi - t), grad * (lo - t)
+    keep = {"nan": 0.0, "posinf": np.inf, "neginf": -np.inf}  # 0·∞: a flat unbounded axis
+    gain = np.maximum(np.nan_to_num(up, **keep), np.nan_to_num(down, **keep))
+    return gain.sum(axis=1)
+
+
+def _world_terms(p: _Problem, i: IntArray, R: FloatArray, QA: FloatArray):  # type: ignore[no-untyped-def]
+    """Residuals e = c - R m and precisions of every term in the world frame (QA: the
+    rotating terms' precisions, exact or lowered)."""
+    c = np.concatenate([p.cA[i], p.cB[i]], axis=1)
+    Rm = np.concatenate(
+        [np.einsum("nij,kj->nki", R, p.mA), np.einsum("nij,kj->nki", R, p.mB)], axis=1
+    )
+    return c - Rm, np.concatenate([QA, p.PB[i]], axis=1)
+
+
+def _position(p: _Problem, i: IntArray, e: FloatArray, Q: FloatArray) -> FloatArray:
+    H, b = Q.sum(axis=1), np.einsum("nkij,nkj->ni", Q, e)
+    t = _best_position(H, b, p.lo[i], p.hi[i], p.boxed[i])
+    return np.where(p.fixed[i][:, None], p.t0[i], t)
+
+
+def _exact(p: _Problem, i: IntArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The score at rotations R (N, 3, 3) of rows i, at a position in the box (the best one,
+    up to the coordinate ascent's convergence): a feasible value."""
+    QA = np.einsum("nij,nkjl,nml->nkim", R, p.PA[i], R)
+    e, Q = _world_terms(p, i, R, QA)
+    t = _position(p, i, e, Q)
+    d = e - t[:, None, :]
+    value = -0.5 * np.einsum("nki,nkij,nkj->n", d, Q, d)
+    return value + np.einsum("nij,nij->n", p.GB[i], R) + p.const[i], t
+
+
+def _lower(Q0: FloatArray, lam: FloatArray, delta: FloatArray) -> FloatArray:
+    """W ⪯ E Q0 Eᵀ for every turn E by at most δ: ‖E Q0 Eᵀ - Q0‖ ≤ 2 sin(δ/2)(λmax - λmin)
+    =: ε gives Q0 - εI (kept where ε ≤ λmin/2), and λmin I always holds."""
+    lo, hi = lam[..., 0], lam[..., 1]
+    eps = 2 * np.sin(0.5 * np.minimum(delta, np.pi))[:, None] * (hi - lo)
+    small = eps <= 0.5 * lo
+    eye = np.eye(3)
+    shifted = Q0 - eps[..., None, None] * eye
+    return np.where(small[..., None, None], shifted, lo[..., None, None] * eye)
+
+
+def _bound_top_frame(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
+    """Φ(R0) + box slack and ∇Φ(R0) in the top frame, t = R s: the rotating precisions are
+    exact, the world-frame ones lowered.  The score is jointly concave in (R, u = R0 s), and
+    t = E u in the box puts u in the box widened by 2 sin(δ/2)·max |t| (|E u - u| ≤ that):
+    a box on u, so the world frame's slack argument holds (exact away from the box's faces)."""
+    c = np.concatenate([p.cA[i], p.cB[i]], axis=1)
+    m = np.concatenate([p.mA, p.mB], axis=0)
+    QB = np.einsum("nji,nkjl,nlm->nkim", R, p.PB[i], R)
+    W = np.concatenate([p.PA[i], _lower(QB, p.lamB[i], delta)], axis=1)
+    a = np.einsum("nji,nkj->nki", R, c) - m[None]
+    H = np.einsum("nij,njk,nlk->nil", R, W.sum(axis=1), R)
+    b = np.einsum("nij,nkjl,nkl->ni", R, W, a)
+    boxed = p.boxed[i] | p.fixed[i]
+    with np.errstate(invalid="ignore"):
+        reach = np.linalg.norm(np.maximum(np.abs(p.lo[i]), np.abs(p.hi[i])), axis=1)
+    widen = 2 * np.sin(0.5 * np.minimum(delta, np.pi)) * np.where(boxed, reach, 0.0)
+    lo, hi = p.lo[i] - widen[:, None], p.hi[i] + widen[:, None]
+    u = _best_position(H, b, lo, hi, boxed)
+    r = a - np.einsum("nji,nj->ni", R, u)[:, None, :]
+    Wr = np.einsum("nkij,nkj->nki", W, r)
+    grad_u = np.einsum("nij,nj->ni", R, Wr.sum(axis=1))
+    slack = np.where(boxed, _box_slack(grad_u, u, lo, hi), 0.0)
+    phi = -0.5 * np.einsum("nki,nki->n", r, Wr)
+    return phi + slack, -np.einsum("nki,nkj->nij", c, Wr)
+
+
+def _bound_world_frame(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
+    """Φ(R0) + box slack and ∇Φ(R0) with t in its box: the world-frame precisions are exact,
+    the rotating ones lowered.  g is jointly concave in (t, R), so for t0 in the box
+    g(t, R) ≤ g(t0, R0) + ∇_t·(t - t0) + ⟨∇_R, R - R0⟩."""
+    QA = np.einsum("nij,nkjl,nml->nkim", R, p.PA[i], R)
+    e, W = _world_terms(p, i, R, _lower(QA, p.lamA[i], delta))
+    t = _position(p, i, e, W)
+    d = e - t[:, None, :]
+    Wd = np.einsum("nkij,nkj->nki", W, d)
+    phi = -0.5 * np.einsum("nki,nki->n", d, Wd)
+    slack = np.where(p.boxed[i], _box_slack(Wd.sum(axis=1), t, p.lo[i], p.hi[i]), 0.0)
+    m = np.concatenate([p.mA, p.mB], axis=0)
+    return phi + slack, np.einsum("nki,kj->nij", Wd, m)
+
+
+def _bound_pinned(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
+    """Φ(R0) and ∇Φ(R0) at the pinned position t0: every term is a concave quadratic of R
+    itself, the rotating ones as -½ (Rᵀ(c - t0) - m)ᵀ P (…): nothing lowered."""
+    t0 = p.t0[i][:, None, :]
+    rA = np.einsum("nji,nkj->nki", R, p.cA[i] - t0) - p.mA[None]
+    PrA = np.einsum("nkij,nkj->nki", p.PA[i], rA)
+    rB = p.cB[i] - t0 - np.einsum("nij,kj->nki", R, p.mB)
+    PrB = np.einsum("nkij,nkj->nki", p.PB[i], rB)
+    phi = -0.5 * (np.einsum("nki,nki->n", rA, PrA) + np.einsum("nki,nki->n", rB, PrB))
+    grad = np.einsum("nki,kj->nij", PrB, p.mB) - np.einsum("nki,nkj->nij", p.cA[i] - t0, PrA)
+    return phi, grad
+
+
+def _cell_bound(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray) -> FloatArray:
+    """An upper bound on the score over every rotation E R0 with ∠E ≤ δ (about the family's
+    axis on revolute rows): Φ(R0) + max ⟨∇Φ(R0), R - R0⟩ for two valid Φ (module
+    docstring), the lowest of them: the world frame and the top frame (t in its box, or
+    near it) and, for a pinned position, the exact quadratic of R."""
+    lin = p.GB[i]
+    base = np.einsum("nij,nij->n", lin, R) + p.const[i]
+    best = np.full(len(i), np.inf)
+    fixed = p.fixed[i]
+    for frame in (_bound_world_frame, _bound_top_frame, _bound_pinned):
+        if frame is _bound_pinned and not np.any(fixed):
+            continue
+        phi, grad = frame(p, i, R, delta)
+        M = (grad + lin) @ np.swapaxes(R, 1, 2)
+        value = base + phi + _linear_max(M, delta, p.axis[i], p.arc_rows[i])
+        best = np.minimum(best, np.where(fixed | (frame is not _bound_pinned), value, np.inf))
+    return best
+
+
+def _linear_max(
+    M: FloatArray, delta: FloatArray, axis: FloatArray, on_axis: NDArray[np.bool_]
+) -> FloatArray:
+    """max ⟨M, E - I⟩ over turns E by at most δ (about `axis` where `on_axis`):
+    E - I = sin θ [a]× + (1 - cos θ)(a aᵀ - I), so ⟨M, E - I⟩ = sin θ a·v + (1 - cos θ)
+    (aᵀ M a - tr M), v the vector of M's skew part."""
+    v = np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], 1)
+    Ms = 0.5 * (M + np.swapaxes(M, 1, 2))
+    tr = np.trace(M, axis1=1, axis2=2)
+    top = np.linalg.eigvalsh(Ms)[:, -1]
+    along = np.einsum("ni,nij,nj->n", axis, Ms, axis)
+    first = np.where(on_axis, np.abs(np.einsum("ni,ni->n", axis, v)), np.linalg.norm(v, axis=1))
+    second = np.maximum(np.where(on_axis, along, top) - tr, 0.0)
+    return (
+        np.sin(np.minimum(delta, 0.5 * np.pi)) * first
+        + (1 - np.cos(np.minimum(delta, np.pi))) * second
+    )
+
+
+def _rotvec_quat(omega: FloatArray) -> FloatArray:
+    angle = np.linalg.norm(omega, axis=1)
+    axis = np.where(angle[:, None] > 0, omega / np.where(angle > 0, angle, 1.0)[:, None], 0.0)
+    axis[angle == 0, 2] = 1.0
+    return axis_angle_to_quat(axis, angle)
+
+
+def _inside_ball(centre: FloatArray, half: FloatArray) -> NDArray[np.bool_]:
+    """Cubes that meet the ball |ω| ≤ π (the rest hold no rotation the ball lacks)."""
+    near = np.clip(0.0, centre - half[:, None], centre + half[:, None])
+    return np.linalg.norm(near, axis=1) <= np.pi
+
+
+@dataclass
+class _Cells:
+    row: IntArray
+    centre: FloatArray  # (N, 3): ω for a cube, (ψ, 0, 0) for an arc
+    half: FloatArray  # (N,)
+
+    def __len__(self) -> int:
+        return len(self.row)
+
+    def take(self, idx: IntArray) -> _Cells:
+        return _Cells(self.row[idx], self.centre[idx], self.half[idx])
+
+    @staticmethod
+    def join(a: _Cells, b: _Cells) -> _Cells:
+        cat = np.concatenate
+        return _Cells(cat([a.row, b.row]), cat([a.centre, b.centre]), cat([a.half, b.half]))
+
+
+def _first_cells(p: _Problem) -> _Cells:
+    """A grid of cubes over the rotation vectors (rows without a family), and of intervals
+    over a revolute arc's half-angles."""
+    rows_cube = np.flatnonzero(~p.arc_rows)
+    h = np.pi / CUBE_SPLITS
+    g = (2 * np.arange(CUBE_SPLITS) + 1) * h - np.pi
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    grid = grid[_inside_ball(grid, np.full(len(grid), h))]
+    n_cube = len(rows_cube) * len(grid)
+    cube = _Cells(
+        np.repeat(rows_cube, len(grid)), np.tile(grid, (len(rows_cube), 1)), np.full(n_cube, h)
+    )
+    rows_arc = np.flatnonzero(p.arc_rows)
+    lo, hi = p.arc[rows_arc, 0], p.arc[rows_arc, 1]
+    width = (hi - lo) / ARC_SPLITS
+    psi = (lo[:, None] + (np.arange(ARC_SPLITS) + 0.5)[None] * width[:, None]).ravel()
+    zero = np.zeros_like(psi)
+    arc = _Cells(
+        np.repeat(rows_arc, ARC_SPLITS),
+        np.stack([psi, zero, zero], 1),
+        np.repeat(0.5 * width, ARC_SPLITS),
+    )
+    return _Cells.join(cube, arc)
+
+
+def _split(p: _Problem, cells: _Cells) -> _Cells:
+    arc = p.arc_rows[cells.row]
+    a, b = cells.take(np.flatnonzero(arc)), cells.take(np.flatnonzero(~arc))
+    signs = np.array([[-1, 1]]).T * np.array([[1.0, 0.0, 0.0]])  # (2, 3)
+    h = 0.5 * a.half
+    arcs = _Cells(
+        np.repeat(a.row, 2),
+        (a.centre[:, None, :] + signs[None] * h[:, None, None]).reshape(-1, 3),
+        np.repeat(h, 2),
+    )
+    corners = np.stack(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij"), -1).reshape(8, 3)
+    h = 0.5 * b.half
+    cubes = _Cells(
+        np.repeat(b.row, 8),
+        (b.centre[:, None, :] + corners[None] * h[:, None, None]).reshape(-1, 3),
+        np.repeat(h, 8),
+    )
+    cubes = cubes.take(np.flatnonzero(_inside_ball(cubes.centre, cubes.half)))
+    return _Cells.join(arcs, cubes)
+
+
+def _evaluate(p: _Problem, cells: _Cells):  # type: ignore[no-untyped-def]
+    """Each cell's centre rotation (as q), its exact value and position, and its bound, in
+    chunks of CHUNK cells (the per-term arrays stay small)."""
+    if len(cells) > CHUNK:
+        parts = [
+            _evaluate_chunk(p, cells.take(np.arange(k, min(k + CHUNK, len(cells)))))
+            for k in range(0, len(cells), CHUNK)
+        ]
+        return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
+    return _evaluate_chunk(p, cells)
+
+
+def _evaluate_chunk(p: _Problem, cells: _Cells):  # type: ignore[no-untyped-def]
+    arc = p.arc_rows[cells.row]
+    q_cube = _rotvec_quat(cells.centre)
+    psi = cells.centre[:, 0]
+    q_arc = np.einsum("nab,nb->na", p.V[cells.row], np.stack([np.cos(psi), np.sin(psi)], 1))
+    q = np.where(arc[:, None], q_arc, q_cube)
+    R = quat_to_matrix(q)
+    delta = np.where(arc, 2.0 * cells.half, np.sqrt(3.0) * cells.half)
+    value, t = _exact(p, cells.row, R)
+    upper = np.maximum(_cell_bound(p, cells.row, R, delta), value)
+    return q, value, t, upper
+
+
+def rotation_search(
+    terms,  # type: ignore[no-untyped-def]
+    rot: Rotating,
+    upper: FloatArray,
+    xyz: FloatArray,
+    quat: FloatArray,
+    deadline: float | None = None,
+    max_cells: int = MAX_CELLS,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rows whose relaxed bound is not exact and not within tolerance of the score at their
+    pose: the lower of `upper` and the branch-and-bound's bound, and the pose of its best
+    cell (a start for the exact polish).  Other rows pass through unchanged.
+
+    Searched: a free rotation with rotating terms (the relaxation holds their supremum),
+    and a revolute arc (one dimension: cheap) with anything but isotropic unboxed Normals
+    (Frank–Wolfe's hull of the arc).  Not searched: Frank–Wolfe's rows over all rotations,
+    where many assignments have small gaps that the MILP never picks (the bundled
+    singles_pairs_constituency: a tenth of its rows, each over 1e-2) and a search of every
+    one would cost more than the parse."""
+    from ssgc.parse.bound import _isotropic_rows, _subset
+
+    inexact = terms.revolute & ~_isotropic_rows(terms)
+    rows = ~terms.pinned & (rot.rows | inexact)
+    if not np.any(rows):
+        return upper, xyz, quat
+    p = _problem(_subset(terms, rows), rot.subset(rows))
+    idx = np.flatnonzero(rows)
+    start, t_start = _exact(p, np.arange(len(idx)), quat_to_matrix(quat[idx]))
+    gap = upper[idx] - start
+    open_ = gap > TOL_REL * np.maximum(1.0, np.abs(start))
+    if not np.any(open_):
+        return upper, xyz, quat
+    widest = np.argsort(-gap, kind="stable")[: max(1, max_cells // FIRST_CELLS)]
+    open_ &= np.isin(np.arange(len(idx)), widest)  # the rest keep the relaxation's bound
+    rows[idx[~open_]] = False
+    idx = idx[open_]
+    p = _problem(_subset(terms, rows), rot.subset(rows))
+    seed = (start[open_], t_start[open_], quat[idx])
+    bb, t_best, q_best = branch_and_bound(p, deadline, max_cells, seed)
+    upper, xyz, quat = upper.copy(), xyz.copy(), quat.copy()
+    upper[idx] = np.minimum(upper[idx], bb)
+    xyz[idx], quat[idx] = t_best, q_best
+    return upper, xyz, quat
+
+
+def branch_and_bound(
+    p: _Problem,
+    deadline: float | None = None,
+    max_cells: int = MAX_CELLS,
+    seed: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per row: an upper bound on the score over the rotation domain, and the best pose
+    found (module docstring), from the feasible poses `seed` (value, position, rotation) if
+    given.  Valid whenever it stops: pruned cells lie below the row's best value, every
+    other cell's bound is counted."""
+    n = len(p.const)
+    best = np.full(n, -np.inf)
+    t_best, q_best = np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1))
+    if seed is not None:
+        best, t_best, q_best = (x.copy() for x in seed)
+    settled = np.full(n, -np.inf)  # the largest bound of the cells that stopped splitting
+    new = _first_cells(p)
+    live, live_ub = new.take(np.zeros(0, np.int64)), np.zeros(0)
+    spent = 0
+    while True:
+        q, value, t, ub = _evaluate(p, new)
+        spent += len(new)
+        _improve(new.row, value, t, q, best, t_best, q_best)
+        live, live_ub = _Cells.join(live, new), np.concatenate([live_ub, ub])
+        tol = TOL_REL * np.maximum(1.0, np.abs(best))
+        gap = live_ub - best[live.row]
+        done = (gap > 0) & (gap <= tol[live.row])
+        np.maximum.at(settled, live.row[done], live_ub[done])
+        keep = np.flatnonzero(gap > tol[live.row])
+        live, live_ub, gap = live.take(keep), live_ub[keep], gap[keep]
+        out_of_time = deadline is not None and time.perf_counter() >= deadline
+        if not len(live) or spent >= max_cells or out_of_time:
+            break
+        pick = np.argsort(-gap, kind="stable")[:BATCH]
+        rest = np.ones(len(live), bool)
+        rest[pick] = False
+        new = _split(p, live.take(pick))
+        live, live_ub = live.take(np.flatnonzero(rest)), live_ub[rest]
+    np.maximum.at(settled, live.row, live_ub)
+    return np.maximum(best, settled), t_best, q_best
+
+
+def _improve(row, value, t, q, best, t_best, q_best) -> None:  # type: ignore[no-untyped-def]
+    """Each row's best cell centre so far (in place)."""
+    if not len(row):
+        return
+    order = np.lexsort((-value, row))
+    first = order[np.r_[True, row[order][1:] != row[order][:-1]]]
+    better = value[first] > best[row[first]]
+    r = row[first][better]
+    best[r], t_best[r], q_best[r] = value[first][better], t[first][better], q[first][better]
