@@ -33,6 +33,7 @@ from ssgc.rules import rotation_log_density, translation_log_density
 
 FloatArray = NDArray[np.float64]
 ARC_GRID = 48  # rotations sampled along an arc (plus its ends and the other arcs' ends)
+ARC_GRID_BOXED = 720  # the same where a box holds the position (which moves with the angle)
 ON_ARC = 1e-9  # 1 - |projection| at most this: a rotation lies on an arc's plane
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -177,7 +178,8 @@ def rotations(laws: Laws, fallback: FloatArray) -> FloatArray:
         q = pins[0].at(np.zeros(1))
     else:
         first = arcs[0]
-        pts = [first.at(np.linspace(first.lo, first.hi, ARC_GRID))]
+        grid = ARC_GRID_BOXED if laws.boxes else ARC_GRID  # a box may take a short stretch
+        pts = [first.at(np.linspace(first.lo, first.hi, grid))]
         for other in arcs[1:]:
             pts.append(other.at(np.array([other.lo, other.hi])))
             meet = _plane_meet(first, other)
@@ -242,7 +244,8 @@ def positions(laws: Laws, q: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]
         lo, hi = np.maximum(lo, blo - s), np.minimum(hi, bhi - s)
     ok = np.all(lo <= hi + 1e-12, axis=1)
     if not laws.pins and not laws.soft_xyz:
-        x = np.where(np.isfinite(lo) & np.isfinite(hi), 0.5 * (lo + hi), np.clip(x, lo, hi))
+        bounded = np.isfinite(lo) & np.isfinite(hi)
+        x = np.where(bounded, 0.5 * (np.where(bounded, lo, 0.0) + np.where(bounded, hi, 0.0)), x)
     return np.clip(x, lo, np.maximum(lo, hi)), ok
 
 

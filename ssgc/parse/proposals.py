@@ -553,7 +553,7 @@ def _preferred(cand: Candidates, e: int, solved: dict[int, FloatArray], n: int) 
     """The first n candidate indices of set e, solved poses first."""
     first = solved.get(e, np.zeros(0, np.int64)).astype(np.int64)
     rest = np.setdiff1d(np.arange(len(cand.xyz[e])), first, assume_unique=True)
-    return np.r_[first[::-1], rest][:n].astype(np.int64)
+    return np.r_[first, rest][:n].astype(np.int64)
 
 
 def _hard_set(
@@ -572,7 +572,10 @@ def _hard_set(
         px = bx + quat_rotate(bq, st.offset_xyz[p])
         pq = quat_multiply(bq, st.offset_quat[p])
         parents = list(zip(px, pq, strict=True))
+        if latent_sets(st)[e_p]:  # its poses are guesses: solve from the children alone too
+            parents.insert(0, (None, None))
     combos = _child_combos(grammar, st, cand, e, solved)
+    inherited = _inherited_boxes(grammar, st, e)
     fallback = cand.quat[e][:4]
     xs, qs = [np.zeros((0, 3))], [np.zeros((0, 4))]
     # half the poses from pairs of children (jointly implied), half from one child or none;
@@ -584,9 +587,10 @@ def _hard_set(
                 break
             found_here = 0
             for p_xyz, p_quat in parents:
-                if found_here >= HARD_PARENTS_EACH:
+                if combo and found_here >= HARD_PARENTS_EACH:  # without children: all
                     break
                 laws = hard_laws.empty_laws()
+                laws.boxes += inherited
                 hard_laws.add_parent_rule(laws, grammar, r0, p_xyz, p_quat)
                 for v, r, c_xyz, c_quat in combo:
                     hard_laws.add_child_rule(
@@ -598,6 +602,29 @@ def _hard_set(
                 found_here += len(x)
             found += found_here
     return np.vstack(xs), np.vstack(qs)
+
+
+def _inherited_boxes(grammar: Grammar, st: Supertree, e: int) -> list:  # type: ignore[type-arg]
+    """World boxes on set e's position that come from above through zero offsets: a set placed
+    at its parent's position (`same`, or `offset` [0, 0, 0], from a member at the parent set's
+    top) whose parent set is placed by a `world_box` (or inherits one) lies in that box too.
+
+    Why: solved from its children alone, such a set gets poses outside the box two levels up
+    when its rotation (a revolute arc, say) moves its position; the box narrows the arc."""
+    boxes = []
+    zero = np.zeros(3)
+    while True:
+        top = int(st.set_top[e])
+        p = int(st.parent[top])
+        law = grammar.rules[int(st.rule[top])].translation
+        if p < 0 or law.point is None or np.any(law.point != 0) or np.any(st.offset_xyz[p] != 0):
+            return boxes
+        e = int(st.set_of[p])
+        if e == int(st.set_of[0]):
+            return boxes
+        up = grammar.rules[int(st.rule[st.set_top[e]])].translation
+        if isinstance(up, BoxTranslation) and up.frame == Frame.WORLD:
+            boxes.append((up.box.lo, up.box.hi, zero))
 
 
 def _hard_rule(grammar: Grammar, r: int) -> bool:
