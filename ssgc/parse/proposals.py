@@ -519,7 +519,7 @@ HARD_PARENTS = 8  # parent poses a set's hard-law poses are solved at
 HARD_CHILDREN = 12  # candidate children per slot used to solve them
 HARD_COMBOS = 160  # combinations of children per parent pose (singles first, then pairs)
 HARD_KEEP = 1  # poses kept per combination (the best)
-HARD_PER_SET = 16  # poses added to a set per pass: the model over them grows like K^depth
+HARD_PER_SET = 32  # poses added to a set per pass: the model over them grows like K^depth
 HARD_PARENTS_EACH = 2  # parent poses at which one combination of children is solved
 
 
