@@ -171,6 +171,9 @@ class Parser:
                 return _failed(scene, INFEASIBLE, exc, t0)
             if cand is not None and step == "build":  # no tree among the latent candidates
                 run = self._retry_hard(scene, cand, bounds, deadline, top)
+            if run is None and _past(deadline):  # the hard-law poses ran out of time
+                message = f"scene '{scene.name}': time limit reached in the proposals step"
+                return _failed(scene, NO_PARSE, SsgError.single(message), t0, "time", "proposals")
             if run is None:
                 return _failed(scene, NO_PARSE, exc, t0, "proposals")
         except OutOfTime:
@@ -184,6 +187,8 @@ class Parser:
             run.solve(top)
         if not run.parses and run.status == NO_PARSE and run.phase == "proposals":
             run = self._retry_hard(scene, cand, bounds, deadline, top) or run
+            if not run.parses and _past(deadline):
+                run.timed_out_in = run.timed_out_in or "proposals"
         if bounds is not None and run.parses:
             run.certify()
         elif self.has_latent and not complete:
@@ -605,6 +610,10 @@ def tree_signature(grammar: Grammar, tree: Trees) -> bytes:
         if tree.parent[i] >= 0:
             kids[tree.parent[i]].append(keys[i])
     return keys[0] if keys else b""
+
+
+def _past(deadline: float | None) -> bool:
+    return deadline is not None and time.perf_counter() >= deadline
 
 
 def _failed(
