@@ -129,8 +129,10 @@ def test_cli_parse_and_explain_exit_3_when_no_parse_is_found_unproven(tmp_path, 
     """Proposals that find no latent pose near the object: nothing found, nothing proven.
 
     The exact bound now places L for every scene of this grammar (and its poses join `ip`'s
-    proposals), so both are emptied: the model then holds no tree, and that proves nothing."""
+    proposals), so both are emptied, and so are the poses solved from the hard laws (which
+    place L too): the model then holds no tree, and that proves nothing."""
     monkeypatch.setattr("ssgc.parse.parser.add_proposals", lambda *args, **kwargs: None)
+    monkeypatch.setattr("ssgc.parse.parser.add_hard_poses", lambda *args, **kwargs: None)
     grammar_path = tmp_path / "chain.yaml"
     grammar_path.write_text(LATENT_AND_CHAIN)
     grammar = compile_text(LATENT_AND_CHAIN)

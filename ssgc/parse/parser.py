@@ -37,7 +37,7 @@ from ssgc.parse.ip import SetReduction, UnparseableScene
 from ssgc.parse.milp import Milp, Session
 from ssgc.parse.posed import PosedProblem, PosedReduction, candidate_poses
 from ssgc.parse.poses import free_blocks, refine_tree
-from ssgc.parse.proposals import Candidates, add_proposals, latent_sets
+from ssgc.parse.proposals import Candidates, add_hard_poses, add_proposals, latent_sets
 from ssgc.parse.reduction import ModelTooLarge, Problem, Reduction, Request, choose
 from ssgc.parse.supertree import Supertree, build_supertree, max_observed
 from ssgc.score import node_terms, score_trees
@@ -148,6 +148,10 @@ class Parser:
         # the last steps after a deadline check (a vectorised pass, HiGHS's exit) take a moment
         deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
         step, complete = "capacity", not self.has_latent
+        cand: Candidates | None = None
+        bounds: dict[int, SetBound] | None = None
+        run: _Run | None = None
+        propose_s = 0.0
         try:
             self.check_capacity(scene)
             step = "build"  # the poses the objects imply: part of every model
@@ -167,15 +171,26 @@ class Parser:
         except UnparseableScene as exc:
             if step == "capacity" or (step == "build" and complete):  # a proof
                 return _failed(scene, INFEASIBLE, exc, t0)
-            return _failed(scene, NO_PARSE, exc, t0, "proposals")
+            if cand is not None and step == "build":  # no tree among the latent candidates
+                run = self._retry_hard(scene, cand, bounds, deadline, top)
+            if run is None and _past(deadline):  # the hard-law poses ran out of time
+                message = f"scene '{scene.name}': time limit reached in the proposals step"
+                return _failed(scene, NO_PARSE, SsgError.single(message), t0, "time", "proposals")
+            if run is None:
+                return _failed(scene, NO_PARSE, exc, t0, "proposals")
         except OutOfTime:
             step = "build" if step == "capacity" else step
             message = f"scene '{scene.name}': time limit reached in the {step} step"
             return _failed(scene, NO_PARSE, SsgError.single(message), t0, "time", step)
         except ModelTooLarge as exc:
             return _failed(scene, NO_PARSE, exc, t0, "instance_limit")
-        run = _Run(self, scene, problem, cand, bounds, deadline, complete)
-        run.solve(top)
+        if run is None:
+            run = _Run(self, scene, problem, cand, bounds, deadline, complete)
+            run.solve(top)
+        if not run.parses and run.status == NO_PARSE and run.phase == "proposals":
+            run = self._retry_hard(scene, cand, bounds, deadline, top) or run
+            if not run.parses and _past(deadline):
+                run.timed_out_in = run.timed_out_in or "proposals"
         if bounds is not None and run.parses:
             run.certify()
         elif self.has_latent and not complete:
@@ -205,6 +220,35 @@ class Parser:
             phase=run.phase,
             timed_out_in=run.timed_out_in,
         )
+
+    def _retry_hard(
+        self,
+        scene: Scene,
+        cand: Candidates,
+        bounds: dict[int, SetBound] | None,
+        deadline: float | None,
+        top: int,
+    ) -> _Run | None:
+        """When no tree was found among the latent candidates, add the poses that satisfy the
+        hard laws exactly (`ssgc.parse.proposals.add_hard_poses`) and solve again over the
+        proposals (the assignment model of `micp` names only its assignments' poses, so it
+        is left for the model over proposals, the bound still certifying).  None when that
+        model has no tree either (or the clock ran out)."""
+        g, st = self.grammar, self.supertree
+        if bounds is not None and not certify_only(bounds) and self.method != "ip":
+            add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
+            add_assignment_poses(cand, bounds)
+            _repeat_empty_poses(cand, bounds)
+        add_hard_poses(g, st, cand, deadline)
+        request = Request(g, st, scene, cand, True, None, deadline)
+        try:
+            problem = choose(self.reductions, request).apply(request)[1]
+        except (UnparseableScene, OutOfTime, ModelTooLarge):
+            return None
+        run = _Run(self, scene, problem, cand, bounds, deadline, False)
+        run.over_proposals = True
+        run.solve(top)
+        return run if run.parses else None
 
     def complete(self, reduction: Reduction, request: Request) -> bool:
         """Whether the model the reduction builds holds every tree of the grammar for the
@@ -352,12 +396,16 @@ class _Run:
         self.raw_score = float("nan")  # the first MILP tree's score, before any refinement
         self.bound = float("nan")  # an upper bound on the MAP score, when one is known
         self.bound_s = 0.0
+        self.over_proposals = False  # a `micp` retry over proposals (`Parser._retry_hard`)
+        self.pending: Parse | None = None  # a refined tree while its rebuilt model solves
         self.session = parser.open_session(problem.milp)
 
     @property
     def _assignment_model(self) -> bool:
         """Whether the MILP is the assignment model (its latent poses are each assignment's
         best already), not the model over proposals whose trees are refined."""
+        if self.over_proposals:
+            return False
         return self.p.method != "ip" and self.bounds is not None and not certify_only(self.bounds)
 
     def _solve_once(self):  # type: ignore[no-untyped-def]
@@ -377,6 +425,7 @@ class _Run:
             sol = self._solve_once()
             if sol is None or (sol.x is None and sol.status == "time_limit"):
                 self.timed_out_in = "solve"
+                self._keep_pending()
                 self.message = _why(self.scene, "time_limit", "", len(self.parses), top)
                 return
             if sol.x is None:
@@ -403,8 +452,15 @@ class _Run:
                 return
             _exclude(self.session, self.problem, sol.x)
 
+    def _keep_pending(self) -> None:
+        """A refined tree whose rebuilt model ran out of time is still a tree: keep it."""
+        if not self.parses and self.pending is not None:
+            self.parses.append(self.pending)
+            self.seen.add(tree_signature(self.p.grammar, self.pending.tree))
+
     def _no_more(self, sol, top: int) -> None:  # type: ignore[no-untyped-def]
         """The MILP has no (further) solution: a proof when the model is complete."""
+        self._keep_pending()
         if sol.status != "infeasible":
             self.status, self.message = ERROR, _why(self.scene, sol.status, sol.message)
         elif self.parses:  # no more trees: say so (--top N asked for more)
@@ -492,6 +548,7 @@ class _Run:
         if self.parses or not improved or self.rounds >= Parser.MAX_ROUNDS:
             return refined
         self.rounds += 1
+        self.pending = refined  # the tree so far, should the rebuilt model run out of time
         self._add_refined_poses(sol.x, tree)
         t0 = time.perf_counter()
         try:
@@ -557,6 +614,10 @@ def tree_signature(grammar: Grammar, tree: Trees) -> bytes:
         if tree.parent[i] >= 0:
             kids[tree.parent[i]].append(keys[i])
     return keys[0] if keys else b""
+
+
+def _past(deadline: float | None) -> bool:
+    return deadline is not None and time.perf_counter() >= deadline
 
 
 def _failed(

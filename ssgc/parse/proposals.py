@@ -18,6 +18,7 @@ best pose given them.  Refinement of the whole tree afterwards handles the rest.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,7 @@ from ssgc.ir import Grammar
 from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.parse import hard_laws
 from ssgc.parse.clock import check_deadline
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.supertree import Supertree
@@ -559,3 +561,156 @@ def _clip_into_box(grammar: Grammar, st: Supertree, cand: Candidates, e: int) ->
     lo, hi = px[:, None, :] + law.box.lo, px[:, None, :] + law.box.hi
     clipped = np.clip(own_xyz[None, :, :], lo, hi).reshape(-1, 3)
     cand.add(e, clipped, np.tile(own_quat, (len(px), 1)))
+
+
+HARD_PARENTS = 8  # parent poses a set's hard-law poses are solved at
+HARD_CHILDREN = 12  # candidate children per slot used to solve them
+HARD_COMBOS = 160  # combinations of children per parent pose (singles first, then pairs)
+HARD_KEEP = 1  # poses kept per combination (the best)
+HARD_PER_SET = 32  # poses added to a set per pass: the model over them grows like K^depth
+HARD_PARENTS_EACH = 2  # parent poses at which one combination of children is solved
+
+
+def add_hard_poses(
+    grammar: Grammar, st: Supertree, cand: Candidates, deadline: float | None = None
+) -> None:
+    """Add, for every latent set, poses that satisfy its hard laws exactly
+    (`ssgc.parse.hard_laws`): at each of its parent's first candidate poses, with no child,
+    one child or two children on its slots.  Sets are solved children first, then parents
+    first, then children first again, so that a chain of latent sets passes its constraints
+    both ways; each pass prefers the poses the previous passes solved.
+
+    Why: rule inversion and Newton steps aim at soft laws' modes, and a scene whose latent
+    poses are held by boxes, pins and revolute arcs from both sides gets no feasible proposal
+    (`no_parse`), although the scene was sampled from the grammar."""
+    solved: dict[int, FloatArray] = {}  # per set, how many leading candidates are solved
+    order = np.flatnonzero(latent_sets(st))
+    for sets in (order[::-1], order, order[::-1]):
+        for e in sets:
+            if deadline is not None and time.perf_counter() >= deadline:
+                return
+            xyz, quat = _hard_set(grammar, st, cand, int(e), solved)
+            if len(xyz):
+                n_old = len(cand.xyz[e])
+                cand.add(int(e), xyz, quat)
+                new = np.arange(n_old, len(cand.xyz[e]))
+                solved[int(e)] = np.r_[solved.get(int(e), np.zeros(0, np.int64)), new]
+
+
+def _preferred(cand: Candidates, e: int, solved: dict[int, FloatArray], n: int) -> IntArray:
+    """The first n candidate indices of set e, solved poses first."""
+    first = solved.get(e, np.zeros(0, np.int64)).astype(np.int64)
+    rest = np.setdiff1d(np.arange(len(cand.xyz[e])), first, assume_unique=True)
+    return np.r_[first, rest][:n].astype(np.int64)
+
+
+def _hard_set(
+    grammar: Grammar, st: Supertree, cand: Candidates, e: int, solved: dict[int, FloatArray]
+) -> tuple[FloatArray, FloatArray]:
+    top = int(st.set_top[e])
+    r0 = int(st.rule[top])
+    p = int(st.parent[top])
+    e_p = int(st.set_of[p])
+    rule = grammar.rules[r0]
+    world = rule.translation.frame == Frame.WORLD and rule.rotation.frame == Frame.WORLD
+    parents: list[tuple[FloatArray | None, FloatArray | None]] = [(None, None)]
+    if not world and len(cand.xyz[e_p]):
+        k = _preferred(cand, e_p, solved, HARD_PARENTS)
+        bx, bq = cand.xyz[e_p][k], cand.quat[e_p][k]
+        px = bx + quat_rotate(bq, st.offset_xyz[p])
+        pq = quat_multiply(bq, st.offset_quat[p])
+        parents = list(zip(px, pq, strict=True))
+        if latent_sets(st)[e_p]:  # its poses are guesses: solve from the children alone too
+            parents.insert(0, (None, None))
+    combos = _child_combos(grammar, st, cand, e, solved)
+    inherited = _inherited_boxes(grammar, st, e)
+    fallback = cand.quat[e][:4]
+    xs, qs = [np.zeros((0, 3))], [np.zeros((0, 4))]
+    # half the poses from pairs of children (jointly implied), half from one child or none;
+    # each combination at no more than HARD_PARENTS_EACH parent poses
+    for group in ([c for c in combos if len(c) > 1], [c for c in combos if len(c) == 1] + [()]):
+        found = 0
+        for combo in group:
+            if found >= HARD_PER_SET // 2:
+                break
+            found_here = 0
+            for p_xyz, p_quat in parents:
+                if combo and found_here >= HARD_PARENTS_EACH:  # without children: all
+                    break
+                laws = hard_laws.empty_laws()
+                laws.boxes += inherited
+                hard_laws.add_parent_rule(laws, grammar, r0, p_xyz, p_quat)
+                for v, r, c_xyz, c_quat in combo:
+                    hard_laws.add_child_rule(
+                        laws, grammar, r, st.offset_xyz[v], st.offset_quat[v], c_xyz, c_quat
+                    )
+                x, q = hard_laws.hard_poses(grammar, laws, fallback, HARD_KEEP)
+                xs.append(x)
+                qs.append(q)
+                found_here += len(x)
+            found += found_here
+    return np.vstack(xs), np.vstack(qs)
+
+
+def _inherited_boxes(grammar: Grammar, st: Supertree, e: int) -> list:  # type: ignore[type-arg]
+    """World boxes on set e's position that come from above through zero offsets: a set placed
+    at its parent's position (`same`, or `offset` [0, 0, 0], from a member at the parent set's
+    top) whose parent set is placed by a `world_box` (or inherits one) lies in that box too.
+
+    Why: solved from its children alone, such a set gets poses outside the box two levels up
+    when its rotation (a revolute arc, say) moves its position; the box narrows the arc."""
+    boxes = []
+    zero = np.zeros(3)
+    while True:
+        top = int(st.set_top[e])
+        p = int(st.parent[top])
+        law = grammar.rules[int(st.rule[top])].translation
+        if p < 0 or law.point is None or np.any(law.point != 0) or np.any(st.offset_xyz[p] != 0):
+            return boxes
+        e = int(st.set_of[p])
+        if e == int(st.set_of[0]):
+            return boxes
+        up = grammar.rules[int(st.rule[st.set_top[e]])].translation
+        if isinstance(up, BoxTranslation) and up.frame == Frame.WORLD:
+            boxes.append((up.box.lo, up.box.hi, zero))
+
+
+def _hard_rule(grammar: Grammar, r: int) -> bool:
+    """Whether rule r ties its parent's pose to its child's by a hard law (a pin, an arc, a
+    box offset, a pinned axis)."""
+    tl, rl = grammar.rules[r].translation, grammar.rules[r].rotation
+    rot = rl.frame == Frame.PARENT and (rl.point is not None or isinstance(rl, RevoluteRotation))
+    pinned_axes = hasattr(tl, "free") and not np.all(tl.free)
+    box = isinstance(tl, BoxTranslation) and tl.frame != Frame.WORLD
+    return rot or tl.point is not None or box or (pinned_axes and tl.frame != Frame.WORLD)
+
+
+def _child_combos(
+    grammar: Grammar, st: Supertree, cand: Candidates, e: int, solved: dict[int, FloatArray]
+) -> list[tuple[tuple[int, int, FloatArray, FloatArray], ...]]:
+    """No child, each candidate child of each hard slot, then pairs on two slots (or two
+    copies of one `repeat` slot), at most HARD_COMBOS in all."""
+    slots: dict[tuple[int, int], tuple[int, int]] = {}
+    for v in np.flatnonzero(st.set_of == e):
+        for c in st.children[v]:
+            r = int(st.rule[c])
+            if st.set_of[c] != e and _hard_rule(grammar, r):
+                e_c = int(st.set_of[c])
+                n = slots.get((int(v), r), (e_c, 0))[1]
+                slots[(int(v), r)] = (e_c, n + 1)
+    singles = []
+    for (v, r), (e_c, copies) in slots.items():
+        k = _preferred(cand, e_c, solved, HARD_CHILDREN)
+        singles.append([(v, r, cand.xyz[e_c][i], cand.quat[e_c][i], copies) for i in k])
+    combos: list[tuple] = [()]
+    combos += [(c[:4],) for s in singles for c in s]
+    for a in range(len(singles)):
+        for b in range(a, len(singles)):
+            for i, ca in enumerate(singles[a]):
+                for cb in singles[b][i + 1 :] if a == b else singles[b]:
+                    if a == b and ca[4] < 2:
+                        break
+                    combos.append((ca[:4], cb[:4]))
+                    if len(combos) >= HARD_COMBOS:
+                        return combos
+    return combos

@@ -1,0 +1,283 @@
+"""Latent poses that satisfy the hard laws around them exactly (issue 11).
+
+A latent pose is held by hard laws from both sides: its own rule at its parent's pose (a fixed
+offset or rotation pins it, a box holds its position, a revolute law holds its rotation to an
+arc) and the rules to its children at their poses (a child at a fixed offset pins the position
+for each rotation, a child placed by a revolute law holds the rotation to an arc about the
+child's axis, a child in a box offset holds the position to a box).  Proposals made by rule
+inversion and Newton steps put a pose at the mode of one soft law and rarely meet all of those
+at once; the model over proposals then has no tree (`no_parse`), although the scene was sampled
+from the grammar.
+
+`hard_poses` solves the hard laws instead: the rotation first (pins; arcs, intersected exactly
+where two meet in a point, or sampled along their common stretch), then, for each rotation, the
+position (a pin, or the soft laws' target clipped into the boxes' intersection).  Every pose is
+then checked with the grammar's own densities; only poses every law involved accepts are kept,
+best (by the involved laws' log-densities) first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.geometry import quat_conjugate, quat_multiply, quat_normalize, quat_rotate
+from ssgc.ir import Grammar
+from ssgc.laws.base import Frame
+from ssgc.laws.position_box import BoxTranslation
+from ssgc.laws.position_normal import NormalTranslation
+from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.rules import rotation_log_density, translation_log_density
+
+FloatArray = NDArray[np.float64]
+ARC_GRID = 48  # rotations sampled along an arc (plus its ends and the other arcs' ends)
+ARC_GRID_BOXED = 720  # the same where a box holds the position (which moves with the angle)
+ON_ARC = 1e-9  # 1 - |projection| at most this: a rotation lies on an arc's plane
+IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+@dataclass(frozen=True)
+class Arc:
+    """Rotations q = left ⊗ R(axis, φ) ⊗ right, φ in [lo, hi] (lo == hi: a pin)."""
+
+    left: FloatArray
+    axis: FloatArray
+    lo: float
+    hi: float
+    right: FloatArray
+
+    @property
+    def plane(self) -> FloatArray:
+        """(4, 2): q(φ) = plane @ (cos φ/2, sin φ/2)."""
+        u = quat_multiply(self.left, self.right)
+        w = quat_multiply(quat_multiply(self.left, np.r_[0.0, self.axis]), self.right)
+        return np.stack([u, w], axis=1)
+
+    def at(self, phi: FloatArray) -> FloatArray:
+        half = 0.5 * np.asarray(phi, float)
+        return np.stack([np.cos(half), np.sin(half)], axis=1) @ self.plane.T
+
+    def holds(self, q: FloatArray, tol: float = 1e-7) -> NDArray[np.bool_]:
+        """Whether each rotation lies on the arc (within `tol` radians of its range)."""
+        s = q @ self.plane
+        on = np.linalg.norm(s, axis=1) >= 1.0 - ON_ARC
+        phi = 2.0 * np.arctan2(s[:, 1], s[:, 0])
+        rel = np.mod(phi - self.lo, 2.0 * np.pi)
+        inside = (rel <= self.hi - self.lo + tol) | (rel >= 2.0 * np.pi - tol)
+        return on & inside
+
+
+@dataclass
+class Laws:
+    """The hard and soft laws on one latent pose, from its parent's side and its children's."""
+
+    arcs: list[Arc]
+    soft_quat: list[FloatArray]  # (4,) rotation targets of soft laws
+    pins: list[tuple[FloatArray, FloatArray]]  # (A (3,), B (3, 3)...) position x = A - R(q) B
+    boxes: list[tuple[FloatArray, FloatArray, FloatArray]]  # lo, hi, shift: x + R(q) shift ∈ box
+    soft_xyz: list[tuple[FloatArray, FloatArray]]  # target x = A - R(q) B
+    # (rule, whether the set is the rule's child, the other end's pose, the member's offset)
+    checks: list[tuple[int, bool, FloatArray, FloatArray, FloatArray, FloatArray]]
+
+
+def empty_laws() -> Laws:
+    return Laws([], [], [], [], [], [])
+
+
+def add_parent_rule(
+    laws: Laws, grammar: Grammar, r: int, p_xyz: FloatArray | None, p_quat: FloatArray | None
+) -> None:
+    """The set's own rule r at its parent node's pose (None: the rule is in the world frame,
+    or the parent's pose is unknown and only world-frame parts are used)."""
+    rule = grammar.rules[r]
+    tl, rl = rule.translation, rule.rotation
+    known = p_xyz is not None and p_quat is not None
+    if known:
+        laws.checks.append((r, True, p_xyz, p_quat, np.zeros(3), IDENTITY))  # type: ignore[arg-type]
+    if rl.point is not None and (known or rl.frame == Frame.WORLD):
+        base = p_quat if rl.frame == Frame.PARENT and known else IDENTITY
+        q = quat_multiply(base, rl.point)
+        laws.arcs.append(Arc(q, np.array([1.0, 0, 0]), 0.0, 0.0, IDENTITY))
+    elif isinstance(rl, RevoluteRotation) and known:
+        lo, hi = float(rl.revolute.lo), float(rl.revolute.hi)
+        laws.arcs.append(Arc(p_quat, np.asarray(rl.axis, float), lo, hi, IDENTITY))  # type: ignore[arg-type]
+    elif rl.mode() is not None and (known or rl.frame == Frame.WORLD):
+        base = p_quat if rl.frame == Frame.PARENT and known else IDENTITY
+        laws.soft_quat.append(quat_multiply(base, rl.mode()))
+    zero = np.zeros(3)
+    if tl.frame == Frame.PARENT and not known:
+        return
+    origin = p_xyz if known and tl.frame != Frame.WORLD else zero
+    if tl.point is not None:  # fixed translations are parent-frame
+        laws.pins.append((origin + quat_rotate(p_quat, tl.point), zero))  # type: ignore[arg-type]
+    elif isinstance(tl, BoxTranslation) and tl.frame != Frame.PARENT:
+        laws.boxes.append((origin + tl.box.lo, origin + tl.box.hi, zero))  # type: ignore[operator]
+    elif isinstance(tl, NormalTranslation):
+        mean = quat_rotate(p_quat, tl.offset) if tl.frame == Frame.PARENT else tl.offset  # type: ignore[arg-type]
+        laws.soft_xyz.append((origin + mean, zero))  # type: ignore[operator]
+        if tl.frame != Frame.PARENT and not np.all(tl.free):  # pinned world axes: a flat box
+            lo = np.where(tl.free, -np.inf, origin + tl.offset)  # type: ignore[operator]
+            hi = np.where(tl.free, np.inf, origin + tl.offset)  # type: ignore[operator]
+            laws.boxes.append((lo, hi, zero))
+
+
+def add_child_rule(
+    laws: Laws,
+    grammar: Grammar,
+    r: int,
+    member_xyz: FloatArray,
+    member_quat: FloatArray,
+    c_xyz: FloatArray,
+    c_quat: FloatArray,
+) -> None:
+    """A child at (c_xyz, c_quat) placed by rule r from member v, whose pose is
+    (member_xyz, member_quat) relative to the set's top: x_v = x + R(q) member_xyz."""
+    rule = grammar.rules[r]
+    tl, rl = rule.translation, rule.rotation
+    laws.checks.append((r, False, c_xyz, c_quat, member_xyz, member_quat))
+    inv_m = quat_conjugate(member_quat)
+    if rl.frame == Frame.PARENT and rl.point is not None:
+        q = quat_multiply(quat_multiply(c_quat, quat_conjugate(rl.point)), inv_m)
+        laws.arcs.append(Arc(q, np.array([1.0, 0, 0]), 0.0, 0.0, IDENTITY))
+    elif isinstance(rl, RevoluteRotation):
+        lo, hi = float(rl.revolute.lo), float(rl.revolute.hi)
+        laws.arcs.append(Arc(c_quat, np.asarray(rl.axis, float), -hi, -lo, inv_m))
+    elif rl.frame == Frame.PARENT and rl.mode() is not None:
+        laws.soft_quat.append(
+            quat_multiply(quat_multiply(c_quat, quat_conjugate(rl.mode())), inv_m)
+        )
+    if tl.frame == Frame.WORLD:
+        return
+    # x = c - R(q) (member_xyz + R(member_quat) m) for a parent-frame offset m
+    if tl.point is not None:
+        laws.pins.append((c_xyz, member_xyz + quat_rotate(member_quat, tl.point)))
+    elif isinstance(tl, BoxTranslation):  # world offset: c - x_v in [lo, hi]
+        laws.boxes.append((c_xyz - tl.box.hi, c_xyz - tl.box.lo, member_xyz))
+    elif isinstance(tl, NormalTranslation):
+        if tl.frame == Frame.PARENT:
+            laws.soft_xyz.append((c_xyz, member_xyz + quat_rotate(member_quat, tl.offset)))
+        else:
+            laws.soft_xyz.append((c_xyz - tl.offset, member_xyz))
+            if not np.all(tl.free):  # pinned world-offset axes: a flat box
+                lo = np.where(tl.free, -np.inf, c_xyz - tl.offset)
+                hi = np.where(tl.free, np.inf, c_xyz - tl.offset)
+                laws.boxes.append((lo, hi, member_xyz))
+
+
+def rotations(laws: Laws, fallback: FloatArray) -> FloatArray:
+    """Rotations on every arc of `laws`: a pin; the point where two arcs' planes meet; or
+    points sampled along the first arc (and every arc's ends), kept where all arcs hold them.
+    Without arcs: the soft laws' targets and `fallback`."""
+    arcs = laws.arcs + _pin_pair_arcs(laws)
+    if not arcs:
+        return np.vstack([np.zeros((0, 4)), *laws.soft_quat, fallback.reshape(-1, 4)])
+    pins = [a for a in arcs if a.hi - a.lo <= 0.0]
+    if pins:
+        q = pins[0].at(np.zeros(1))
+    else:
+        first = arcs[0]
+        grid = ARC_GRID_BOXED if laws.boxes else ARC_GRID  # a box may take a short stretch
+        pts = [first.at(np.linspace(first.lo, first.hi, grid))]
+        for other in arcs[1:]:
+            pts.append(other.at(np.array([other.lo, other.hi])))
+            meet = _plane_meet(first, other)
+            if meet is not None:
+                pts.append(meet)
+        q = np.vstack(pts)
+    keep = np.ones(len(q), bool)
+    for a in laws.arcs:
+        keep &= a.holds(q)
+    return quat_normalize(q[keep])
+
+
+def _pin_pair_arcs(laws: Laws) -> list[Arc]:
+    """Two position pins x = a1 - R b1 = a2 - R b2 hold R to the rotations taking
+    b = b2 - b1 onto a = a2 - a1: one rotation that does, then any turn about b (an arc).
+    Only the first pair whose vectors are long enough to fix a direction is used."""
+    a1, b1 = laws.pins[0] if laws.pins else (None, None)
+    for a2, b2 in laws.pins[1:]:
+        a, b = a2 - a1, b2 - b1  # type: ignore[operator]
+        la, lb = np.linalg.norm(a), np.linalg.norm(b)
+        if lb < 1e-6 or la < 1e-6 or abs(la - lb) > 1e-6 * max(1.0, lb):
+            continue
+        return [Arc(_align(b / lb, a / la), b / lb, -np.pi, np.pi, IDENTITY)]
+    return []
+
+
+def _align(b: FloatArray, a: FloatArray) -> FloatArray:
+    """A unit quaternion rotating unit vector b onto unit vector a."""
+    c = float(b @ a)
+    if c < -1.0 + 1e-12:  # opposite: a half turn about any axis normal to b
+        n = np.cross(b, [1.0, 0, 0] if abs(b[0]) < 0.9 else [0, 1.0, 0])
+        return np.r_[0.0, n / np.linalg.norm(n)]
+    return quat_normalize(np.r_[1.0 + c, np.cross(b, a)])
+
+
+def _plane_meet(a: Arc, b: Arc) -> FloatArray | None:
+    """The rotation on both arcs' planes when they meet in one line (None when they are one
+    plane, which the sampled points cover, or do not meet)."""
+    ua, ub = a.plane, b.plane
+    u, s, _ = np.linalg.svd(ua.T @ ub)
+    if s[0] < 1.0 - ON_ARC or s[1] >= 1.0 - ON_ARC:
+        return None
+    return (ua @ u[:, 0]).reshape(1, 4)
+
+
+def positions(laws: Laws, q: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """For each rotation, the position the pins give (or the soft laws' mean target, or the
+    boxes' centre), clipped into the boxes' intersection; and whether that is non-empty."""
+    n = len(q)
+    if laws.pins:
+        a, b = laws.pins[0]
+        x = a - quat_rotate(q, np.broadcast_to(b, (n, 3)))
+    elif laws.soft_xyz:
+        x = np.mean(
+            [a - quat_rotate(q, np.broadcast_to(b, (n, 3))) for a, b in laws.soft_xyz], axis=0
+        )
+    else:
+        x = np.zeros((n, 3))
+    lo, hi = np.full((n, 3), -np.inf), np.full((n, 3), np.inf)
+    for blo, bhi, shift in laws.boxes:
+        s = quat_rotate(q, np.broadcast_to(shift, (n, 3)))
+        lo, hi = np.maximum(lo, blo - s), np.minimum(hi, bhi - s)
+    ok = np.all(lo <= hi + 1e-12, axis=1)
+    if not laws.pins and not laws.soft_xyz:
+        bounded = np.isfinite(lo) & np.isfinite(hi)
+        x = np.where(bounded, 0.5 * (np.where(bounded, lo, 0.0) + np.where(bounded, hi, 0.0)), x)
+    return np.clip(x, lo, np.maximum(lo, hi)), ok
+
+
+def score(grammar: Grammar, laws: Laws, x: FloatArray, q: FloatArray) -> FloatArray:
+    """The log-densities of every law in `laws.checks` at each pose (-inf: a law refuses it)."""
+    total = np.zeros(len(x))
+    for r, is_child, xyz, quat, m_xyz, m_quat in laws.checks:
+        rules = np.full(len(x), r, np.int64)
+        fx, fq = np.broadcast_to(xyz, x.shape), np.broadcast_to(quat, q.shape)
+        if is_child:  # the set's top is the child of the fixed pose
+            total += translation_log_density(grammar, rules, fx, fq, x)
+            total += rotation_log_density(grammar, rules, fq, q)
+        else:  # the set's member is the parent of the fixed pose
+            vx = x + quat_rotate(q, np.broadcast_to(m_xyz, x.shape))
+            vq = quat_multiply(q, np.broadcast_to(m_quat, q.shape))
+            total += translation_log_density(grammar, rules, vx, vq, fx)
+            total += rotation_log_density(grammar, rules, vq, fq)
+    return total
+
+
+def hard_poses(
+    grammar: Grammar, laws: Laws, fallback: FloatArray, keep: int
+) -> tuple[FloatArray, FloatArray]:
+    """At most `keep` poses that every law in `laws` accepts, best first."""
+    q = rotations(laws, fallback)
+    if not len(q):
+        return np.zeros((0, 3)), np.zeros((0, 4))
+    x, ok = positions(laws, q)
+    x, q = x[ok], q[ok]
+    if not len(x):
+        return x, q
+    s = score(grammar, laws, x, q)
+    good = np.flatnonzero(np.isfinite(s))
+    best = good[np.argsort(-s[good], kind="stable")][:keep]
+    return x[best], q[best]
