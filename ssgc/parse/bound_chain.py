@@ -99,8 +99,7 @@ def collapse(terms: _Terms, own_sup: float) -> ChainRows:
     b = np.einsum("nkij,nkj->ni", P, e)
     centre = np.einsum("nij,nj->ni", np.linalg.pinv(Phat), b)
     kappa_t = -0.5 * np.einsum("nki,nkij,nkj->n", e, P, e) + 0.5 * np.einsum("ni,ni->n", b, centre)
-    w, v = np.linalg.eigh(terms.B)
-    rot = w[:, -1]
+    rot = np.linalg.eigvalsh(terms.B)[:, -1]
     if np.any(terms.revolute):
         rot = np.where(terms.revolute, _arc_lmo(terms, terms.B)[1], rot)
     q = np.nan_to_num(terms.pin)
@@ -248,6 +247,7 @@ def add_chain_poses(grammar: Grammar, st, cand, bounds: dict[int, SetBound]) -> 
     for sb in bounds.values():
         best = np.argsort(-sb.upper, kind="stable")
         best = best[~sb.free_rows[best]]
+        made: dict[tuple[int, int, int], list[tuple[IntArray, FloatArray, FloatArray]]] = {}
         for k, (v, r, e_c) in enumerate(sb.slots):
             child = bounds.get(e_c)
             if child is None or child.chain is None:
@@ -261,6 +261,32 @@ def add_chain_poses(grammar: Grammar, st, cand, bounds: dict[int, SetBound]) -> 
             xyz = _child_position(grammar.rules[r].translation, child.chain, idx, xv, qv)
             quat = _child_rotation(grammar, r, child.chain, idx, qv)
             cand.add(e_c, xyz, quat)
+            earlier = made.setdefault((v, r, e_c), [])
+            for rows_0, xyz_0, quat_0 in earlier:  # copies of a `repeat` at one pose
+                _append_shared(cand, e_c, rows, xyz, quat, rows_0, xyz_0, quat_0)
+            earlier.append((rows, xyz, quat))
+
+
+MAX_SHARED_ROWS = 20  # parent rows whose `repeat` copies at one pose get their own candidates
+
+
+def _append_shared(cand, e_c, rows, xyz, quat, rows_0, xyz_0, quat_0) -> None:  # type: ignore[no-untyped-def]
+    """Where a parent row puts two copies of a `repeat` at one pose (children joined by
+    `same` to a parent between them), that pose once more, as it is: the model over
+    proposals gives a candidate to one copy only, and `Candidates.add` would merge it."""
+    from ssgc.geometry import quat_angle
+    from ssgc.laws.base import POS_TOL, ROT_TOL
+
+    at = {int(r): i for i, r in enumerate(rows_0)}
+    pairs = [(i, at[int(r)]) for i, r in enumerate(rows) if int(r) in at][:MAX_SHARED_ROWS]
+    if not pairs:
+        return
+    i, j = np.array(pairs).T
+    same = np.linalg.norm(xyz[i] - xyz_0[j], axis=1) <= POS_TOL
+    same &= quat_angle(quat[i], quat_0[j]) <= ROT_TOL
+    if np.any(same):
+        cand.xyz[e_c] = np.vstack([cand.xyz[e_c], xyz[i[same]]])
+        cand.quat[e_c] = np.vstack([cand.quat[e_c], quat[i[same]]])
 
 
 def _child_position(law, lift: Lifted, idx, xv, qv) -> FloatArray:  # type: ignore[no-untyped-def]
