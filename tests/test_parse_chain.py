@@ -71,7 +71,7 @@ def chain_grammar(edges, rotations, copies: bool) -> tuple[str, list]:
     return yaml.safe_dump(spec, default_flow_style=None), [(p, m) for _, p, m in made]
 
 
-def least_squares_map(grammar, scene, edges) -> float:  # noqa: ANN001
+def least_squares_map(grammar, scene, edges) -> float:
     """The sampled tree with every latent position at the chain's least-squares optimum,
     scored by the grammar: the MAP of a chain whose rotations do not move the score.  Each
     L1 and its L2 children are one linear system (the same on every axis): minimise
@@ -87,9 +87,9 @@ def least_squares_map(grammar, scene, edges) -> float:  # noqa: ANN001
         n = 1 + (0 if a2 is None else len(l2s))
         H, g = np.zeros((n, n)), np.zeros((n, 3))
 
-        def add(v: np.ndarray, k: np.ndarray, prec: float) -> None:
-            H[:] += prec * np.outer(v, v)
-            g[:] -= prec * np.outer(v, k)
+        def add(v: np.ndarray, k: np.ndarray, prec: float, H=H, g=g) -> None:  # noqa: N803
+            H += prec * np.outer(v, v)
+            g -= prec * np.outer(v, k)
 
         v = np.zeros(n)
         v[0] = 1.0
@@ -159,7 +159,7 @@ def test_repeat_of_latent_children_joined_by_same():
         ({"revolute": {"axis": [0, 1, 1], "min": -0.4, "max": 0.7}}, ROTATIONS[1], "uniform"),
         copies=True,
     )
-    assert check_chain(text, edges, 8, seed=180) >= 5
+    assert check_chain(text, edges, 6, seed=180) >= 4
 
 
 MEANS = ([0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [1.0, 0.5, 0.0])

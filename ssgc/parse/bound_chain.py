@@ -130,9 +130,7 @@ def lifted(bound: SetBound, rows: ChainRows, source: IntArray) -> Lifted:
 def children_to_lift(st, e: int, chains: dict[int, Lifted]) -> dict[int, Lifted]:  # type: ignore[no-untyped-def]
     """The decoupled child sets directly below set e whose rows can join e's assignments."""
     return {
-        e_c: lift
-        for e_c, lift in chains.items()
-        if int(st.set_of[st.parent[st.set_top[e_c]]]) == e
+        e_c: lift for e_c, lift in chains.items() if int(st.set_of[st.parent[st.set_top[e_c]]]) == e
     }
 
 
