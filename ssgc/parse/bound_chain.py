@@ -65,6 +65,13 @@ class ChainRows:
     lo: FloatArray  # (A, 3)
     hi: FloatArray  # (A, 3)
     pin: FloatArray  # (A, 4)
+    # rows whose terms turn with a free rotation, all isotropic (`_turning`): the raw terms
+    turning: BoolArray  # (A,)
+    c: FloatArray  # (A, K, 3)
+    weight: FloatArray  # (A, K): each term's isotropic precision, 0 where absent
+    m: FloatArray  # (K, 3)
+    B: FloatArray  # (A, 4, 4)
+    base: FloatArray  # (A,): the rows' constant, without the own rule's supremum
 
 
 @dataclass(frozen=True)
@@ -105,7 +112,22 @@ def collapse(terms: _Terms, own_sup: float) -> ChainRows:
     q = np.nan_to_num(terms.pin)
     rot = np.where(pinned, np.einsum("na,nab,nb->n", q, terms.B, q), rot)
     kappa = terms.const - own_sup + kappa_t + rot
-    return ChainRows(ok, centre, Phat, kappa, terms.lo.copy(), terms.hi.copy(), terms.pin.copy())
+    iso = np.all(np.abs(P - P[..., :1, :1] * np.eye(3)) <= 1e-12 * (1 + np.abs(P)), axis=(1, 2, 3))
+    return ChainRows(
+        ok,
+        centre,
+        Phat,
+        kappa,
+        terms.lo.copy(),
+        terms.hi.copy(),
+        terms.pin.copy(),
+        ~ok & iso,
+        c.copy(),
+        P[..., 0, 0].copy(),
+        np.asarray(m, float).reshape(-1, 3),
+        terms.B.copy(),
+        terms.const - own_sup,
+    )
 
 
 def lifted(bound: SetBound, rows: ChainRows, source: IntArray) -> Lifted:
@@ -123,6 +145,12 @@ def lifted(bound: SetBound, rows: ChainRows, source: IntArray) -> Lifted:
         take(rows.lo),
         take(rows.hi),
         np.where(assigned[:, None], take(rows.pin), np.nan),
+        take(rows.turning).astype(bool) & assigned & ~bound.free_rows,
+        take(rows.c),
+        take(rows.weight),
+        rows.m,
+        take(rows.B),
+        take(rows.base),
     )
     return Lifted(bound.upper, bound.free_rows, bound.xyz, bound.quat, chain)
 
@@ -168,11 +196,14 @@ def add_column(
     local.child(r, off_t, off_q, lift.xyz[idx], lift.quat[idx], free)
     local.add(-lift.upper[idx], free)
     rows = lift.rows
+    rule = grammar.rules[r]
+    turn = on & ~free & rows.turning[idx]
+    if np.any(turn) and rule.rotation.point is not None and rule.rotation.frame == Frame.PARENT:
+        _turning(local, rule, off_t, off_q, lift, idx, turn)
     col = on & ~free & rows.ok[idx]
     if not np.any(col):
         return
     pinned = col & ~np.isnan(rows.pin[idx, 0])
-    rule = grammar.rules[r]
     cq = np.where(pinned[:, None], np.nan_to_num(rows.pin[idx]), [1.0, 0.0, 0.0, 0.0])
     local._child_rotation(r, off_q, cq, pinned)
     local.add(np.full(local.n, rule.rotation.supremum()), col & ~pinned)
@@ -220,6 +251,63 @@ def _translation(local, law, off_t, off_q, rows: ChainRows, idx, col) -> None:  
         local.box(rows.lo[idx] - law.box.hi - at, rows.hi[idx] - law.box.lo - at, exact)
     else:
         local.add(np.full(n, law.supremum()), col)
+
+
+def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # type: ignore[no-untyped-def]
+    """Rows whose child's terms turn with its rotation, where its rule fixes that rotation to
+    the parent's (R_c = R_p R_w, w = off_q ⊗ the rule's offset) and every term is isotropic.
+
+    Centred on the p-weighted means ĉ, m̄ (as `bound._isotropic_bound`), the child's terms are
+    -½ Σ p_k (|c'_k|² + |m'_k|²) + ⟨Σ p_k c'_k (R_w m'_k)ᵀ, R_p⟩ - ½ P̂ |ĉ - t_c - R_p R_w m̄|²:
+    a term linear in R_p (a Bingham-like matrix on the parent's X) and one isotropic Normal
+    term, which the rule's translation then joins as for unturned rows, its m now
+    off_t + R_w m̄ (one term per distinct m̄).  The child's own Bingham terms follow X_c =
+    L X_p Lᵀ.  Rule translations without a closed form leave the rows as they are."""
+    from ssgc.geometry import quat_multiply as qmul
+    from ssgc.parse.bound import K_ROT, _left_linear
+
+    law, form = rule.translation, rule.translation.concave_form()
+    if form is None and not (law.point is not None and law.frame == Frame.PARENT):
+        return
+    if form is not None and (law.frame == Frame.WORLD or not _isotropic(form[1])):
+        return
+    rows = lift.rows
+    n = local.n
+    w_q = qmul(np.asarray(off_q, float), rule.rotation.point)
+    Rw = quat_to_matrix(w_q)
+    p = rows.weight[idx]  # (n, K)
+    total = p.sum(axis=1)
+    share = p / np.where(total > 0, total, 1.0)[:, None]
+    c = rows.c[idx]
+    chat = np.einsum("nk,nki->ni", share, c)
+    mbar = share @ rows.m  # (n, 3)
+    c1 = c - chat[:, None, :]
+    m1 = (rows.m[None] - mbar[:, None, :]) @ Rw.T  # R_w m'_k
+    G = np.einsum("nk,nki,nkj->nij", p, c1, m1)
+    B = np.einsum("nij,ijab->nab", G, K_ROT)
+    L = _left_linear(lambda q: qmul(q, np.broadcast_to(w_q, q.shape)), 1)[0]
+    B = B + np.einsum("ba,nbc,cd->nad", L, rows.B[idx], L)
+    local.B += np.where(turn[:, None, None], B, 0.0)
+    const = -0.5 * (np.einsum("nk,nki,nki->n", p, c1, c1) + np.einsum("nk,nki,nki->n", p, m1, m1))
+    local.add(const + rows.base[idx] - lift.upper[idx] + rule.rotation.supremum(), turn)
+    if form is not None:
+        mean, Pe, c_e = form
+        local.add(np.full(n, c_e), turn)
+        Ps = _parallel(Pe, total[:, None, None] * np.eye(3))
+        shift = np.asarray(off_t, float) + (
+            quat_rotate(off_q, mean) if law.frame == Frame.PARENT else 0.0
+        )
+        centre = chat - (mean if law.frame == Frame.WORLD_OFFSET else 0.0)
+    else:
+        local.add(np.full(n, law.supremum()), turn)
+        Ps = total[:, None, None] * np.eye(3)
+        shift = np.asarray(off_t, float) + quat_rotate(off_q, law.point)
+        centre = chat
+    m_all = shift + mbar @ Rw.T
+    keys = np.round(m_all, 12)
+    for key in np.unique(keys[turn], axis=0):
+        group = turn & np.all(keys == key, axis=1)
+        local.quadratic(centre, m_all[np.flatnonzero(group)[0]], Ps, group)
 
 
 def _parallel_rows(Pe: FloatArray, Phat: FloatArray) -> FloatArray:
