@@ -183,3 +183,49 @@ def test_chain_bound_is_the_least_squares_map(l2, x, rot, copies, seed):
         [("normal_offset", [0.3, 0.0, 0.0], 0.02), l2, x], ("uniform", *rot), copies
     )
     check_chain(text, edges, 3, seed)
+
+
+# The profile's grammar 781: L2's rotation is L1's turned by a fixed offset, and L2's child
+# sits at a parent-frame Normal offset, so L2's terms turn with L1's rotation (`_turning`);
+# "free" is the same with L1's rotation uniform (the lifted term is then linear in R).
+TURNING = """
+grammar: turning
+root: L0
+types:
+  A: {observed: true}
+  B: {observed: true}
+  L0:
+    and:
+      - child: L1
+        translation: {world_normal: {mean: [0.3, -0.2, 0.1], variance: 0.01}}
+        rotation: ROT
+  L1:
+    or:
+      - child: L2
+        p: 1.0
+        translation: {world_normal_offset: {mean: [0.3, -0.2, 0.1], variance: 0.01}}
+        rotation: {offset: {rpy_deg: [0, 90, 0]}}
+  L2:
+    independent:
+      - child: B
+        p: 1.0
+        translation: {parent_normal_offset: {mean: [1.0, 0.5, 0.0], variance: 0.05}}
+        rotation: {revolute: {axis: [1, 0, 0]}}
+"""
+
+
+@pytest.mark.parametrize(
+    "rotation", ["{offset: {rpy_deg: [20, 0, 45]}}", "uniform"], ids=["pinned", "free"]
+)
+def test_child_turning_with_its_parent_is_certified(rotation):
+    grammar = compile_text(TURNING.replace("ROT", rotation))
+    parser = Parser(grammar, method="micp")
+    certified = 0
+    for scene in sampled_scenes(grammar, 5, seed=781, max_objects=3):
+        truth = float(scene.log_prob)
+        result = parser.parse(scene, time_limit=20)
+        tol = TOL * max(1.0, abs(truth))
+        assert result.extra.get("bound", np.nan) >= truth - tol
+        assert result.parses and result.parses[0].score >= truth - tol
+        certified += result.status == "optimal"
+    assert certified == 5

@@ -262,15 +262,23 @@ def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # typ
     a term linear in R_p (a Bingham-like matrix on the parent's X) and one isotropic Normal
     term, which the rule's translation then joins as for unturned rows, its m now
     off_t + R_w m̄ (one term per distinct m̄).  The child's own Bingham terms follow X_c =
-    L X_p Lᵀ.  Rule translations without a closed form leave the rows as they are."""
+    L X_p Lᵀ.  Rule translations without a closed form leave the rows as they are, and so
+    does an anisotropic one where the parent's rotation is not pinned: the relaxation over X
+    (its hull shrinks |R m|) would then be looser than the child's own bound."""
     from ssgc.geometry import quat_multiply as qmul
     from ssgc.parse.bound import K_ROT, _left_linear
 
     law, form = rule.translation, rule.translation.concave_form()
     if form is None and not (law.point is not None and law.frame == Frame.PARENT):
         return
-    if form is not None and (law.frame == Frame.WORLD or not _isotropic(form[1])):
+    if form is not None and law.frame == Frame.WORLD:
         return
+    if form is not None and law.frame == Frame.PARENT and not _isotropic(form[1]):
+        return
+    if form is not None and not _isotropic(form[1]):  # exact only at a pinned parent rotation
+        turn = turn & local.pinned
+        if not np.any(turn):
+            return
     rows = lift.rows
     n = local.n
     w_q = qmul(np.asarray(off_q, float), rule.rotation.point)
@@ -330,7 +338,7 @@ def add_chain_poses(grammar: Grammar, st, cand, bounds: dict[int, SetBound]) -> 
     rule allows.  The child's own assignment poses ignore the parent, and refinement cannot
     always move a chain joined by a fixed translation, so without these `ip` may stop at a
     tree below the (tight) joint bound."""
-    for sb in bounds.values():
+    for e_p, sb in bounds.items():
         best = np.argsort(-sb.upper, kind="stable")
         best = best[~sb.free_rows[best]]
         made: dict[tuple[int, int, int], list[tuple[IntArray, FloatArray, FloatArray]]] = {}
@@ -347,10 +355,47 @@ def add_chain_poses(grammar: Grammar, st, cand, bounds: dict[int, SetBound]) -> 
             xyz = _child_position(grammar.rules[r].translation, child.chain, idx, xv, qv)
             quat = _child_rotation(grammar, r, child.chain, idx, qv)
             cand.add(e_c, xyz, quat)
+            _turned_parent(grammar, st, cand, e_p, sb, k, child.chain, rows[:MAX_TURNED])
             earlier = made.setdefault((v, r, e_c), [])
             for rows_0, xyz_0, quat_0 in earlier:  # copies of a `repeat` at one pose
                 _append_shared(cand, e_c, rows, xyz, quat, rows_0, xyz_0, quat_0)
             earlier.append((rows, xyz, quat))
+
+
+MAX_TURNED = 50  # parent rows also offered turned to their child's own rotation
+
+
+def _turned_parent(grammar, st, cand, e_p, sb, k, lift: Lifted, rows) -> None:  # type: ignore[no-untyped-def]
+    """The parent's row pose turned so that its child's own rotation (which its children's
+    laws chose, e.g. on a revolute child's arc) is the one its rule puts at its mode, and the
+    child at its best position from there.  A parent whose rotation is free in its bound
+    (a uniform law) has an arbitrary rotation at its row, from which the child's rule may not
+    reach any rotation its own children allow."""
+    from ssgc.geometry import axis_angle_to_quat, quat_conjugate
+    from ssgc.laws.rotation_revolute import RevoluteRotation
+
+    v, r, _ = sb.slots[k]
+    idx = sb.assignment[rows, k]
+    rot = grammar.rules[r].rotation
+    mode = np.array([1.0, 0.0, 0.0, 0.0])
+    if rot.point is not None and rot.frame == Frame.PARENT:
+        mode = np.asarray(rot.point, float)
+    elif isinstance(rot, RevoluteRotation):
+        angle = float(np.clip(0.0, rot.revolute.lo, rot.revolute.hi))
+        mode = axis_angle_to_quat(np.asarray(rot.axis, float)[None], np.array([angle]))[0]
+    elif rot.frame != Frame.PARENT:
+        return  # the child's rotation does not follow its parent's
+    qc = np.where(
+        (lift.rows.ok[idx] & ~np.isnan(lift.rows.pin[idx, 0]))[:, None],
+        np.nan_to_num(lift.rows.pin[idx]),
+        lift.quat[idx],
+    )
+    qv = quat_multiply(qc, quat_conjugate(np.broadcast_to(mode, qc.shape)))
+    qp = quat_multiply(qv, quat_conjugate(np.broadcast_to(st.offset_quat[v], qv.shape)))
+    xv = sb.xyz[rows] + quat_rotate(qp, st.offset_xyz[v])
+    xyz = _child_position(grammar.rules[r].translation, lift, idx, xv, qv)
+    cand.add(e_p, sb.xyz[rows], qp)
+    cand.add(sb.slots[k][2], xyz, _child_rotation(grammar, r, lift, idx, qv))
 
 
 MAX_SHARED_ROWS = 20  # parent rows whose `repeat` copies at one pose get their own candidates
