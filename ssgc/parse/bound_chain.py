@@ -352,8 +352,8 @@ def add_chain_poses(grammar: Grammar, st, cand, bounds: dict[int, SetBound]) -> 
             idx = sb.assignment[rows, k]
             xv = sb.xyz[rows] + quat_rotate(sb.quat[rows], st.offset_xyz[v])
             qv = quat_multiply(sb.quat[rows], st.offset_quat[v])
-            xyz = _child_position(grammar.rules[r].translation, child.chain, idx, xv, qv)
             quat = _child_rotation(grammar, r, child.chain, idx, qv)
+            xyz = _child_position(grammar.rules[r].translation, child.chain, idx, xv, qv, quat)
             cand.add(e_c, xyz, quat)
             _turned_parent(grammar, st, cand, e_p, sb, k, child.chain, rows[:MAX_TURNED])
             earlier = made.setdefault((v, r, e_c), [])
@@ -393,9 +393,10 @@ def _turned_parent(grammar, st, cand, e_p, sb, k, lift: Lifted, rows) -> None:  
     qv = quat_multiply(qc, quat_conjugate(np.broadcast_to(mode, qc.shape)))
     qp = quat_multiply(qv, quat_conjugate(np.broadcast_to(st.offset_quat[v], qv.shape)))
     xv = sb.xyz[rows] + quat_rotate(qp, st.offset_xyz[v])
-    xyz = _child_position(grammar.rules[r].translation, lift, idx, xv, qv)
+    quat = _child_rotation(grammar, r, lift, idx, qv)
+    xyz = _child_position(grammar.rules[r].translation, lift, idx, xv, qv, quat)
     cand.add(e_p, sb.xyz[rows], qp)
-    cand.add(sb.slots[k][2], xyz, _child_rotation(grammar, r, lift, idx, qv))
+    cand.add(sb.slots[k][2], xyz, quat)
 
 
 MAX_SHARED_ROWS = 20  # parent rows whose `repeat` copies at one pose get their own candidates
@@ -420,12 +421,22 @@ def _append_shared(cand, e_c, rows, xyz, quat, rows_0, xyz_0, quat_0) -> None:  
         cand.quat[e_c] = np.vstack([cand.quat[e_c], quat[i[same]]])
 
 
-def _child_position(law, lift: Lifted, idx, xv, qv) -> FloatArray:  # type: ignore[no-untyped-def]
-    """The child's best position given its member's pose (xv, qv) where its row has a chain
-    form; elsewhere its own assignment's position (moved by a fixed rule)."""
+def _child_position(law, lift: Lifted, idx, xv, qv, qc) -> FloatArray:  # type: ignore[no-untyped-def]
+    """The child's best position given its member's pose (xv, qv) and its own rotation qc,
+    where its row has a chain form (turning rows: at that rotation); elsewhere its own
+    assignment's position (moved by a fixed rule)."""
     rows = lift.rows
-    ok = rows.ok[idx]
-    centre, Phat = rows.centre[idx], rows.precision[idx]
+    ok = rows.ok[idx] | rows.turning[idx]
+    centre, Phat = rows.centre[idx].copy(), rows.precision[idx].copy()
+    turning = rows.turning[idx]
+    if np.any(turning):  # Σ p_k (c_k - R_c m_k) / Σ p_k, at the rotation given
+        p = rows.weight[idx]
+        total = p.sum(axis=1)
+        Rm = np.einsum("nij,kj->nki", quat_to_matrix(qc), rows.m)
+        share = p / np.where(total > 0, total, 1.0)[:, None]
+        at = np.einsum("nk,nki->ni", share, rows.c[idx] - Rm)
+        centre = np.where(turning[:, None], at, centre)
+        Phat = np.where(turning[:, None, None], total[:, None, None] * np.eye(3), Phat)
     out = lift.xyz[idx].copy()
     form = law.concave_form()
     if form is not None:
