@@ -55,8 +55,10 @@ from ssgc.parse.bound_chain import (
     add_column,
     children_to_lift,
     collapse,
+    counted_supremum,
     lifted,
     pin_column,
+    world_part,
 )
 from ssgc.parse.milp import Milp
 from ssgc.parse.posed import (
@@ -357,9 +359,7 @@ class _LocalBounds:
         False: the parent's pose is not known, and the rule counts its supremum)."""
         rule = self.g.rules[r]
         if parent is False:
-            self.const += rule.translation.supremum() + rule.rotation.supremum()
-            self._translation_exact(False)
-            self.complete = False
+            self._decoupled_prior(r)
             return
         every = np.ones(self.n, bool)
         px, pq = parent if parent is not None else (np.zeros(3), IDENTITY)
@@ -385,6 +385,27 @@ class _LocalBounds:
             self._translation_exact(False)
         self.translation_pins()
         self._prior_rotation(r, pq)
+
+    def _decoupled_prior(self, r: int) -> None:
+        """The set's own rule where its parent's pose is not known: its parts in the world
+        frame do not depend on it and enter exactly (`world_part`); the others count their
+        supremum (`counted_supremum`, what `bound_chain` takes back out when it lifts)."""
+        rule, every = self.g.rules[r], np.ones(self.n, bool)
+        law, form = rule.translation, rule.translation.concave_form()
+        if world_part(law) and form is not None:
+            self.quadratic(form[0], np.zeros(3), form[1], every)
+            self.const += form[2]
+        elif world_part(law):
+            self.box(law.box.lo, law.box.hi, every)
+            self.const += law.supremum()
+        else:
+            self.const += law.supremum()
+            self._translation_exact(False)
+        if world_part(rule.rotation):
+            self._prior_rotation(r, IDENTITY)
+        else:
+            self.const += rule.rotation.supremum()
+            self.complete = False
 
     def translation_pins(self) -> None:
         """Rows whose position is pinned and whose rotation is held to a revolute family: a
@@ -1079,8 +1100,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline, lift=None):  # ty
     assignment = assignment[keep]
     rows = None
     if parent is False:
-        own = grammar.rules[top_rule]
-        rows = collapse(terms, own.translation.supremum() + own.rotation.supremum())
+        rows = collapse(terms, counted_supremum(grammar.rules[top_rule]))
     upper, t, q = relaxed_upper_bound(terms, FW_ITERATIONS, deadline)
     bound = SetBound(columns, assignment, upper, t, q, *_placed(parent))
     xyz, quat = t, q

@@ -155,6 +155,23 @@ def lifted(bound: SetBound, rows: ChainRows, source: IntArray) -> Lifted:
     return Lifted(bound.upper, bound.free_rows, bound.xyz, bound.quat, chain)
 
 
+def world_part(law) -> bool:  # type: ignore[no-untyped-def]
+    """Whether a decoupled set's own rule holds this part (translation or rotation law)
+    exactly in the set's own bound: it is in the world frame, so its parent's pose does not
+    matter (a world Normal or box translation; any world rotation)."""
+    from ssgc.laws.base import RotationLaw
+
+    if law.frame != Frame.WORLD:
+        return False
+    return isinstance(law, RotationLaw | BoxTranslation) or law.concave_form() is not None
+
+
+def counted_supremum(rule) -> float:  # type: ignore[no-untyped-def]
+    """What a decoupled set's bound counts for its own rule's parts that are not exact."""
+    parts = (rule.translation, rule.rotation)
+    return float(sum(p.supremum() for p in parts if not world_part(p)))
+
+
 def children_to_lift(st, e: int, chains: dict[int, Lifted]) -> dict[int, Lifted]:  # type: ignore[no-untyped-def]
     """The decoupled child sets directly below set e whose rows can join e's assignments."""
     return {
@@ -205,8 +222,9 @@ def add_column(
         return
     pinned = col & ~np.isnan(rows.pin[idx, 0])
     cq = np.where(pinned[:, None], np.nan_to_num(rows.pin[idx]), [1.0, 0.0, 0.0, 0.0])
-    local._child_rotation(r, off_q, cq, pinned)
-    local.add(np.full(local.n, rule.rotation.supremum()), col & ~pinned)
+    if not world_part(rule.rotation):  # else the child's own bound holds it already
+        local._child_rotation(r, off_q, cq, pinned)
+        local.add(np.full(local.n, rule.rotation.supremum()), col & ~pinned)
     _translation(local, rule.translation, off_t, off_q, rows, idx, col)
     local.add(rows.kappa[idx] - lift.upper[idx], col)
 
@@ -214,6 +232,8 @@ def add_column(
 def _translation(local, law, off_t, off_q, rows: ChainRows, idx, col) -> None:  # type: ignore[no-untyped-def]
     """The child's rule's translation and its subtree's quadratic, maximised over the child's
     position, as terms of the parent's pose (the module's docstring)."""
+    if world_part(law):  # the child's own bound holds it already (its quadratic or box)
+        return
     n = local.n
     centre, Phat = rows.centre[idx], rows.precision[idx]
     form = law.concave_form()
@@ -222,11 +242,7 @@ def _translation(local, law, off_t, off_q, rows: ChainRows, idx, col) -> None:  
     if form is not None:
         mean, Pe, c = form
         local.add(np.full(n, c), col)
-        if law.frame == Frame.WORLD:  # independent of the parent: a number per row
-            Ps = _parallel(Pe, Phat)
-            d = mean - centre
-            local.add(-0.5 * np.einsum("ni,nij,nj->n", d, Ps, d), col)
-        elif law.frame == Frame.WORLD_OFFSET:
+        if law.frame == Frame.WORLD_OFFSET:
             local.quadratic(centre - mean, np.asarray(off_t, float), _parallel(Pe, Phat), col)
         elif _isotropic(Pe):  # parent frame, turning with the parent: isotropic is the same
             m = off_t + quat_rotate(off_q, mean)
@@ -269,13 +285,12 @@ def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # typ
     from ssgc.parse.bound import K_ROT, _left_linear
 
     law, form = rule.translation, rule.translation.concave_form()
-    if form is None and not (law.point is not None and law.frame == Frame.PARENT):
-        return
-    if form is not None and law.frame == Frame.WORLD:
+    inside = world_part(law)  # the child's own terms hold it: t_c is then free
+    if not inside and form is None and not (law.point is not None and law.frame == Frame.PARENT):
         return
     if form is not None and law.frame == Frame.PARENT and not _isotropic(form[1]):
         return
-    if form is not None and not _isotropic(form[1]):  # exact only at a pinned parent rotation
+    if not inside and form is not None and not _isotropic(form[1]):  # exact if R_p pinned
         turn = turn & local.pinned
         if not np.any(turn):
             return
@@ -298,6 +313,8 @@ def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # typ
     local.B += np.where(turn[:, None, None], B, 0.0)
     const = -0.5 * (np.einsum("nk,nki,nki->n", p, c1, c1) + np.einsum("nk,nki,nki->n", p, m1, m1))
     local.add(const + rows.base[idx] - lift.upper[idx] + rule.rotation.supremum(), turn)
+    if inside:  # no rule term for t_c: its best value leaves -½ P̂ |…|² at 0
+        return
     if form is not None:
         mean, Pe, c_e = form
         local.add(np.full(n, c_e), turn)
@@ -439,12 +456,12 @@ def _child_position(law, lift: Lifted, idx, xv, qv, qc) -> FloatArray:  # type: 
         Phat = np.where(turning[:, None, None], total[:, None, None] * np.eye(3), Phat)
     out = lift.xyz[idx].copy()
     form = law.concave_form()
-    if form is not None:
+    if world_part(law):  # the rule's term is among the child's own: Q's best point
+        out = np.where(ok[:, None], centre, out)
+    elif form is not None:
         mean, Pe, _ = form
         Rv = quat_to_matrix(qv)
-        if law.frame == Frame.WORLD:
-            a, Pw = np.broadcast_to(mean, xv.shape), np.broadcast_to(Pe, (len(xv), 3, 3))
-        elif law.frame == Frame.WORLD_OFFSET:
+        if law.frame == Frame.WORLD_OFFSET:
             a, Pw = xv + mean, np.broadcast_to(Pe, (len(xv), 3, 3))
         else:
             a, Pw = xv + Rv @ mean, np.einsum("nij,jk,nlk->nil", Rv, Pe, Rv)
