@@ -283,7 +283,7 @@ def check_sound(grammar, scenes) -> None:
             assert not bound < v.truth - TOL * max(1.0, abs(v.truth)), (method, bound, v.truth)
 
 
-@settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=2, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(spec=depth2_relative())
 def test_depth2_relative_grammars_are_sound(spec):
     check_sound(compile_spec(spec), sampled_scenes(compile_spec(spec), 2, seed=0))
