@@ -28,7 +28,7 @@ wrong one.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -48,6 +48,18 @@ from ssgc.ir import Grammar, Kind
 from ssgc.laws.base import ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.parse.bound_chain import (
+    MAX_CHAIN_ROWS,
+    ChainRows,
+    Lifted,
+    add_column,
+    children_to_lift,
+    collapse,
+    counted_supremum,
+    lifted,
+    pin_column,
+    world_part,
+)
 from ssgc.parse.bound_rotation import Rotating, rotation_search
 from ssgc.parse.milp import Milp
 from ssgc.parse.posed import (
@@ -350,9 +362,7 @@ class _LocalBounds:
         False: the parent's pose is not known, and the rule counts its supremum)."""
         rule = self.g.rules[r]
         if parent is False:
-            self.const += rule.translation.supremum() + rule.rotation.supremum()
-            self._translation_exact(False)
-            self.complete = False
+            self._decoupled_prior(r)
             return
         every = np.ones(self.n, bool)
         px, pq = parent if parent is not None else (np.zeros(3), IDENTITY)
@@ -378,6 +388,27 @@ class _LocalBounds:
             self._translation_exact(False)
         self.translation_pins()
         self._prior_rotation(r, pq)
+
+    def _decoupled_prior(self, r: int) -> None:
+        """The set's own rule where its parent's pose is not known: its parts in the world
+        frame do not depend on it and enter exactly (`world_part`); the others count their
+        supremum (`counted_supremum`, what `bound_chain` takes back out when it lifts)."""
+        rule, every = self.g.rules[r], np.ones(self.n, bool)
+        law, form = rule.translation, rule.translation.concave_form()
+        if world_part(law) and form is not None:
+            self.quadratic(form[0], np.zeros(3), form[1], every)
+            self.const += form[2]
+        elif world_part(law):
+            self.box(law.box.lo, law.box.hi, every)
+            self.const += law.supremum()
+        else:
+            self.const += law.supremum()
+            self._translation_exact(False)
+        if world_part(rule.rotation):
+            self._prior_rotation(r, IDENTITY)
+        else:
+            self.const += rule.rotation.supremum()
+            self.complete = False
 
     def translation_pins(self) -> None:
         """Rows whose position is pinned and whose rotation is held to a revolute family: a
@@ -810,6 +841,7 @@ class SetBound:
     parent: tuple[FloatArray, FloatArray] | None  # the pose the set's own rule is scored at
     decoupled: bool = False  # the parent's pose is unknown: its rule counts its supremum
     free: NDArray[np.bool_] | None = None  # (A,) rows at a pose an observed member implies
+    chain: Lifted | None = None  # a decoupled set lifted into its parent's rows (bound_chain)
 
     @property
     def free_rows(self) -> NDArray[np.bool_]:
@@ -820,21 +852,31 @@ class SetBound:
 def set_bounds(
     grammar: Grammar, st: Supertree, cand: Candidates, deadline: float | None = None
 ) -> dict[int, SetBound] | None:
-    """Bounds for every latent set, or None when some latent set is outside the scope."""
+    """Bounds for every latent set, or None when some latent set is outside the scope.
+
+    Children's sets come first: a decoupled child set (placed relative to a latent parent)
+    is lifted into its parent's assignments where that stays small (`bound_chain`)."""
     out: dict[int, SetBound] = {}
     latent = latent_sets(st)
-    memo: dict[tuple, SetBound] = {}
-    for e in np.flatnonzero(latent):
-        groups = _groups(grammar, st, int(e), latent)
+    memo: dict[tuple, tuple[SetBound, ChainRows | None]] = {}
+    chains: dict[int, Lifted] = {}
+    for e in np.flatnonzero(latent)[::-1]:
         parent = known_parent(grammar, st, cand, int(e))
+        lift = children_to_lift(st, int(e), chains)
+        groups, seen = _lift_groups(grammar, st, cand, int(e), latent, lift)
         if groups is None:
             return None
+        lift = {e_c: lift[e_c] for e_c in lift if e_c in seen}
         key = (
             int(st.type[st.set_top[e]]),
             int(st.rule[st.set_top[e]]),
             parent if parent in (None, False) else (parent[0].tobytes(), parent[1].tobytes()),
             tuple(
-                (cand.xyz[c].tobytes(), cand.quat[c].tobytes()) for *_, c, _, _ in groups if c >= 0
+                (seen[c].xyz.tobytes(), seen[c].upper.tobytes())
+                if c in seen
+                else (cand.xyz[c].tobytes(), cand.quat[c].tobytes())
+                for *_, c, _, _ in groups
+                if c >= 0
             ),
             (cand.xyz[e].tobytes(), cand.quat[e].tobytes()),
             tuple(
@@ -843,15 +885,43 @@ def set_bounds(
             ),
         )  # the copies of a `repeat` share one computation
         if key not in memo:
-            bound = _bound_one(grammar, st, cand, int(e), groups, parent, deadline)
-            if bound is None:
+            made = _bound_one(grammar, st, cand, int(e), groups, parent, deadline, lift)
+            if made is None:
                 return None
-            memo[key] = bound
-        m = _copies_apart(memo[key], _copies(st, int(e)))
+            memo[key] = made
+        bound, rows = memo[key]
+        source = _copies_rows(bound, _copies(st, int(e)))
+        m = _copies_apart(bound, source)
         placed = None if parent is False else parent
         out[int(e)] = SetBound(
             _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False, m.free
         )
+        if parent is False and rows is not None:
+            chains[int(e)] = lifted(out[int(e)], rows, source)
+            out[int(e)] = replace(out[int(e)], chain=chains[int(e)])
+    return dict(sorted(out.items()))
+
+
+def _lift_groups(grammar, st, cand, e, latent, lift):  # type: ignore[no-untyped-def]
+    """Set e's groups with its decoupled child sets lifted in (`bound_chain`), when the
+    assignments stay within MAX_CHAIN_ROWS; else the groups without them.  Returns the groups
+    and the lifted children that are columns."""
+    if lift:
+        groups = _groups(grammar, st, e, latent, frozenset(lift))
+        if groups is not None:
+            made = _assignments(_lifted_candidates(cand, lift), groups)
+            if made is not None and len(made[1]) <= MAX_CHAIN_ROWS:
+                return groups, lift
+    return _groups(grammar, st, e, latent), {}
+
+
+def _lifted_candidates(cand: Candidates, lift: dict[int, Lifted]) -> Candidates:
+    """The candidates with each lifted child set's replaced by its rows' poses."""
+    if not lift:
+        return cand
+    out = Candidates(list(cand.xyz), list(cand.quat))
+    for e_c, rows in lift.items():
+        out.xyz[e_c], out.quat[e_c] = rows.xyz, rows.quat
     return out
 
 
@@ -862,17 +932,25 @@ def _copies(st: Supertree, e: int) -> int:
     return sum(1 for c in st.children[parent] if st.rule[c] == st.rule[top])
 
 
-def _copies_apart(bound: SetBound, copies: int) -> SetBound:
-    """The bound with each assignment that names no child repeated `copies` times.
+def _copies_rows(bound: SetBound, copies: int) -> IntArray:
+    """The rows of `_copies_apart`'s bound, as indices of `bound`'s rows."""
+    n = len(bound.assignment)
+    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1) & ~bound.free_rows)
+    if copies < 2 or not len(empty):
+        return np.arange(n)
+    return np.concatenate([np.arange(n), np.repeat(empty, copies - 1)])
+
+
+def _copies_apart(bound: SetBound, rows: IntArray) -> SetBound:
+    """The bound with each assignment that names no child repeated once per further copy of
+    a `repeat` (`_copies_rows`).
 
     The unrolled model gives a `repeat`'s copies distinct candidates.  Assignments that name
     an object are distinct by nature (an object has one parent), but several copies may take
     the same childless assignment (two latent nodes with the same best pose): without the
     repeats, a tree using it twice would have no encoding and the bound could miss it."""
-    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1) & ~bound.free_rows)
-    if copies < 2 or not len(empty):
+    if len(rows) == len(bound.assignment):
         return bound
-    rows = np.concatenate([np.arange(len(bound.assignment)), np.repeat(empty, copies - 1)])
     return SetBound(
         bound.slots,
         bound.assignment[rows],
@@ -885,7 +963,13 @@ def _copies_apart(bound: SetBound, copies: int) -> SetBound:
     )
 
 
-def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):  # type: ignore[no-untyped-def]
+def _groups(  # type: ignore[no-untyped-def]
+    grammar: Grammar,
+    st: Supertree,
+    e: int,
+    latent: NDArray[np.bool_],
+    lifted: frozenset[int] = frozenset(),
+):
     """(kind, member, rule, child set, copies, optional) per rule leaving the set.
 
     A member is *optional* when it may be inactive while the set's top is active (below an
@@ -893,7 +977,8 @@ def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):
     as well (`_member_rows`).  Rows that switch a member's columns on while the MILP leaves
     the member off encode no tree the rows do not already hold at an exact score (the
     member's children stay off), so they only add encodings: the bound stays an upper bound.
-    A latent child set holds its own edge (its bound: see `set_bounds`), so it has no column.
+    A latent child set holds its own edge (its bound: see `set_bounds`), so it has no column,
+    unless it is `lifted` (`bound_chain`): its rows are then this set's candidates.
     """
     groups = []
     sure = {int(st.set_top[e])}
@@ -912,7 +997,7 @@ def _groups(grammar: Grammar, st: Supertree, e: int, latent: NDArray[np.bool_]):
                 if node.kind == Kind.AND and not optional:
                     sure.update(kids)
                 continue
-            if latent[e_c]:  # its own bound holds the edge (see `set_bounds`): no column here
+            if latent[e_c] and e_c not in lifted:  # its own bound holds the edge: no column
                 inner = True
                 continue
             groups.append((node.kind, v, r, e_c, tuple(kids), optional))
@@ -1020,7 +1105,11 @@ def _assignments(cand: Candidates, groups) -> tuple[tuple, IntArray] | None:  # 
     return columns, assignment.astype(np.int64)
 
 
-def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[no-untyped-def]
+def _bound_one(grammar, st, cand, e, groups, parent, deadline, lift=None):  # type: ignore[no-untyped-def]
+    """Set e's bound over its assignments, and (for the chain above it) its rows' chain form
+    (`bound_chain.collapse`, only where its parent's pose is not known)."""
+    lift = lift or {}
+    cand = _lifted_candidates(cand, lift)
     made = _assignments(cand, groups)
     if made is None:
         return None
@@ -1036,16 +1125,26 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
         idx = np.maximum(assignment[:, k], 0)
         cx = cand.xyz[e_c][idx] if len(cand.xyz[e_c]) else np.zeros((n, 3))
         cq = cand.quat[e_c][idx] if len(cand.quat[e_c]) else np.tile(IDENTITY, (n, 1))
-        picked.append((v, r, on, cx, cq))
+        picked.append((v, r, e_c, on, idx, cx, cq))
+        if e_c in lift:
+            pin_column(local, lift[e_c], r, st.offset_xyz[v], st.offset_quat[v], idx, on)
+            continue
         local.fixed_children.append((r, st.offset_xyz[v], st.offset_quat[v], cx, on))
         local.child_pin(r, st.offset_quat[v], cq, on)
         local.child_family(r, st.offset_quat[v], cq, on)
     local.prior(top_rule, parent)
-    for v, r, on, cx, cq in picked:
-        local.child(r, st.offset_xyz[v], st.offset_quat[v], cx, cq, on)
+    for v, r, e_c, on, idx, cx, cq in picked:
+        if e_c in lift:
+            off_t, off_q = st.offset_xyz[v], st.offset_quat[v]
+            add_column(local, grammar, lift[e_c], r, off_t, off_q, idx, on)
+        else:
+            local.child(r, st.offset_xyz[v], st.offset_quat[v], cx, cq, on)
     keep = local.feasible()
     terms = _subset(local.terms(), keep)
     assignment = assignment[keep]
+    rows = None
+    if parent is False:
+        rows = collapse(terms, counted_supremum(grammar.rules[top_rule]))
     upper, t, q = relaxed_upper_bound(terms, FW_ITERATIONS, deadline)
     # rows the relaxation holds loosely (rotating precisions, revolute arcs): branch-and-bound
     upper, t, q = rotation_search(terms, local.rotating().subset(keep), upper, t, q, deadline)
@@ -1058,7 +1157,8 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline):  # type: ignore[
         edges = local_edges(grammar, st, cand, top_rule, bound)
         xyz, quat = _revolute_search(grammar, terms, edges, xyz, quat, deadline)
     bound = SetBound(columns, assignment, upper, xyz, quat, *_placed(parent))
-    return _with_implied(bound, _implied_rows(grammar, cand, e, top_rule, parent, len(columns)))
+    implied = _implied_rows(grammar, cand, e, top_rule, parent, len(columns))
+    return _with_implied(bound, implied), rows
 
 
 FREE = FREE_CHILD  # a free row's columns: any candidate child, scored exactly

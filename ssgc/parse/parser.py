@@ -31,6 +31,7 @@ from ssgc.parse.bound import (
     certify_only,
     set_bounds,
 )
+from ssgc.parse.bound_chain import add_chain_poses
 from ssgc.parse.clock import OutOfTime, check_deadline
 from ssgc.parse.highs import HighsSession
 from ssgc.parse.ip import SetReduction, UnparseableScene
@@ -301,6 +302,7 @@ class Parser:
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline, stop)
         if bounds is not None:  # they only certify; their poses join the proposals
             add_assignment_poses(cand, bounds)
+            add_chain_poses(g, st, cand, bounds)
             _repeat_empty_poses(cand, bounds)
         return bounds
 
