@@ -33,6 +33,7 @@ from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
 from ssgc.laws.base import Context, Deviation, Frame, percent
 from ssgc.observation import clutter_nodes
+from ssgc.overlaps import overlaps
 from ssgc.rules import (
     rotation_coordinates,
     rotation_log_density,
@@ -47,6 +48,10 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 MC_DRAWS = 4000  # draws per rule for expected log-densities and rotation percentiles
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+# Overlaps of objects the tree does not relate (docs/explain.md, "Overlaps"): depth beyond the
+# tolerance, in nats per OVERLAP_SCALE metres.  Calibrated on the real sink scenes 0-39.
+OVERLAP_TOLERANCE = 0.0  # m
+OVERLAP_SCALE = 0.01  # m per nat
 
 
 @dataclass
@@ -84,6 +89,7 @@ class ObjectExplanation:
     pose_gain: float
     reasons: list[Reason] = field(default_factory=list)
     slot_surprise: float = 0.0  # placement by an `or` of placing rules vs. its expectation
+    overlap: float = 0.0  # nats for overlapping objects the tree does not relate (overlaps.py)
     unexplained: bool = False  # the best parse leaves it to clutter (`observation: clutter`)
 
     @property
@@ -98,6 +104,7 @@ class ObjectExplanation:
             "unusual": self.unusual,
             "pose_gain": self.pose_gain,
             "slot_surprise": self.slot_surprise,
+            "overlap": self.overlap,
             "unexplained": self.unexplained,
             "reasons": [r.to_json() for r in self.reasons],
         }
@@ -230,6 +237,10 @@ def explain_tree(
     for o, surprise in slot_surprises(grammar, tree, terms, obj_of, weights, expect).items():
         objects[o].slot_surprise = surprise
         objects[o].unusual = max(objects[o].unusual, surprise)
+    for o, (nats, reasons) in overlap_reasons(grammar, scene, tree, obj_of).items():
+        objects[o].overlap = nats
+        objects[o].unusual += nats  # evidence from contact, apart from the grammar's densities
+        objects[o].reasons += reasons
     for o in unexplained_objects(grammar, scene, tree):
         objects[o].unexplained = True
     unattributed = -log_prob if len(scene) == 0 else 0.0
@@ -280,6 +291,29 @@ def slot_surprises(
         surprise = -(choice[i] + placement[c]) - expect.mixture(int(tree.type[i]))
         for o in np.flatnonzero(weights[c]):
             out[int(o)] = max(out.get(int(o), -np.inf), float(weights[c][o]) * surprise)
+    return out
+
+
+def overlap_reasons(
+    grammar: Grammar, scene: Scene, tree: Trees, obj_of: IntArray
+) -> dict[int, tuple[float, list[Reason]]]:
+    """Each object's nats for the overlaps the tree does not account for (`ssgc.overlaps`:
+    the grammar's `non_penetration` constraints, pairs that neither carries the other), and a
+    reason per overlap.  Nats are the depth over a tolerance, per `OVERLAP_SCALE`
+    (docs/explain.md, "Overlaps": calibrated on the real sink scenes, whose unrelated overlaps
+    are few and shallow); each object of a pair gets them, and an object's overlaps add up."""
+    out: dict[int, tuple[float, list[Reason]]] = {}
+    names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
+    for v in overlaps(grammar, scene, tree, blocks(grammar, tree), obj_of):
+        nats = max(0.0, v.depth - OVERLAP_TOLERANCE) / OVERLAP_SCALE
+        for me, other in ((v.a, v.b), (v.b, v.a)):
+            text = (
+                f"overlaps {names[other]} by {100 * v.depth:.1f} cm, though neither carries "
+                f"the other ({v.constraint}: {nats:.2f} nats)"
+            )
+            reason = Reason(v.constraint, "overlap", -nats, 0.0, nats, None, None, text)
+            total, reasons = out.get(me, (0.0, []))
+            out[me] = (total + nats, [*reasons, reason])
     return out
 
 
