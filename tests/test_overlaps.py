@@ -57,7 +57,7 @@ def parsed(g, scene):
 def test_an_object_overlapping_unrelated_ones_ranks_first_and_a_stack_is_not_penalised(
     sink, crowded_parse
 ):
-    scene, tree, obj_of = crowded_parse
+    scene, tree, _ = crowded_parse
     e = explain_tree(sink, scene, tree)
     first = e.objects[0]
     assert first.index == 4
