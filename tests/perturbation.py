@@ -105,6 +105,7 @@ def run(
             continue
         first = unparseable = named = detectable = first_detectable = above_natural = 0
         first_plain = 0  # ranked first without the slot surprise (unparseable ones added below)
+        first_no_overlap = 0  # ranked first without the overlap reason (likewise)
         misses = []
         retypes = {"within": [0, 0], "across": [0, 0]}  # [ranked first, changed] per kind
         for j, scene in enumerate(scenes):
@@ -117,6 +118,8 @@ def run(
                 ok = bool(e.objects[0].index == o)
                 plain = max(e.objects, key=lambda x: (without_slot_surprise(x), -x.index))
                 first_plain += bool(not e.objects[0].unexplained and plain.index == o)
+                bare = max(e.objects, key=lambda x: (x.unusual - x.overlap, -x.index))
+                first_no_overlap += bool(not e.objects[0].unexplained and bare.index == o)
                 mine = next(x.unusual for x in e.objects if x.index == o)
                 above_natural += bool(mine > natural[j])
                 drop = base[j].parses[0].score - result.parses[0].score
@@ -150,6 +153,7 @@ def run(
             "rate": first / len(scenes),
             "ranked_first": first,
             "ranked_first_without_slot_surprise": first_plain + named,
+            "ranked_first_without_overlap": first_no_overlap + named,
             "unparseable": unparseable,
             "unparseable_named_exactly": named,
             "parsed_and_detectable": detectable,
