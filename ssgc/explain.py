@@ -15,6 +15,8 @@ Two numbers per object, for two questions (docs/explain.md):
   while a child's own move fixes only its edge.  Under the grammar this gain is about half a
   χ² with 3 degrees of freedom per move (mean ≈ 1.5 nats) for any object, so objects compare.
   Discrete terms add their surprise over their expectation (−log P − entropy, when positive).
+  Where the grammar declares `non_penetration`, overlaps with objects the tree does not relate
+  add their nats too (`overlap_reasons`).
 """
 
 from __future__ import annotations
