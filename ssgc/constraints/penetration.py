@@ -35,21 +35,28 @@ class NonPenetration(Constraint):
     screened: list[int] = field(default_factory=lambda: [0, 0], compare=False)
 
     def margin(self, batch: Any) -> FloatArray:
+        i, _, dist = self.pair_distances(batch)
+        return per_scene_min(batch.scene[i], dist - self.gap, batch.n_scenes)
+
+    def pair_distances(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatArray]:
+        """(i, j, distance) for every non-exempt pair: FCL's signed distance (minus the
+        penetration depth when they collide) for pairs closer than `SCREEN` beyond the gap,
+        their bounding spheres' gap (a lower bound) for the others.  `ssg explain` reads the
+        pairs (ssgc/overlaps.py)."""
         assert self.pairs_of is not None
         i, j = self.pairs_of.pairs(batch)
         r = self.pairs_of.radius
-        sphere_gap = (
+        dist = (
             np.linalg.norm(batch.xyz[i] - batch.xyz[j], axis=1)
             - r[batch.type[i]]
             - r[batch.type[j]]
         )
-        value = sphere_gap - self.gap
-        near = np.flatnonzero(sphere_gap < self.gap + SCREEN)
+        near = np.flatnonzero(dist < self.gap + SCREEN)
         self.screened[0] += len(i)
         self.screened[1] += len(near)
         if len(near):
-            value[near] = self._distances(batch, i[near], j[near]) - self.gap
-        return per_scene_min(batch.scene[i], value, batch.n_scenes)
+            dist[near] = self._distances(batch, i[near], j[near])
+        return i, j, dist
 
     def _distances(self, batch: Any, i: NDArray[np.int64], j: NDArray[np.int64]) -> FloatArray:
         import fcl

@@ -1,0 +1,106 @@
+"""The overlap reason of `ssg explain` (ssgc/overlaps.py, docs/explain.md "Overlaps"): objects
+that overlap under the grammar's `non_penetration` constraint while the parse relates neither
+to the other."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import GRAMMARS
+
+from ssgc.compile import load_grammar
+from ssgc.constraints.penetration import NonPenetration
+from ssgc.explain import blocks, explain_tree, match_objects
+from ssgc.io.scene import Scene
+from ssgc.overlaps import overlaps, related
+from ssgc.parse.parser import Parser
+
+pytest.importorskip("fcl")
+
+
+@pytest.fixture(scope="module")
+def sink():
+    return load_grammar(GRAMMARS / "sink_detailed.yaml")
+
+
+def crowded(g, middle_x: float = 0.5) -> Scene:
+    """The bin; a bowl on a plate (their solid cylinders overlap, as nested dishes do in the
+    real scenes); three mugs (radius 4.5 cm) on the floor in a row at x = 0.45, `middle_x`,
+    0.55: at 0.5 the middle one overlaps each neighbour by 4 cm."""
+    names = ["DishBin", "PlateRoomEssentialsSaladTurquoise", "BowlColeHardwareScirocco"]
+    names += ["MugThresholdBeadWhite"] * 3
+    xyz = np.array(
+        [
+            [0.5, 0.0, 0.0],
+            [0.40, -0.15, 0.015],
+            [0.40, -0.15, 0.035],
+            [0.45, 0.0, 0.016],
+            [middle_x, 0.0, 0.016],
+            [0.55, 0.0, 0.016],
+        ]
+    )
+    types = np.array([g.type_ids[n] for n in names])
+    return Scene("crowded", types, xyz, np.tile([1.0, 0.0, 0.0, 0.0], (len(names), 1)))
+
+
+@pytest.fixture(scope="module")
+def crowded_parse(sink):
+    scene = crowded(sink)  # mug 4 overlaps mugs 3 and 5 by 4 cm each
+    return (scene, *parsed(sink, scene))
+
+
+def parsed(g, scene):
+    tree = Parser(g).parse(scene, top=1).parses[0].tree
+    return tree, match_objects(g, scene, tree)
+
+
+def test_an_object_overlapping_unrelated_ones_ranks_first_and_a_stack_is_not_penalised(
+    sink, crowded_parse
+):
+    scene, tree, _ = crowded_parse
+    e = explain_tree(sink, scene, tree)
+    first = e.objects[0]
+    assert first.index == 4
+    words = [r.text for r in first.reasons if r.kind == "overlap"]
+    assert len(words) == 2 and all("neither carries the other" in w for w in words)
+    assert "MugThresholdBeadWhite #3" in " ".join(words)
+    by_index = {o.index: o for o in e.objects}
+    assert first.overlap > by_index[3].overlap > 0
+    # the bowl lies on the plate: their primitives overlap, but the tree carries one on the other
+    check = next(c for c in sink.constraints if isinstance(c, NonPenetration))
+    i, j, dist = check.pair_distances(_batch(scene))
+    pair = np.flatnonzero(((i == 1) & (j == 2)) | ((i == 2) & (j == 1)))
+    assert dist[pair[0]] < -0.01
+    assert by_index[1].overlap == by_index[2].overlap == 0.0
+    assert not [r for r in by_index[2].reasons if r.kind == "overlap"]
+    assert e.to_json()["objects"][0]["overlap"] == pytest.approx(first.overlap)
+
+
+def test_overlap_nats_grow_with_depth(sink):
+    """Deeper overlap, more nats: the middle mug pushed further into mug 3 (the nats of mug 3,
+    which overlaps only the middle one)."""
+    nats, depth = [], []
+    for x in (0.53, 0.49):
+        scene = crowded(sink, middle_x=x)
+        tree, obj_of = parsed(sink, scene)
+        found = overlaps(sink, scene, tree, blocks(sink, tree), obj_of)
+        depth.append(sum(v.depth for v in found if 3 in (v.a, v.b)))
+        nats.append({o.index: o for o in explain_tree(sink, scene, tree).objects}[3].overlap)
+    assert depth == pytest.approx([0.01, 0.05], abs=1e-3)
+    assert 0 < nats[0] < nats[1]
+
+
+def test_related_pairs_are_carrier_and_carried(sink, crowded_parse):
+    scene, tree, obj_of = crowded_parse
+    rel = related(tree, blocks(sink, tree), obj_of, len(scene))
+    assert rel[1, 2] and rel[2, 1]  # the bowl on the plate
+    assert rel[0, 1] and rel[0, 4]  # the bin carries everything
+    assert not rel[3, 4] and not rel[1, 3]
+    assert not rel.diagonal().any()
+
+
+class _batch:
+    def __init__(self, scene: Scene) -> None:
+        n = len(scene)
+        self.xyz, self.quat, self.type = scene.xyz, scene.quat, scene.types
+        self.scene, self.parent, self.n_scenes = np.zeros(n, np.int64), np.full(n, -1), 1
