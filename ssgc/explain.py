@@ -15,6 +15,8 @@ Two numbers per object, for two questions (docs/explain.md):
   while a child's own move fixes only its edge.  Under the grammar this gain is about half a
   χ² with 3 degrees of freedom per move (mean ≈ 1.5 nats) for any object, so objects compare.
   Discrete terms add their surprise over their expectation (−log P − entropy, when positive).
+  Two other views of the same question can rank it higher: the *slot surprise* (an unusual
+  choice among placing rules) and the *type gain* (the scene with the object of another type).
 """
 
 from __future__ import annotations

@@ -135,6 +135,9 @@ def run(
                 tally[0] += ok
                 tally[1] += 1
             detail = f"unusual {mine:.2f} natural {natural[j]:.2f}" if result.parses else ""
+            if kind == "retype":
+                was, now = g.types[scene.types[o]].name, g.types[changed.types[o]].name
+                detail += f" {was} -> {now} ({'within' if same else 'across'})"
             print(
                 kind,
                 i,

@@ -403,6 +403,7 @@ def test_explain_json_shape(dinner, tmp_path):
     assert doc["nats_per_object"] == pytest.approx(doc["neg_log_prob"] / 6)
     for o in objects:
         assert o["type"] in ("Plate", "Mug")
+        assert o["type_gain"] is None or o["type_gain"] < 0  # no other type fits better
         for r in o["reasons"]:
             assert set(r) >= {"rule", "kind", "log_prob", "share", "sigma", "percentile", "text"}
             assert r["kind"] in ("position", "rotation", "count", "choice")
