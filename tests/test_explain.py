@@ -332,14 +332,21 @@ def test_unchanged_objects_gain_nothing_from_another_type(tableware):
     assert {o.index: o.better_type for o in e.objects}[3] == "MugWhite"
 
 
-def test_model_swaps_need_no_parser(tableware):
-    """Without a parser only the swaps within the tree are scored: the mugs' models."""
-    scene = tableware_scene(tableware)
-    tree = Parser(tableware).parse(scene, top=1).parses[0].tree
-    by_index = {o.index: o for o in explain_tree(tableware, scene, tree).objects}
+@settings(max_examples=6, deadline=None)
+@given(st.floats(0.05, 0.95))
+def test_a_model_swap_gains_the_ratio_of_the_model_probabilities(white):
+    """Without a parser only the swaps within the tree are scored (the mugs' models): the gain
+    of a white mug as a blue one is log(P(blue) / P(white)), and the plates get none."""
+    probs = f"{{child: MugWhite, p: {white}}}", f"{{child: MugBlue, p: {1 - white}}}"
+    mugs = TABLEWARE.replace("{child: MugWhite, p: 0.7}", probs[0])
+    g = compile_text(mugs.replace("{child: MugBlue, p: 0.3}", probs[1]))
+    scene = tableware_scene(g)
+    tree = Parser(g).parse(scene, top=1).parses[0].tree
+    by_index = {o.index: o for o in explain_tree(g, scene, tree).objects}
     assert by_index[0].type_gain is None and by_index[1].type_gain is None
-    assert by_index[2].type_gain == pytest.approx(np.log(0.3 / 0.7))
-    assert by_index[2].better_type == "MugBlue"
+    assert by_index[2].type_gain == pytest.approx(np.log((1 - white) / white))
+    assert by_index[3].type_gain == pytest.approx(np.log(white / (1 - white)))
+    assert (by_index[2].better_type, by_index[3].better_type) == ("MugBlue", "MugWhite")
 
 
 # ------------------------------------------------------- no parse: the diagnosis ---
