@@ -585,7 +585,7 @@ def _mode_rotation(grammar: Grammar, r: int, pquat: FloatArray) -> FloatArray | 
 
 # ------------------------------------------------------------ type repair ---
 
-RETYPE_TIME = 10.0  # s: default bound of each parse of a retyped scene (`type_gains`)
+RETYPE_TIME = 60.0  # s, wall clock: the default bound of each parse of a retyped scene
 
 
 @dataclass
