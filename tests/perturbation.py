@@ -34,7 +34,7 @@ FIT = ("--top", "1", "--iterations", "3")
 # retype fall short.
 FLOORS = {"move": 0.58, "flip": 0.65, "retype": 0.55}
 # Retype with the type gain (docs/explain.md, "Retype with the type gain"): measured 27 / 36 on
-# scenes 0-35 and 4 / 9 on the scenes of 40-79 that finished under load (31 / 45), less a margin.
+# scenes 0-35 and 5 / 13 on the scenes of 40-79 that finished under load (32 / 49), less a margin.
 FLOORS["retype"] = 0.6
 DETECTABLE = 2.0  # nats: the change lowers the best tree's log-probability at least this much
 SINK = "ssgc/data/sink/saved_scenes.yaml"
