@@ -15,6 +15,8 @@ Two numbers per object, for two questions (docs/explain.md):
   while a child's own move fixes only its edge.  Under the grammar this gain is about half a
   χ² with 3 degrees of freedom per move (mean ≈ 1.5 nats) for any object, so objects compare.
   Discrete terms add their surprise over their expectation (−log P − entropy, when positive).
+  Two other views of the same question can rank it higher: the *slot surprise* (an unusual
+  choice among placing rules) and the *type gain* (the scene with the object of another type).
   Where the grammar declares `non_penetration`, overlaps with objects the tree does not relate
   add their nats too (`overlap_reasons`).
 """
@@ -43,7 +45,7 @@ from ssgc.rules import (
     translation_coordinates,
     translation_log_density,
 )
-from ssgc.score import node_terms
+from ssgc.score import node_terms, score_trees
 from ssgc.tree import Trees
 
 FloatArray = NDArray[np.float64]
@@ -94,6 +96,8 @@ class ObjectExplanation:
     slot_surprise: float = 0.0  # placement by an `or` of placing rules vs. its expectation
     overlap: float = 0.0  # nats for overlapping objects the tree does not relate (overlaps.py)
     unexplained: bool = False  # the best parse leaves it to clutter (`observation: clutter`)
+    type_gain: float | None = None  # log p gained as its best other type (None: none tried)
+    better_type: str | None = None  # that type
 
     @property
     def label(self) -> str:
@@ -109,6 +113,8 @@ class ObjectExplanation:
             "slot_surprise": self.slot_surprise,
             "overlap": self.overlap,
             "unexplained": self.unexplained,
+            "type_gain": self.type_gain,
+            "better_type": self.better_type,
             "reasons": [r.to_json() for r in self.reasons],
         }
 
@@ -145,6 +151,10 @@ class Explanation:
         for o in self.objects[:limit]:
             clutter = " UNEXPLAINED (clutter)," if o.unexplained else ""
             lines.append(f"  {o.label}:{clutter} unusual {o.unusual:.2f}, share {o.share:.3f}")
+            if o.type_gain is not None and o.type_gain > 0:
+                lines.append(
+                    f"    would fit its place better as a {o.better_type} (+{o.type_gain:.1f} nats)"
+                )
             for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
                 lines.append(f"    {r.text}")
         if self.rules:
@@ -239,7 +249,11 @@ def explain_tree(
         objects[o].unusual += gain
     for o, surprise in slot_surprises(grammar, tree, terms, obj_of, weights, expect).items():
         objects[o].slot_surprise = surprise
-        objects[o].unusual = max(objects[o].unusual, surprise)
+    for o, fix in type_gains(grammar, scene, tree, obj_of, log_prob, parser, time_limit).items():
+        objects[o].type_gain = fix.gain
+        objects[o].better_type = grammar.types[fix.type].name
+    for o in objects:  # the evidence that the object is not what or where the grammar expects
+        o.unusual = max(o.unusual, o.slot_surprise, o.type_gain or 0.0)
     for o, (nats, reasons) in overlap_reasons(grammar, scene, tree, obj_of).items():
         objects[o].overlap = nats
         objects[o].unusual += nats  # evidence from contact, apart from the grammar's densities
@@ -610,6 +624,167 @@ def _mode_rotation(grammar: Grammar, r: int, pquat: FloatArray) -> FloatArray | 
     if rel is None or grammar.rules[r].rotation.frame == Frame.WORLD:
         return rel
     return quat_multiply(pquat, rel)
+
+
+# ------------------------------------------------------------ type repair ---
+
+RETYPE_TIME = 60.0  # s, wall clock: the default bound of each parse of a retyped scene
+
+
+@dataclass
+class TypeFix:
+    """The best other type for one object: how much the scene's best log-probability would
+    rise with it (negative: every other type fits worse) and how that was found ("swap": the
+    same tree with the object's leaf swapped; "parse": the scene parsed again)."""
+
+    gain: float
+    type: int
+    how: str
+
+
+def type_gains(
+    grammar: Grammar,
+    scene: Scene,
+    tree: Trees,
+    obj_of: IntArray,
+    log_prob: float,
+    parser: Any = None,
+    time_limit: float | None = None,
+) -> dict[int, TypeFix]:
+    """For each object: the best score of the scene with that object of another type, minus
+    the tree's.  An object given a wrong type sits where its *true* type belongs (a mug at a
+    plate's pose, with cups resting on it): retyping it back restores the scene, while an
+    unchanged object's best other type fits no better (gain ≤ 0, up to model choices that are
+    more probable than its own).  Types that swap into the tree in place (another leaf of the
+    same `or`: another model of the same category) are scored on the tree; other types are
+    tried by parsing the scene again (with a `parser`), one type per group of interchangeable
+    types (`retype_groups`), each parse bounded by `time_limit` (RETYPE_TIME by default)."""
+    found = _swap_scores(grammar, tree, obj_of)
+    how = {o: dict.fromkeys(s, "swap") for o, s in found.items()}
+    if parser is not None:
+        limit = RETYPE_TIME if time_limit is None else min(time_limit, RETYPE_TIME)
+        for o in range(len(scene)):
+            if _is_root_object(grammar, scene, o):
+                continue
+            done = set(found.get(o, {}))
+            for t in _reparse_candidates(grammar, parser, scene, o, done):
+                score = _retyped_score(parser, scene, o, t, limit)
+                if np.isfinite(score):
+                    found.setdefault(o, {})[t] = score
+                    how.setdefault(o, {})[t] = "parse"
+    out: dict[int, TypeFix] = {}
+    for o, scores in found.items():
+        best = max(scores, key=lambda t: scores[t])
+        if np.isfinite(scores[best]):
+            out[o] = TypeFix(float(scores[best] - log_prob), best, how[o][best])
+    return out
+
+
+def _is_root_object(grammar: Grammar, scene: Scene, o: int) -> bool:
+    """Object o is the grammar's observed root, which every tree holds at its fixed pose.  A
+    scene without it parses with an implicit root at no cost (docs/parsing.md), so retyping it
+    would only weigh "one more object at the root's pose" against "nothing": not a question
+    about its type."""
+    return bool(grammar.tables.type_observed[grammar.root] and scene.types[o] == grammar.root)
+
+
+def _swap_scores(grammar: Grammar, tree: Trees, obj_of: IntArray) -> dict[int, dict[int, float]]:
+    """Score of the tree with one object's leaf swapped for another leaf its parent `or`
+    could have chosen instead (all swaps scored as one batch)."""
+    tb = grammar.tables
+    n = len(tree)
+    has_kids = np.zeros(n, bool)
+    has_kids[tree.parent[tree.parent >= 0]] = True
+    swaps: list[tuple[int, int, int]] = []  # (node, rule, type)
+    for m in np.flatnonzero((obj_of >= 0) & ~has_kids & (tree.parent >= 0)):
+        p = tree.parent[m]
+        if tb.type_kind[tree.type[p]] != Kind.OR:
+            continue
+        for r in tb.type_rules[tree.type[p]]:
+            if r < 0 or r == tree.rule[m]:
+                continue
+            c = tb.rule_child[r]
+            if tb.type_observed[c] and np.all(tb.type_rules[c] < 0):  # another observed leaf
+                swaps.append((int(m), int(r), int(c)))
+    if not swaps:
+        return {}
+    k = len(swaps)
+    node, rule, kind = (np.array(v, np.int64) for v in zip(*swaps, strict=True))
+    types = np.tile(tree.type, (k, 1))
+    rules = np.tile(tree.rule, (k, 1))
+    types[np.arange(k), node] = kind
+    rules[np.arange(k), node] = rule
+    shift = (np.arange(k) * n)[:, None]
+    parents = np.where(tree.parent >= 0, tree.parent + shift, -1)
+    batch = Trees(
+        scene=np.repeat(np.arange(k), n),
+        type=types.ravel(),
+        parent=parents.ravel(),
+        rule=rules.ravel(),
+        xyz=np.tile(tree.xyz, (k, 1)),
+        quat=np.tile(tree.quat, (k, 1)),
+        n_scenes=k,
+    )
+    scores = score_trees(grammar, batch)
+    out: dict[int, dict[int, float]] = {}
+    for (m, _, c), s in zip(swaps, scores, strict=True):
+        per = out.setdefault(int(obj_of[m]), {})
+        per[c] = max(per.get(c, -np.inf), float(s))
+    return out
+
+
+def retype_groups(grammar: Grammar) -> list[list[int]]:
+    """Observed types grouped by the node types whose rules produce them (in `sink_detailed`:
+    the three plate models, the three bowls, the three mugs, the bin), each group's most
+    probable member first.  Members of a group differ only by which leaf their parent chose,
+    so parsing with the first one stands for the group (the others are a swap away)."""
+    tb = grammar.tables
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for t in np.flatnonzero(tb.type_observed):
+        producers = tuple(sorted(set(tb.rule_parent[tb.rule_child == t].tolist())))
+        groups.setdefault(producers, []).append(int(t))
+    return [sorted(g, key=lambda t: -_best_rule_prob(grammar, t)) for g in groups.values()]
+
+
+def _best_rule_prob(grammar: Grammar, t: int) -> float:
+    """The largest probability with which a rule that produces type t fires at its parent."""
+    tb = grammar.tables
+    best = 0.0
+    for r in np.flatnonzero(tb.rule_child == t):
+        parent = grammar.types[tb.rule_parent[r]]
+        if parent.kind in (Kind.OR, Kind.INDEPENDENT):
+            best = max(best, float(parent.probs[tb.rule_index[r]]))
+        else:
+            best = 1.0
+    return best
+
+
+def _reparse_candidates(
+    grammar: Grammar, parser: Any, scene: Scene, o: int, done: set[int]
+) -> list[int]:
+    """The types to try object o as by parsing: each group's first member, unless it is the
+    object's own type, a type already scored by a swap, or one the scene cannot hold more of."""
+    counts = np.bincount(scene.types, minlength=len(grammar.types))
+    counts[scene.types[o]] -= 1
+    out = []
+    for group in retype_groups(grammar):
+        t = group[0]
+        if t == scene.types[o] or t in done or counts[t] + 1 > parser.capacity[t]:
+            continue
+        out.append(t)
+    return out
+
+
+def _retyped_score(parser: Any, scene: Scene, o: int, t: int, time_limit: float) -> float:
+    """The best parse's log-probability of the scene with object o of type t (-inf if none)."""
+    types = scene.types.copy()
+    types[o] = t
+    retyped = Scene(scene.name, types, scene.xyz, scene.quat, metadata=scene.metadata)
+    try:
+        result = parser.parse(retyped, top=1, time_limit=time_limit)
+    except SsgError:
+        return -np.inf
+    return result.parses[0].score if result.parses else -np.inf
 
 
 # ----------------------------------------------------- expectations, words ---

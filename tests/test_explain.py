@@ -252,6 +252,103 @@ def test_a_moved_plate_is_blamed_not_the_mugs_it_carries(dinner):
     assert {e.objects[1].index, e.objects[2].index} == {3, 4}
 
 
+# ------------------------------------------------------------- a wrong type ---
+
+TABLEWARE = """
+grammar: tableware
+root: {type: Table, pose: {xyz: [0, 0, 0]}}
+types:
+  Table:
+    and:
+      - child: Plates
+      - child: Mugs
+  Plates:
+    repeat:
+      count: {probs: [0.1, 0.3, 0.3, 0.3]}
+      rule:
+        child: Plate
+        translation: {world_normal_offset: {mean: [0, 0, 0.75], variance: [0.25, 0.25, 0.0001]}}
+        rotation: {world_bingham: {concentration: [50, 50, 0]}}
+  Mugs:
+    repeat:
+      count: {probs: [0.3, 0.3, 0.2, 0.2]}
+      rule:
+        child: Mug
+        translation: {world_normal_offset: {mean: [0, 0, 0.75], variance: [0.25, 0.25, 0.0001]}}
+        rotation: {world_bingham: {concentration: [50, 50, 0]}}
+  Plate:
+    observed: true
+    repeat:
+      count: {probs: [0.3, 0.4, 0.3]}
+      rule:
+        child: Mug
+        translation:
+          parent_normal_offset: {mean: [0, 0, 0.02], variance: [0.0004, 0.0004, 0.0001]}
+        rotation: {world_bingham: {concentration: [50, 50, 0]}}
+  Mug:
+    or:
+      - {child: MugWhite, p: 0.7}
+      - {child: MugBlue, p: 0.3}
+  MugWhite: {observed: true}
+  MugBlue: {observed: true}
+"""
+
+
+@pytest.fixture(scope="module")
+def tableware():
+    return compile_text(TABLEWARE)
+
+
+def tableware_scene(g, types=("Plate", "Plate", "MugWhite", "MugBlue", "MugWhite")) -> Scene:
+    """Two plates with a mug on each (objects 2 and 3), and mug 4 on the table."""
+    xyz = np.array(
+        [[0.3, 0, 0.75], [-0.3, 0.2, 0.75], [0.31, 0.01, 0.77], [-0.3, 0.21, 0.77], [0, -0.4, 0.75]]
+    )
+    rpy = np.c_[np.zeros((5, 2)), [0.3, -1, 2, 0.5, 1.5]]
+    return Scene("tableware", np.array([g.type_ids[t] for t in types]), xyz, rpy_to_quat(rpy))
+
+
+def test_a_plate_retyped_as_a_mug_ranks_first_by_its_type_gain(tableware):
+    """Plate 0 called a mug: the mug it carries has nowhere to rest.  Calling it a plate again
+    restores the scene, so its type gain is exactly what the retyping cost."""
+    g = tableware
+    plain = Parser(g).parse(tableware_scene(g), top=1).parses[0].score
+    retyped = tableware_scene(g, ("MugWhite", "Plate", "MugWhite", "MugBlue", "MugWhite"))
+    e = explain(g, retyped)
+    first = e.objects[0]
+    assert first.index == 0 and first.better_type == "Plate"
+    assert first.type_gain == pytest.approx(plain - e.log_prob)
+    assert first.unusual == first.type_gain > 2 * e.objects[1].unusual
+    assert "would fit its place better as a Plate (+8.2 nats)" in e.text()
+
+
+def test_unchanged_objects_gain_nothing_from_another_type(tableware):
+    """In the plain scene no other type fits any object better, but for the blue mug's model
+    choice: a white mug is the likelier model (0.7 to 0.3), a swap scored on the same tree."""
+    e = explain(tableware, tableware_scene(tableware))
+    gains = {o.index: o.type_gain for o in e.objects}
+    assert gains[3] == pytest.approx(np.log(0.7 / 0.3))
+    assert all(gains[o] < 0 for o in (0, 1, 2, 4))
+    assert {o.index: o.better_type for o in e.objects}[3] == "MugWhite"
+
+
+@settings(max_examples=6, deadline=None)
+@given(st.floats(0.05, 0.95))
+def test_a_model_swap_gains_the_ratio_of_the_model_probabilities(white):
+    """Without a parser only the swaps within the tree are scored (the mugs' models): the gain
+    of a white mug as a blue one is log(P(blue) / P(white)), and the plates get none."""
+    probs = f"{{child: MugWhite, p: {white}}}", f"{{child: MugBlue, p: {1 - white}}}"
+    mugs = TABLEWARE.replace("{child: MugWhite, p: 0.7}", probs[0])
+    g = compile_text(mugs.replace("{child: MugBlue, p: 0.3}", probs[1]))
+    scene = tableware_scene(g)
+    tree = Parser(g).parse(scene, top=1).parses[0].tree
+    by_index = {o.index: o for o in explain_tree(g, scene, tree).objects}
+    assert by_index[0].type_gain is None and by_index[1].type_gain is None
+    assert by_index[2].type_gain == pytest.approx(np.log((1 - white) / white))
+    assert by_index[3].type_gain == pytest.approx(np.log(white / (1 - white)))
+    assert (by_index[2].better_type, by_index[3].better_type) == ("MugBlue", "MugWhite")
+
+
 # ------------------------------------------------------- no parse: the diagnosis ---
 
 
@@ -313,6 +410,7 @@ def test_explain_json_shape(dinner, tmp_path):
     assert doc["nats_per_object"] == pytest.approx(doc["neg_log_prob"] / 6)
     for o in objects:
         assert o["type"] in ("Plate", "Mug")
+        assert o["type_gain"] is None or o["type_gain"] < 0  # no other type fits better
         for r in o["reasons"]:
             assert set(r) >= {"rule", "kind", "log_prob", "share", "sigma", "percentile", "text"}
             assert r["kind"] in ("position", "rotation", "count", "choice")
