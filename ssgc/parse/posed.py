@@ -19,6 +19,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -132,8 +133,30 @@ def candidate_poses(
     return cand
 
 
+@dataclass(frozen=True)
+class Unrolled:
+    """The instances in breadth-first order (parents first; a parent's children by rule
+    slot, then by copy or candidate index): the order the model's columns follow."""
+
+    node: IntArray  # supertree node
+    parent: IntArray  # parent instance, -1 for the root
+    slot: IntArray  # index of the producing rule slot in the parent's children
+    cand_k: IntArray  # index of the instance's pose among its set's candidates
+    top: IntArray  # the instance heading each instance's set
+    xyz: FloatArray
+    quat: FloatArray
+
+
+# One block of children of a generation: supertree node, parent instance, slot, order within
+# the slot (copy or candidate), candidate index, whether the rule is fixed, poses.
+_Block = tuple[int, IntArray, int, IntArray, IntArray, bool, FloatArray, FloatArray]
+
+
 class _Unroll:
-    """Builds the instances (supertree node, pose) top-down, then the MILP over them."""
+    """Builds the instances (supertree node, pose) top-down, one generation at a time: all
+    instances of one supertree node get their children in a few array operations (a fixed
+    rule's poses are one batched quaternion product; a free rule's children are the cross
+    product of the instances with their set's candidate poses)."""
 
     def __init__(
         self,
@@ -147,74 +170,125 @@ class _Unroll:
         self.cand_xyz, self.cand_quat = cand.xyz, cand.quat
         self.restrict = restrict or {}
         self.deadline: float | None = None
-        self.top: list[int] = []  # instance heading each instance's set
-        self.node: list[int] = []
-        self.parent: list[int] = []
-        self.slot: list[int] = []  # index of the producing rule slot in the parent's children
-        self.cand_k: list[int] = []  # index of the instance's pose among its set's candidates
-        self.xyz: list[FloatArray] = []
-        self.quat: list[FloatArray] = []
+        self._slot_cache: dict[int, list[int]] = {}
 
-    def unroll(self) -> None:
-        st, g = self.st, self.g
-        tb = g.tables
-        self._add(0, -1, -1, g.root_xyz, g.root_quat, 0)
-        i = 0
-        while i < len(self.node):
-            n = self.node[i]
-            for slot, c in enumerate(self._slots(n)):
+    def unroll(self) -> Unrolled:
+        g = self.g
+        cols: dict[str, list[Any]] = {
+            "node": [np.zeros(1, np.int64)],
+            "parent": [np.full(1, -1, np.int64)],
+            "slot": [np.full(1, -1, np.int64)],
+            "cand_k": [np.zeros(1, np.int64)],
+            "top": [np.zeros(1, np.int64)],
+            "xyz": [np.asarray(g.root_xyz, float).reshape(1, 3)],
+            "quat": [np.asarray(g.root_quat, float).reshape(1, 4)],
+        }
+        lo, n_total = 0, 1
+        cand_k_all, top_all = cols["cand_k"][0], cols["top"][0]
+        while True:  # generation [lo, n_total) gives the next one
+            gen = (cols["node"][-1], cols["xyz"][-1], cols["quat"][-1])
+            blocks = self._children(lo, *gen, cand_k_all, top_all)
+            if not blocks:
+                break
+            kid = _stack_blocks(blocks)
+            order = np.lexsort((kid["sub"], kid["slot"], kid["parent"]))  # breadth first
+            kid = {k: v[order] for k, v in kid.items()}
+            own = np.arange(n_total, n_total + len(order))
+            kid["top"] = np.where(kid.pop("fixed"), top_all[kid["parent"]], own)
+            for k, v in cols.items():
+                v.append(kid[k])
+            cand_k_all = np.concatenate([cand_k_all, kid["cand_k"]])
+            top_all = np.concatenate([top_all, kid["top"]])
+            lo, n_total = n_total, n_total + len(order)
+        return Unrolled(
+            *(np.concatenate(cols[k]) for k in ("node", "parent", "slot", "cand_k", "top")),
+            np.concatenate(cols["xyz"]).reshape(-1, 3),
+            np.concatenate(cols["quat"]).reshape(-1, 4),
+        )
+
+    def _children(
+        self,
+        lo: int,
+        node: IntArray,
+        xyz: FloatArray,
+        quat: FloatArray,
+        cand_k: IntArray,
+        top: IntArray,
+    ) -> list[_Block]:
+        """The children of the generation starting at instance `lo`, by (node, slot)."""
+        st, tb = self.st, self.g.tables
+        blocks: list[_Block] = []
+        for n in np.unique(node).tolist():
+            check_deadline(self.deadline)
+            mine = np.flatnonzero(node == n)
+            inst = lo + mine
+            for s, c in enumerate(self._slots(n)):
+                r = int(st.rule[c])
                 if st.set_of[c] == st.set_of[n]:  # fixed rule: the rule's offset from i
-                    r = st.rule[c]
-                    xyz = self.xyz[i] + quat_rotate(self.quat[i], tb.point_xyz[r])
-                    quat = quat_multiply(self.quat[i], tb.point_quat[r])
-                    for c2 in (c2 for c2 in st.children[n] if st.rule[c2] == r):
-                        self._add(c2, i, slot, xyz, quat, self.cand_k[i])
-                else:  # one child per candidate pose of the child's set
-                    e = st.set_of[c]
-                    for k in self._allowed(i, n, int(st.rule[c]), e):
-                        self._add(c, i, slot, self.cand_xyz[e][k], self.cand_quat[e][k], k)
-            if i % 512 == 0:
-                check_deadline(self.deadline)
-            i += 1
+                    c_xyz = xyz[mine] + quat_rotate(quat[mine], tb.point_xyz[r])
+                    c_quat = quat_multiply(quat[mine], tb.point_quat[r])
+                    copies = [c2 for c2 in st.children[n] if st.rule[c2] == r]
+                    for j, c2 in enumerate(copies):
+                        sub = np.full(len(inst), j, np.int64)
+                        blocks.append((c2, inst, s, sub, cand_k[inst], True, c_xyz, c_quat))
+                else:  # one child per (allowed) candidate pose of the child's set
+                    e = int(st.set_of[c])
+                    parent, k = self._allowed(inst, n, r, e, cand_k[top[inst]])
+                    cx, cq = self.cand_xyz[e][k], self.cand_quat[e][k]
+                    blocks.append((c, parent, s, k, k, False, cx, cq))
+        return blocks
 
-    def _allowed(self, i: int, n: int, rule: int, e: int) -> range | list[int]:
-        """Candidate indices a child of instance i (node n) through `rule` may take."""
+    def _allowed(
+        self, inst: IntArray, n: int, rule: int, e: int, top_k: IntArray
+    ) -> tuple[IntArray, IntArray]:
+        """(parent instance, candidate index) of every child the instances `inst` (of node
+        n, their set tops at candidates `top_k`) may have through `rule` in set e."""
+        n_cand = len(self.cand_xyz[e])
+        everything = (np.repeat(inst, n_cand), np.tile(np.arange(n_cand), len(inst)))
         own = int(self.st.set_of[n])
-        if own in self.restrict:
-            slots, assignment = self.restrict[own]
-            a = self.cand_k[self.top[i]]
-            cols = [j for j, s in enumerate(slots) if s == (n, rule)]
-            if not cols:  # a rule the assignment does not name (an independent latent child)
-                return range(len(self.cand_xyz[e]))
-            named = assignment[a, cols]  # -1: this column has no child
-            if np.any(named == FREE_CHILD):  # a row whose children are free (bound.FREE)
-                return range(len(self.cand_xyz[e]))
-            return sorted({int(k) for k in named if k >= 0})
-        return range(len(self.cand_xyz[e]))
+        if own not in self.restrict:
+            return everything
+        slots, assignment = self.restrict[own]
+        cols = [j for j, s in enumerate(slots) if s == (n, rule)]
+        if not cols:  # a rule the assignment does not name (an independent latent child)
+            return everything
+        named = assignment[:, cols]  # per assignment row; -1: this column has no child
+        parents: list[IntArray] = []
+        ks: list[IntArray] = []
+        for a in np.unique(top_k).tolist():  # instances sharing a row share their children
+            these = inst[top_k == a]
+            row = named[a]
+            k = np.arange(n_cand) if np.any(row == FREE_CHILD) else np.unique(row[row >= 0])
+            parents.append(np.repeat(these, len(k)))
+            ks.append(np.tile(k, len(these)))
+        return np.concatenate(parents), np.concatenate(ks).astype(np.int64)
 
     def _slots(self, n: int) -> list[int]:
         """One representative supertree child per rule (the first copy of a `repeat`)."""
-        seen, out = set(), []
-        for c in self.st.children[n]:
-            r = int(self.st.rule[c])
-            if r not in seen:
-                seen.add(r)
-                out.append(c)
-        return out
+        if n not in self._slot_cache:
+            seen, out = set(), []
+            for c in self.st.children[n]:
+                r = int(self.st.rule[c])
+                if r not in seen:
+                    seen.add(r)
+                    out.append(c)
+            self._slot_cache[n] = out
+        return self._slot_cache[n]
 
-    def _add(
-        self, n: int, parent: int, slot: int, xyz: FloatArray, quat: FloatArray, k: int
-    ) -> None:
-        if len(self.node) % 2048 == 0:  # one node can have thousands of candidate children
-            check_deadline(self.deadline)
-        self.cand_k.append(k)
-        fixed = parent >= 0 and self.st.set_of[n] == self.st.set_of[self.node[parent]]
-        self.top.append(self.top[parent] if fixed else len(self.node))
-        self.node.append(n)
-        self.parent.append(parent)
-        self.slot.append(slot)
-        self.xyz.append(np.asarray(xyz, float))
-        self.quat.append(np.asarray(quat, float))
+
+def _stack_blocks(blocks: list[_Block]) -> dict[str, Any]:
+    """The blocks' rows as one array per field."""
+    size = [len(b[1]) for b in blocks]
+    return {
+        "node": np.repeat(np.array([b[0] for b in blocks], np.int64), size),
+        "parent": np.concatenate([b[1] for b in blocks]),
+        "slot": np.repeat(np.array([b[2] for b in blocks], np.int64), size),
+        "sub": np.concatenate([b[3] for b in blocks]),
+        "cand_k": np.concatenate([b[4] for b in blocks]),
+        "fixed": np.repeat(np.array([b[5] for b in blocks], bool), size),
+        "xyz": np.concatenate([np.asarray(b[6]).reshape(-1, 3) for b in blocks]),
+        "quat": np.concatenate([np.asarray(b[7]).reshape(-1, 4) for b in blocks]),
+    }
 
 
 def instance_count(
@@ -254,8 +328,13 @@ def reduce_posed(
     adjust: Callable[[Instances], None] | None = None,
     restrict: Restriction | None = None,
     deadline: float | None = None,
+    best_only: bool = False,
 ) -> PosedProblem:
     """The unrolled MILP over the given candidate poses (by default, the observed ones).
+
+    `best_only` drops the `or` alternatives no best tree needs (`_Model.drop_dominated`):
+    the model then keeps the MAP score, its certificate and its infeasibility proofs, but
+    not every tree, so it is for a parse of the best tree alone (`--top 1`).
 
     `restrict` limits the children of some sets' instances to one candidate per slot, and
     `adjust` may rewrite the instances' edge scores before the model is built (-inf removes an
@@ -266,18 +345,17 @@ def reduce_posed(
         cand = candidate_poses(grammar, st, scene)
     u = _Unroll(grammar, st, scene, cand, restrict)
     u.deadline = deadline
-    u.unroll()
-    node = np.asarray(u.node, np.int64)
-    parent = np.asarray(u.parent, np.int64)
-    slot = np.asarray(u.slot, np.int64)
-    xyz, quat = np.asarray(u.xyz).reshape(-1, 3), np.asarray(u.quat).reshape(-1, 4)
-    model = _Model(grammar, st, scene, node, parent, slot, xyz, quat)
+    inst = u.unroll()
+    node, parent, xyz, quat = inst.node, inst.parent, inst.xyz, inst.quat
+    model = _Model(grammar, st, scene, node, parent, inst.slot, xyz, quat)
     model.deadline = deadline
     check_deadline(deadline)
     model.edge_scores()
+    model.rule_probs()
+    if best_only:
+        model.drop_dominated()
     if adjust is not None:
-        cand_k, top = np.asarray(u.cand_k, np.int64), np.asarray(u.top, np.int64)
-        adjust(Instances(node, parent, cand_k, top, model.score))
+        adjust(Instances(node, parent, inst.cand_k, inst.top, model.score))
     milp = model.build()
     return PosedProblem(
         milp,
@@ -306,7 +384,9 @@ class PosedReduction:
 
     def apply(self, request: Request) -> tuple[Milp, PosedProblem]:
         r = request
-        problem = reduce_posed(r.grammar, r.supertree, r.scene, r.cand, deadline=r.deadline)
+        problem = reduce_posed(
+            r.grammar, r.supertree, r.scene, r.cand, deadline=r.deadline, best_only=r.best_only
+        )
         return problem.milp, problem
 
     def invert(self, problem: PosedProblem, x: FloatArray) -> Trees:
@@ -327,6 +407,21 @@ def too_many_instances(scene: Scene) -> str:
         f"scene '{scene.name}': the parse model would have more than {MAX_INSTANCES} node "
         f"instances ({len(scene)} objects); parse fewer objects at a time"
     )
+
+
+def rigid_signatures(st: Supertree) -> IntArray:
+    """Per supertree node, an id shared by nodes heading identical rigid subtrees (the same
+    types and rules below, every rule fixed, so the same instances at the same pose), -1 for
+    a node with a free rule below it."""
+    sig = np.full(len(st), -1, np.int64)
+    ids: dict[tuple[Any, ...], int] = {}
+    for n in range(len(st) - 1, -1, -1):  # children come after their parents
+        kids = st.children[n]
+        if any(st.set_of[c] != st.set_of[n] or sig[c] < 0 for c in kids):
+            continue
+        key = (int(st.type[n]), tuple(sorted((int(st.rule[c]), int(sig[c])) for c in kids)))
+        sig[n] = ids.setdefault(key, len(ids))
+    return sig
 
 
 class _Model:
@@ -409,10 +504,7 @@ class _Model:
         explains[0] |= self.implicit_root
         can &= ~self.observed | explains
         check_deadline(self.deadline)
-        for i in range(1, n):  # rules that can never fire
-            kind = g.types[self.type[self.parent[i]]].kind
-            if kind in (Kind.OR, Kind.INDEPENDENT) and self._prob(i) <= 0:
-                can[i] = False
+        can[1:] &= self.prob[1:] > 0  # rules that can never fire
         for i in range(n - 1, -1, -1):
             if i % 512 == 0:
                 check_deadline(self.deadline)
@@ -454,13 +546,48 @@ class _Model:
         node = self.g.types[self.type[i]]
         return {r: float(node.probs[self.g.tables.rule_index[r]]) for r in self._slot_rules(i)}
 
-    def _prob(self, c: int) -> float:
-        """`or`: weight renormalised over the rules present; `independent`: p."""
-        p = self.parent[c]
-        probs = self._slot_probs(p)
-        node = self.g.types[self.type[p]]
-        w = probs[int(self.rule[c])]
-        return w / sum(probs.values()) if node.kind == Kind.OR else w
+    def rule_probs(self) -> None:
+        """Per instance, the probability of the rule that made it: under an `or`, its weight
+        renormalised over the rules present; under `independent`, its p; else 1.  It depends
+        on the supertree node alone, so it is worked out once per node."""
+        st, g = self.st, self.g
+        per_node = np.ones(len(st))
+        for c in np.unique(self.node[1:]).tolist():
+            p = int(st.parent[c])
+            node = g.types[st.type[p]]
+            if node.kind not in (Kind.OR, Kind.INDEPENDENT):
+                continue
+            rules = sorted({int(st.rule[k]) for k in st.children[p]})
+            probs = {r: float(node.probs[g.tables.rule_index[r]]) for r in rules}
+            w = probs[int(st.rule[c])]
+            per_node[c] = w / sum(probs.values()) if node.kind == Kind.OR else w
+        self.prob = per_node[self.node]
+        self.prob[0] = 1.0
+
+    def drop_dominated(self) -> None:
+        """Remove the `or` alternatives no best parse uses (their score becomes -inf).
+
+        Children of one `or` instance that are the same rigid subtree (every rule below
+        fixed, the same types and rules) at the same pose differ only in the rule that placed
+        them — a plate upside down or on its side, where it lies — so a tree choosing any of
+        them scores at most what it scores with the best of them (its placement log-density
+        plus its choice's log-probability; the subtree's terms are equal).  Keeping only the
+        best is exact for the MAP tree (and its certificate), not for the N-th best."""
+        sig = rigid_signatures(self.st)
+        par = self.parent
+        kids = np.flatnonzero(par >= 0)
+        is_or = np.array([t.kind == Kind.OR for t in self.g.types])
+        kids = kids[is_or[self.type[par[kids]]] & (sig[self.node[kids]] >= 0)]
+        if len(kids) < 2:
+            return
+        key = np.column_stack([par[kids], sig[self.node[kids]], self.xyz[kids], self.quat[kids]])
+        _, group = np.unique(key, axis=0, return_inverse=True)
+        group = group.reshape(-1)
+        with np.errstate(divide="ignore"):
+            value = self.score[kids] + np.log(self.prob[kids])
+        order = np.lexsort((kids, -value, group))  # best first in each group, ties: first
+        first = np.r_[True, group[order][1:] != group[order][:-1]]
+        self.score[kids[order[~first]]] = -np.inf
 
     def columns(self) -> None:
         live = np.flatnonzero(self.can)
@@ -513,7 +640,7 @@ class _Model:
                 eq_v += [1.0] * len(kids) + [-1.0]
                 n_eq += 1
                 cost_c += [int(self.col[c]) for c in kids]
-                cost_v += [float(np.log(self._prob(c))) for c in kids]
+                cost_v += np.log(self.prob[kids]).tolist()
             elif node.kind == Kind.INDEPENDENT:
                 for r, p in self._slot_probs(i).items():
                     kids = groups.get(r, [])
