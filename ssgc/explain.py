@@ -20,6 +20,7 @@ Two numbers per object, for two questions (docs/explain.md):
 from __future__ import annotations
 
 import re
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,6 +47,9 @@ from ssgc.tree import Trees
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 MC_DRAWS = 4000  # draws per rule for expected log-densities and rotation percentiles
+# Seconds all of one explanation's re-parses may take together when no time limit is given
+# (docs/explain.md "Cost"): enough for every object of the real sink scenes.
+EXPLAIN_BUDGET_S = 30.0
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
 
@@ -104,12 +108,39 @@ class ObjectExplanation:
 
 
 @dataclass
+class Reparses:
+    """What the per-object re-parses did within the explanation's budget: an object whose
+    re-parse was cut short or skipped keeps the gain found so far (at least its local pose
+    repair's), so its rank may be lower than with more time."""
+
+    budget_s: float
+    parsed: int = 0  # re-parses that ran to their end
+    cut: list[int] = field(default_factory=list)  # objects whose re-parse hit the time limit
+    skipped: list[int] = field(default_factory=list)  # objects not re-parsed: budget spent
+
+    @property
+    def status(self) -> str:
+        """`complete` when every re-parse ran to its end, else `budget_exhausted`."""
+        return "budget_exhausted" if self.cut or self.skipped else "complete"
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "status": self.status,
+            "budget_s": self.budget_s,
+            "parsed": self.parsed,
+            "cut": sorted(set(self.cut)),
+            "skipped": sorted(set(self.skipped)),
+        }
+
+
+@dataclass
 class Explanation:
     scene: str
     log_prob: float
     objects: list[ObjectExplanation]  # most unusual first
     rules: list[dict[str, Any]]  # each rule's (or node type's) share, largest first
     unattributed: float = 0.0  # −log p of a scene without objects (nothing to attribute it to)
+    reparse: Reparses | None = None  # the per-object re-parses (None: explained without)
 
     @property
     def nats_per_object(self) -> float:
@@ -125,7 +156,7 @@ class Explanation:
             "unattributed": self.unattributed,
             "objects": [o.to_json() for o in self.objects],
             "rules": self.rules,
-        }
+        } | ({} if self.reparse is None else {"reparse": self.reparse.to_json()})
 
     def text(self, limit: int | None = None) -> str:
         lines = [
@@ -137,6 +168,12 @@ class Explanation:
             lines.append(f"  {o.label}:{clutter} unusual {o.unusual:.2f}, share {o.share:.3f}")
             for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
                 lines.append(f"    {r.text}")
+        if self.reparse is not None and self.reparse.status != "complete":
+            r = self.reparse
+            lines.append(
+                f"(re-parse budget of {r.budget_s:.1f} s spent: {len(set(r.cut + r.skipped))} "
+                "object(s) ranked on their local pose repair alone; raise --time-limit)"
+            )
         if self.rules:
             lines.append("rules by share of −log p:")
             for r in self.rules[:limit]:
@@ -151,9 +188,19 @@ def explain(grammar: Grammar, scene: Scene, tree: Trees | None = None, **parse: 
     from ssgc.parse.parser import Parser
 
     parser = Parser(grammar)
+    t0 = time.perf_counter()
     if tree is None:
         tree = best_tree(grammar, scene, parser, **parse)
-    return explain_tree(grammar, scene, tree, parser, parse.get("time_limit"))
+    budget = reparse_budget(parse.get("time_limit"), time.perf_counter() - t0)
+    return explain_tree(grammar, scene, tree, parser, budget)
+
+
+def reparse_budget(time_limit: float | None, spent: float) -> float:
+    """Seconds left for an explanation's re-parses: what a per-scene time limit leaves after
+    the `spent` seconds of the base parse, or EXPLAIN_BUDGET_S without a limit."""
+    if time_limit is None:
+        return EXPLAIN_BUDGET_S
+    return max(time_limit - spent, 0.0)
 
 
 class UnexplainedScene(Exception):
@@ -190,7 +237,8 @@ def explain_tree(
     With a `parser`, each object's repaired pose is also tried by parsing the scene again with
     that one object moved (so other objects may change parent: a flipped plate whose cups had
     to move to a far plate gets the credit for the whole mess); its pose gain is then the
-    better of the two."""
+    better of the two.  `time_limit` is the seconds all those re-parses may take together
+    (default EXPLAIN_BUDGET_S); what they did is `Explanation.reparse`."""
     terms = _terms(grammar, tree)
     obj_of = match_objects(grammar, scene, tree)
     weights = ownership(grammar, tree, obj_of, len(scene))
@@ -221,10 +269,14 @@ def explain_tree(
             if term["kind"] in ("count", "choice"):
                 objects[o].unusual += float(w[o]) * max(0.0, excess)
     log_prob = float(sum(t["log_prob"] for t in terms))
+    budget = EXPLAIN_BUDGET_S if time_limit is None else time_limit
+    reparse = None if parser is None else Reparses(budget)
+    deadline = time.perf_counter() + budget
     for o, fix in pose_gains(grammar, tree, obj_of).items():
         gain = fix.gain
-        if parser is not None and gain > 0:
-            gain = max(gain, _reparsed_gain(parser, scene, o, fix, log_prob, time_limit))
+        if reparse is not None and gain > 0:
+            found = _reparsed_gain(parser, scene, o, fix, log_prob, deadline, reparse)
+            gain = max(gain, found)
         objects[o].pose_gain = gain
         objects[o].unusual += gain
     for o, surprise in slot_surprises(grammar, tree, terms, obj_of, weights, expect).items():
@@ -235,7 +287,7 @@ def explain_tree(
     unattributed = -log_prob if len(scene) == 0 else 0.0
     # what the grammar leaves unexplained comes first, then the most unusual
     objects.sort(key=lambda o: (not o.unexplained, -o.unusual, -o.share, o.index))
-    return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed)
+    return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed, reparse)
 
 
 def slot_surprise_nodes(grammar: Grammar, tree: Trees) -> list[tuple[int, int]]:
@@ -284,15 +336,30 @@ def slot_surprises(
 
 
 def _reparsed_gain(
-    parser: Any, scene: Scene, o: int, fix: Repair, log_prob: float, time_limit: float | None
+    parser: Any,
+    scene: Scene,
+    o: int,
+    fix: Repair,
+    log_prob: float,
+    deadline: float,
+    record: Reparses,
 ) -> float:
-    """The best score gain over the repair's poses of object o, the scene parsed again."""
+    """The best score gain over the repair's poses of object o, the scene parsed again, each
+    parse bounded by what is left before `deadline` (noted in `record`)."""
     best = 0.0
     for xyz_o, quat_o in fix.poses[:2]:
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            record.skipped.append(o)
+            break
         xyz, quat = scene.xyz.copy(), scene.quat.copy()
         xyz[o], quat[o] = xyz_o, quat_o
         moved = Scene(scene.name, scene.types, xyz, quat, metadata=scene.metadata)
-        result = parser.parse(moved, top=1, time_limit=time_limit)
+        result = parser.parse(moved, top=1, time_limit=left)
+        if result.timed_out_in:
+            record.cut.append(o)
+        else:
+            record.parsed += 1
         if result.parses:
             best = max(best, result.parses[0].score - log_prob)
     return best

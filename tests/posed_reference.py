@@ -7,7 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from ssgc.geometry import quat_multiply, quat_rotate
+from ssgc.io.scene import Scene
 from ssgc.ir import Grammar
+from ssgc.parse.ip import implied_set_poses
 from ssgc.parse.posed import FREE_CHILD, Restriction, Unrolled
 from ssgc.parse.proposals import Candidates
 from ssgc.parse.supertree import Supertree
@@ -74,3 +76,17 @@ def reference_unroll(
         np.asarray(xyz).reshape(-1, 3),
         np.asarray(quat).reshape(-1, 4),
     )
+
+
+def reference_candidates(grammar: Grammar, st: Supertree, scene: Scene) -> Candidates:
+    """The observed-implied candidate poses, one supertree node at a time (the loop that
+    `ssgc.parse.posed.candidate_poses` replaced), deduplicated by `Candidates.add`."""
+    cand = Candidates(
+        [np.zeros((0, 3)) for _ in range(st.n_sets)], [np.zeros((0, 4)) for _ in range(st.n_sets)]
+    )
+    for n, _, t, q in implied_set_poses(grammar, st, scene):
+        cand.add(int(st.set_of[n]), t.reshape(-1, 3), q.reshape(-1, 4))
+    root_set = int(st.set_of[0])
+    cand.xyz[root_set] = grammar.root_xyz.reshape(1, 3).copy()
+    cand.quat[root_set] = grammar.root_quat.reshape(1, 4).copy()
+    return cand

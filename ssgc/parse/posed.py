@@ -25,10 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.errors import Diagnostic
-from ssgc.geometry import quat_angle, quat_multiply, quat_rotate
+from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.parse.ip import UnparseableScene, implied_set_poses, unplaceable
+from ssgc.parse.ip import UnparseableScene, unplaceable
 from ssgc.parse.milp import (
     ColumnBuilder,
     Milp,
@@ -117,20 +117,67 @@ def candidate_poses(
     """Per equivalent set, the distinct poses of its top node that put one of its observed
     nodes exactly on an object of the scene (latent sets get none here: see proposals).
 
-    Past the deadline it raises OutOfTime: a wide `repeat` of a large scene has a thousand
-    sets of a thousand poses each, whose deduplication alone takes a minute."""
+    The poses are worked out for all observed nodes of one type and all objects of that type
+    at once; a set keeps them in node, then object order, each unless it is within the pose
+    tolerances of an earlier one.  Past the deadline it raises OutOfTime: a wide `repeat` of a
+    large scene has a thousand sets of a thousand poses each."""
     cand = Candidates(
         [np.zeros((0, 3)) for _ in range(st.n_sets)], [np.zeros((0, 4)) for _ in range(st.n_sets)]
     )
-    for n, _, t, q in implied_set_poses(grammar, st, scene):
-        t, q = t.reshape(-1, 3), q.reshape(-1, 4)
-        for i in range(0, len(t), ADD_CHUNK):  # bounded work between deadline checks
-            check_deadline(deadline)
-            cand.add(int(st.set_of[n]), t[i : i + ADD_CHUNK], q[i : i + ADD_CHUNK])
+    node, xyz, quat = _implied_poses(grammar, st, scene)
+    check_deadline(deadline)
+    e = st.set_of[node]
+    order = np.argsort(e, kind="stable")  # per set, in node then object order
+    e, xyz, quat = e[order], xyz[order], quat[order]
+    sets, starts = np.unique(e, return_index=True)
+    for s, lo, hi in zip(
+        sets.tolist(), starts.tolist(), [*starts[1:].tolist(), len(e)], strict=True
+    ):
+        keep = _first_distinct(xyz[lo:hi], quat[lo:hi], deadline)
+        cand.xyz[s], cand.quat[s] = xyz[lo:hi][keep], quat[lo:hi][keep]
     root_set = int(st.set_of[0])  # the root's set has exactly one pose
     cand.xyz[root_set] = grammar.root_xyz.reshape(1, 3).copy()
     cand.quat[root_set] = grammar.root_quat.reshape(1, 4).copy()
     return cand
+
+
+def _implied_poses(
+    grammar: Grammar, st: Supertree, scene: Scene
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """(observed supertree node, set-top xyz, set-top quat) of every (node, object of its
+    type) pair, in node order, then object order: the pose of the node's set top that puts
+    the node on the object."""
+    observed = np.flatnonzero(grammar.tables.type_observed[st.type])
+    nodes, xyzs, quats = [np.zeros(0, np.int64)], [np.zeros((0, 3))], [np.zeros((0, 4))]
+    for t in np.unique(st.type[observed]).tolist():
+        objs = np.flatnonzero(scene.types == t)
+        if not len(objs):
+            continue
+        n = observed[st.type[observed] == t]
+        q = quat_multiply(
+            scene.quat[objs][None, :, :], quat_conjugate(st.offset_quat[n])[:, None, :]
+        )
+        x = scene.xyz[objs][None, :, :] - quat_rotate(q, st.offset_xyz[n][:, None, :])
+        nodes.append(np.repeat(n, len(objs)))
+        xyzs.append(x.reshape(-1, 3))
+        quats.append(q.reshape(-1, 4))
+    node = np.concatenate(nodes)
+    order = np.argsort(node, kind="stable")  # node order across types
+    return node[order], np.concatenate(xyzs)[order], np.concatenate(quats)[order]
+
+
+def _first_distinct(xyz: FloatArray, quat: FloatArray, deadline: float | None) -> IntArray:
+    """Indices of the poses not within the pose tolerances of an earlier one (compared in
+    blocks of ADD_CHUNK, with a deadline check between blocks)."""
+    drop = np.zeros(len(xyz), bool)
+    for lo in range(0, len(xyz), ADD_CHUNK):
+        check_deadline(deadline)
+        j = np.arange(lo, min(lo + ADD_CHUNK, len(xyz)))
+        near = np.linalg.norm(xyz[: j[-1] + 1, None, :] - xyz[None, j, :], axis=2) <= POS_TOL
+        i, jj = np.nonzero(near & (np.arange(j[-1] + 1)[:, None] < j[None, :]))
+        same = quat_angle(quat[i], quat[j[jj]]) <= ROT_TOL
+        drop[j[jj[same]]] = True
+    return np.flatnonzero(~drop)
 
 
 @dataclass(frozen=True)
