@@ -130,9 +130,8 @@ def candidate_poses(
     order = np.argsort(e, kind="stable")  # per set, in node then object order
     e, xyz, quat = e[order], xyz[order], quat[order]
     sets, starts = np.unique(e, return_index=True)
-    for s, lo, hi in zip(
-        sets.tolist(), starts.tolist(), [*starts[1:].tolist(), len(e)], strict=True
-    ):
+    ends = np.r_[starts[1:], len(e)][: len(starts)]
+    for s, lo, hi in zip(sets.tolist(), starts.tolist(), ends.tolist(), strict=True):
         keep = _first_distinct(xyz[lo:hi], quat[lo:hi], deadline)
         cand.xyz[s], cand.quat[s] = xyz[lo:hi][keep], quat[lo:hi][keep]
     root_set = int(st.set_of[0])  # the root's set has exactly one pose
@@ -194,16 +193,53 @@ class Unrolled:
     quat: FloatArray
 
 
-# One block of children of a generation: supertree node, parent instance, slot, order within
-# the slot (copy or candidate), candidate index, whether the rule is fixed, poses.
-_Block = tuple[int, IntArray, int, IntArray, IntArray, bool, FloatArray, FloatArray]
+@dataclass(frozen=True)
+class _Edges:
+    """Child edges of the supertree as arrays, grouped by parent node: those of node n are
+    rows start[n]:start[n + 1], in slot order, then copy order."""
+
+    start: IntArray
+    slot: IntArray  # the rule slot (one per rule, its first copy for a free rule)
+    sub: IntArray  # the copy's index among the rule's copies (fixed rules)
+    child: IntArray  # the supertree child
+    rule: IntArray
+    target: IntArray  # the child's set
+
+    @staticmethod
+    def of(st: Supertree, fixed: bool) -> _Edges:
+        """The fixed edges (every copy) or the free ones (the first copy of each rule)."""
+        rows: list[tuple[int, int, int, int, int]] = []
+        start = np.zeros(len(st) + 1, np.int64)
+        for n in range(len(st)):
+            copies: dict[int, int] = {}  # rule -> copies seen so far (dicts keep slot order)
+            for c in st.children[n]:
+                r = int(st.rule[c])
+                sub = copies.setdefault(r, 0)
+                copies[r] += 1
+                if (st.set_of[c] == st.set_of[n]) == fixed and (fixed or sub == 0):
+                    rows.append((list(copies).index(r), sub, c, r, int(st.set_of[c])))
+            start[n + 1] = len(rows)
+        cols = np.array(rows, np.int64).reshape(-1, 5).T
+        return _Edges(start, *cols)
+
+    def expand(self, inst: IntArray, node: IntArray) -> tuple[IntArray, IntArray]:
+        """(parent instance, edge row) of every edge of every instance, instance by instance."""
+        count = self.start[node + 1] - self.start[node]
+        parent = np.repeat(inst, count)
+        return parent, np.repeat(self.start[node], count) + _within(count)
+
+
+def _within(count: IntArray) -> IntArray:
+    """0, 1, ..., count[0] - 1, 0, 1, ..., count[1] - 1, ...: each row's place in its group."""
+    total = int(count.sum())
+    return np.arange(total) - np.repeat(np.cumsum(count) - count, count)
 
 
 class _Unroll:
-    """Builds the instances (supertree node, pose) top-down, one generation at a time: all
-    instances of one supertree node get their children in a few array operations (a fixed
-    rule's poses are one batched quaternion product; a free rule's children are the cross
-    product of the instances with their set's candidate poses)."""
+    """Builds the instances (supertree node, pose) top-down, one generation at a time, each in
+    a few array operations: the fixed rules' children of every instance of the generation are
+    one batched quaternion product, the free rules' children the cross product of the
+    instances with their sets' candidate poses (`_Edges`)."""
 
     def __init__(
         self,
@@ -215,9 +251,14 @@ class _Unroll:
     ) -> None:
         self.g, self.st, self.scene = grammar, st, scene
         self.cand_xyz, self.cand_quat = cand.xyz, cand.quat
+        self.n_cand = np.array([len(x) for x in cand.xyz], np.int64)
+        self.cand_start = np.cumsum(self.n_cand) - self.n_cand
+        self.all_xyz = np.concatenate([x.reshape(-1, 3) for x in cand.xyz])
+        self.all_quat = np.concatenate([q.reshape(-1, 4) for q in cand.quat])
         self.restrict = restrict or {}
+        self.restricted = np.isin(st.set_of, np.array(list(self.restrict), np.int64))
+        self.fixed, self.free = _Edges.of(st, True), _Edges.of(st, False)
         self.deadline: float | None = None
-        self._slot_cache: dict[int, list[int]] = {}
 
     def unroll(self) -> Unrolled:
         g = self.g
@@ -233,11 +274,11 @@ class _Unroll:
         lo, n_total = 0, 1
         cand_k_all, top_all = cols["cand_k"][0], cols["top"][0]
         while True:  # generation [lo, n_total) gives the next one
+            check_deadline(self.deadline)
             gen = (cols["node"][-1], cols["xyz"][-1], cols["quat"][-1])
-            blocks = self._children(lo, *gen, cand_k_all, top_all)
-            if not blocks:
+            kid = self._children(lo, *gen, cand_k_all, top_all)
+            if not len(kid["node"]):
                 break
-            kid = _stack_blocks(blocks)
             order = np.lexsort((kid["sub"], kid["slot"], kid["parent"]))  # breadth first
             kid = {k: v[order] for k, v in kid.items()}
             own = np.arange(n_total, n_total + len(order))
@@ -261,29 +302,63 @@ class _Unroll:
         quat: FloatArray,
         cand_k: IntArray,
         top: IntArray,
-    ) -> list[_Block]:
-        """The children of the generation starting at instance `lo`, by (node, slot)."""
-        st, tb = self.st, self.g.tables
-        blocks: list[_Block] = []
+    ) -> dict[str, Any]:
+        """The children of the generation starting at instance `lo` (unordered), with the
+        keys (parent, slot, sub) that order them."""
+        tb = self.g.tables
+        inst = lo + np.arange(len(node))
+        parent, e = self.fixed.expand(inst, node)  # fixed rules: the rule's offset
+        r, local = self.fixed.rule[e], parent - lo
+        fixed = {
+            "node": self.fixed.child[e],
+            "parent": parent,
+            "slot": self.fixed.slot[e],
+            "sub": self.fixed.sub[e],
+            "cand_k": cand_k[parent],
+            "fixed": np.ones(len(e), bool),
+            "xyz": xyz[local] + quat_rotate(quat[local], tb.point_xyz[r]),
+            "quat": quat_multiply(quat[local], tb.point_quat[r]),
+        }
+        free_mask = ~self.restricted[node]
+        parent, e = self.free.expand(inst[free_mask], node[free_mask])
+        count = self.n_cand[self.free.target[e]]  # one child per candidate pose of its set
+        parent, e, k = np.repeat(parent, count), np.repeat(e, count), _within(count)
+        parts = [fixed, self._free(parent, e, k)]
+        if np.any(~free_mask):
+            parts.append(self._restricted(inst[~free_mask], node[~free_mask], cand_k, top))
+        return {key: np.concatenate([p[key] for p in parts]) for key in fixed}
+
+    def _free(self, parent: IntArray, e: IntArray, k: IntArray) -> dict[str, Any]:
+        """Free-rule children: edge rows e of parents `parent`, at candidates k."""
+        at = self.cand_start[self.free.target[e]] + k
+        return {
+            "node": self.free.child[e],
+            "parent": parent,
+            "slot": self.free.slot[e],
+            "sub": k,
+            "cand_k": k,
+            "fixed": np.zeros(len(e), bool),
+            "xyz": self.all_xyz[at],
+            "quat": self.all_quat[at],
+        }
+
+    def _restricted(
+        self, inst: IntArray, node: IntArray, cand_k: IntArray, top: IntArray
+    ) -> dict[str, Any]:
+        """Free-rule children of instances in `restrict`ed sets: per slot, the candidates
+        their set top's assignment names (`_allowed`)."""
+        parents: list[IntArray] = [np.zeros(0, np.int64)]
+        rows: list[IntArray] = [np.zeros(0, np.int64)]
+        ks: list[IntArray] = [np.zeros(0, np.int64)]
         for n in np.unique(node).tolist():
-            check_deadline(self.deadline)
-            mine = np.flatnonzero(node == n)
-            inst = lo + mine
-            for s, c in enumerate(self._slots(n)):
-                r = int(st.rule[c])
-                if st.set_of[c] == st.set_of[n]:  # fixed rule: the rule's offset from i
-                    c_xyz = xyz[mine] + quat_rotate(quat[mine], tb.point_xyz[r])
-                    c_quat = quat_multiply(quat[mine], tb.point_quat[r])
-                    copies = [c2 for c2 in st.children[n] if st.rule[c2] == r]
-                    for j, c2 in enumerate(copies):
-                        sub = np.full(len(inst), j, np.int64)
-                        blocks.append((c2, inst, s, sub, cand_k[inst], True, c_xyz, c_quat))
-                else:  # one child per (allowed) candidate pose of the child's set
-                    e = int(st.set_of[c])
-                    parent, k = self._allowed(inst, n, r, e, cand_k[top[inst]])
-                    cx, cq = self.cand_xyz[e][k], self.cand_quat[e][k]
-                    blocks.append((c, parent, s, k, k, False, cx, cq))
-        return blocks
+            mine = inst[node == n]
+            for e in range(self.free.start[n], self.free.start[n + 1]):
+                rule, target = int(self.free.rule[e]), int(self.free.target[e])
+                p, k = self._allowed(mine, n, rule, target, cand_k[top[mine]])
+                parents.append(p)
+                rows.append(np.full(len(p), e, np.int64))
+                ks.append(k)
+        return self._free(np.concatenate(parents), np.concatenate(rows), np.concatenate(ks))
 
     def _allowed(
         self, inst: IntArray, n: int, rule: int, e: int, top_k: IntArray
@@ -292,16 +367,13 @@ class _Unroll:
         n, their set tops at candidates `top_k`) may have through `rule` in set e."""
         n_cand = len(self.cand_xyz[e])
         everything = (np.repeat(inst, n_cand), np.tile(np.arange(n_cand), len(inst)))
-        own = int(self.st.set_of[n])
-        if own not in self.restrict:
-            return everything
-        slots, assignment = self.restrict[own]
+        slots, assignment = self.restrict[int(self.st.set_of[n])]
         cols = [j for j, s in enumerate(slots) if s == (n, rule)]
         if not cols:  # a rule the assignment does not name (an independent latent child)
             return everything
         named = assignment[:, cols]  # per assignment row; -1: this column has no child
-        parents: list[IntArray] = []
-        ks: list[IntArray] = []
+        parents: list[IntArray] = [np.zeros(0, np.int64)]
+        ks: list[IntArray] = [np.zeros(0, np.int64)]
         for a in np.unique(top_k).tolist():  # instances sharing a row share their children
             these = inst[top_k == a]
             row = named[a]
@@ -309,33 +381,6 @@ class _Unroll:
             parents.append(np.repeat(these, len(k)))
             ks.append(np.tile(k, len(these)))
         return np.concatenate(parents), np.concatenate(ks).astype(np.int64)
-
-    def _slots(self, n: int) -> list[int]:
-        """One representative supertree child per rule (the first copy of a `repeat`)."""
-        if n not in self._slot_cache:
-            seen, out = set(), []
-            for c in self.st.children[n]:
-                r = int(self.st.rule[c])
-                if r not in seen:
-                    seen.add(r)
-                    out.append(c)
-            self._slot_cache[n] = out
-        return self._slot_cache[n]
-
-
-def _stack_blocks(blocks: list[_Block]) -> dict[str, Any]:
-    """The blocks' rows as one array per field."""
-    size = [len(b[1]) for b in blocks]
-    return {
-        "node": np.repeat(np.array([b[0] for b in blocks], np.int64), size),
-        "parent": np.concatenate([b[1] for b in blocks]),
-        "slot": np.repeat(np.array([b[2] for b in blocks], np.int64), size),
-        "sub": np.concatenate([b[3] for b in blocks]),
-        "cand_k": np.concatenate([b[4] for b in blocks]),
-        "fixed": np.repeat(np.array([b[5] for b in blocks], bool), size),
-        "xyz": np.concatenate([np.asarray(b[6]).reshape(-1, 3) for b in blocks]),
-        "quat": np.concatenate([np.asarray(b[7]).reshape(-1, 4) for b in blocks]),
-    }
 
 
 def instance_count(
