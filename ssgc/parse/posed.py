@@ -16,6 +16,7 @@ the caller falls back to the set formulation when it is too large.
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -440,6 +441,8 @@ def reduce_posed(
     inst = u.unroll()
     node, parent, xyz, quat = inst.node, inst.parent, inst.xyz, inst.quat
     model = _Model(grammar, st, scene, node, parent, inst.slot, xyz, quat)
+    model.cand_k = inst.cand_k
+    model.order_copies = adjust is None and restrict is None  # copies stay exchangeable
     model.deadline = deadline
     check_deadline(deadline)
     model.edge_scores()
@@ -537,10 +540,12 @@ class _Model:
         self.cols, self.rows = ColumnBuilder(), RowBuilder()
         self.structural: list[IntArray] = []
         self.deadline: float | None = None
+        self.cand_k = np.zeros(len(node), np.int64)  # candidate index (`Unrolled.cand_k`)
+        self.order_copies = False  # order exchangeable `or` copies (`_ordered_choices`)
         n = len(node)
-        self.children: list[list[int]] = [[] for _ in range(n)]
-        for i in range(1, n):
-            self.children[parent[i]].append(i)
+        order = np.argsort(parent[1:], kind="stable") + 1  # children in instance order
+        ends = np.cumsum(np.bincount(parent[1:], minlength=n))[:-1] if n else []
+        self.children: list[list[int]] = [c.tolist() for c in np.split(order, ends)]
 
     def build(self) -> Milp:
         for step in (
@@ -775,3 +780,27 @@ class _Model:
         same = [c for c in kids if st.set_of[self.node[c]] == st.set_of[self.node[self.parent[c]]]]
         if len(same) > 1:
             add_leq(self.rows, self.col[same[1:]], self.col[same[:-1]])
+            if self.order_copies and self.g.types[self.type[same[0]]].kind == Kind.OR:
+                for first, second in itertools.pairwise(same):
+                    self._ordered_choices(first, second)
+
+    def _ordered_choices(self, first: int, second: int) -> None:
+        """Two copies of one `or` at one pose (a fixed `repeat` rule) are exchangeable: any
+        tree can swap them so that the second's choice (its live child's place in the copy's
+        list, the same list for both) comes no earlier than the first's.  Prefix sums say it:
+        for every m, sum(second's children up to m) <= sum(first's up to m)."""
+        a = [c for c in self.children[first] if self.can[c]]
+        b = [c for c in self.children[second] if self.can[c]]
+        key = np.column_stack([self.slot, self.cand_k])
+        if len(a) != len(b) or len(a) < 2 or not np.array_equal(key[a], key[b]):
+            return  # not the same list of choices: no ordering to add
+        m = len(a)
+        row, pos = np.tril_indices(m)  # row m holds positions 0..m
+        self.rows.add(
+            np.r_[row, row],
+            np.r_[self.col[b][pos], self.col[a][pos]],
+            np.r_[np.ones(len(row)), -np.ones(len(row))],
+            m,
+            -np.inf,
+            0.0,
+        )
