@@ -52,6 +52,25 @@ MAX_INSTANCES = 60_000
 ADD_CHUNK = 128  # implied poses deduplicated at once (candidate_poses, between deadline checks)
 
 
+_CACHE: dict[tuple[int, str], tuple[Supertree, Any]] = {}  # (id(supertree), what) -> table
+_CACHE_SIZE = 32
+
+
+def per_supertree(st: Supertree, what: str, make: Callable[[Supertree], Any]) -> Any:
+    """A table that depends on the supertree alone (its edges, its rigid subtrees), made once
+    per supertree: a parser's every scene (and an explanation's every re-parse) shares it.
+    The entry holds the supertree itself, so its id cannot be reused while cached."""
+    key = (id(st), what)
+    hit = _CACHE.get(key)
+    if hit is not None and hit[0] is st:
+        return hit[1]
+    if len(_CACHE) >= _CACHE_SIZE:
+        _CACHE.pop(next(iter(_CACHE)))  # the oldest
+    table = make(st)
+    _CACHE[key] = (st, table)
+    return table
+
+
 class OutOfTime(Exception):
     """The deadline passed while the model was being built."""
 
@@ -258,7 +277,8 @@ class _Unroll:
         self.all_quat = np.concatenate([q.reshape(-1, 4) for q in cand.quat])
         self.restrict = restrict or {}
         self.restricted = np.isin(st.set_of, np.array(list(self.restrict), np.int64))
-        self.fixed, self.free = _Edges.of(st, True), _Edges.of(st, False)
+        self.fixed = per_supertree(st, "fixed edges", lambda s: _Edges.of(s, True))
+        self.free = per_supertree(st, "free edges", lambda s: _Edges.of(s, False))
         self.deadline: float | None = None
 
     def unroll(self) -> Unrolled:
@@ -670,7 +690,7 @@ class _Model:
         them scores at most what it scores with the best of them (its placement log-density
         plus its choice's log-probability; the subtree's terms are equal).  Keeping only the
         best is exact for the MAP tree (and its certificate), not for the N-th best."""
-        sig = rigid_signatures(self.st)
+        sig = per_supertree(self.st, "rigid signatures", rigid_signatures)
         par = self.parent
         kids = np.flatnonzero(par >= 0)
         is_or = np.array([t.kind == Kind.OR for t in self.g.types])
