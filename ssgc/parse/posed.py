@@ -5,13 +5,20 @@ a node entered by a non-fixed rule can only sit at one of finitely many candidat
 implied by the scene's objects).  Instead of a supertree node plus a choice of pose (thesis 3.5,
 `ssgc.parse.ip`), this formulation gives every (node, candidate pose) its own binary: poses are
 constants, every rule's log-density is a constant on one binary, and the copies of a `repeat`
-are no longer exchangeable variables but distinct candidate children — so there is no
-symmetry to break and each tree has exactly one encoding (top-N cuts give distinct trees).
+with a free rule are no longer exchangeable variables but distinct candidate children — so
+there is no symmetry to break there (top-N cuts give distinct trees).
 The model is an assignment problem whose LP relaxation is tight in practice.
 
 Its size is the number of (node, pose) instances, which can grow like K^depth for deep chains
-of pose-changing rules (a stack of K steamer trays); `count_instances` measures it first and
+of pose-changing rules (a stack of K steamer trays); `instance_count` measures it first and
 the caller falls back to the set formulation when it is too large.
+
+Copies of a `repeat` whose rule is fixed (several `or` nodes at the parent's pose, each
+choosing how to place one child) are still exchangeable: their choices are ordered
+(`_Model._ordered_choices`).  For a best-tree-only parse, `or` alternatives that lead to the
+same rigid subtree at the same pose are dominated by the best of them and dropped
+(`_Model.drop_dominated`).  The candidate poses and the unroll are array code
+(docs/parsing.md, "The pose-instantiated model: cost and reductions").
 """
 
 from __future__ import annotations
