@@ -57,6 +57,7 @@ MAX_INSTANCES = 60_000
 
 
 ADD_CHUNK = 128  # implied poses deduplicated at once (candidate_poses, between deadline checks)
+IMPLIED_ROWS = 8192  # (node, object) poses worked out at once (between deadline checks)
 
 
 _CACHE: dict[tuple[int, str], tuple[Supertree, Any]] = {}  # (id(supertree), what) -> table
@@ -151,10 +152,11 @@ def candidate_poses(
     cand = Candidates(
         [np.zeros((0, 3)) for _ in range(st.n_sets)], [np.zeros((0, 4)) for _ in range(st.n_sets)]
     )
-    node, xyz, quat = _implied_poses(grammar, st, scene)
+    node, xyz, quat = _implied_poses(grammar, st, scene, deadline)
     check_deadline(deadline)
     e = st.set_of[node]
     order = np.argsort(e, kind="stable")  # per set, in node then object order
+    check_deadline(deadline)
     e, xyz, quat = e[order], xyz[order], quat[order]
     sets, starts = np.unique(e, return_index=True)
     ends = np.r_[starts[1:], len(e)][: len(starts)]
@@ -168,28 +170,34 @@ def candidate_poses(
 
 
 def _implied_poses(
-    grammar: Grammar, st: Supertree, scene: Scene
+    grammar: Grammar, st: Supertree, scene: Scene, deadline: float | None = None
 ) -> tuple[IntArray, FloatArray, FloatArray]:
     """(observed supertree node, set-top xyz, set-top quat) of every (node, object of its
     type) pair, in node order, then object order: the pose of the node's set top that puts
-    the node on the object."""
+    the node on the object.  Worked out about IMPLIED_ROWS pairs at a time, each written
+    straight to its place, with a deadline check between (a thousand nodes of a thousand
+    objects each are a million poses)."""
     observed = np.flatnonzero(grammar.tables.type_observed[st.type])
-    nodes, xyzs, quats = [np.zeros(0, np.int64)], [np.zeros((0, 3))], [np.zeros((0, 4))]
-    for t in np.unique(st.type[observed]).tolist():
+    n_objs = np.bincount(scene.types, minlength=len(grammar.types))[st.type[observed]]
+    start = np.cumsum(n_objs) - n_objs  # each node's first row
+    total = int(n_objs.sum())
+    node = np.repeat(observed, n_objs)
+    xyz, quat = np.empty((total, 3)), np.empty((total, 4))
+    for t in np.unique(st.type[observed][n_objs > 0]).tolist():
         objs = np.flatnonzero(scene.types == t)
-        if not len(objs):
-            continue
-        n = observed[st.type[observed] == t]
-        q = quat_multiply(
-            scene.quat[objs][None, :, :], quat_conjugate(st.offset_quat[n])[:, None, :]
-        )
-        x = scene.xyz[objs][None, :, :] - quat_rotate(q, st.offset_xyz[n][:, None, :])
-        nodes.append(np.repeat(n, len(objs)))
-        xyzs.append(x.reshape(-1, 3))
-        quats.append(q.reshape(-1, 4))
-    node = np.concatenate(nodes)
-    order = np.argsort(node, kind="stable")  # node order across types
-    return node[order], np.concatenate(xyzs)[order], np.concatenate(quats)[order]
+        mine = np.flatnonzero(st.type[observed] == t)
+        step = max(1, IMPLIED_ROWS // len(objs))
+        for lo in range(0, len(mine), step):
+            check_deadline(deadline)
+            m = mine[lo : lo + step]
+            n = observed[m]
+            q = quat_multiply(
+                scene.quat[objs][None, :, :], quat_conjugate(st.offset_quat[n])[:, None, :]
+            )
+            x = scene.xyz[objs][None, :, :] - quat_rotate(q, st.offset_xyz[n][:, None, :])
+            rows = (start[m][:, None] + np.arange(len(objs))[None, :]).reshape(-1)
+            xyz[rows], quat[rows] = x.reshape(-1, 3), q.reshape(-1, 4)
+    return node, xyz, quat
 
 
 def _first_distinct(xyz: FloatArray, quat: FloatArray, deadline: float | None) -> IntArray:
