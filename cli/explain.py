@@ -27,7 +27,13 @@ def explain(
         Path | None, typer.Option("-o", "--output", help="Write the JSON here.")
     ] = None,
     time_limit: Annotated[
-        float | None, typer.Option("--time-limit", min=0.001, help="Seconds per scene.")
+        float | None,
+        typer.Option(
+            "--time-limit",
+            min=0.001,
+            help="Seconds per scene: the parse, then the per-object re-parses in what is "
+            "left (without it the re-parses share 30 s).",
+        ),
     ] = None,
     allow_outside_files: AllowOutside = False,
 ) -> None:

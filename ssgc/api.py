@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 import inspect
 import json
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -95,11 +96,13 @@ def explain(grammar: Grammar, scene: Scene, time_limit: float | None = None) -> 
     objects and rules, most unusual object first.  `.text()` says it in words, `.to_json()`
     is `ssg explain --json`'s entry.  Raises `ssgc.explain.UnexplainedScene` (with the
     diagnosis naming the objects to blame) when no tree of the grammar contains the scene."""
-    from ssgc.explain import best_tree, explain_tree
+    from ssgc.explain import best_tree, explain_tree, reparse_budget
 
     parser = grammar.parser("auto")
+    t0 = time.perf_counter()
     tree = best_tree(grammar.ir, scene.data, parser, time_limit=time_limit)
-    return explain_tree(grammar.ir, scene.data, tree, parser, time_limit)
+    budget = reparse_budget(time_limit, time.perf_counter() - t0)
+    return explain_tree(grammar.ir, scene.data, tree, parser, budget)
 
 
 def fit(

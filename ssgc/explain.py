@@ -24,6 +24,7 @@ Two numbers per object, for two questions (docs/explain.md):
 from __future__ import annotations
 
 import re
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,6 +52,9 @@ from ssgc.tree import Trees
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 MC_DRAWS = 4000  # draws per rule for expected log-densities and rotation percentiles
+# Seconds all of one explanation's re-parses may take together when no time limit is given
+# (docs/explain.md "Cost"): enough for every object of the real sink scenes.
+EXPLAIN_BUDGET_S = 30.0
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 # Overlaps of objects the tree does not relate (docs/explain.md, "Overlaps"), measured on the
 # real sink scenes 0-39 parsed with the fitted sink_detailed grammar: the share of dishes that
@@ -120,12 +124,39 @@ class ObjectExplanation:
 
 
 @dataclass
+class Reparses:
+    """What the per-object re-parses did within the explanation's budget: an object whose
+    re-parse was cut short or skipped keeps the gain found so far (at least its local pose
+    repair's), so its rank may be lower than with more time."""
+
+    budget_s: float
+    parsed: int = 0  # re-parses that ran to their end
+    cut: list[int] = field(default_factory=list)  # objects whose re-parse hit the time limit
+    skipped: list[int] = field(default_factory=list)  # objects not re-parsed: budget spent
+
+    @property
+    def status(self) -> str:
+        """`complete` when every re-parse ran to its end, else `budget_exhausted`."""
+        return "budget_exhausted" if self.cut or self.skipped else "complete"
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "status": self.status,
+            "budget_s": self.budget_s,
+            "parsed": self.parsed,
+            "cut": sorted(set(self.cut)),
+            "skipped": sorted(set(self.skipped)),
+        }
+
+
+@dataclass
 class Explanation:
     scene: str
     log_prob: float
     objects: list[ObjectExplanation]  # most unusual first
     rules: list[dict[str, Any]]  # each rule's (or node type's) share, largest first
     unattributed: float = 0.0  # −log p of a scene without objects (nothing to attribute it to)
+    reparse: Reparses | None = None  # the per-object re-parses (None: explained without)
 
     @property
     def nats_per_object(self) -> float:
@@ -141,7 +172,7 @@ class Explanation:
             "unattributed": self.unattributed,
             "objects": [o.to_json() for o in self.objects],
             "rules": self.rules,
-        }
+        } | ({} if self.reparse is None else {"reparse": self.reparse.to_json()})
 
     def text(self, limit: int | None = None) -> str:
         lines = [
@@ -157,6 +188,12 @@ class Explanation:
                 )
             for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
                 lines.append(f"    {r.text}")
+        if self.reparse is not None and self.reparse.status != "complete":
+            r = self.reparse
+            lines.append(
+                f"(re-parse budget of {r.budget_s:.1f} s spent: {len(set(r.cut + r.skipped))} "
+                "object(s) ranked on their local pose repair alone; raise --time-limit)"
+            )
         if self.rules:
             lines.append("rules by share of −log p:")
             for r in self.rules[:limit]:
@@ -171,9 +208,19 @@ def explain(grammar: Grammar, scene: Scene, tree: Trees | None = None, **parse: 
     from ssgc.parse.parser import Parser
 
     parser = Parser(grammar)
+    t0 = time.perf_counter()
     if tree is None:
         tree = best_tree(grammar, scene, parser, **parse)
-    return explain_tree(grammar, scene, tree, parser, parse.get("time_limit"))
+    budget = reparse_budget(parse.get("time_limit"), time.perf_counter() - t0)
+    return explain_tree(grammar, scene, tree, parser, budget)
+
+
+def reparse_budget(time_limit: float | None, spent: float) -> float:
+    """Seconds left for an explanation's re-parses: what a per-scene time limit leaves after
+    the `spent` seconds of the base parse, or EXPLAIN_BUDGET_S without a limit."""
+    if time_limit is None:
+        return EXPLAIN_BUDGET_S
+    return max(time_limit - spent, 0.0)
 
 
 class UnexplainedScene(Exception):
@@ -210,7 +257,8 @@ def explain_tree(
     With a `parser`, each object's repaired pose is also tried by parsing the scene again with
     that one object moved (so other objects may change parent: a flipped plate whose cups had
     to move to a far plate gets the credit for the whole mess); its pose gain is then the
-    better of the two."""
+    better of the two.  `time_limit` is the seconds all those re-parses may take together
+    (default EXPLAIN_BUDGET_S); what they did is `Explanation.reparse`."""
     terms = _terms(grammar, tree)
     obj_of = match_objects(grammar, scene, tree)
     weights = ownership(grammar, tree, obj_of, len(scene))
@@ -241,15 +289,20 @@ def explain_tree(
             if term["kind"] in ("count", "choice"):
                 objects[o].unusual += float(w[o]) * max(0.0, excess)
     log_prob = float(sum(t["log_prob"] for t in terms))
+    budget = EXPLAIN_BUDGET_S if time_limit is None else time_limit
+    reparse = None if parser is None else Reparses(budget)
+    deadline = time.perf_counter() + budget
     for o, fix in pose_gains(grammar, tree, obj_of).items():
         gain = fix.gain
-        if parser is not None and gain > 0:
-            gain = max(gain, _reparsed_gain(parser, scene, o, fix, log_prob, time_limit))
+        if reparse is not None and gain > 0:
+            found = _reparsed_gain(parser, scene, o, fix, log_prob, deadline, reparse)
+            gain = max(gain, found)
         objects[o].pose_gain = gain
         objects[o].unusual += gain
     for o, surprise in slot_surprises(grammar, tree, terms, obj_of, weights, expect).items():
         objects[o].slot_surprise = surprise
-    for o, fix in type_gains(grammar, scene, tree, obj_of, log_prob, parser, time_limit).items():
+    retyped = type_gains(grammar, scene, tree, obj_of, log_prob, parser, deadline, reparse)
+    for o, fix in retyped.items():
         objects[o].type_gain = fix.gain
         objects[o].better_type = grammar.types[fix.type].name
     for o in objects:  # the evidence that the object is not what or where the grammar expects
@@ -263,7 +316,7 @@ def explain_tree(
     unattributed = -log_prob if len(scene) == 0 else 0.0
     # what the grammar leaves unexplained comes first, then the most unusual
     objects.sort(key=lambda o: (not o.unexplained, -o.unusual, -o.share, o.index))
-    return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed)
+    return Explanation(scene.name, log_prob, objects, _rule_shares(terms), unattributed, reparse)
 
 
 def slot_surprise_nodes(grammar: Grammar, tree: Trees) -> list[tuple[int, int]]:
@@ -341,15 +394,30 @@ def overlap_reasons(
 
 
 def _reparsed_gain(
-    parser: Any, scene: Scene, o: int, fix: Repair, log_prob: float, time_limit: float | None
+    parser: Any,
+    scene: Scene,
+    o: int,
+    fix: Repair,
+    log_prob: float,
+    deadline: float,
+    record: Reparses,
 ) -> float:
-    """The best score gain over the repair's poses of object o, the scene parsed again."""
+    """The best score gain over the repair's poses of object o, the scene parsed again, each
+    parse bounded by what is left before `deadline` (noted in `record`)."""
     best = 0.0
     for xyz_o, quat_o in fix.poses[:2]:
+        left = deadline - time.perf_counter()
+        if left <= 0:
+            record.skipped.append(o)
+            break
         xyz, quat = scene.xyz.copy(), scene.quat.copy()
         xyz[o], quat[o] = xyz_o, quat_o
         moved = Scene(scene.name, scene.types, xyz, quat, metadata=scene.metadata)
-        result = parser.parse(moved, top=1, time_limit=time_limit)
+        result = parser.parse(moved, top=1, time_limit=left)
+        if result.timed_out_in:
+            record.cut.append(o)
+        else:
+            record.parsed += 1
         if result.parses:
             best = max(best, result.parses[0].score - log_prob)
     return best
@@ -649,7 +717,8 @@ def type_gains(
     obj_of: IntArray,
     log_prob: float,
     parser: Any = None,
-    time_limit: float | None = None,
+    deadline: float | None = None,
+    record: Reparses | None = None,
 ) -> dict[int, TypeFix]:
     """For each object: the best score of the scene with that object of another type, minus
     the tree's.  An object given a wrong type sits where its *true* type belongs (a mug at a
@@ -658,17 +727,23 @@ def type_gains(
     more probable than its own).  Types that swap into the tree in place (another leaf of the
     same `or`: another model of the same category) are scored on the tree; other types are
     tried by parsing the scene again (with a `parser`), one type per group of interchangeable
-    types (`retype_groups`), each parse bounded by `time_limit` (RETYPE_TIME by default)."""
+    types (`retype_groups`).  Those parses share the explanation's re-parse budget (until
+    `deadline`, each at most RETYPE_TIME) and are noted in `record`."""
     found = _swap_scores(grammar, tree, obj_of)
     how = {o: dict.fromkeys(s, "swap") for o, s in found.items()}
     if parser is not None:
-        limit = RETYPE_TIME if time_limit is None else min(time_limit, RETYPE_TIME)
+        end = time.perf_counter() + RETYPE_TIME * len(scene) if deadline is None else deadline
+        record = Reparses(end - time.perf_counter()) if record is None else record
         for o in range(len(scene)):
             if _is_root_object(grammar, scene, o):
                 continue
             done = set(found.get(o, {}))
             for t in _reparse_candidates(grammar, parser, scene, o, done):
-                score = _retyped_score(parser, scene, o, t, limit)
+                left = min(end - time.perf_counter(), RETYPE_TIME)
+                if left <= 0:
+                    record.skipped.append(o)
+                    break
+                score = _retyped_score(parser, scene, o, t, left, record)
                 if np.isfinite(score):
                     found.setdefault(o, {})[t] = score
                     how.setdefault(o, {})[t] = "parse"
@@ -775,7 +850,9 @@ def _reparse_candidates(
     return out
 
 
-def _retyped_score(parser: Any, scene: Scene, o: int, t: int, time_limit: float) -> float:
+def _retyped_score(
+    parser: Any, scene: Scene, o: int, t: int, time_limit: float, record: Reparses
+) -> float:
     """The best parse's log-probability of the scene with object o of type t (-inf if none)."""
     types = scene.types.copy()
     types[o] = t
@@ -784,6 +861,10 @@ def _retyped_score(parser: Any, scene: Scene, o: int, t: int, time_limit: float)
         result = parser.parse(retyped, top=1, time_limit=time_limit)
     except SsgError:
         return -np.inf
+    if result.timed_out_in:
+        record.cut.append(o)
+    else:
+        record.parsed += 1
     return result.parses[0].score if result.parses else -np.inf
 
 

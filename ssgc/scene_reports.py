@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ssgc.explain import diagnose, explain_tree, unexplained_objects
+from ssgc.explain import diagnose, explain_tree, reparse_budget, unexplained_objects
 from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
 from ssgc.io.outputs import Output, write_output
 from ssgc.io.scene import Scene
@@ -51,7 +51,8 @@ def parse_document(
             for parse, p in zip(row["parses"], result.parses, strict=True):
                 parse["unexplained"] = unexplained_objects(g, scene, p.tree)
         if explain:
-            e = explain_tree(g, scene, result.parses[0].tree, parser, time_limit)
+            budget = reparse_budget(time_limit, result.timing["total_s"])
+            e = explain_tree(g, scene, result.parses[0].tree, parser, budget)
             row["explanation"] = e.to_json()
         if len(result.parses) < top and note is not None:
             note(f"{scene.name}: {result.message}")
@@ -66,7 +67,8 @@ def explain_document(
     up."""
     result = parser.parse(scene, top=1, time_limit=time_limit)
     if result.parses:
-        e = explain_tree(grammar, scene, result.parses[0].tree, parser, time_limit)
+        budget = reparse_budget(time_limit, result.timing["total_s"])
+        e = explain_tree(grammar, scene, result.parses[0].tree, parser, budget)
         return {"status": result.status, **e.to_json()}, e.text(10)
     if result.status == "infeasible":
         d = diagnose(grammar, scene, parser, time_limit=time_limit or DIAGNOSE_S)

@@ -165,7 +165,7 @@ class Parser:
             propose_s = time.perf_counter() - t0
             check_deadline(deadline)
             step = "build"
-            request = self.request(scene, cand, bounds, deadline)
+            request = self.request(scene, cand, bounds, deadline, best_only=top == 1)
             reduction = choose(self.reductions, request)
             complete = self.complete(reduction, request)
             problem = reduction.apply(request)[1]
@@ -327,10 +327,13 @@ class Parser:
         cand: Candidates,
         bounds: dict[int, SetBound] | None,
         deadline: float | None,
+        best_only: bool = False,
     ) -> Request:
         if self.method == "ip":
             bounds = None  # the bounds only certify: the model is over the proposals
-        return Request(self.grammar, self.supertree, scene, cand, self.has_latent, bounds, deadline)
+        return Request(
+            self.grammar, self.supertree, scene, cand, self.has_latent, bounds, deadline, best_only
+        )
 
     def open_session(self, milp: Milp, time_limit: float | None = None) -> Session:
         """The one place a solver session is made (HiGHS unless the parser was given another)."""

@@ -5,30 +5,39 @@ a node entered by a non-fixed rule can only sit at one of finitely many candidat
 implied by the scene's objects).  Instead of a supertree node plus a choice of pose (thesis 3.5,
 `ssgc.parse.ip`), this formulation gives every (node, candidate pose) its own binary: poses are
 constants, every rule's log-density is a constant on one binary, and the copies of a `repeat`
-are no longer exchangeable variables but distinct candidate children — so there is no
-symmetry to break and each tree has exactly one encoding (top-N cuts give distinct trees).
+with a free rule are no longer exchangeable variables but distinct candidate children — so
+there is no symmetry to break there (top-N cuts give distinct trees).
 The model is an assignment problem whose LP relaxation is tight in practice.
 
 Its size is the number of (node, pose) instances, which can grow like K^depth for deep chains
-of pose-changing rules (a stack of K steamer trays); `count_instances` measures it first and
+of pose-changing rules (a stack of K steamer trays); `instance_count` measures it first and
 the caller falls back to the set formulation when it is too large.
+
+Copies of a `repeat` whose rule is fixed (several `or` nodes at the parent's pose, each
+choosing how to place one child) are still exchangeable: their choices are ordered
+(`_Model._ordered_choices`).  For a best-tree-only parse, `or` alternatives that lead to the
+same rigid subtree at the same pose are dominated by the best of them and dropped
+(`_Model.drop_dominated`).  The candidate poses and the unroll are array code
+(docs/parsing.md, "The pose-instantiated model: cost and reductions").
 """
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.errors import Diagnostic
-from ssgc.geometry import quat_angle, quat_multiply, quat_rotate
+from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
 from ssgc.parse.clock import check_deadline
-from ssgc.parse.ip import UnparseableScene, implied_set_poses, unplaceable
+from ssgc.parse.ip import UnparseableScene, unplaceable
 from ssgc.parse.milp import (
     ColumnBuilder,
     Milp,
@@ -48,8 +57,29 @@ FloatArray = NDArray[np.float64]
 MAX_INSTANCES = 60_000
 
 
-ADD_CHUNK = 1024  # implied poses deduplicated at once (candidate_poses, between deadline checks)
-UNROLL_CHECK = 32  # instances unrolled between deadline checks (each costs ~0.1-1 ms)
+ADD_CHUNK = 128  # implied poses deduplicated at once (candidate_poses, between deadline checks)
+IMPLIED_ROWS = 8192  # (node, object) poses worked out at once (between deadline checks)
+
+
+_CACHE: dict[tuple[int, str], tuple[Supertree, Any]] = {}  # (id(supertree), what) -> table
+_CACHE_SIZE = 32
+
+
+def per_supertree(st: Supertree, what: str, make: Callable[[Supertree], Any]) -> Any:
+    """A table that depends on the supertree alone (its edges, its rigid subtrees), made once
+    per supertree: a parser's every scene (and an explanation's every re-parse) shares it.
+    The entry holds the supertree itself, so its id cannot be reused while cached."""
+    key = (id(st), what)
+    hit = _CACHE.get(key)
+    if hit is not None and hit[0] is st:
+        return hit[1]
+    if len(_CACHE) >= _CACHE_SIZE:
+        _CACHE.pop(next(iter(_CACHE)))  # the oldest
+    table = make(st)
+    _CACHE[key] = (st, table)
+    return table
+
+
 
 
 @dataclass(frozen=True)
@@ -109,24 +139,136 @@ def candidate_poses(
     """Per equivalent set, the distinct poses of its top node that put one of its observed
     nodes exactly on an object of the scene (latent sets get none here: see proposals).
 
-    Past the deadline it raises OutOfTime: a wide `repeat` of a large scene has a thousand
-    sets of a thousand poses each, whose deduplication alone takes a minute."""
+    The poses are worked out for all observed nodes of one type and all objects of that type
+    at once; a set keeps them in node, then object order, each unless it is within the pose
+    tolerances of an earlier one.  Past the deadline it raises OutOfTime: a wide `repeat` of a
+    large scene has a thousand sets of a thousand poses each."""
     cand = Candidates(
         [np.zeros((0, 3)) for _ in range(st.n_sets)], [np.zeros((0, 4)) for _ in range(st.n_sets)]
     )
-    for n, _, t, q in implied_set_poses(grammar, st, scene):
-        t, q = t.reshape(-1, 3), q.reshape(-1, 4)
-        for i in range(0, len(t), ADD_CHUNK):  # bounded work between deadline checks
-            check_deadline(deadline)
-            cand.add(int(st.set_of[n]), t[i : i + ADD_CHUNK], q[i : i + ADD_CHUNK])
+    node, xyz, quat = _implied_poses(grammar, st, scene, deadline)
+    check_deadline(deadline)
+    e = st.set_of[node]
+    order = np.argsort(e, kind="stable")  # per set, in node then object order
+    check_deadline(deadline)
+    e, xyz, quat = e[order], xyz[order], quat[order]
+    sets, starts = np.unique(e, return_index=True)
+    ends = np.r_[starts[1:], len(e)][: len(starts)]
+    for s, lo, hi in zip(sets.tolist(), starts.tolist(), ends.tolist(), strict=True):
+        keep = _first_distinct(xyz[lo:hi], quat[lo:hi], deadline)
+        cand.xyz[s], cand.quat[s] = xyz[lo:hi][keep], quat[lo:hi][keep]
     root_set = int(st.set_of[0])  # the root's set has exactly one pose
     cand.xyz[root_set] = grammar.root_xyz.reshape(1, 3).copy()
     cand.quat[root_set] = grammar.root_quat.reshape(1, 4).copy()
     return cand
 
 
+def _implied_poses(
+    grammar: Grammar, st: Supertree, scene: Scene, deadline: float | None = None
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """(observed supertree node, set-top xyz, set-top quat) of every (node, object of its
+    type) pair, in node order, then object order: the pose of the node's set top that puts
+    the node on the object.  Worked out about IMPLIED_ROWS pairs at a time, each written
+    straight to its place, with a deadline check between (a thousand nodes of a thousand
+    objects each are a million poses)."""
+    observed = np.flatnonzero(grammar.tables.type_observed[st.type])
+    n_objs = np.bincount(scene.types, minlength=len(grammar.types))[st.type[observed]]
+    start = np.cumsum(n_objs) - n_objs  # each node's first row
+    total = int(n_objs.sum())
+    node = np.repeat(observed, n_objs)
+    xyz, quat = np.empty((total, 3)), np.empty((total, 4))
+    for t in np.unique(st.type[observed][n_objs > 0]).tolist():
+        objs = np.flatnonzero(scene.types == t)
+        mine = np.flatnonzero(st.type[observed] == t)
+        step = max(1, IMPLIED_ROWS // len(objs))
+        for lo in range(0, len(mine), step):
+            check_deadline(deadline)
+            m = mine[lo : lo + step]
+            n = observed[m]
+            q = quat_multiply(
+                scene.quat[objs][None, :, :], quat_conjugate(st.offset_quat[n])[:, None, :]
+            )
+            x = scene.xyz[objs][None, :, :] - quat_rotate(q, st.offset_xyz[n][:, None, :])
+            rows = (start[m][:, None] + np.arange(len(objs))[None, :]).reshape(-1)
+            xyz[rows], quat[rows] = x.reshape(-1, 3), q.reshape(-1, 4)
+    return node, xyz, quat
+
+
+def _first_distinct(xyz: FloatArray, quat: FloatArray, deadline: float | None) -> IntArray:
+    """Indices of the poses not within the pose tolerances of an earlier one (compared in
+    blocks of ADD_CHUNK, with a deadline check between blocks)."""
+    drop = np.zeros(len(xyz), bool)
+    for lo in range(0, len(xyz), ADD_CHUNK):
+        check_deadline(deadline)
+        j = np.arange(lo, min(lo + ADD_CHUNK, len(xyz)))
+        near = np.linalg.norm(xyz[: j[-1] + 1, None, :] - xyz[None, j, :], axis=2) <= POS_TOL
+        i, jj = np.nonzero(near & (np.arange(j[-1] + 1)[:, None] < j[None, :]))
+        same = quat_angle(quat[i], quat[j[jj]]) <= ROT_TOL
+        drop[j[jj[same]]] = True
+    return np.flatnonzero(~drop)
+
+
+@dataclass(frozen=True)
+class Unrolled:
+    """The instances in breadth-first order (parents first; a parent's children by rule
+    slot, then by copy or candidate index): the order the model's columns follow."""
+
+    node: IntArray  # supertree node
+    parent: IntArray  # parent instance, -1 for the root
+    slot: IntArray  # index of the producing rule slot in the parent's children
+    cand_k: IntArray  # index of the instance's pose among its set's candidates
+    top: IntArray  # the instance heading each instance's set
+    xyz: FloatArray
+    quat: FloatArray
+
+
+@dataclass(frozen=True)
+class _Edges:
+    """Child edges of the supertree as arrays, grouped by parent node: those of node n are
+    rows start[n]:start[n + 1], in slot order, then copy order."""
+
+    start: IntArray
+    slot: IntArray  # the rule slot (one per rule, its first copy for a free rule)
+    sub: IntArray  # the copy's index among the rule's copies (fixed rules)
+    child: IntArray  # the supertree child
+    rule: IntArray
+    target: IntArray  # the child's set
+
+    @staticmethod
+    def of(st: Supertree, fixed: bool) -> _Edges:
+        """The fixed edges (every copy) or the free ones (the first copy of each rule)."""
+        rows: list[tuple[int, int, int, int, int]] = []
+        start = np.zeros(len(st) + 1, np.int64)
+        for n in range(len(st)):
+            copies: dict[int, int] = {}  # rule -> copies seen so far (dicts keep slot order)
+            for c in st.children[n]:
+                r = int(st.rule[c])
+                sub = copies.setdefault(r, 0)
+                copies[r] += 1
+                if (st.set_of[c] == st.set_of[n]) == fixed and (fixed or sub == 0):
+                    rows.append((list(copies).index(r), sub, c, r, int(st.set_of[c])))
+            start[n + 1] = len(rows)
+        cols = np.array(rows, np.int64).reshape(-1, 5).T
+        return _Edges(start, *cols)
+
+    def expand(self, inst: IntArray, node: IntArray) -> tuple[IntArray, IntArray]:
+        """(parent instance, edge row) of every edge of every instance, instance by instance."""
+        count = self.start[node + 1] - self.start[node]
+        parent = np.repeat(inst, count)
+        return parent, np.repeat(self.start[node], count) + _within(count)
+
+
+def _within(count: IntArray) -> IntArray:
+    """0, 1, ..., count[0] - 1, 0, 1, ..., count[1] - 1, ...: each row's place in its group."""
+    total = int(count.sum())
+    return np.arange(total) - np.repeat(np.cumsum(count) - count, count)
+
+
 class _Unroll:
-    """Builds the instances (supertree node, pose) top-down, then the MILP over them."""
+    """Builds the instances (supertree node, pose) top-down, one generation at a time, each in
+    a few array operations: the fixed rules' children of every instance of the generation are
+    one batched quaternion product, the free rules' children the cross product of the
+    instances with their sets' candidate poses (`_Edges`)."""
 
     def __init__(
         self,
@@ -138,76 +280,137 @@ class _Unroll:
     ) -> None:
         self.g, self.st, self.scene = grammar, st, scene
         self.cand_xyz, self.cand_quat = cand.xyz, cand.quat
+        self.n_cand = np.array([len(x) for x in cand.xyz], np.int64)
+        self.cand_start = np.cumsum(self.n_cand) - self.n_cand
+        self.all_xyz = np.concatenate([x.reshape(-1, 3) for x in cand.xyz])
+        self.all_quat = np.concatenate([q.reshape(-1, 4) for q in cand.quat])
         self.restrict = restrict or {}
+        self.restricted = np.isin(st.set_of, np.array(list(self.restrict), np.int64))
+        self.fixed = per_supertree(st, "fixed edges", lambda s: _Edges.of(s, True))
+        self.free = per_supertree(st, "free edges", lambda s: _Edges.of(s, False))
         self.deadline: float | None = None
-        self.top: list[int] = []  # instance heading each instance's set
-        self.node: list[int] = []
-        self.parent: list[int] = []
-        self.slot: list[int] = []  # index of the producing rule slot in the parent's children
-        self.cand_k: list[int] = []  # index of the instance's pose among its set's candidates
-        self.xyz: list[FloatArray] = []
-        self.quat: list[FloatArray] = []
 
-    def unroll(self) -> None:
-        st, g = self.st, self.g
-        tb = g.tables
-        self._add(0, -1, -1, g.root_xyz, g.root_quat, 0)
-        i = 0
-        while i < len(self.node):
-            n = self.node[i]
-            for slot, c in enumerate(self._slots(n)):
-                if st.set_of[c] == st.set_of[n]:  # fixed rule: the rule's offset from i
-                    r = st.rule[c]
-                    xyz = self.xyz[i] + quat_rotate(self.quat[i], tb.point_xyz[r])
-                    quat = quat_multiply(self.quat[i], tb.point_quat[r])
-                    for c2 in (c2 for c2 in st.children[n] if st.rule[c2] == r):
-                        self._add(c2, i, slot, xyz, quat, self.cand_k[i])
-                else:  # one child per candidate pose of the child's set
-                    e = st.set_of[c]
-                    for k in self._allowed(i, n, int(st.rule[c]), e):
-                        self._add(c, i, slot, self.cand_xyz[e][k], self.cand_quat[e][k], k)
-            if i % UNROLL_CHECK == 0:
-                check_deadline(self.deadline)
-            i += 1
-
-    def _allowed(self, i: int, n: int, rule: int, e: int) -> range | list[int]:
-        """Candidate indices a child of instance i (node n) through `rule` may take."""
-        own = int(self.st.set_of[n])
-        if own in self.restrict:
-            slots, assignment = self.restrict[own]
-            a = self.cand_k[self.top[i]]
-            cols = [j for j, s in enumerate(slots) if s == (n, rule)]
-            if not cols:  # a rule the assignment does not name (an independent latent child)
-                return range(len(self.cand_xyz[e]))
-            named = assignment[a, cols]  # -1: this column has no child
-            if np.any(named == FREE_CHILD):  # a row whose children are free (bound.FREE)
-                return range(len(self.cand_xyz[e]))
-            return sorted({int(k) for k in named if k >= 0})
-        return range(len(self.cand_xyz[e]))
-
-    def _slots(self, n: int) -> list[int]:
-        """One representative supertree child per rule (the first copy of a `repeat`)."""
-        seen, out = set(), []
-        for c in self.st.children[n]:
-            r = int(self.st.rule[c])
-            if r not in seen:
-                seen.add(r)
-                out.append(c)
-        return out
-
-    def _add(
-        self, n: int, parent: int, slot: int, xyz: FloatArray, quat: FloatArray, k: int
-    ) -> None:
-        if len(self.node) % 2048 == 0:  # one node can have thousands of candidate children
+    def unroll(self) -> Unrolled:
+        g = self.g
+        cols: dict[str, list[Any]] = {
+            "node": [np.zeros(1, np.int64)],
+            "parent": [np.full(1, -1, np.int64)],
+            "slot": [np.full(1, -1, np.int64)],
+            "cand_k": [np.zeros(1, np.int64)],
+            "top": [np.zeros(1, np.int64)],
+            "xyz": [np.asarray(g.root_xyz, float).reshape(1, 3)],
+            "quat": [np.asarray(g.root_quat, float).reshape(1, 4)],
+        }
+        lo, n_total = 0, 1
+        cand_k_all, top_all = cols["cand_k"][0], cols["top"][0]
+        while True:  # generation [lo, n_total) gives the next one
             check_deadline(self.deadline)
-        self.cand_k.append(k)
-        fixed = parent >= 0 and self.st.set_of[n] == self.st.set_of[self.node[parent]]
-        self.top.append(self.top[parent] if fixed else len(self.node))
-        self.node.append(n)
-        self.parent.append(parent)
-        self.slot.append(slot)
-        self.xyz.append(np.asarray(xyz, float))
-        self.quat.append(np.asarray(quat, float))
+            gen = (cols["node"][-1], cols["xyz"][-1], cols["quat"][-1])
+            kid = self._children(lo, *gen, cand_k_all, top_all)
+            if not len(kid["node"]):
+                break
+            order = np.lexsort((kid["sub"], kid["slot"], kid["parent"]))  # breadth first
+            kid = {k: v[order] for k, v in kid.items()}
+            own = np.arange(n_total, n_total + len(order))
+            kid["top"] = np.where(kid.pop("fixed"), top_all[kid["parent"]], own)
+            for k, v in cols.items():
+                v.append(kid[k])
+            cand_k_all = np.concatenate([cand_k_all, kid["cand_k"]])
+            top_all = np.concatenate([top_all, kid["top"]])
+            lo, n_total = n_total, n_total + len(order)
+        return Unrolled(
+            *(np.concatenate(cols[k]) for k in ("node", "parent", "slot", "cand_k", "top")),
+            np.concatenate(cols["xyz"]).reshape(-1, 3),
+            np.concatenate(cols["quat"]).reshape(-1, 4),
+        )
+
+    def _children(
+        self,
+        lo: int,
+        node: IntArray,
+        xyz: FloatArray,
+        quat: FloatArray,
+        cand_k: IntArray,
+        top: IntArray,
+    ) -> dict[str, Any]:
+        """The children of the generation starting at instance `lo` (unordered), with the
+        keys (parent, slot, sub) that order them."""
+        tb = self.g.tables
+        inst = lo + np.arange(len(node))
+        parent, e = self.fixed.expand(inst, node)  # fixed rules: the rule's offset
+        r, local = self.fixed.rule[e], parent - lo
+        fixed = {
+            "node": self.fixed.child[e],
+            "parent": parent,
+            "slot": self.fixed.slot[e],
+            "sub": self.fixed.sub[e],
+            "cand_k": cand_k[parent],
+            "fixed": np.ones(len(e), bool),
+            "xyz": xyz[local] + quat_rotate(quat[local], tb.point_xyz[r]),
+            "quat": quat_multiply(quat[local], tb.point_quat[r]),
+        }
+        free_mask = ~self.restricted[node]
+        parent, e = self.free.expand(inst[free_mask], node[free_mask])
+        count = self.n_cand[self.free.target[e]]  # one child per candidate pose of its set
+        parent, e, k = np.repeat(parent, count), np.repeat(e, count), _within(count)
+        parts = [fixed, self._free(parent, e, k)]
+        if np.any(~free_mask):
+            parts.append(self._restricted(inst[~free_mask], node[~free_mask], cand_k, top))
+        return {key: np.concatenate([p[key] for p in parts]) for key in fixed}
+
+    def _free(self, parent: IntArray, e: IntArray, k: IntArray) -> dict[str, Any]:
+        """Free-rule children: edge rows e of parents `parent`, at candidates k."""
+        at = self.cand_start[self.free.target[e]] + k
+        return {
+            "node": self.free.child[e],
+            "parent": parent,
+            "slot": self.free.slot[e],
+            "sub": k,
+            "cand_k": k,
+            "fixed": np.zeros(len(e), bool),
+            "xyz": self.all_xyz[at],
+            "quat": self.all_quat[at],
+        }
+
+    def _restricted(
+        self, inst: IntArray, node: IntArray, cand_k: IntArray, top: IntArray
+    ) -> dict[str, Any]:
+        """Free-rule children of instances in `restrict`ed sets: per slot, the candidates
+        their set top's assignment names (`_allowed`)."""
+        parents: list[IntArray] = [np.zeros(0, np.int64)]
+        rows: list[IntArray] = [np.zeros(0, np.int64)]
+        ks: list[IntArray] = [np.zeros(0, np.int64)]
+        for n in np.unique(node).tolist():
+            mine = inst[node == n]
+            for e in range(self.free.start[n], self.free.start[n + 1]):
+                rule, target = int(self.free.rule[e]), int(self.free.target[e])
+                p, k = self._allowed(mine, n, rule, target, cand_k[top[mine]])
+                parents.append(p)
+                rows.append(np.full(len(p), e, np.int64))
+                ks.append(k)
+        return self._free(np.concatenate(parents), np.concatenate(rows), np.concatenate(ks))
+
+    def _allowed(
+        self, inst: IntArray, n: int, rule: int, e: int, top_k: IntArray
+    ) -> tuple[IntArray, IntArray]:
+        """(parent instance, candidate index) of every child the instances `inst` (of node
+        n, their set tops at candidates `top_k`) may have through `rule` in set e."""
+        n_cand = len(self.cand_xyz[e])
+        everything = (np.repeat(inst, n_cand), np.tile(np.arange(n_cand), len(inst)))
+        slots, assignment = self.restrict[int(self.st.set_of[n])]
+        cols = [j for j, s in enumerate(slots) if s == (n, rule)]
+        if not cols:  # a rule the assignment does not name (an independent latent child)
+            return everything
+        named = assignment[:, cols]  # per assignment row; -1: this column has no child
+        parents: list[IntArray] = [np.zeros(0, np.int64)]
+        ks: list[IntArray] = [np.zeros(0, np.int64)]
+        for a in np.unique(top_k).tolist():  # instances sharing a row share their children
+            these = inst[top_k == a]
+            row = named[a]
+            k = np.arange(n_cand) if np.any(row == FREE_CHILD) else np.unique(row[row >= 0])
+            parents.append(np.repeat(these, len(k)))
+            ks.append(np.tile(k, len(these)))
+        return np.concatenate(parents), np.concatenate(ks).astype(np.int64)
 
 
 def instance_count(
@@ -247,8 +450,13 @@ def reduce_posed(
     adjust: Callable[[Instances], None] | None = None,
     restrict: Restriction | None = None,
     deadline: float | None = None,
+    best_only: bool = False,
 ) -> PosedProblem:
     """The unrolled MILP over the given candidate poses (by default, the observed ones).
+
+    `best_only` drops the `or` alternatives no best tree needs (`_Model.drop_dominated`):
+    the model then keeps the MAP score, its certificate and its infeasibility proofs, but
+    not every tree, so it is for a parse of the best tree alone (`--top 1`).
 
     `restrict` limits the children of some sets' instances to one candidate per slot, and
     `adjust` may rewrite the instances' edge scores before the model is built (-inf removes an
@@ -259,18 +467,19 @@ def reduce_posed(
         cand = candidate_poses(grammar, st, scene)
     u = _Unroll(grammar, st, scene, cand, restrict)
     u.deadline = deadline
-    u.unroll()
-    node = np.asarray(u.node, np.int64)
-    parent = np.asarray(u.parent, np.int64)
-    slot = np.asarray(u.slot, np.int64)
-    xyz, quat = np.asarray(u.xyz).reshape(-1, 3), np.asarray(u.quat).reshape(-1, 4)
-    model = _Model(grammar, st, scene, node, parent, slot, xyz, quat)
+    inst = u.unroll()
+    node, parent, xyz, quat = inst.node, inst.parent, inst.xyz, inst.quat
+    model = _Model(grammar, st, scene, node, parent, inst.slot, xyz, quat)
+    model.cand_k = inst.cand_k
+    model.order_copies = adjust is None and restrict is None  # copies stay exchangeable
     model.deadline = deadline
     check_deadline(deadline)
     model.edge_scores()
+    model.rule_probs()
+    if best_only:
+        model.drop_dominated()
     if adjust is not None:
-        cand_k, top = np.asarray(u.cand_k, np.int64), np.asarray(u.top, np.int64)
-        adjust(Instances(node, parent, cand_k, top, model.score))
+        adjust(Instances(node, parent, inst.cand_k, inst.top, model.score))
     milp = model.build()
     return PosedProblem(
         milp,
@@ -299,7 +508,9 @@ class PosedReduction:
 
     def apply(self, request: Request) -> tuple[Milp, PosedProblem]:
         r = request
-        problem = reduce_posed(r.grammar, r.supertree, r.scene, r.cand, deadline=r.deadline)
+        problem = reduce_posed(
+            r.grammar, r.supertree, r.scene, r.cand, deadline=r.deadline, best_only=r.best_only
+        )
         return problem.milp, problem
 
     def invert(self, problem: PosedProblem, x: FloatArray) -> Trees:
@@ -320,6 +531,21 @@ def too_many_instances(scene: Scene) -> str:
         f"scene '{scene.name}': the parse model would have more than {MAX_INSTANCES} node "
         f"instances ({len(scene)} objects); parse fewer objects at a time"
     )
+
+
+def rigid_signatures(st: Supertree) -> IntArray:
+    """Per supertree node, an id shared by nodes heading identical rigid subtrees (the same
+    types and rules below, every rule fixed, so the same instances at the same pose), -1 for
+    a node with a free rule below it."""
+    sig = np.full(len(st), -1, np.int64)
+    ids: dict[tuple[Any, ...], int] = {}
+    for n in range(len(st) - 1, -1, -1):  # children come after their parents
+        kids = st.children[n]
+        if any(st.set_of[c] != st.set_of[n] or sig[c] < 0 for c in kids):
+            continue
+        key = (int(st.type[n]), tuple(sorted((int(st.rule[c]), int(sig[c])) for c in kids)))
+        sig[n] = ids.setdefault(key, len(ids))
+    return sig
 
 
 class _Model:
@@ -343,10 +569,12 @@ class _Model:
         self.cols, self.rows = ColumnBuilder(), RowBuilder()
         self.structural: list[IntArray] = []
         self.deadline: float | None = None
+        self.cand_k = np.zeros(len(node), np.int64)  # candidate index (`Unrolled.cand_k`)
+        self.order_copies = False  # order exchangeable `or` copies (`_ordered_choices`)
         n = len(node)
-        self.children: list[list[int]] = [[] for _ in range(n)]
-        for i in range(1, n):
-            self.children[parent[i]].append(i)
+        order = np.argsort(parent[1:], kind="stable") + 1  # children in instance order
+        ends = np.cumsum(np.bincount(parent[1:], minlength=n))[:-1] if n else []
+        self.children: list[list[int]] = [c.tolist() for c in np.split(order, ends)]
 
     def build(self) -> Milp:
         for step in (
@@ -402,12 +630,9 @@ class _Model:
         explains[0] |= self.implicit_root
         can &= ~self.observed | explains
         check_deadline(self.deadline)
-        for i in range(1, n):  # rules that can never fire
-            kind = g.types[self.type[self.parent[i]]].kind
-            if kind in (Kind.OR, Kind.INDEPENDENT) and self._prob(i) <= 0:
-                can[i] = False
+        can[1:] &= self.prob[1:] > 0  # rules that can never fire
         for i in range(n - 1, -1, -1):
-            if i % UNROLL_CHECK == 0:
+            if i % 512 == 0:
                 check_deadline(self.deadline)
             if not can[i]:
                 continue
@@ -447,13 +672,48 @@ class _Model:
         node = self.g.types[self.type[i]]
         return {r: float(node.probs[self.g.tables.rule_index[r]]) for r in self._slot_rules(i)}
 
-    def _prob(self, c: int) -> float:
-        """`or`: weight renormalised over the rules present; `independent`: p."""
-        p = self.parent[c]
-        probs = self._slot_probs(p)
-        node = self.g.types[self.type[p]]
-        w = probs[int(self.rule[c])]
-        return w / sum(probs.values()) if node.kind == Kind.OR else w
+    def rule_probs(self) -> None:
+        """Per instance, the probability of the rule that made it: under an `or`, its weight
+        renormalised over the rules present; under `independent`, its p; else 1.  It depends
+        on the supertree node alone, so it is worked out once per node."""
+        st, g = self.st, self.g
+        per_node = np.ones(len(st))
+        for c in np.unique(self.node[1:]).tolist():
+            p = int(st.parent[c])
+            node = g.types[st.type[p]]
+            if node.kind not in (Kind.OR, Kind.INDEPENDENT):
+                continue
+            rules = sorted({int(st.rule[k]) for k in st.children[p]})
+            probs = {r: float(node.probs[g.tables.rule_index[r]]) for r in rules}
+            w = probs[int(st.rule[c])]
+            per_node[c] = w / sum(probs.values()) if node.kind == Kind.OR else w
+        self.prob = per_node[self.node]
+        self.prob[0] = 1.0
+
+    def drop_dominated(self) -> None:
+        """Remove the `or` alternatives no best parse uses (their score becomes -inf).
+
+        Children of one `or` instance that are the same rigid subtree (every rule below
+        fixed, the same types and rules) at the same pose differ only in the rule that placed
+        them — a plate upside down or on its side, where it lies — so a tree choosing any of
+        them scores at most what it scores with the best of them (its placement log-density
+        plus its choice's log-probability; the subtree's terms are equal).  Keeping only the
+        best is exact for the MAP tree (and its certificate), not for the N-th best."""
+        sig = per_supertree(self.st, "rigid signatures", rigid_signatures)
+        par = self.parent
+        kids = np.flatnonzero(par >= 0)
+        is_or = np.array([t.kind == Kind.OR for t in self.g.types])
+        kids = kids[is_or[self.type[par[kids]]] & (sig[self.node[kids]] >= 0)]
+        if len(kids) < 2:
+            return
+        key = np.column_stack([par[kids], sig[self.node[kids]], self.xyz[kids], self.quat[kids]])
+        _, group = np.unique(key, axis=0, return_inverse=True)
+        group = group.reshape(-1)
+        with np.errstate(divide="ignore"):
+            value = self.score[kids] + np.log(self.prob[kids])
+        order = np.lexsort((kids, -value, group))  # best first in each group, ties: first
+        first = np.r_[True, group[order][1:] != group[order][:-1]]
+        self.score[kids[order[~first]]] = -np.inf
 
     def columns(self) -> None:
         live = np.flatnonzero(self.can)
@@ -506,7 +766,7 @@ class _Model:
                 eq_v += [1.0] * len(kids) + [-1.0]
                 n_eq += 1
                 cost_c += [int(self.col[c]) for c in kids]
-                cost_v += [float(np.log(self._prob(c))) for c in kids]
+                cost_v += np.log(self.prob[kids]).tolist()
             elif node.kind == Kind.INDEPENDENT:
                 for r, p in self._slot_probs(i).items():
                     kids = groups.get(r, [])
@@ -549,3 +809,27 @@ class _Model:
         same = [c for c in kids if st.set_of[self.node[c]] == st.set_of[self.node[self.parent[c]]]]
         if len(same) > 1:
             add_leq(self.rows, self.col[same[1:]], self.col[same[:-1]])
+            if self.order_copies and self.g.types[self.type[same[0]]].kind == Kind.OR:
+                for first, second in itertools.pairwise(same):
+                    self._ordered_choices(first, second)
+
+    def _ordered_choices(self, first: int, second: int) -> None:
+        """Two copies of one `or` at one pose (a fixed `repeat` rule) are exchangeable: any
+        tree can swap them so that the second's choice (its live child's place in the copy's
+        list, the same list for both) comes no earlier than the first's.  Prefix sums say it:
+        for every m, sum(second's children up to m) <= sum(first's up to m)."""
+        a = [c for c in self.children[first] if self.can[c]]
+        b = [c for c in self.children[second] if self.can[c]]
+        key = np.column_stack([self.slot, self.cand_k])
+        if len(a) != len(b) or len(a) < 2 or not np.array_equal(key[a], key[b]):
+            return  # not the same list of choices: no ordering to add
+        m = len(a)
+        row, pos = np.tril_indices(m)  # row m holds positions 0..m
+        self.rows.add(
+            np.r_[row, row],
+            np.r_[self.col[b][pos], self.col[a][pos]],
+            np.r_[np.ones(len(row)), -np.ones(len(row))],
+            m,
+            -np.inf,
+            0.0,
+        )

@@ -58,6 +58,7 @@ class Request:
     latent: bool  # the grammar has sets without observed poses
     bounds: dict | None = None  # ssgc.parse.bound.SetBound per latent set
     deadline: float | None = None
+    best_only: bool = False  # only the best tree is wanted (`--top 1`): see reduce_posed
 
 
 class Reduction(Protocol):
