@@ -80,8 +80,6 @@ def per_supertree(st: Supertree, what: str, make: Callable[[Supertree], Any]) ->
     return table
 
 
-
-
 @dataclass(frozen=True)
 class Instances:
     """The unrolled nodes, for callers that rewrite their scores (`reduce_posed(adjust=...)`)."""
