@@ -22,7 +22,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as hs
 
 from ssgc.geometry import quat_multiply, quat_to_matrix, random_quat, rpy_to_quat
-from ssgc.parse.bound import IDENTITY, _Terms
 from ssgc.parse.bound_rotation import (
     MAX_CELLS,
     TOL_REL,
@@ -33,6 +32,7 @@ from ssgc.parse.bound_rotation import (
     rotation_search,
 )
 from ssgc.parse.parser import Parser
+from ssgc.parse.set_terms import IDENTITY, _Terms
 
 ANISO = np.diag([50.0, 100.0, 25.0])  # precisions of variances (0.02, 0.01, 0.04)
 ARC = (-0.2, 0.35)  # half-angles of a revolute arc about z

@@ -314,7 +314,7 @@ def test_fixed_shapes_certified(name):
 
 def _terms(c, m, p, B, lo=None, hi=None):  # type: ignore[no-untyped-def]
     """One-row-per-assignment `_Terms` of isotropic Normal terms, for the bound's own tests."""
-    from ssgc.parse.bound import _Terms
+    from ssgc.parse.set_terms import _Terms
 
     n = c.shape[0]
     P = p[:, :, None, None] * np.eye(3)
@@ -328,7 +328,7 @@ def _terms(c, m, p, B, lo=None, hi=None):  # type: ignore[no-untyped-def]
 
 def _exact_at(terms, q):  # type: ignore[no-untyped-def]
     """max over t of the terms' score at the rotations q (exact: X = q qᵀ is a rotation)."""
-    from ssgc.parse.bound import _h_and_gradient
+    from ssgc.parse.set_terms import _h_and_gradient
 
     return _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[0]
 
@@ -338,7 +338,7 @@ def _exact_at(terms, q):  # type: ignore[no-untyped-def]
 def test_isotropic_bound_is_the_exact_maximum(seed, k):
     """For isotropic Normal terms and no box, the rotation's maximum is an eigenvector: the
     bound is reached at its own rotation and no rotation scores above it."""
-    from ssgc.parse.bound import _isotropic_bound
+    from ssgc.parse.set_terms import _isotropic_bound
 
     rng = np.random.default_rng(seed)
     n = 4
@@ -370,7 +370,7 @@ def test_two_revolute_laws_keep_the_rotation_both_allow(seed, coaxial, bounded):
     """A rotation q0 on two revolute families (q0 = rot(a1, φ) = base ⊗ rot(-a2, θ)) is never
     ruled out: two axes pin the row to ±q0, one axis narrows the arc to one holding φ."""
     from ssgc.geometry import axis_angle_to_quat, quat_angle, quat_multiply
-    from ssgc.parse.bound import IDENTITY, _LocalBounds
+    from ssgc.parse.set_terms import IDENTITY, _LocalBounds
 
     rng = np.random.default_rng(seed)
     a1 = rng.normal(size=3)

@@ -31,7 +31,6 @@ over its parent's rows times its child's (capped by `MAX_CHAIN_ROWS`), never K^d
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,9 +39,16 @@ from ssgc.geometry import quat_multiply, quat_rotate, quat_to_matrix
 from ssgc.ir import Grammar
 from ssgc.laws.base import Frame
 from ssgc.laws.position_box import BoxTranslation
-
-if TYPE_CHECKING:
-    from ssgc.parse.bound import SetBound, _LocalBounds, _Terms
+from ssgc.parse.set_terms import (
+    IDENTITY,
+    K_ROT,
+    SetBound,
+    _arc_lmo,
+    _left_linear,
+    _LocalBounds,
+    _Terms,
+    world_part,
+)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -92,8 +98,6 @@ def collapse(terms: _Terms, own_sup: float) -> ChainRows:
     terms do not turn with the rotation (m_k = 0 wherever P_k ≠ 0) separate, and their
     rotation terms tr(B X) count their maximum (an eigenvalue, or the arc's best point).
     `own_sup` is what the decoupled set counted for its own rule, taken back out."""
-    from ssgc.parse.bound import IDENTITY, _arc_lmo
-
     P, c, m = terms.P, terms.c, terms.m
     pinned = terms.pinned
     R = quat_to_matrix(np.where(pinned[:, None], np.nan_to_num(terms.pin), IDENTITY))
@@ -153,23 +157,6 @@ def lifted(bound: SetBound, rows: ChainRows, source: IntArray) -> Lifted:
         take(rows.base),
     )
     return Lifted(bound.upper, bound.free_rows, bound.xyz, bound.quat, chain)
-
-
-def world_part(law) -> bool:  # type: ignore[no-untyped-def]
-    """Whether a decoupled set's own rule holds this part (translation or rotation law)
-    exactly in the set's own bound: it is in the world frame, so its parent's pose does not
-    matter (a world Normal or box translation; any world rotation)."""
-    from ssgc.laws.base import RotationLaw
-
-    if law.frame != Frame.WORLD:
-        return False
-    return isinstance(law, RotationLaw | BoxTranslation) or law.concave_form() is not None
-
-
-def counted_supremum(rule) -> float:  # type: ignore[no-untyped-def]
-    """What a decoupled set's bound counts for its own rule's parts that are not exact."""
-    parts = (rule.translation, rule.rotation)
-    return float(sum(p.supremum() for p in parts if not world_part(p)))
 
 
 def children_to_lift(st, e: int, chains: dict[int, Lifted]) -> dict[int, Lifted]:  # type: ignore[no-untyped-def]
@@ -282,7 +269,6 @@ def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # typ
     does an anisotropic one where the parent's rotation is not pinned: the relaxation over X
     (its hull shrinks |R m|) would then be looser than the child's own bound."""
     from ssgc.geometry import quat_multiply as qmul
-    from ssgc.parse.bound import K_ROT, _left_linear
 
     law, form = rule.translation, rule.translation.concave_form()
     inside = world_part(law)  # the child's own terms hold it: t_c is then free

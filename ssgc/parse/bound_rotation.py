@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.geometry import axis_angle_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
+from ssgc.parse.set_terms import K_ROT, Rotating, _isotropic_rows, _subset
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -63,28 +64,8 @@ def _sym_basis() -> FloatArray:
     """(10, 16) pseudo-inverse of the map (G, b) ↦ Σ G_ij K_ij + b I: a symmetric 4×4 B is
     then qᵀ B q = ⟨G, R(q)⟩ + b on unit quaternions (the 9 K_ij and I span the symmetric
     matrices, so the expansion is exact)."""
-    from ssgc.parse.bound import K_ROT
-
     design = np.concatenate([K_ROT.reshape(9, 16), np.eye(4).reshape(1, 16)]).T
     return np.linalg.pinv(design)
-
-
-@dataclass
-class Rotating:
-    """The rotating terms of one set's rows: -½ (Rᵀ(c - t) - m)ᵀ P (…) per row and term,
-    where the rows' relaxation counts `lift` (their suprema less their normalisers) instead."""
-
-    c: FloatArray  # (A, J, 3) child positions
-    m: FloatArray  # (J, 3) the child's mean offset in the set's top frame
-    P: FloatArray  # (A, J, 3, 3) precision in the top frame; zero where absent or exact
-    lift: FloatArray  # (A,)
-
-    @property
-    def rows(self) -> NDArray[np.bool_]:
-        return np.any(self.P != 0.0, axis=(1, 2, 3))
-
-    def subset(self, keep: NDArray[np.bool_]) -> Rotating:
-        return Rotating(self.c[keep], self.m, self.P[keep], self.lift[keep])
 
 
 @dataclass
@@ -442,8 +423,6 @@ def rotation_search(
     where many assignments have small gaps that the MILP never picks (the bundled
     singles_pairs_constituency: a tenth of its rows, each over 1e-2) and a search of every
     one would cost more than the parse."""
-    from ssgc.parse.bound import _isotropic_rows, _subset
-
     inexact = terms.revolute & ~_isotropic_rows(terms)
     rows = ~terms.pinned & (rot.rows | inexact)
     if not np.any(rows):
