@@ -400,15 +400,34 @@ class _Unroll:
         if not cols:  # a rule the assignment does not name (an independent latent child)
             return everything
         named = assignment[:, cols]  # per assignment row; -1: this column has no child
-        parents: list[IntArray] = [np.zeros(0, np.int64)]
-        ks: list[IntArray] = [np.zeros(0, np.int64)]
-        for a in np.unique(top_k).tolist():  # instances sharing a row share their children
-            these = inst[top_k == a]
-            row = named[a]
-            k = np.arange(n_cand) if np.any(row == FREE_CHILD) else np.unique(row[row >= 0])
-            parents.append(np.repeat(these, len(k)))
-            ks.append(np.tile(k, len(these)))
-        return np.concatenate(parents), np.concatenate(ks).astype(np.int64)
+        rows, row_of = np.unique(top_k, return_inverse=True)  # instances sharing a row share
+        k_start, k_count, k = _row_children(named[rows], n_cand)  # their children
+        count = k_count[row_of]
+        parents = np.repeat(inst, count)
+        at = np.repeat(k_start[row_of], count) + _within(count)
+        return parents, k[at]
+
+
+def _row_children(named: IntArray, n_cand: int) -> tuple[IntArray, IntArray, IntArray]:
+    """Per assignment row: the distinct candidates it names (every candidate where a column
+    is FREE_CHILD), as (start, count) into one flat array of candidate indices."""
+    free = np.any(named == FREE_CHILD, axis=1)
+    ordered = np.sort(named, axis=1)
+    first = np.ones_like(ordered, bool)
+    first[:, 1:] = ordered[:, 1:] != ordered[:, :-1]
+    keep = first & (ordered >= 0) & ~free[:, None]
+    count = np.where(free, n_cand, keep.sum(axis=1))
+    width = np.maximum(count, 0)
+    flat = np.zeros(int(width.sum()), np.int64)
+    start = np.cumsum(width) - width
+    rows, cols = np.nonzero(keep)
+    place = np.cumsum(keep, axis=1) - 1  # a kept entry's place among its row's kept ones
+    flat[start[rows] + place[rows, cols]] = ordered[rows, cols]
+    f = np.flatnonzero(free)
+    flat[np.repeat(start[f], n_cand) + np.tile(np.arange(n_cand), len(f))] = np.tile(
+        np.arange(n_cand), len(f)
+    )
+    return start, count, flat
 
 
 def instance_count(
