@@ -139,6 +139,19 @@ class Reparses:
         """`complete` when every re-parse ran to its end, else `budget_exhausted`."""
         return "budget_exhausted" if self.cut or self.skipped else "complete"
 
+    def best_score(self, parser: Any, changed: Scene, o: int, time_limit: float) -> float:
+        """The best parse's log-probability of `changed` (object o moved or retyped; -inf if
+        no parse), the parse noted as cut short or run to its end."""
+        try:
+            result = parser.parse(changed, top=1, time_limit=time_limit)
+        except SsgError:  # e.g. a retyped object the grammar cannot hold more of
+            return -np.inf
+        if result.timed_out_in:
+            self.cut.append(o)
+        else:
+            self.parsed += 1
+        return result.parses[0].score if result.parses else -np.inf
+
     def to_json(self) -> dict[str, Any]:
         return {
             "status": self.status,
@@ -413,13 +426,7 @@ def _reparsed_gain(
         xyz, quat = scene.xyz.copy(), scene.quat.copy()
         xyz[o], quat[o] = xyz_o, quat_o
         moved = Scene(scene.name, scene.types, xyz, quat, metadata=scene.metadata)
-        result = parser.parse(moved, top=1, time_limit=left)
-        if result.timed_out_in:
-            record.cut.append(o)
-        else:
-            record.parsed += 1
-        if result.parses:
-            best = max(best, result.parses[0].score - log_prob)
+        best = max(best, record.best_score(parser, moved, o, left) - log_prob)
     return best
 
 
@@ -857,15 +864,7 @@ def _retyped_score(
     types = scene.types.copy()
     types[o] = t
     retyped = Scene(scene.name, types, scene.xyz, scene.quat, metadata=scene.metadata)
-    try:
-        result = parser.parse(retyped, top=1, time_limit=time_limit)
-    except SsgError:
-        return -np.inf
-    if result.timed_out_in:
-        record.cut.append(o)
-    else:
-        record.parsed += 1
-    return result.parses[0].score if result.parses else -np.inf
+    return record.best_score(parser, retyped, o, time_limit)
 
 
 # ----------------------------------------------------- expectations, words ---
