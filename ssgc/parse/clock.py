@@ -13,7 +13,12 @@ class OutOfTime(Exception):
     """The deadline passed while a step was running (proposals, model building)."""
 
 
+def past(deadline: float | None) -> bool:
+    """Whether `deadline` (a `time.perf_counter()` value; None: never) has passed."""
+    return deadline is not None and time.perf_counter() >= deadline
+
+
 def check_deadline(deadline: float | None) -> None:
-    """Raise OutOfTime once `deadline` (a `time.perf_counter()` value) has passed."""
-    if deadline is not None and time.perf_counter() >= deadline:
+    """Raise OutOfTime once `deadline` has passed."""
+    if past(deadline):
         raise OutOfTime

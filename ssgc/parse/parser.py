@@ -32,7 +32,7 @@ from ssgc.parse.bound import (
     set_bounds,
 )
 from ssgc.parse.bound_chain import add_chain_poses
-from ssgc.parse.clock import OutOfTime, check_deadline
+from ssgc.parse.clock import OutOfTime, check_deadline, past
 from ssgc.parse.highs import HighsSession
 from ssgc.parse.ip import SetReduction, UnparseableScene
 from ssgc.parse.milp import Milp, Session
@@ -174,7 +174,7 @@ class Parser:
                 return _failed(scene, INFEASIBLE, exc, t0)
             if cand is not None and step == "build":  # no tree among the latent candidates
                 run = self._retry_hard(scene, cand, bounds, deadline, top)
-            if run is None and _past(deadline):  # the hard-law poses ran out of time
+            if run is None and past(deadline):  # the hard-law poses ran out of time
                 message = f"scene '{scene.name}': time limit reached in the proposals step"
                 return _failed(scene, NO_PARSE, SsgError.single(message), t0, "time", "proposals")
             if run is None:
@@ -190,7 +190,7 @@ class Parser:
             run.solve(top)
         if not run.parses and run.status == NO_PARSE and run.phase == "proposals":
             run = self._retry_hard(scene, cand, bounds, deadline, top) or run
-            if not run.parses and _past(deadline):
+            if not run.parses and past(deadline):
                 run.timed_out_in = run.timed_out_in or "proposals"
         if bounds is not None and run.parses:
             run.certify()
@@ -237,9 +237,7 @@ class Parser:
         model has no tree either (or the clock ran out)."""
         g, st = self.grammar, self.supertree
         if bounds is not None and not certify_only(bounds) and self.method != "ip":
-            add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline)
-            add_assignment_poses(cand, bounds)
-            _repeat_empty_poses(cand, bounds)
+            self._propose(cand, bounds, deadline)  # not made yet: micp built from assignments
         add_hard_poses(g, st, cand, deadline)
         request = Request(g, st, scene, cand, True, None, deadline)
         try:
@@ -299,12 +297,24 @@ class Parser:
         check_deadline(stop)
         if self.method != "ip" and bounds is not None and not certify_only(bounds):
             return bounds
+        self._propose(cand, bounds, deadline, stop)
+        return bounds
+
+    def _propose(
+        self,
+        cand: Candidates,
+        bounds: dict[int, SetBound] | None,
+        deadline: float | None,
+        stop: float | None = None,
+    ) -> None:
+        """Proposals for the latent sets, plus the bound's assignment and chain poses when
+        there is a bound (they only certify; their poses join the proposals)."""
+        g, st = self.grammar, self.supertree
         add_proposals(g, st, cand, np.random.default_rng(self.seed), deadline, stop)
-        if bounds is not None:  # they only certify; their poses join the proposals
+        if bounds is not None:
             add_assignment_poses(cand, bounds)
             add_chain_poses(g, st, cand, bounds)
             _repeat_empty_poses(cand, bounds)
-        return bounds
 
     def reduce(
         self,
@@ -619,10 +629,6 @@ def tree_signature(grammar: Grammar, tree: Trees) -> bytes:
         if tree.parent[i] >= 0:
             kids[tree.parent[i]].append(keys[i])
     return keys[0] if keys else b""
-
-
-def _past(deadline: float | None) -> bool:
-    return deadline is not None and time.perf_counter() >= deadline
 
 
 def _failed(
