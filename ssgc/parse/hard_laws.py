@@ -29,13 +29,13 @@ from ssgc.laws.base import Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.position_normal import NormalTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.parse.set_terms import IDENTITY, _plane
 from ssgc.rules import rotation_log_density, translation_log_density
 
 FloatArray = NDArray[np.float64]
 ARC_GRID = 48  # rotations sampled along an arc (plus its ends and the other arcs' ends)
 ARC_GRID_BOXED = 720  # the same where a box holds the position (which moves with the angle)
 ON_ARC = 1e-9  # 1 - |projection| at most this: a rotation lies on an arc's plane
-IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
 
 @dataclass(frozen=True)
@@ -51,9 +51,7 @@ class Arc:
     @property
     def plane(self) -> FloatArray:
         """(4, 2): q(φ) = plane @ (cos φ/2, sin φ/2)."""
-        u = quat_multiply(self.left, self.right)
-        w = quat_multiply(quat_multiply(self.left, np.r_[0.0, self.axis]), self.right)
-        return np.stack([u, w], axis=1)
+        return _plane(self.left[None], self.axis[None], self.right[None])[0]
 
     def at(self, phi: FloatArray) -> FloatArray:
         half = 0.5 * np.asarray(phi, float)
