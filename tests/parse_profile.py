@@ -127,6 +127,17 @@ def micp_cause(grammar: Grammar, parser: Parser, scene: Scene, result: Any) -> s
     return f"{scope}:gap<=1e-4"
 
 
+def case(seed: int, index: int, scenes_per: int = 10) -> tuple[Grammar, list[Scene], Any]:
+    """Grammar `index` of the profile run with `seed` (its compiled grammar, its sampled
+    scenes and its spec), to re-run one entry of `--cases`."""
+    rng = np.random.default_rng(seed)
+    for _ in range(index):
+        gg.random_spec(rng)
+    spec = gg.random_spec(rng)
+    grammar = gg.compile_spec(spec)
+    return grammar, gg.sampled_scenes(grammar, scenes_per, seed + index), spec
+
+
 def shape(grammar: Grammar, parser: Parser) -> str:
     """A grammar's latent shape: the depth of latent sets (a latent set under another latent
     set is depth 2) and whether such a set is placed relative to its latent parent
@@ -162,8 +173,11 @@ def run_profile(
     seed: int,
     methods: tuple[str, ...] = ("ip", "micp"),
     time_limit: float | None = 10.0,
+    cases: list[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """Random grammars, sampled scenes, parsed with each method: counts and false answers."""
+    """Random grammars, sampled scenes, parsed with each method: counts and false answers.
+    `cases`, when given, receives one entry per uncertified parse (grammar index, scene,
+    method, status, gap, and for `micp` its cause): the list to work through next."""
     rng = np.random.default_rng(seed)
     counts: Counter[str] = Counter()
     by_law: dict[str, Counter[str]] = defaultdict(Counter)
@@ -199,10 +213,26 @@ def run_profile(
                 counts[cat] += 1
                 counts[f"{method}:{cat}"] += 1
                 all_parsed &= v.score is not None
+                cause = None
                 if method == "micp" and v.result is not None:
                     cause = micp_cause(grammar, parser, scene, v.result)
                     causes[cause] += 1
                     by_shape[form][cause] += 1
+                if cases is not None and not v.certified:
+                    gap = v.result.parses[0].gap if v.result and v.result.parses else None
+                    cases.append(
+                        {
+                            "grammar": gi,
+                            "scene": scene.name,
+                            "method": method,
+                            "cause": cause,
+                            "status": v.status,
+                            "gap": gap,
+                            "score": v.score,
+                            "truth": v.truth,
+                            "shape": form,
+                        }
+                    )
                 for law in used:
                     by_law[law][cat] += 1
                     by_law[law]["false"] += bool(v.false)
@@ -302,14 +332,18 @@ def main() -> None:
     ap.add_argument("--time-limit", type=float, default=10.0)
     ap.add_argument("--methods", default="ip,micp")
     ap.add_argument("--ip-breakdown", action="store_true", help="why `ip` is uncertified")
+    ap.add_argument("--cases", help="write every uncertified parse to this JSON file")
     a = ap.parse_args()
     if a.ip_breakdown:
         causes = ip_breakdown(a.grammars, a.scenes, a.seed, a.time_limit or None)
         print(json.dumps(causes, indent=1))
         return
+    cases: list[dict[str, Any]] | None = [] if a.cases else None
     out = run_profile(
-        a.grammars, a.scenes, a.seed, tuple(a.methods.split(",")), a.time_limit or None
+        a.grammars, a.scenes, a.seed, tuple(a.methods.split(",")), a.time_limit or None, cases
     )
+    if a.cases:
+        Path(a.cases).write_text(json.dumps(cases, indent=0))
     print(json.dumps(out, indent=1))
 
 
