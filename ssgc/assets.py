@@ -30,7 +30,10 @@ PRIMITIVE_SECTIONS = 32  # facets of a cylinder's or sphere's triangle mesh (GLB
 
 @dataclass(frozen=True)
 class Shape:
-    """One type's body in its own frame (the frame of the object's pose)."""
+    """One type's body in its own frame (the frame of the object's pose).
+
+    `mesh`, `collision` and `com` are already placed at the geometry's `origin`; a primitive's
+    `kind` and `size` describe it about its own centre, which is at `origin`."""
 
     type: str
     kind: str  # "box", "cylinder", "sphere" or "mesh"
@@ -42,6 +45,7 @@ class Shape:
     inertia: NDArray[np.float64]  # (3, 3) about the centre of mass, in the type's frame
     static: bool
     source: str = ""  # a mesh's file name as the grammar writes it
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the geometry's place in the frame
 
 
 def _trimesh():  # type: ignore[no-untyped-def]
@@ -115,19 +119,32 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
     trimesh = _trimesh()
     body = t.body if t.body is not None else dsl.Body()
     g = t.geometry
+    origin = np.asarray(g.origin, float)
     if isinstance(g, dsl.MeshG):
         mesh = _load_mesh(mesh_path(grammar, t), g.mesh.scale)
+        mesh.apply_translation(origin)  # type: ignore[attr-defined]
         volume, com, unit_inertia = _mesh_mass_properties(mesh)
         pieces = _collision_pieces(mesh, body.collision, t.name) if collision else ()
         kind, size, source = "mesh", (), g.mesh.file
     else:
         kind, size = _primitive(g)
         mesh = _primitive_mesh(trimesh, kind, size)
+        mesh.apply_translation(origin)  # type: ignore[attr-defined]
         volume, unit_inertia = _primitive_mass_properties(kind, size)
-        com, pieces, source = np.zeros(3), (), ""
+        com, pieces, source = origin.copy(), (), ""
     mass = body.mass if body.mass is not None else (body.density or DEFAULT_DENSITY) * volume
     return Shape(
-        t.name, kind, size, mesh, pieces, float(mass), com, mass * unit_inertia, body.static, source
+        t.name,
+        kind,
+        size,
+        mesh,
+        pieces,
+        float(mass),
+        com,
+        mass * unit_inertia,
+        body.static,
+        source,
+        (float(origin[0]), float(origin[1]), float(origin[2])),
     )
 
 

@@ -316,25 +316,62 @@ class MeshGeometry(Strict):
     scale: Positive | Annotated[list[Positive], Field(min_length=3, max_length=3)] = 1.0
 
 
-class BoxG(Strict):
+class PlacedGeometry(Strict):
+    """Where a geometry sits in its object's frame: the data may put an object's frame at its
+    base (a dish on a floor), while a primitive is centred on its own origin."""
+
+    origin: Vec3 = Field(
+        default_factory=lambda: [0.0, 0.0, 0.0],
+        description="The geometry's centre (a mesh's origin) in the object's frame, metres.",
+    )
+
+
+class BoxG(PlacedGeometry):
     box: BoxGeometry
 
 
-class CylinderG(Strict):
+class CylinderG(PlacedGeometry):
     cylinder: CylinderGeometry
 
 
-class SphereG(Strict):
+class SphereG(PlacedGeometry):
     sphere: SphereGeometry
 
 
-class MeshG(Strict):
+class MeshG(PlacedGeometry):
     mesh: MeshGeometry
 
 
-Geometry = _choice(
-    (BoxG, "box"), (CylinderG, "cylinder"), (SphereG, "sphere"), (MeshG, "mesh"), what="geometry"
-)
+GEOMETRY_KINDS = ("box", "cylinder", "sphere", "mesh")
+
+
+def geometry_key(value: Any) -> str | None:
+    """Tag of a geometry: its one shape key (`origin` beside it is not a shape).  Tags are
+    "KIND-geometry", never a key of the document, so an error's location (`origin` beside the
+    shape key) is not read as inside the shape's mapping."""
+    if isinstance(value, BaseModel):
+        keys = [k for k in GEOMETRY_KINDS if getattr(value, k, None) is not None]
+    elif isinstance(value, dict):  # other keys beside one shape are reported as unknown
+        keys = [k for k in value if k in GEOMETRY_KINDS]
+    else:
+        return None
+    return f"{keys[0]}-geometry" if len(keys) == 1 else None
+
+
+Geometry = Annotated[
+    Union[  # noqa: UP007
+        Annotated[BoxG, Tag("box-geometry")],
+        Annotated[CylinderG, Tag("cylinder-geometry")],
+        Annotated[SphereG, Tag("sphere-geometry")],
+        Annotated[MeshG, Tag("mesh-geometry")],
+    ],
+    Discriminator(
+        geometry_key,
+        custom_error_type="invalid_choice",
+        custom_error_message="expected a geometry: one of box, cylinder, sphere, mesh "
+        "(and optionally origin)",
+    ),
+]
 
 
 class Body(Strict):
@@ -435,6 +472,17 @@ class InsideBoxC(Strict):
         False, description="The keep-out disc (x, y) must fit in the box too, not only the origin."
     )
     radius: Radii = Field(default_factory=dict, description="Keep-out radius per type (m).")
+    geometry: bool = Field(
+        False,
+        description="The whole geometry (turned with the object, at its origin) must be in the "
+        "box, not only the object's origin.",
+    )
+
+    @model_validator(mode="after")
+    def _one_inset(self) -> InsideBoxC:
+        if self.keep_out and self.geometry:
+            raise ValueError("give keep_out or geometry, not both")
+        return self
 
 
 class ClearanceC(Strict):

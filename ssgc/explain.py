@@ -18,7 +18,9 @@ Two numbers per object, for two questions (docs/explain.md):
   Two other views of the same question can rank it higher: the *slot surprise* (an unusual
   choice among placing rules) and the *type gain* (the scene with the object of another type).
   Where the grammar declares `non_penetration`, overlaps with objects the tree does not relate
-  add their nats too (`overlap_reasons`).
+  add their nats too (`overlap_reasons`); where it declares a container (`inside_box` with
+  `geometry: true`), so do objects that float or go through its floor or walls
+  (`support_reasons`, ssgc/support.py).
 """
 
 from __future__ import annotations
@@ -47,6 +49,9 @@ from ssgc.rules import (
     translation_log_density,
 )
 from ssgc.score import node_terms, score_trees
+from ssgc.support import findings as support_findings
+from ssgc.support import nats as support_nats
+from ssgc.support import sentence as support_sentence
 from ssgc.tree import Trees
 
 FloatArray = NDArray[np.float64]
@@ -99,6 +104,7 @@ class ObjectExplanation:
     reasons: list[Reason] = field(default_factory=list)
     slot_surprise: float = 0.0  # placement by an `or` of placing rules vs. its expectation
     overlap: float = 0.0  # nats for overlapping objects the tree does not relate (overlaps.py)
+    support: float = 0.0  # nats for floating or going through floor or walls (support.py)
     unexplained: bool = False  # the best parse leaves it to clutter (`observation: clutter`)
     type_gain: float | None = None  # log p gained as its best other type (None: none tried)
     better_type: str | None = None  # that type
@@ -116,6 +122,7 @@ class ObjectExplanation:
             "pose_gain": self.pose_gain,
             "slot_surprise": self.slot_surprise,
             "overlap": self.overlap,
+            "support": self.support,
             "unexplained": self.unexplained,
             "type_gain": self.type_gain,
             "better_type": self.better_type,
@@ -324,6 +331,10 @@ def explain_tree(
         objects[o].overlap = nats
         objects[o].unusual += nats  # evidence from contact, apart from the grammar's densities
         objects[o].reasons += reasons
+    for o, (nats, reasons) in support_reasons(grammar, scene, tree, obj_of).items():
+        objects[o].support = nats
+        objects[o].unusual += nats  # evidence from physics, like the overlaps
+        objects[o].reasons += reasons
     for o in unexplained_objects(grammar, scene, tree):
         objects[o].unexplained = True
     unattributed = -log_prob if len(scene) == 0 else 0.0
@@ -403,6 +414,24 @@ def overlap_reasons(
             part = v.depth / depth[me] * nats[me]  # the object's nats, split by depth
             reason = Reason(v.constraint, "overlap", -part, 0.0, part, None, None, text)
             out.setdefault(me, (float(nats[me]), []))[1].append(reason)
+    return out
+
+
+def support_reasons(
+    grammar: Grammar, scene: Scene, tree: Trees, obj_of: IntArray
+) -> dict[int, tuple[float, list[Reason]]]:
+    """Each object's nats and reasons for floating or going through its container's floor or
+    walls (`ssgc.support`): the sum of its findings' nats (each −log of how rare so much is
+    among real objects), split over its reasons (docs/explain.md, "Support, floor and walls")."""
+    names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
+    out: dict[int, tuple[float, list[Reason]]] = {}
+    for f in support_findings(grammar, scene, tree, obj_of):
+        part = support_nats(f)
+        reason = Reason(
+            f.constraint, f.kind, -part, 0.0, part, None, None, support_sentence(f, names)
+        )
+        nats, reasons = out.get(f.obj, (0.0, []))
+        out[f.obj] = (nats + part, [*reasons, reason])
     return out
 
 

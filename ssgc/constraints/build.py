@@ -18,7 +18,15 @@ from ssgc import dsl
 from ssgc.constraints.base import Constraint, Loc, builder_for, pair_table, register, type_mask
 from ssgc.constraints.penetration import NonPenetration
 from ssgc.constraints.pose import Clearance, InsideBox, Upright
-from ssgc.constraints.shapes import ShapeError, bounding_radius, collision_shape, keep_out_radius
+from ssgc.constraints.shapes import (
+    Extents,
+    ShapeError,
+    bounding_radius,
+    collision_shape,
+    extents_of,
+    geometry_origin,
+    keep_out_radius,
+)
 from ssgc.constraints.structural import Children, Count, LongestChain
 from ssgc.ir import Kind, NodeType, Rule
 
@@ -232,9 +240,35 @@ class _Builder:
                     return None
         if not s.keep_out:
             r = np.zeros(self.n)
+        shapes = self.extents(ids, loc) if s.geometry else None
+        if s.geometry and shapes is None:
+            return None
         return InsideBox(
-            name, loc, types=type_mask(ids, self.n), frame=frame, lo=lo, hi=hi, radius=r
+            name,
+            loc,
+            types=type_mask(ids, self.n),
+            frame=frame,
+            lo=lo,
+            hi=hi,
+            radius=r,
+            shapes=shapes,
         )
+
+    def extents(self, ids: list[int], loc: Loc) -> Extents | None:
+        """The `Extents` of the types' geometries; every listed type must have one."""
+        for t in ids:
+            if self.types[t].geometry is None:
+                self.c.error(
+                    (*loc, "types"), f"'{self.types[t].name}' has no geometry to keep inside"
+                )
+                return None
+        try:
+            wanted = set(ids)
+            geometries = [t.geometry if k in wanted else None for k, t in enumerate(self.types)]
+            return extents_of(geometries, self.c.base_dir)
+        except ShapeError as exc:
+            self.c.error((*loc, "types"), f"cannot bound the geometry: {exc}")
+            return None
 
     def clearance(self, name: str, s: dsl.ClearanceC, loc: Loc) -> Constraint | None:
         ids = self.type_ids(s.types, (*loc, "types"))
@@ -276,10 +310,12 @@ class _Builder:
         if ids is None or ex is None:
             return None
         shapes: list[Any] = [None] * self.n
+        origins = [(0.0, 0.0, 0.0)] * self.n
         r = np.zeros(self.n)
         for t in ids:
             try:
                 shapes[t] = collision_shape(self.types[t].geometry, self.c.base_dir)
+                origins[t] = tuple(geometry_origin(self.types[t].geometry).tolist())
                 r[t] = bounding_radius(self.types[t].geometry, self.c.base_dir)
             except ShapeError as exc:
                 self.c.error((*loc, "types"), f"cannot check '{self.types[t].name}': {exc}")
@@ -292,7 +328,9 @@ class _Builder:
             exempt=ex,
             exempt_ancestors=s.exempt_ancestors,
         )
-        return NonPenetration(name, loc, pairs_of=sel, shapes=tuple(shapes), gap=s.margin)
+        return NonPenetration(
+            name, loc, pairs_of=sel, shapes=tuple(shapes), origins=tuple(origins), gap=s.margin
+        )
 
     # ------------------------------------------------- what the grammar can produce ---
 

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from ssgc.constraints.base import Constraint, FloatArray, per_scene_min
 from ssgc.constraints.pose import Clearance
+from ssgc.geometry import quat_rotate
 
 SCREEN = 0.05  # m
 
@@ -27,6 +28,7 @@ class NonPenetration(Constraint):
 
     pairs_of: Clearance | None = None  # selection, exemptions (radius = bounding radius)
     shapes: tuple[Any, ...] = ()  # per type: FCL geometry or None
+    origins: tuple[tuple[float, float, float], ...] = ()  # per type: geometry's place in frame
     gap: float = 0.0
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "non_penetration"
@@ -78,6 +80,9 @@ class NonPenetration(Constraint):
     def _object(self, batch: Any, node: int) -> Any:
         import fcl
 
-        w, x, y, z = batch.quat[node]
-        tf = fcl.Transform(np.array([w, x, y, z]), np.asarray(batch.xyz[node], float))
-        return fcl.CollisionObject(self.shapes[int(batch.type[node])], tf)
+        t = int(batch.type[node])
+        quat = np.asarray(batch.quat[node], float)
+        at = np.asarray(batch.xyz[node], float)
+        if self.origins and any(self.origins[t]):  # the geometry sits off the object's frame
+            at = at + quat_rotate(quat, np.asarray(self.origins[t], float))
+        return fcl.CollisionObject(self.shapes[t], fcl.Transform(quat, at))

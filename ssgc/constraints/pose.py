@@ -23,7 +23,8 @@ from ssgc.constraints.base import (
     per_scene_min,
     tree_pairs,
 )
-from ssgc.geometry import quat_conjugate, quat_rotate
+from ssgc.constraints.shapes import Extents, frame_extents
+from ssgc.geometry import quat_conjugate, quat_multiply, quat_rotate, quat_to_matrix
 
 UNIT = np.eye(3)
 
@@ -47,13 +48,15 @@ def frame_of(batch: Any, nodes: NDArray[np.int64], frame: int | None) -> tuple[A
 @dataclass(frozen=True)
 class InsideBox(Constraint):
     """Origins of the `types` nodes inside [lo, hi] in the frame (per axis; nan = unbounded);
-    with keep-out radii, the x-y disc of each object inside too."""
+    with keep-out radii, the x-y disc of each object inside too; with `shapes`, the whole
+    geometry (`ssg explain` reads such a box as a container's floor and walls: ssgc/support.py)."""
 
     types: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     frame: int | None = None
     lo: FloatArray = field(default_factory=lambda: np.full(3, np.nan))
     hi: FloatArray = field(default_factory=lambda: np.full(3, np.nan))
     radius: FloatArray = field(default_factory=lambda: np.zeros(0))  # per type; 0 without keep_out
+    shapes: Extents | None = None  # `geometry: true`: the whole geometry must be inside
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "inside_box"
 
@@ -66,11 +69,22 @@ class InsideBox(Constraint):
             nodes = nodes[batch.fresh[nodes]]
         p, q, ok = frame_of(batch, nodes, self.frame)
         local = quat_rotate(quat_conjugate(q), batch.xyz[nodes] - p)
-        r = self.radius[batch.type[nodes]]
-        inset = np.stack([r, r, np.zeros_like(r)], axis=1)
+        if self.shapes is not None:  # the geometry's reach along the frame's axes
+            rel = quat_to_matrix(quat_multiply(quat_conjugate(q), batch.quat[nodes]))
+            low, high = frame_extents(self.shapes, batch.type[nodes], rel)
+        else:
+            r = self.radius[batch.type[nodes]]
+            high = np.stack([r, r, np.zeros_like(r)], axis=1)
+            low = -high
         with np.errstate(invalid="ignore"):
-            gaps = np.concatenate([local - inset - self.lo, self.hi - inset - local], axis=1)
+            gaps = np.concatenate([local + low - self.lo, self.hi - high - local], axis=1)
         return nodes, q, ok, gaps
+
+    def face_gaps(self, batch: Any) -> tuple[NDArray[np.int64], Any, Any, NDArray[np.float64]]:
+        """(nodes, frame rotations, whether each node has its frame, (n, 6) signed distances
+        inside the faces min x, y, z then max x, y, z; NaN where unbounded): what
+        `ssg explain` reads as floor and walls (ssgc/support.py)."""
+        return self._gaps(batch)
 
     def margin(self, batch: Any) -> FloatArray:
         nodes, _, ok, gaps = self._gaps(batch)

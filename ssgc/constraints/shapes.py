@@ -1,16 +1,19 @@
 """What a type's geometry covers: keep-out radii, bounding spheres and collision shapes.
 
 The one place constraints read a type's `geometry` (so a richer geometry description only
-changes this file).  Primitives are centred on the type's origin; a cylinder's axis is its
-z axis (as in SDF and FCL).
+changes this file).  Primitives are centred on the geometry's `origin` (a point in the type's
+frame, default the frame's origin); a cylinder's axis is its z axis (as in SDF and FCL).
+Radii are about the type's frame, so they include the origin's offset.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ssgc import dsl
 
@@ -32,11 +35,22 @@ def _mesh_vertices(g: dsl.MeshGeometry, base_dir: Path | None) -> np.ndarray:
     return np.asarray(mesh.vertices, float) * scale
 
 
+def geometry_origin(geometry: Any) -> np.ndarray:
+    """(3,) where the geometry sits in its type's frame (zeros without geometry)."""
+    return np.asarray(getattr(geometry, "origin", None) or (0.0, 0.0, 0.0), float)
+
+
 def keep_out_radius(geometry: Any, base_dir: Path | None = None) -> float:
-    """Radius of the vertical cylinder around the origin that holds the shape's footprint
-    (in the type's own x-y plane): a cylinder's or sphere's radius, a box's half diagonal."""
+    """Radius of the vertical cylinder around the type's frame that holds the shape's
+    footprint (in the type's own x-y plane): a cylinder's or sphere's radius, a box's half
+    diagonal, plus how far the geometry's origin is from the frame's vertical axis."""
     if geometry is None:
         raise ShapeError("it has no geometry")
+    ox, oy, _ = geometry_origin(geometry)
+    return float(np.hypot(ox, oy)) + _footprint_radius(geometry, base_dir)
+
+
+def _footprint_radius(geometry: Any, base_dir: Path | None) -> float:
     if isinstance(geometry, dsl.CylinderG):
         return float(geometry.cylinder.radius)
     if isinstance(geometry, dsl.SphereG):
@@ -49,9 +63,14 @@ def keep_out_radius(geometry: Any, base_dir: Path | None = None) -> float:
 
 
 def bounding_radius(geometry: Any, base_dir: Path | None = None) -> float:
-    """Radius of a sphere around the origin that holds the whole shape."""
+    """Radius of a sphere around the type's frame that holds the whole shape."""
     if geometry is None:
         raise ShapeError("it has no geometry")
+    return float(np.linalg.norm(geometry_origin(geometry))) + _own_radius(geometry, base_dir)
+
+
+def _own_radius(geometry: Any, base_dir: Path | None) -> float:
+    """Radius of a sphere around the geometry's own origin that holds it."""
     if isinstance(geometry, dsl.CylinderG):
         return float(np.hypot(geometry.cylinder.radius, geometry.cylinder.length / 2))
     if isinstance(geometry, dsl.SphereG):
@@ -63,7 +82,8 @@ def bounding_radius(geometry: Any, base_dir: Path | None = None) -> float:
 
 
 def collision_shape(geometry: Any, base_dir: Path | None = None) -> Any:
-    """An FCL collision geometry (python-fcl), or ShapeError."""
+    """An FCL collision geometry (python-fcl) about the geometry's own origin (place it at
+    `geometry_origin` in the object's frame), or ShapeError."""
     try:
         import fcl
     except ImportError:
@@ -87,3 +107,65 @@ def collision_shape(geometry: Any, base_dir: Path | None = None) -> Any:
     model.addSubModel(v, faces)
     model.endModel()
     return model
+
+
+@dataclass(frozen=True)
+class Extents:
+    """Per type, what `frame_extents` needs to bound its geometry along any axes: the kind
+    (0 none, 1 box, 2 cylinder, 3 sphere, 4 mesh), the half sizes (box: half sides; cylinder:
+    radius, half length; sphere: radius), the geometry's origin in the type's frame, and a
+    mesh's vertices (about its own origin)."""
+
+    kind: NDArray[np.int64]
+    half: NDArray[np.float64]  # (types, 3)
+    origin: NDArray[np.float64]  # (types, 3)
+    vertices: tuple[NDArray[np.float64] | None, ...]
+
+
+NO_SHAPE, BOX, CYLINDER, SPHERE, MESH = range(5)
+
+
+def extents_of(geometries: list[Any], base_dir: Path | None = None) -> Extents:
+    """The `Extents` of each type's geometry (None: a point at the type's origin)."""
+    n = len(geometries)
+    kind, half, origin = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3))
+    vertices: list[NDArray[np.float64] | None] = [None] * n
+    for t, g in enumerate(geometries):
+        if g is None:
+            continue
+        origin[t] = geometry_origin(g)
+        if isinstance(g, dsl.BoxG):
+            kind[t], half[t] = BOX, np.asarray(g.box.size, float) / 2
+        elif isinstance(g, dsl.CylinderG):
+            kind[t], half[t] = CYLINDER, (g.cylinder.radius, g.cylinder.length / 2, 0.0)
+        elif isinstance(g, dsl.SphereG):
+            kind[t], half[t] = SPHERE, (g.sphere.radius, 0.0, 0.0)
+        else:
+            kind[t], vertices[t] = MESH, _mesh_vertices(g.mesh, base_dir)
+    return Extents(kind, half, origin, tuple(vertices))
+
+
+def frame_extents(
+    ext: Extents, types: NDArray[np.int64], rot: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(lo, hi), each (n, 3): the lowest and highest coordinate of each node's geometry along
+    the axes of a frame, relative to the node's origin, where `rot` (n, 3, 3) is the node's
+    rotation in that frame.  Closed forms for primitives (a cylinder of axis a reaches
+    |a_k| h + r sqrt(1 - a_k^2) along axis k); a mesh's vertices otherwise."""
+    centre = np.einsum("nij,nj->ni", rot, ext.origin[types])
+    half = np.zeros((len(types), 3))
+    k, h = ext.kind[types], ext.half[types]
+    box = k == BOX
+    half[box] = np.einsum("nij,nj->ni", np.abs(rot[box]), h[box])
+    cyl = k == CYLINDER
+    axis = rot[cyl][:, :, 2]  # the cylinder's axis in the frame
+    side = np.sqrt(np.clip(1.0 - axis**2, 0.0, None))
+    half[cyl] = np.abs(axis) * h[cyl][:, 1:2] + side * h[cyl][:, :1]
+    sph = k == SPHERE
+    half[sph] = h[sph][:, :1]
+    lo, hi = centre - half, centre + half
+    for t in np.unique(types[k == MESH]):
+        m = np.flatnonzero(types == t)
+        v = np.einsum("nij,vj->nvi", rot[m], ext.vertices[int(t)])
+        lo[m], hi[m] = centre[m] + v.min(axis=1), centre[m] + v.max(axis=1)
+    return lo, hi

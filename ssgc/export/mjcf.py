@@ -34,8 +34,9 @@ def _primitive(shape: Shape) -> str:
 
 
 def _geoms(shape: Shape) -> list[str]:
-    if shape.kind != "mesh":
-        return [f'<geom name="{{}}_geom" {_primitive(shape)} group="3" {CONTACT}/>']
+    if shape.kind != "mesh":  # centred on the geometry's origin (a mesh's OBJ is placed)
+        pos = f'pos="{_nums(shape.origin)}" ' if any(shape.origin) else ""
+        return [f'<geom name="{{}}_geom" {_primitive(shape)} {pos}group="3" {CONTACT}/>']
     out = [
         f'<geom name="{{}}_visual" type="mesh" mesh="{shape.type}" group="1" '
         'contype="0" conaffinity="0"/>'

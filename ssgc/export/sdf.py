@@ -43,6 +43,12 @@ def link_xml(shape: Shape | None, meshes: str, indent: str = "      ") -> str:
     if shape is None:
         return f'{indent}<link name="body"/>'
     i = shape.inertia
+    # a primitive is centred on the geometry's origin; a mesh's OBJ files are already placed
+    placed = (
+        f"<pose>{' '.join(num(v) for v in shape.origin)} 0 0 0</pose>"
+        if shape.kind != "mesh" and any(shape.origin)
+        else ""
+    )
     lines = [
         f'{indent}<link name="body">',
         f"{indent}  <inertial>",
@@ -52,12 +58,12 @@ def link_xml(shape: Shape | None, meshes: str, indent: str = "      ") -> str:
         f"<ixz>{num(i[0, 2])}</ixz><iyy>{num(i[1, 1])}</iyy><iyz>{num(i[1, 2])}</iyz>"
         f"<izz>{num(i[2, 2])}</izz></inertia>",
         f"{indent}  </inertial>",
-        f'{indent}  <visual name="visual"><geometry>'
+        f'{indent}  <visual name="visual">{placed}<geometry>'
         f"{geometry_xml(shape, f'{meshes}/{shape.type}.obj')}</geometry></visual>",
     ]
     if shape.kind != "mesh":
         lines.append(
-            f'{indent}  <collision name="collision"><geometry>'
+            f'{indent}  <collision name="collision">{placed}<geometry>'
             f"{geometry_xml(shape, '')}</geometry></collision>"
         )
     for k in range(len(shape.collision)):

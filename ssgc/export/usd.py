@@ -33,16 +33,19 @@ def _geometry(stage, path: str, shape: Shape):  # type: ignore[no-untyped-def]
     if shape.kind == "box":
         prim = UsdGeom.Cube.Define(stage, path)
         prim.CreateSizeAttr(1.0)
+        _place(prim, shape)
         prim.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*shape.size))
     elif shape.kind == "cylinder":
         prim = UsdGeom.Cylinder.Define(stage, path)
         prim.CreateRadiusAttr(shape.size[0])
         prim.CreateHeightAttr(shape.size[1])
         prim.CreateAxisAttr(UsdGeom.Tokens.z)
+        _place(prim, shape)
     elif shape.kind == "sphere":
         prim = UsdGeom.Sphere.Define(stage, path)
         prim.CreateRadiusAttr(shape.size[0])
-    else:
+        _place(prim, shape)
+    else:  # the mesh's points are already placed at the geometry's origin
         prim = UsdGeom.Mesh.Define(stage, path)
         mesh = shape.mesh
         prim.CreatePointsAttr([Gf.Vec3f(*map(float, v)) for v in mesh.vertices])  # type: ignore[attr-defined]
@@ -52,6 +55,14 @@ def _geometry(stage, path: str, shape: Shape):  # type: ignore[no-untyped-def]
         approx = "convexDecomposition" if len(shape.collision) > 1 else "convexHull"
         UsdPhysics.MeshCollisionAPI.Apply(prim.GetPrim()).CreateApproximationAttr(approx)
     UsdPhysics.CollisionAPI.Apply(prim.GetPrim())
+
+
+def _place(prim, shape: Shape) -> None:  # type: ignore[no-untyped-def]
+    """A primitive is centred on the geometry's origin in the object's frame."""
+    if any(shape.origin):
+        Gf, _, UsdGeom, _ = _pxr()
+        op = prim.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
+        op.Set(Gf.Vec3d(*map(float, shape.origin)))
 
 
 def _body(stage, body: Body) -> None:  # type: ignore[no-untyped-def]

@@ -322,8 +322,8 @@ def geometry_of(grammar: Grammar | None) -> dict[str, tuple[FloatArray, list[lis
     out = {}
     for t in grammar.types:
         mesh = primitive_mesh(t.geometry)
-        if mesh is not None:
-            out[t.name] = mesh
+        if mesh is not None:  # centred on the geometry's origin in the type's frame
+            out[t.name] = (mesh[0] + np.asarray(t.geometry.origin, float), mesh[1])
     return out
 
 
