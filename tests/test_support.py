@@ -18,7 +18,7 @@ from ssgc.constraints.penetration import NonPenetration
 from ssgc.constraints.pose import InsideBox
 from ssgc.constraints.shapes import extents_of, frame_extents
 from ssgc.explain import explain_tree, match_objects
-from ssgc.geometry import axis_angle_to_quat, quat_multiply, quat_rotate, quat_to_matrix
+from ssgc.geometry import axis_angle_to_quat, quat_rotate, quat_to_matrix
 from ssgc.io.scene import Scene
 from ssgc.parse.parser import Parser
 from ssgc.support import findings
@@ -46,7 +46,8 @@ types:
       count: {probs: [0.5, 0.5]}
       rule:
         child: Mug
-        translation: {parent_normal_offset: {mean: [0, 0, 0.02], variance: [0.001, 0.001, 1], pin: [z]}}
+        translation:
+          parent_normal_offset: {mean: [0, 0, 0.02], variance: [0.001, 0.001, 1], pin: [z]}
         rotation: {world_bingham: {concentration: [300, 300, 0]}}
   Mug:
     observed: true
@@ -155,7 +156,8 @@ def test_non_penetration_places_the_geometry_at_its_origin(tub) -> None:
     def depth(g) -> float:
         check = next(c for c in g.constraints if isinstance(c, NonPenetration))
         i, j, dist = check.pair_distances(batch)
-        return dict(zip(zip(i.tolist(), j.tolist()), dist.tolist()))[(1, 3)]
+        pairs = zip(i.tolist(), j.tolist(), strict=True)
+        return dict(zip(pairs, dist.tolist(), strict=True))[(1, 3)]
 
     assert abs(depth(tub)) < 1e-6  # resting: touching, not overlapping
     assert depth(compile_text(BIN.replace(", origin: [0, 0, 0.05]", ""), "tub.yaml")) < -0.02
@@ -193,8 +195,8 @@ def export_one(tmp_path: Path, fmt: str) -> tuple[Path, Scene]:
         app, ["export", str(tmp_path / "s.json"), "-g", str(path), "-f", fmt, "-o", str(out), "-q"]
     )
     assert result.exit_code == 0, result.output
-    _ = g
-    return out, Scene("s", np.zeros(2, np.int64), np.array([[0, 0, 0], [0.1, 0.2, 0.3]]), np.array([UP, q]))
+    xyz = np.array([[0, 0, 0], [0.1, 0.2, 0.3]])
+    return out, Scene("s", np.array([g.type_ids["Tub"], g.type_ids["Mug"]]), xyz, np.array([UP, q]))
 
 
 def mug_centre(scene: Scene) -> np.ndarray:
@@ -219,7 +221,7 @@ def test_drake_puts_the_geometry_at_its_origin(tmp_path: Path) -> None:
     from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
     from pydrake.systems.framework import DiagramBuilder
 
-    out, scene = export_one(tmp_path, "sdf")
+    out, _ = export_one(tmp_path, "sdf")
     builder = DiagramBuilder()
     plant, graph = AddMultibodyPlantSceneGraph(builder, 0.0)
     DrakeParser(plant).AddModels(str(next(out.glob("*.sdf"))))
