@@ -396,17 +396,23 @@ MESH_FILES = [
     ".",
     "..",
 ]
+shape = one_of_keys(
+    {
+        "box": mapping({"size": vec(3)}),
+        "cylinder": mapping({"radius": numbers, "length": numbers}),
+        "sphere": mapping({"radius": numbers}),
+        "mesh": mapping(
+            {"file": st.one_of(st.sampled_from(MESH_FILES), names)},
+            {"scale": st.one_of(numbers, vec(3))},
+        ),
+    }
+)
+# a shape, sometimes with its `origin` in the object's frame beside it (or only the origin)
 geometry = sometimes_junk(
-    one_of_keys(
-        {
-            "box": mapping({"size": vec(3)}),
-            "cylinder": mapping({"radius": numbers, "length": numbers}),
-            "sphere": mapping({"radius": numbers}),
-            "mesh": mapping(
-                {"file": st.one_of(st.sampled_from(MESH_FILES), names)},
-                {"scale": st.one_of(numbers, vec(3))},
-            ),
-        }
+    st.one_of(
+        shape,
+        st.builds(lambda g, o: {**g, "origin": o}, shape, st.one_of(vec(3), vec(2), junk)),
+        st.builds(lambda o: {"origin": o}, vec(3)),
     )
 )
 node_type = mapping(
@@ -448,7 +454,12 @@ constraint = one_of_keys(
         "children": mapping({"of": type_names}, {"child": type_names, "min": bound, "max": bound}),
         "inside_box": mapping(
             {"types": type_list, "min": box_corner, "max": box_corner},
-            {"frame": type_names, "keep_out": st.booleans(), "radius": radius},
+            {
+                "frame": type_names,
+                "keep_out": st.booleans(),
+                "radius": radius,
+                "geometry": sometimes_junk(st.booleans()),
+            },
         ),
         "clearance": mapping(
             {"types": type_list},
