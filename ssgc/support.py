@@ -47,7 +47,7 @@ class Tail:
     mean: float  # m
 
     def nats(self, d: float) -> float:
-        return float(-np.log(self.rate) + d / self.mean)
+        return float(-np.log(self.rate) + (d - TOLERANCE) / self.mean)
 
 
 # Measured on the real sink scenes 0-39 (169 dishes, each scene's best parse under the fitted

@@ -106,6 +106,7 @@ def run(
         first = unparseable = named = detectable = first_detectable = above_natural = 0
         first_plain = 0  # ranked first without the slot surprise (unparseable ones added below)
         first_no_overlap = 0  # ranked first without the overlap reason (likewise)
+        first_no_support = 0  # without floating / through the floor or walls (likewise)
         misses = []
         retypes = {"within": [0, 0], "across": [0, 0]}  # [ranked first, changed] per kind
         for j, scene in enumerate(scenes):
@@ -120,6 +121,8 @@ def run(
                 first_plain += bool(not e.objects[0].unexplained and plain.index == o)
                 bare = max(e.objects, key=lambda x: (x.unusual - x.overlap, -x.index))
                 first_no_overlap += bool(not e.objects[0].unexplained and bare.index == o)
+                grounded = max(e.objects, key=lambda x: (x.unusual - x.support, -x.index))
+                first_no_support += bool(not e.objects[0].unexplained and grounded.index == o)
                 mine = next(x.unusual for x in e.objects if x.index == o)
                 above_natural += bool(mine > natural[j])
                 drop = base[j].parses[0].score - result.parses[0].score
@@ -157,6 +160,7 @@ def run(
             "ranked_first": first,
             "ranked_first_without_slot_surprise": first_plain + named,
             "ranked_first_without_overlap": first_no_overlap + named,
+            "ranked_first_without_support": first_no_support + named,
             "unparseable": unparseable,
             "unparseable_named_exactly": named,
             "parsed_and_detectable": detectable,
