@@ -70,7 +70,7 @@ def test_an_object_overlapping_unrelated_ones_ranks_first_and_a_stack_is_not_pen
     check = next(c for c in sink.constraints if isinstance(c, NonPenetration))
     i, j, dist = check.pair_distances(_batch(scene))
     pair = np.flatnonzero(((i == 1) & (j == 2)) | ((i == 2) & (j == 1)))
-    assert dist[pair[0]] < -0.01
+    assert dist[pair[0]] < -0.005  # the bowl's base 0.8 cm into the plate's 2.8 cm cylinder
     assert by_index[1].overlap == by_index[2].overlap == 0.0
     assert not [r for r in by_index[2].reasons if r.kind == "overlap"]
     assert e.to_json()["objects"][0]["overlap"] == pytest.approx(first.overlap)
