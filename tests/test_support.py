@@ -294,3 +294,13 @@ def test_a_plate_pushed_into_the_wall_goes_through_it(tub) -> None:
     e, _, _ = explained(tub, scene)
     (reason,) = [r for r in next(x for x in e.objects if x.index == 2).reasons if r.kind == "wall"]
     assert reason.text == "goes 5.0 cm through a wall of Tub #0 (in_tub)"
+
+
+def test_render_and_view_draw_the_geometry_at_its_origin(tub) -> None:
+    from ssgc.render.scene import geometry_of
+    from ssgc.view.page import _shapes
+
+    vertices, _ = geometry_of(tub)["Mug"]
+    np.testing.assert_allclose([vertices[:, 2].min(), vertices[:, 2].max()], [0.0, 0.1])
+    drawn = np.array(_shapes(tub, ["Mug"])["Mug"]["vertices"])
+    np.testing.assert_allclose([drawn[:, 2].min(), drawn[:, 2].max()], [0.0, 0.1], atol=1e-5)
