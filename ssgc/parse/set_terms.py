@@ -473,9 +473,11 @@ class _LocalBounds:
             self._translation_exact(bool(np.all(exact == on)))
         elif law.point is not None and law.frame == Frame.PARENT:
             m = off_t + quat_rotate(off_q, law.point)
-            self.box(cx - R0 @ m, cx - R0 @ m, pinned)
-            self.quadratic(cx, m, STEEP * np.eye(3), on & ~pinned)
-            self._translation_exact(bool(np.all(pinned == on)))
+            # a child at the member's own position (no offset) pins t whatever the rotation
+            exact = pinned | (bool(np.all(np.abs(m) <= 1e-12)) & on)
+            self.box(cx - R0 @ m, cx - R0 @ m, exact)
+            self.quadratic(cx, m, STEEP * np.eye(3), on & ~exact)
+            self._translation_exact(bool(np.all(exact == on)))
         else:
             self.add(np.full(n, law.supremum()), on)
             self._translation_exact(False)
