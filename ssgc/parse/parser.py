@@ -36,7 +36,7 @@ from ssgc.parse.clock import OutOfTime, check_deadline, past
 from ssgc.parse.highs import HighsSession
 from ssgc.parse.ip import SetReduction, UnparseableScene
 from ssgc.parse.milp import Milp, Session
-from ssgc.parse.posed import PosedProblem, PosedReduction, candidate_poses
+from ssgc.parse.posed import PosedProblem, PosedReduction, candidate_poses, fit_instances
 from ssgc.parse.poses import free_blocks, refine_tree
 from ssgc.parse.proposals import Candidates, add_hard_poses, add_proposals, latent_sets
 from ssgc.parse.reduction import ModelTooLarge, Problem, Reduction, Request, choose
@@ -166,7 +166,7 @@ class Parser:
             check_deadline(deadline)
             step = "build"
             request = self.request(scene, cand, bounds, deadline, best_only=top == 1)
-            reduction = choose(self.reductions, request)
+            reduction = self._choose(request)
             complete = self.complete(reduction, request)
             problem = reduction.apply(request)[1]
         except UnparseableScene as exc:
@@ -241,7 +241,7 @@ class Parser:
         add_hard_poses(g, st, cand, deadline)
         request = Request(g, st, scene, cand, True, None, deadline)
         try:
-            problem = choose(self.reductions, request).apply(request)[1]
+            problem = self._choose(request).apply(request)[1]
         except (UnparseableScene, OutOfTime, ModelTooLarge):
             return None
         run = _Run(self, scene, problem, cand, bounds, deadline, False)
@@ -329,7 +329,18 @@ class Parser:
         if cand is None:
             cand, bounds = self.candidates(scene)
         request = self.request(scene, cand, bounds, deadline)
-        return choose(self.reductions, request).apply(request)[1]
+        return self._choose(request).apply(request)[1]
+
+    def _choose(self, request: Request) -> Reduction:
+        """The first reduction that accepts the request; for a latent grammar whose model
+        over proposals would pass the instance limit, after dropping proposals until it fits
+        (`fit_instances`: sound, the model over proposals is not complete anyway)."""
+        try:
+            return choose(self.reductions, request)
+        except ModelTooLarge:
+            if not self.has_latent or not fit_instances(self.supertree, request.cand, self.latent):
+                raise
+            return choose(self.reductions, request)
 
     def request(
         self,
@@ -592,6 +603,8 @@ class _Run:
             self.problem = self.p.reduce(self.scene, self.cand, deadline=self.deadline)
         except OutOfTime:
             self.timed_out_in = self.timed_out_in or "build"
+            return refined
+        except ModelTooLarge:  # the refined poses do not fit: keep the refined tree
             return refined
         self.session = self.p.open_session(self.problem.milp)
         self.build_s += time.perf_counter() - t0
