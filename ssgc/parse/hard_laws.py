@@ -261,7 +261,13 @@ def relay_meets(first: Arc, relay: Relay) -> FloatArray:
     b = quat_rotate(k, relay.axis / np.linalg.norm(relay.axis))
     c = quat_rotate(quat_conjugate(w), c_arc.axis / np.linalg.norm(c_arc.axis))
     found = []
-    for psi, phi in two_axis_angles(a1, b, c, quat_rotate(m, c)):
+    mc = quat_rotate(m, c)
+    if 1.0 - abs(float(b @ c)) < 1e-9:  # the relay's two axes are one: its angle is free
+        if 1.0 - abs(float(a1 @ c)) < 1e-9 or abs(float(a1 @ c) - float(a1 @ mc)) > 1e-9:
+            return np.zeros((0, 4))  # all coaxial (the sampled arc covers it), or no meet
+        q = first.at(np.array([_turn(a1, c, mc)]))
+        return q[first.holds(q)]
+    for psi, phi in two_axis_angles(a1, b, c, mc):
         q = first.at(np.array([psi]))
         turned = quat_multiply(quat_multiply(q[0], relay.turn), _axis_quat(relay.axis, phi))
         rel = np.mod(phi - relay.lo, 2.0 * np.pi)
