@@ -19,6 +19,7 @@ best (by the involved laws' log-densities) first.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,9 +49,10 @@ class Arc:
     hi: float
     right: FloatArray
 
-    @property
+    @cached_property
     def plane(self) -> FloatArray:
-        """(4, 2): q(φ) = plane @ (cos φ/2, sin φ/2)."""
+        """(4, 2): q(φ) = plane @ (cos φ/2, sin φ/2) (computed once: an arc is met, sampled
+        and checked many times while a set's hard laws are solved)."""
         return _plane(self.left[None], self.axis[None], self.right[None])[0]
 
     def at(self, phi: FloatArray) -> FloatArray:

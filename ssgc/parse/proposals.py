@@ -570,6 +570,7 @@ HARD_COMBOS = 160  # combinations of children per parent pose (singles first, th
 HARD_KEEP = 1  # poses kept per combination (the best)
 HARD_PER_SET = 32  # poses added to a set per pass: the model over them grows like K^depth
 HARD_PARENTS_EACH = 2  # parent poses at which one combination of children is solved
+HARD_RELAYED = 64  # pairs of a child and a grandchild through a latent child (relays)
 
 
 def add_hard_poses(
@@ -759,14 +760,16 @@ def _child_combos(
 
 def _relayed_pairs(singles: list[list[tuple]]) -> list[tuple]:  # type: ignore[type-arg]
     """Pairs of one child of the set and one grandchild through a latent child set, taken in
-    turn from every such pair of slots (at most HARD_COMBOS): the child's arc and the
+    turn from every such pair of slots (at most HARD_RELAYED): the child's arc and the
     grandchild's relay meet in isolated rotations (`hard_laws.relay_meets`)."""
     own = [s for s in singles if s[0][4] is None]
     via = [s for s in singles if s[0][4] is not None]
-    streams = [[(ca[:5], cb[:5]) for ca in a for cb in b] for a in own for b in via]
+    streams = [  # not the linking child itself: its guessed pose already fixes the set
+        [(ca[:5], cb[:5]) for ca in a for cb in b] for a in own for b in via if a[0][:2] != b[0][:2]
+    ]
     out: list[tuple] = []  # type: ignore[type-arg]
     for k in range(max((len(x) for x in streams), default=0)):
         out += [x[k] for x in streams if k < len(x)]
-        if len(out) >= HARD_COMBOS:
-            return out[:HARD_COMBOS]
+        if len(out) >= HARD_RELAYED:
+            return out[:HARD_RELAYED]
     return out
