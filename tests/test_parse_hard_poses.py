@@ -38,6 +38,7 @@ from ssgc.parse.parser import GAP_TOL, Parser
 from ssgc.parse.posed import MAX_INSTANCES, fit_instances, instance_count
 
 CASES = sorted((Path(__file__).parent / "data" / "parse_hard").glob("*.json"))
+RELAY = Path(__file__).parent / "data" / "parse_relay"  # cases a whole parse of is slow
 
 
 def _case(path: Path):  # type: ignore[no-untyped-def]
@@ -163,7 +164,7 @@ def test_two_revolute_laws_in_a_row_are_solved_jointly() -> None:
     places L2 by a revolute law, and L2's child A holds L2 to another arc.  Solving L1 from
     its child and its grandchild through L2 (`add_grandchild_rule`) gives the sampled tree's
     rotation of L1 exactly, for both copies of L1."""
-    grammar, scene = _case(Path(__file__).parent / "data" / "parse_relay" / "g338_s1.json")
+    grammar, scene = _case(RELAY / "g338_s1.json")
     t = scene.tree
     assert t is not None
     ident = np.array([1.0, 0, 0, 0])
@@ -185,8 +186,8 @@ def test_too_many_proposals_are_trimmed_to_the_instance_limit() -> None:
     """Profile grammar 954, scene s1 (`no_parse`, phase `instance_limit`, on main): two
     copies of a latent chain with ~150 proposals for L1 and ~60 for L2 each unroll past
     MAX_INSTANCES; `fit_instances` keeps a share of each latent set's proposals until the
-    model fits (the scene then parses: the case in tests/data/parse_hard/)."""
-    grammar, scene = _case(Path(__file__).parent / "data" / "parse_hard" / "g954_s1.json")
+    model fits (the scene then parses: `test_chains_past_the_instance_limit_parse`)."""
+    grammar, scene = _case(RELAY / "g954_s1.json")
     parser = Parser(grammar, method="ip")
     cand, _ = parser.candidates(scene)
     before = [len(x) for x in cand.xyz]
@@ -199,3 +200,17 @@ def test_too_many_proposals_are_trimmed_to_the_instance_limit() -> None:
         n for n, o in zip(before, observed, strict=True) if o
     ]  # only proposals go
     assert all(0 < n <= m for n, m in zip(after, before, strict=True))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["ip", "micp"])
+@pytest.mark.parametrize("name", ["g338_s1", "g954_s1"])
+def test_chains_past_the_instance_limit_parse(name: str, method: str) -> None:
+    """The two profile scenes above, `no_parse` on main (`proposals`, `instance_limit`),
+    parse now; never a false certificate.  About 1.5 s of CPU each, hence slow."""
+    grammar, scene = _case(RELAY / f"{name}.json")
+    result = Parser(grammar, method=method).parse(scene)
+    assert result.status in ("optimal", "feasible"), (result.status, result.message)
+    truth = float(scene.log_prob)
+    if result.status == "optimal":
+        assert result.parses[0].score >= truth - 1e-6 * max(1.0, abs(truth))
