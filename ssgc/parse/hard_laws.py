@@ -10,8 +10,10 @@ at once; the model over proposals then has no tree (`no_parse`), although the sc
 from the grammar.
 
 `hard_poses` solves the hard laws instead: the rotation first (pins; arcs, intersected exactly
-where two meet in a point, or sampled along their common stretch), then, for each rotation, the
-position (a pin, or the soft laws' target clipped into the boxes' intersection).  Every pose is
+where two meet in a point, or sampled along their common stretch; relays, the arcs of a
+grandchild through a latent child's revolute law, met by Paden–Kahan's second subproblem),
+then, for each rotation, the position (a pin, or the soft laws' target clipped into the
+boxes' intersection).  Every pose is
 then checked with the grammar's own densities; only poses every law involved accepts are kept,
 best (by the involved laws' log-densities) first.
 """
