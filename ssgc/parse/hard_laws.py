@@ -10,15 +10,18 @@ at once; the model over proposals then has no tree (`no_parse`), although the sc
 from the grammar.
 
 `hard_poses` solves the hard laws instead: the rotation first (pins; arcs, intersected exactly
-where two meet in a point, or sampled along their common stretch), then, for each rotation, the
-position (a pin, or the soft laws' target clipped into the boxes' intersection).  Every pose is
+where two meet in a point, or sampled along their common stretch; relays, the arcs of a
+grandchild through a latent child's revolute law, met by Paden–Kahan's second subproblem),
+then, for each rotation, the position (a pin, or the soft laws' target clipped into the
+boxes' intersection).  Every pose is
 then checked with the grammar's own densities; only poses every law involved accepts are kept,
 best (by the involved laws' log-densities) first.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,9 +51,10 @@ class Arc:
     hi: float
     right: FloatArray
 
-    @property
+    @cached_property
     def plane(self) -> FloatArray:
-        """(4, 2): q(φ) = plane @ (cos φ/2, sin φ/2)."""
+        """(4, 2): q(φ) = plane @ (cos φ/2, sin φ/2) (computed once: an arc is met, sampled
+        and checked many times while a set's hard laws are solved)."""
         return _plane(self.left[None], self.axis[None], self.right[None])[0]
 
     def at(self, phi: FloatArray) -> FloatArray:
@@ -78,6 +82,19 @@ class Laws:
     soft_xyz: list[tuple[FloatArray, FloatArray]]  # target x = A - R(q) B
     # (rule, whether the set is the rule's child, the other end's pose, the member's offset)
     checks: list[tuple[int, bool, FloatArray, FloatArray, FloatArray, FloatArray]]
+    relays: list[Relay] = field(default_factory=list)  # arcs held through a revolute child
+
+
+@dataclass(frozen=True)
+class Relay:
+    """Rotations q with q ⊗ turn ⊗ R(axis, φ) on `arc` for some φ in [lo, hi]: a latent child
+    placed by a revolute law, whose own rotation its children hold to `arc`."""
+
+    arc: Arc
+    turn: FloatArray  # the member's rotation in the set's frame
+    axis: FloatArray
+    lo: float
+    hi: float
 
 
 def empty_laws() -> Laws:
@@ -164,6 +181,106 @@ def add_child_rule(
                 laws.boxes.append((lo, hi, member_xyz))
 
 
+def add_grandchild_rule(
+    laws: Laws,
+    grammar: Grammar,
+    link: int,
+    member_quat: FloatArray,
+    r: int,
+    child_xyz: FloatArray,
+    child_quat: FloatArray,
+    g_xyz: FloatArray,
+    g_quat: FloatArray,
+) -> None:
+    """A grandchild at (g_xyz, g_quat), placed by rule r from member (child_xyz, child_quat)
+    of a latent child set, which rule `link` places from member `member_quat` of this set.
+
+    The grandchild holds the child set's rotation to arcs (`add_child_rule`); through a fixed
+    rotation `link` those are arcs of this set's rotation (q_c = q ⊗ m ⊗ point), through a
+    revolute `link` they are relays (q_c = q ⊗ m ⊗ R(axis, φ)), which meet this set's own arcs
+    in isolated rotations (`relay_meets`).  Why: two revolute laws in a row hold two latent
+    rotations only jointly, and solving each set from the other's guessed poses never meets
+    both arcs (issue 11, `no_parse`)."""
+    sub = empty_laws()
+    add_child_rule(sub, grammar, r, child_xyz, child_quat, g_xyz, g_quat)
+    rl = grammar.rules[link].rotation
+    if rl.frame != Frame.PARENT:
+        return
+    for arc in sub.arcs:
+        if rl.point is not None:
+            back = quat_multiply(quat_conjugate(rl.point), quat_conjugate(member_quat))
+            right = quat_multiply(arc.right, back)
+            laws.arcs.append(Arc(arc.left, arc.axis, arc.lo, arc.hi, right))
+        elif isinstance(rl, RevoluteRotation):
+            lo, hi = float(rl.revolute.lo), float(rl.revolute.hi)
+            laws.relays.append(Relay(arc, member_quat, np.asarray(rl.axis, float), lo, hi))
+
+
+def two_axis_angles(
+    a: FloatArray, b: FloatArray, p: FloatArray, q: FloatArray
+) -> list[tuple[float, float]]:
+    """The angles (ψ, φ) with R(a, ψ) R(b, φ) p = q (unit axes a, b not parallel): Paden–
+    Kahan's second subproblem.  z = R(b, φ) p = R(a, -ψ) q keeps b·z = b·p, a·z = a·q and
+    |z| = |p|, so z = α a + β b ± γ (a × b); each z gives φ and ψ by the first subproblem."""
+    ab = float(a @ b)
+    denom = 1.0 - ab * ab
+    if denom < 1e-12 or abs(float(p @ p) - float(q @ q)) > 1e-9 * max(1.0, float(p @ p)):
+        return []
+    alpha = (float(a @ q) - ab * float(b @ p)) / denom
+    beta = (float(b @ p) - ab * float(a @ q)) / denom
+    n = np.cross(a, b)
+    g2 = (float(p @ p) - alpha**2 - beta**2 - 2 * alpha * beta * ab) / float(n @ n)
+    if g2 < -1e-9:
+        return []
+    g = np.sqrt(max(g2, 0.0))
+    out = []
+    for s in (g, -g) if g > 1e-12 else (0.0,):
+        z = alpha * a + beta * b + s * n
+        out.append((_turn(a, z, q), _turn(b, p, z)))
+    return out
+
+
+def _turn(axis: FloatArray, u: FloatArray, v: FloatArray) -> float:
+    """The angle about `axis` taking u to v (their parts across the axis)."""
+    u = u - axis * float(axis @ u)
+    v = v - axis * float(axis @ v)
+    return float(np.arctan2(axis @ np.cross(u, v), u @ v))
+
+
+def _axis_quat(axis: FloatArray, angle: float) -> FloatArray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return np.r_[np.cos(0.5 * angle), np.sin(0.5 * angle) * axis]
+
+
+def relay_meets(first: Arc, relay: Relay) -> FloatArray:
+    """Rotations on `first` that `relay` holds: first.left R(a1, ψ) first.right ⊗ turn ⊗
+    R(b0, φ) = C.left R(a2, χ) C.right (C the relay's arc).  With K = first.right ⊗ turn,
+    W = C.right ⊗ K⁻¹ and M = first.left⁻¹ ⊗ C.left ⊗ W this is R(a1, ψ) R(K b0, φ) =
+    M R(W⁻¹ a2, χ), and on the vector c = W⁻¹ a2: R(a1, ψ) R(K b0, φ) c = M c."""
+    c_arc = relay.arc
+    k = quat_multiply(first.right, relay.turn)
+    w = quat_multiply(c_arc.right, quat_conjugate(k))
+    m = quat_multiply(quat_multiply(quat_conjugate(first.left), c_arc.left), w)
+    a1 = first.axis / np.linalg.norm(first.axis)
+    b = quat_rotate(k, relay.axis / np.linalg.norm(relay.axis))
+    c = quat_rotate(quat_conjugate(w), c_arc.axis / np.linalg.norm(c_arc.axis))
+    found = []
+    mc = quat_rotate(m, c)
+    if 1.0 - abs(float(b @ c)) < 1e-9:  # the relay's two axes are one: its angle is free
+        if 1.0 - abs(float(a1 @ c)) < 1e-9 or abs(float(a1 @ c) - float(a1 @ mc)) > 1e-9:
+            return np.zeros((0, 4))  # all coaxial (the sampled arc covers it), or no meet
+        q = first.at(np.array([_turn(a1, c, mc)]))
+        return q[first.holds(q)]
+    for psi, phi in two_axis_angles(a1, b, c, mc):
+        q = first.at(np.array([psi]))
+        turned = quat_multiply(quat_multiply(q[0], relay.turn), _axis_quat(relay.axis, phi))
+        rel = np.mod(phi - relay.lo, 2.0 * np.pi)
+        in_range = rel <= relay.hi - relay.lo + 1e-7 or rel >= 2.0 * np.pi - 1e-7
+        if in_range and first.holds(q)[0] and c_arc.holds(quat_normalize(turned)[None])[0]:
+            found.append(q[0])
+    return np.array(found).reshape(-1, 4)
+
+
 def rotations(laws: Laws, fallback: FloatArray) -> FloatArray:
     """Rotations on every arc of `laws`: a pin; the point where two arcs' planes meet; or
     points sampled along the first arc (and every arc's ends), kept where all arcs hold them.
@@ -183,6 +300,8 @@ def rotations(laws: Laws, fallback: FloatArray) -> FloatArray:
             meet = _plane_meet(first, other)
             if meet is not None:
                 pts.append(meet)
+        if laws.relays:  # a relay holds the rotation to isolated points of the first arc
+            pts = [relay_meets(first, relay) for relay in laws.relays]
         q = np.vstack(pts)
     keep = np.ones(len(q), bool)
     for a in laws.arcs:

@@ -459,6 +459,42 @@ def instance_count(
     return total
 
 
+FIT_STEP = 0.8  # each try keeps this share of the previous try's proposals per latent set
+
+
+def fit_instances(st: Supertree, cand: Candidates, latent: NDArray[np.bool_]) -> bool:
+    """Drop proposed poses of the latent sets until the unrolled model stays within
+    MAX_INSTANCES; whether anything was dropped.  Each latent set keeps the same share of its
+    poses, half from the front of its list (the poses its children imply, first proposed) and
+    half from the back (the bound's assignment poses, the chain's and the hard laws' poses,
+    added last).
+
+    Why: the model over proposals unrolls a latent set once per pose of its latent parent, so
+    a chain of two latent sets with 150 and 70 proposals each passes the limit (issue 11:
+    `no_parse`, phase `instance_limit`).  The model over proposals is not complete anyway:
+    fewer proposals never make a false answer (its trees are real and re-scored, and the
+    certificate comes from the assignment bound, which does not use them)."""
+    if instance_count(st, cand) <= MAX_INSTANCES:
+        return False
+    sets = np.flatnonzero(latent)
+    full = {int(e): (cand.xyz[e], cand.quat[e]) for e in sets}
+    share = 1.0
+    while share > 1e-3:
+        share *= FIT_STEP
+        for e, (xyz, quat) in full.items():
+            keep = _front_and_back(len(xyz), max(1, int(share * len(xyz))))
+            cand.xyz[e], cand.quat[e] = xyz[keep], quat[keep]
+        if instance_count(st, cand) <= MAX_INSTANCES:
+            return True
+    return True
+
+
+def _front_and_back(n: int, k: int) -> IntArray:
+    """k of n indices: the first ⌈k/2⌉ and the last ⌊k/2⌋."""
+    front = (k + 1) // 2
+    return np.r_[np.arange(front), np.arange(n - (k - front), n)].astype(np.int64)
+
+
 def reduce_posed(
     grammar: Grammar,
     st: Supertree,

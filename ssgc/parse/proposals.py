@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -569,6 +570,7 @@ HARD_COMBOS = 160  # combinations of children per parent pose (singles first, th
 HARD_KEEP = 1  # poses kept per combination (the best)
 HARD_PER_SET = 32  # poses added to a set per pass: the model over them grows like K^depth
 HARD_PARENTS_EACH = 2  # parent poses at which one combination of children is solved
+HARD_RELAYED = 64  # pairs of a child and a grandchild through a latent child (relays)
 
 
 def add_hard_poses(
@@ -628,7 +630,9 @@ def _hard_set(
     xs, qs = [np.zeros((0, 3))], [np.zeros((0, 4))]
     # half the poses from pairs of children (jointly implied), half from one child or none;
     # each combination at no more than HARD_PARENTS_EACH parent poses
-    for group in ([c for c in combos if len(c) > 1], [c for c in combos if len(c) == 1] + [()]):
+    relayed = [c for c in combos if len(c) > 1 and any(k[4] is not None for k in c)]
+    pairs = [c for c in combos if len(c) > 1 and all(k[4] is None for k in c)]
+    for group in (relayed, pairs, [c for c in combos if len(c) == 1] + [()]):
         found = 0
         for combo in group:
             if found >= HARD_PER_SET // 2:
@@ -640,10 +644,24 @@ def _hard_set(
                 laws = hard_laws.empty_laws()
                 laws.boxes += inherited
                 hard_laws.add_parent_rule(laws, grammar, r0, p_xyz, p_quat)
-                for v, r, c_xyz, c_quat in combo:
-                    hard_laws.add_child_rule(
-                        laws, grammar, r, st.offset_xyz[v], st.offset_quat[v], c_xyz, c_quat
-                    )
+                for v, r, c_xyz, c_quat, via in combo:
+                    if via is None:
+                        hard_laws.add_child_rule(
+                            laws, grammar, r, st.offset_xyz[v], st.offset_quat[v], c_xyz, c_quat
+                        )
+                    else:  # a grandchild, through the latent child set `via` names
+                        v2, r2 = via
+                        hard_laws.add_grandchild_rule(
+                            laws,
+                            grammar,
+                            r,
+                            st.offset_quat[v],
+                            r2,
+                            st.offset_xyz[v2],
+                            st.offset_quat[v2],
+                            c_xyz,
+                            c_quat,
+                        )
                 x, q = hard_laws.hard_poses(grammar, laws, fallback, HARD_KEEP)
                 xs.append(x)
                 qs.append(q)
@@ -685,32 +703,73 @@ def _hard_rule(grammar: Grammar, r: int) -> bool:
     return rot or tl.point is not None or box or (pinned_axes and tl.frame != Frame.WORLD)
 
 
+def _turning_link(grammar: Grammar, r: int) -> bool:
+    """Whether rule r turns its child with its parent by a fixed or revolute rotation, so that
+    the child's arcs carry over to the parent (`hard_laws.add_grandchild_rule`)."""
+    rl = grammar.rules[r].rotation
+    return rl.frame == Frame.PARENT and (rl.point is not None or isinstance(rl, RevoluteRotation))
+
+
+def _hard_grandchildren(grammar: Grammar, st: Supertree, e_c: int) -> list[tuple[int, int, int]]:
+    """(member, rule, set) of the children of latent set e_c whose rule holds e_c's rotation
+    (a fixed or revolute rotation), outside e_c."""
+    out = []
+    for v2 in np.flatnonzero(st.set_of == e_c):
+        for c2 in st.children[v2]:
+            r2 = int(st.rule[c2])
+            if st.set_of[c2] != e_c and _turning_link(grammar, r2):
+                out.append((int(v2), r2, int(st.set_of[c2])))
+    return out
+
+
 def _child_combos(
     grammar: Grammar, st: Supertree, cand: Candidates, e: int, solved: dict[int, FloatArray]
-) -> list[tuple[tuple[int, int, FloatArray, FloatArray], ...]]:
+) -> list[tuple[tuple[int, int, FloatArray, FloatArray, Any], ...]]:
     """No child, each candidate child of each hard slot, then pairs on two slots (or two
     copies of one `repeat` slot), at most HARD_COMBOS in all."""
-    slots: dict[tuple[int, int], tuple[int, int]] = {}
+    slots: dict[tuple[int, int, Any], tuple[int, int]] = {}
+    latent = latent_sets(st)
     for v in np.flatnonzero(st.set_of == e):
         for c in st.children[v]:
             r = int(st.rule[c])
-            if st.set_of[c] != e and _hard_rule(grammar, r):
-                e_c = int(st.set_of[c])
-                n = slots.get((int(v), r), (e_c, 0))[1]
-                slots[(int(v), r)] = (e_c, n + 1)
+            e_c = int(st.set_of[c])
+            if e_c != e and _hard_rule(grammar, r):
+                n = slots.get((int(v), r, None), (e_c, 0))[1]
+                slots[(int(v), r, None)] = (e_c, n + 1)
+            if e_c != e and latent[e_c] and _turning_link(grammar, r):
+                for v2, r2, e_g in _hard_grandchildren(grammar, st, e_c):
+                    slots.setdefault((int(v), r, (v2, r2)), (e_g, 1))
     singles = []
-    for (v, r), (e_c, copies) in slots.items():
+    for (v, r, via), (e_c, copies) in slots.items():
         k = _preferred(cand, e_c, solved, HARD_CHILDREN)
-        singles.append([(v, r, cand.xyz[e_c][i], cand.quat[e_c][i], copies) for i in k])
-    combos: list[tuple] = [()]
-    combos += [(c[:4],) for s in singles for c in s]
-    for a in range(len(singles)):
-        for b in range(a, len(singles)):
-            for i, ca in enumerate(singles[a]):
-                for cb in singles[b][i + 1 :] if a == b else singles[b]:
-                    if a == b and ca[4] < 2:
+        singles.append([(v, r, cand.xyz[e_c][i], cand.quat[e_c][i], via, copies) for i in k])
+    own = [s for s in singles if s[0][4] is None]
+    combos: list[tuple] = [()]  # the set's own children first, then grandchildren
+    combos += [(c[:5],) for s in own + [s for s in singles if s[0][4] is not None] for c in s]
+    for a in range(len(own)):
+        for b in range(a, len(own)):
+            for i, ca in enumerate(own[a]):
+                for cb in own[b][i + 1 :] if a == b else own[b]:
+                    if a == b and ca[5] < 2:
                         break
-                    combos.append((ca[:4], cb[:4]))
+                    combos.append((ca[:5], cb[:5]))
                     if len(combos) >= HARD_COMBOS:
-                        return combos
-    return combos
+                        return combos + _relayed_pairs(singles)
+    return combos + _relayed_pairs(singles)
+
+
+def _relayed_pairs(singles: list[list[tuple]]) -> list[tuple]:  # type: ignore[type-arg]
+    """Pairs of one child of the set and one grandchild through a latent child set, taken in
+    turn from every such pair of slots (at most HARD_RELAYED): the child's arc and the
+    grandchild's relay meet in isolated rotations (`hard_laws.relay_meets`)."""
+    own = [s for s in singles if s[0][4] is None]
+    via = [s for s in singles if s[0][4] is not None]
+    streams = [  # not the linking child itself: its guessed pose already fixes the set
+        [(ca[:5], cb[:5]) for ca in a for cb in b] for a in own for b in via if a[0][:2] != b[0][:2]
+    ]
+    out: list[tuple] = []  # type: ignore[type-arg]
+    for k in range(max((len(x) for x in streams), default=0)):
+        out += [x[k] for x in streams if k < len(x)]
+        if len(out) >= HARD_RELAYED:
+            return out[:HARD_RELAYED]
+    return out

@@ -86,6 +86,7 @@ class _Terms:
     V: FloatArray  # (A, 4, 2): a revolute law's rotations q = V (cos ψ, sin ψ), ψ in `arc`
     arc: FloatArray  # (A, 2): half the law's angle range
     revolute: NDArray[np.bool_]  # (A,): rows whose rotation is held to such a family
+    hard: NDArray[np.bool_] | None = None  # (K,): terms standing in for a fixed translation
 
     @property
     def pinned(self) -> NDArray[np.bool_]:
@@ -194,10 +195,19 @@ class _LocalBounds:
         self.fixed_children: list = []  # (rule, off_t, off_q, cx, on) per column
         self.rot_terms: list[tuple] = []  # rotating precisions (bound_rotation.Rotating)
         self.rot_lift = np.zeros(n)
+        self.hard: list[bool] = []  # per term: a steep quadratic standing in for a pin
 
     # ---------------------------------------------------------------- building blocks ---
 
-    def quadratic(self, c: FloatArray, m: FloatArray, P: FloatArray, on: NDArray[np.bool_]) -> None:
+    def quadratic(
+        self,
+        c: FloatArray,
+        m: FloatArray,
+        P: FloatArray,
+        on: NDArray[np.bool_],
+        hard: bool = False,
+    ) -> None:
+        self.hard.append(hard)
         self.c.append(_rows(c, self.n, 3).copy())
         self.m.append(np.asarray(m, float))
         P = np.broadcast_to(P, (self.n, 3, 3))
@@ -473,9 +483,11 @@ class _LocalBounds:
             self._translation_exact(bool(np.all(exact == on)))
         elif law.point is not None and law.frame == Frame.PARENT:
             m = off_t + quat_rotate(off_q, law.point)
-            self.box(cx - R0 @ m, cx - R0 @ m, pinned)
-            self.quadratic(cx, m, STEEP * np.eye(3), on & ~pinned)
-            self._translation_exact(bool(np.all(pinned == on)))
+            # a child at the member's own position (no offset) pins t whatever the rotation
+            exact = pinned | (bool(np.all(np.abs(m) <= 1e-12)) & on)
+            self.box(cx - R0 @ m, cx - R0 @ m, exact)
+            self.quadratic(cx, m, STEEP * np.eye(3), on & ~exact, hard=True)
+            self._translation_exact(bool(np.all(exact == on)))
         else:
             self.add(np.full(n, law.supremum()), on)
             self._translation_exact(False)
@@ -545,6 +557,7 @@ class _LocalBounds:
             np.stack([u, w], axis=-1),
             0.5 * self.fam_range,
             revolute,
+            np.array(self.hard, bool),
         )
 
     def feasible(self) -> NDArray[np.bool_]:
@@ -668,10 +681,20 @@ def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
     + tr(B X) + const, using |R m'|² = |m'|² on rotations: linear in R, hence in X = q qᵀ,
     and its maximum over unit q is the top eigenvalue of a 4×4 matrix (over a revolute
     family, the arc's best point, `_arc_lmo`).  No relaxation gap.  The centred form keeps
-    the sums small where one term is steep (STEEP)."""
+    the sums small where one term is steep (STEEP).
+
+    A steep term that stands in for a fixed translation (`_Terms.hard`) is a pin: t is then
+    its c - R m (the mean of such terms), where the other terms are evaluated exactly, instead
+    of a p-weighted mean that leans off the pin by p / STEEP (1e-6 nats and more loose).  Still
+    a bound: wherever the pins hold, the value is the score at that rotation."""
     p = terms.P[..., 0, 0]  # (A, K)
     total = p.sum(axis=1)
     weight = p / np.where(total > 0, total, 1.0)[:, None]
+    if terms.hard is not None and np.any(terms.hard):
+        pin = (p > 0) & terms.hard[None, :]
+        count = pin.sum(axis=1)
+        by_pin = pin / np.maximum(count, 1)[:, None]
+        weight = np.where((count > 0)[:, None], by_pin, weight)
     c = terms.c - np.einsum("nk,nki->ni", weight, terms.c)[:, None, :]
     m = terms.m[None] - np.einsum("nk,ki->ni", weight, terms.m)[:, None, :]
     G_R = np.einsum("nk,nki,nkj->nij", p, c, m)
@@ -780,6 +803,7 @@ def _subset(terms: _Terms, rows: NDArray[np.bool_]) -> _Terms:
         terms.V[rows],
         terms.arc[rows],
         terms.revolute[rows],
+        terms.hard,
     )
 
 
