@@ -358,11 +358,42 @@ def add_chain_poses(grammar: Grammar, st, cand, bounds: dict[int, SetBound]) -> 
             quat = _child_rotation(grammar, r, child.chain, idx, qv)
             xyz = _child_position(grammar.rules[r].translation, child.chain, idx, xv, qv, quat)
             cand.add(e_c, xyz, quat)
+            copies = sum(1 for c in st.children[v] if st.rule[c] == r)
+            _at_rule_mode(grammar, r, cand, e_c, child.chain, idx, xv, qv, copies)
             _turned_parent(grammar, st, cand, e_p, sb, k, child.chain, rows[:MAX_TURNED])
             earlier = made.setdefault((v, r, e_c), [])
             for rows_0, xyz_0, quat_0 in earlier:  # copies of a `repeat` at one pose
                 _append_shared(cand, e_c, rows, xyz, quat, rows_0, xyz_0, quat_0)
             earlier.append((rows, xyz, quat))
+
+
+def _at_rule_mode(grammar, r, cand, e_c, lift: Lifted, idx, xv, qv, copies) -> None:  # type: ignore[no-untyped-def]
+    """The child also at the rotation its rule's parent-frame Bingham puts at its mode, from
+    its member's rotation qv (where its own children do not pin it): `_child_rotation` keeps
+    the child's own assignment rotation there, which ignores its parent.  A `repeat`'s
+    copies each get the pose once (appended as it is, `Candidates.add` would merge them):
+    the model over proposals gives a candidate pose to one copy only."""
+    rot = grammar.rules[r].rotation
+    mode = rot.mode() if rot.frame == Frame.PARENT and rot.point is None else None
+    if mode is None or _is_revolute(rot):
+        return
+    free = ~(lift.rows.ok[idx] & ~np.isnan(lift.rows.pin[idx, 0]))
+    if not np.any(free):
+        return
+    quat = quat_multiply(qv[free], np.broadcast_to(mode, (int(free.sum()), 4)))
+    law = grammar.rules[r].translation
+    xyz = _child_position(law, lift, idx[free], xv[free], qv[free], quat)
+    cand.add(e_c, xyz, quat)
+    if copies > 1:
+        n = min(len(xyz), MAX_SHARED_ROWS)
+        cand.xyz[e_c] = np.vstack([cand.xyz[e_c], *[xyz[:n]] * (copies - 1)])
+        cand.quat[e_c] = np.vstack([cand.quat[e_c], *[quat[:n]] * (copies - 1)])
+
+
+def _is_revolute(rot) -> bool:  # type: ignore[no-untyped-def]
+    from ssgc.laws.rotation_revolute import RevoluteRotation
+
+    return isinstance(rot, RevoluteRotation)
 
 
 MAX_TURNED = 50  # parent rows also offered turned to their child's own rotation
@@ -386,6 +417,8 @@ def _turned_parent(grammar, st, cand, e_p, sb, k, lift: Lifted, rows) -> None:  
     elif isinstance(rot, RevoluteRotation):
         angle = float(np.clip(0.0, rot.revolute.lo, rot.revolute.hi))
         mode = axis_angle_to_quat(np.asarray(rot.axis, float)[None], np.array([angle]))[0]
+    elif rot.frame == Frame.PARENT and rot.mode() is not None:  # a parent-frame Bingham
+        mode = np.asarray(rot.mode(), float)
     elif rot.frame != Frame.PARENT:
         return  # the child's rotation does not follow its parent's
     qc = np.where(
