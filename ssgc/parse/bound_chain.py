@@ -78,6 +78,10 @@ class ChainRows:
     m: FloatArray  # (K, 3)
     B: FloatArray  # (A, 4, 4)
     base: FloatArray  # (A,): the rows' constant, without the own rule's supremum
+    # rows whose rotation its children hold to an arc q = V (cos ψ, sin ψ), ψ in `arc`
+    revolute: BoolArray  # (A,)
+    V: FloatArray  # (A, 4, 2)
+    arc: FloatArray  # (A, 2)
 
 
 @dataclass(frozen=True)
@@ -131,6 +135,9 @@ def collapse(terms: _Terms, own_sup: float) -> ChainRows:
         np.asarray(m, float).reshape(-1, 3),
         terms.B.copy(),
         terms.const - own_sup,
+        terms.revolute.copy(),
+        terms.V.copy(),
+        terms.arc.copy(),
     )
 
 
@@ -155,6 +162,9 @@ def lifted(bound: SetBound, rows: ChainRows, source: IntArray) -> Lifted:
         rows.m,
         take(rows.B),
         take(rows.base),
+        take(rows.revolute).astype(bool) & assigned & ~bound.free_rows,
+        take(rows.V),
+        take(rows.arc),
     )
     return Lifted(bound.upper, bound.free_rows, bound.xyz, bound.quat, chain)
 
@@ -164,6 +174,45 @@ def children_to_lift(st, e: int, chains: dict[int, Lifted]) -> dict[int, Lifted]
     return {
         e_c: lift for e_c, lift in chains.items() if int(st.set_of[st.parent[st.set_top[e_c]]]) == e
     }
+
+
+def own_world_edge(grammar: Grammar, r: int) -> tuple[FloatArray, FloatArray] | None:
+    """A decoupled set's own rule as an edge from the set to itself, for its exact local
+    search (`bound.local_edges`): the parent end at the offset (m, w) from the set's own
+    pose, where the rule's relative parts are at a constant, finite value whatever that
+    pose, so only its world-frame parts move (a world Bingham rotation, a world Normal or box
+    translation).  None when it has no such part that varies, or no such offset exists.
+
+    Why: the bound counts those parts exactly (`set_terms._decoupled_prior`), but the local
+    search left the whole rule out, so a set's assignment pose ignored (say) its world
+    Bingham, and the chain's poses built on it scored far below the bound."""
+    from ssgc.rules import rotation_log_density, translation_log_density
+
+    rule = grammar.rules[r]
+    law, rot = rule.translation, rule.rotation
+    # a world box is left out: `bound._snap` puts the pose inside it, and a constant inside
+    # it would only break the ties of the revolute search differently
+    moves = (world_part(law) and law.concave_form() is not None) or (
+        world_part(rot) and rot.concave_form() is not None
+    )
+    if not moves:
+        return None
+    w = IDENTITY.copy()
+    if rot.frame == Frame.PARENT and rot.mode() is not None:
+        w = np.asarray(rot.point if rot.point is not None else rot.mode(), float)
+        w = np.array([w[0], -w[1], -w[2], -w[3]])  # the parent sits at the mode's inverse
+    m = np.zeros(3)
+    if law.frame == Frame.PARENT:
+        form = law.concave_form()
+        point = law.point if law.point is not None else (form[0] if form is not None else None)
+        if point is None:
+            return None
+        m = -quat_rotate(w, np.asarray(point, float))  # R(w)ᵀ (t - t_p) = the law's mode
+    rules, one = np.array([r]), np.ones((1, 1))
+    at = (m[None], w[None])
+    value = translation_log_density(grammar, rules, at[0], at[1], np.zeros((1, 3)))
+    value = value + rotation_log_density(grammar, rules, at[1], IDENTITY[None] * one)
+    return (m, w) if bool(np.isfinite(value[0])) else None
 
 
 def _parallel(Pe: FloatArray, Phat: FloatArray) -> FloatArray:
@@ -381,6 +430,7 @@ def _at_rule_mode(grammar, r, cand, e_c, lift: Lifted, idx, xv, qv, copies) -> N
     if not np.any(free):
         return
     quat = quat_multiply(qv[free], np.broadcast_to(mode, (int(free.sum()), 4)))
+    quat = _onto_own_arc(lift.rows, idx[free], quat)
     law = grammar.rules[r].translation
     xyz = _child_position(law, lift, idx[free], xv[free], qv[free], quat)
     cand.add(e_c, xyz, quat)
@@ -388,6 +438,26 @@ def _at_rule_mode(grammar, r, cand, e_c, lift: Lifted, idx, xv, qv, copies) -> N
         n = min(len(xyz), MAX_SHARED_ROWS)
         cand.xyz[e_c] = np.vstack([cand.xyz[e_c], *[xyz[:n]] * (copies - 1)])
         cand.quat[e_c] = np.vstack([cand.quat[e_c], *[quat[:n]] * (copies - 1)])
+
+
+def _onto_own_arc(rows: ChainRows, idx: IntArray, quat: FloatArray) -> FloatArray:
+    """Each rotation moved to the nearest point of its row's arc, where its children hold
+    the row's rotation to one (a revolute child): off it the child's density is zero."""
+    on = rows.revolute[idx]
+    if not np.any(on):
+        return quat
+    V, arc = rows.V[idx], rows.arc[idx]
+    s = np.einsum("nab,na->nb", V, quat)
+    psi = np.arctan2(s[:, 1], s[:, 0])
+    best, fit = psi, np.full(len(psi), -np.inf)
+    for shift in (-np.pi, 0.0, np.pi):  # q and -q are one rotation: ψ is known mod π
+        at = np.clip(psi + shift, arc[:, 0], arc[:, 1])
+        q = np.einsum("nab,nb->na", V, np.stack([np.cos(at), np.sin(at)], axis=1))
+        score = np.abs(np.einsum("na,na->n", q, quat))
+        better = score > fit
+        best, fit = np.where(better, at, best), np.where(better, score, fit)
+    q = np.einsum("nab,nb->na", V, np.stack([np.cos(best), np.sin(best)], axis=1))
+    return np.where(on[:, None], q, quat)
 
 
 def _is_revolute(rot) -> bool:  # type: ignore[no-untyped-def]
