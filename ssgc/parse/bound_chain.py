@@ -325,8 +325,10 @@ def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # typ
         return
     if form is not None and law.frame == Frame.PARENT and not _isotropic(form[1]):
         return
-    if not inside and form is not None and not _isotropic(form[1]):  # exact if R_p pinned
-        turn = turn & local.pinned
+    if not inside and form is not None and not _isotropic(form[1]):
+        # a world-frame anisotropic term turning with R_p: exact where R_p is pinned, and
+        # on a revolute family the rotation search (`bound_rotation`) bounds it along the arc
+        turn = turn & (local.pinned | ~np.isnan(local.fam_base[:, 0]))
         if not np.any(turn):
             return
     rows = lift.rows
