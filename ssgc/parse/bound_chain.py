@@ -315,8 +315,9 @@ def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # typ
     term, which the rule's translation then joins as for unturned rows, its m now
     off_t + R_w m̄ (one term per distinct m̄).  The child's own Bingham terms follow X_c =
     L X_p Lᵀ.  Rule translations without a closed form leave the rows as they are, and so
-    does an anisotropic one where the parent's rotation is not pinned: the relaxation over X
-    (its hull shrinks |R m|) would then be looser than the child's own bound."""
+    does an anisotropic one where the parent's rotation is neither pinned nor held to a
+    revolute family: the relaxation over all X (its hull shrinks |R m|) would then be looser
+    than the child's own bound, while along an arc the rotation search bounds it exactly."""
     from ssgc.geometry import quat_multiply as qmul
 
     law, form = rule.translation, rule.translation.concave_form()
