@@ -410,6 +410,7 @@ def add_chain_poses(grammar: Grammar, st, cand, bounds: dict[int, SetBound]) -> 
             quat = _child_rotation(grammar, r, child.chain, idx, qv)
             xyz = _child_position(grammar.rules[r].translation, child.chain, idx, xv, qv, quat)
             cand.add(e_c, xyz, quat)
+            _aimed(grammar, r, cand, e_c, child.chain, idx, xv, qv)
             copies = sum(1 for c in st.children[v] if st.rule[c] == r)
             _at_rule_mode(grammar, r, cand, e_c, child.chain, idx, xv, qv, copies)
             _turned_parent(grammar, st, cand, e_p, sb, k, child.chain, rows[:MAX_TURNED])
@@ -574,9 +575,11 @@ def _child_position(law, lift: Lifted, idx, xv, qv, qc) -> FloatArray:  # type: 
 BOX_MARGIN_IN = 2e-9  # metres: a proposal inside the child's box (the bound widened it by 1e-9)
 
 
-def _child_rotation(grammar: Grammar, r: int, lift: Lifted, idx, qv) -> FloatArray:  # type: ignore[no-untyped-def]
+def _child_rotation(grammar: Grammar, r: int, lift: Lifted, idx, qv, xv=None) -> FloatArray:  # type: ignore[no-untyped-def]
     """The child's rotation: its pin, else what its rule makes of the member's rotation (a
-    fixed offset; a revolute law's rotation nearest its own assignment's), else its own."""
+    fixed offset; a revolute law's rotation nearest its own assignment's, or, given `xv`,
+    the one that points its children's mean offset at their mean position seen from where
+    the rule puts it), else its own."""
     from ssgc.parse.proposals import onto_arc, revolute_arc
 
     rot = grammar.rules[r].rotation
@@ -585,5 +588,46 @@ def _child_rotation(grammar: Grammar, r: int, lift: Lifted, idx, qv) -> FloatArr
     if rot.point is not None and rot.frame == Frame.PARENT:
         out = quat_multiply(qv, np.broadcast_to(rot.point, qv.shape))
     elif (arc := revolute_arc(grammar, r)) is not None:
-        out = onto_arc(qv, arc, out)
+        aligns = ()
+        if xv is not None:  # `_aimed`: rows whose children turn with the child
+            aligns = (_turning_aim(grammar.rules[r].translation, lift, idx, xv, qv),)
+        out = onto_arc(qv, arc, out, aligns)
     return np.where(pinned[:, None], np.nan_to_num(lift.rows.pin[idx]), out)
+
+
+def _aimed(grammar, r, cand, e_c, lift: Lifted, idx, xv, qv) -> None:  # type: ignore[no-untyped-def]
+    """The child also at the rotation of its rule's revolute arc that aims its turning
+    children (`_turning_aim`), as a further candidate: its own assignment's rotation, which
+    `_child_rotation` moves onto the arc, is arbitrary where its position was free."""
+    from ssgc.parse.proposals import revolute_arc
+
+    turning = lift.rows.turning[idx]
+    if revolute_arc(grammar, r) is None or not np.any(turning):
+        return
+    sel = np.flatnonzero(turning)
+    quat = _child_rotation(grammar, r, lift, idx[sel], qv[sel], xv[sel])
+    law = grammar.rules[r].translation
+    cand.add(e_c, _child_position(law, lift, idx[sel], xv[sel], qv[sel], quat), quat)
+
+
+def _turning_aim(law, lift: Lifted, idx, xv, qv) -> tuple[FloatArray, FloatArray]:  # type: ignore[no-untyped-def]
+    """For rows whose children turn with the child set's rotation: their weighted mean
+    offset m̄ (in the set's frame) and the world direction from the set's likely position
+    (its rule's mode from the member pose (xv, qv), else its own) to their mean position ĉ.
+    A revolute law then fixes its angle by mapping the one onto the other (`onto_arc`): the
+    child's own assignment rotation is arbitrary there (its position was free)."""
+    rows = lift.rows
+    p = rows.weight[idx]
+    total = p.sum(axis=1)
+    share = p / np.where(total > 0, total, 1.0)[:, None]
+    m_bar = share @ rows.m if len(rows.m) else np.zeros((len(idx), 3))
+    c_hat = np.einsum("nk,nki->ni", share, rows.c[idx])
+    form = law.concave_form()
+    at = lift.xyz[idx]
+    if law.point is not None and law.frame == Frame.PARENT:
+        at = xv + quat_rotate(qv, np.broadcast_to(law.point, xv.shape))
+    elif form is not None and law.frame == Frame.PARENT:
+        at = xv + quat_rotate(qv, np.broadcast_to(form[0], xv.shape))
+    elif form is not None and law.frame == Frame.WORLD_OFFSET:
+        at = xv + form[0]
+    return m_bar, c_hat - at
