@@ -47,6 +47,7 @@ from ssgc.parse.bound_chain import (
     children_to_lift,
     collapse,
     lifted,
+    own_world_edge,
     pin_column,
 )
 from ssgc.parse.bound_rotation import rotation_search
@@ -522,6 +523,15 @@ def local_edges(
         [np.tile(pq, (own, 1))],
     )
     cb, cxyz, cquat = [np.arange(own)], [np.zeros((own, 3))], [np.tile(IDENTITY, (own, 1))]
+    world = own_world_edge(grammar, top_rule) if bound.decoupled else None
+    if world is not None:  # its world-frame parts, scored against the set itself
+        rule.append(np.full(n, top_rule))
+        pb.append(np.arange(n))
+        pxyz.append(np.tile(world[0], (n, 1)))
+        pquat.append(np.tile(world[1], (n, 1)))
+        cb.append(np.arange(n))
+        cxyz.append(np.zeros((n, 3)))
+        cquat.append(np.tile(IDENTITY, (n, 1)))
     for k, (v, r, e_c) in enumerate(bound.slots):
         rows = np.flatnonzero(bound.assignment[:, k] >= 0)  # -1: no child in this column
         idx = bound.assignment[rows, k]

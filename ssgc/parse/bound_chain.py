@@ -78,6 +78,10 @@ class ChainRows:
     m: FloatArray  # (K, 3)
     B: FloatArray  # (A, 4, 4)
     base: FloatArray  # (A,): the rows' constant, without the own rule's supremum
+    # rows whose rotation its children hold to an arc q = V (cos ψ, sin ψ), ψ in `arc`
+    revolute: BoolArray  # (A,)
+    V: FloatArray  # (A, 4, 2)
+    arc: FloatArray  # (A, 2)
 
 
 @dataclass(frozen=True)
@@ -131,6 +135,9 @@ def collapse(terms: _Terms, own_sup: float) -> ChainRows:
         np.asarray(m, float).reshape(-1, 3),
         terms.B.copy(),
         terms.const - own_sup,
+        terms.revolute.copy(),
+        terms.V.copy(),
+        terms.arc.copy(),
     )
 
 
@@ -155,6 +162,9 @@ def lifted(bound: SetBound, rows: ChainRows, source: IntArray) -> Lifted:
         rows.m,
         take(rows.B),
         take(rows.base),
+        take(rows.revolute).astype(bool) & assigned & ~bound.free_rows,
+        take(rows.V),
+        take(rows.arc),
     )
     return Lifted(bound.upper, bound.free_rows, bound.xyz, bound.quat, chain)
 
@@ -164,6 +174,45 @@ def children_to_lift(st, e: int, chains: dict[int, Lifted]) -> dict[int, Lifted]
     return {
         e_c: lift for e_c, lift in chains.items() if int(st.set_of[st.parent[st.set_top[e_c]]]) == e
     }
+
+
+def own_world_edge(grammar: Grammar, r: int) -> tuple[FloatArray, FloatArray] | None:
+    """A decoupled set's own rule as an edge from the set to itself, for its exact local
+    search (`bound.local_edges`): the parent end at the offset (m, w) from the set's own
+    pose, where the rule's relative parts are at a constant, finite value whatever that
+    pose, so only its world-frame parts move (a world Bingham rotation, a world Normal or box
+    translation).  None when it has no such part that varies, or no such offset exists.
+
+    Why: the bound counts those parts exactly (`set_terms._decoupled_prior`), but the local
+    search left the whole rule out, so a set's assignment pose ignored (say) its world
+    Bingham, and the chain's poses built on it scored far below the bound."""
+    from ssgc.rules import rotation_log_density, translation_log_density
+
+    rule = grammar.rules[r]
+    law, rot = rule.translation, rule.rotation
+    # a world box is left out: `bound._snap` puts the pose inside it, and a constant inside
+    # it would only break the ties of the revolute search differently
+    moves = (world_part(law) and law.concave_form() is not None) or (
+        world_part(rot) and rot.concave_form() is not None
+    )
+    if not moves:
+        return None
+    w = IDENTITY.copy()
+    if rot.frame == Frame.PARENT and rot.mode() is not None:
+        w = np.asarray(rot.point if rot.point is not None else rot.mode(), float)
+        w = np.array([w[0], -w[1], -w[2], -w[3]])  # the parent sits at the mode's inverse
+    m = np.zeros(3)
+    if law.frame == Frame.PARENT:
+        form = law.concave_form()
+        point = law.point if law.point is not None else (form[0] if form is not None else None)
+        if point is None:
+            return None
+        m = -quat_rotate(w, np.asarray(point, float))  # R(w)ᵀ (t - t_p) = the law's mode
+    rules, one = np.array([r]), np.ones((1, 1))
+    at = (m[None], w[None])
+    value = translation_log_density(grammar, rules, at[0], at[1], np.zeros((1, 3)))
+    value = value + rotation_log_density(grammar, rules, at[1], IDENTITY[None] * one)
+    return (m, w) if bool(np.isfinite(value[0])) else None
 
 
 def _parallel(Pe: FloatArray, Phat: FloatArray) -> FloatArray:
@@ -266,8 +315,9 @@ def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # typ
     term, which the rule's translation then joins as for unturned rows, its m now
     off_t + R_w m̄ (one term per distinct m̄).  The child's own Bingham terms follow X_c =
     L X_p Lᵀ.  Rule translations without a closed form leave the rows as they are, and so
-    does an anisotropic one where the parent's rotation is not pinned: the relaxation over X
-    (its hull shrinks |R m|) would then be looser than the child's own bound."""
+    does an anisotropic one where the parent's rotation is neither pinned nor held to a
+    revolute family: the relaxation over all X (its hull shrinks |R m|) would then be looser
+    than the child's own bound, while along an arc the rotation search bounds it exactly."""
     from ssgc.geometry import quat_multiply as qmul
 
     law, form = rule.translation, rule.translation.concave_form()
@@ -276,8 +326,10 @@ def _turning(local, rule, off_t, off_q, lift: Lifted, idx, turn) -> None:  # typ
         return
     if form is not None and law.frame == Frame.PARENT and not _isotropic(form[1]):
         return
-    if not inside and form is not None and not _isotropic(form[1]):  # exact if R_p pinned
-        turn = turn & local.pinned
+    if not inside and form is not None and not _isotropic(form[1]):
+        # a world-frame anisotropic term turning with R_p: exact where R_p is pinned, and
+        # on a revolute family the rotation search (`bound_rotation`) bounds it along the arc
+        turn = turn & (local.pinned | ~np.isnan(local.fam_base[:, 0]))
         if not np.any(turn):
             return
     rows = lift.rows
@@ -358,11 +410,64 @@ def add_chain_poses(grammar: Grammar, st, cand, bounds: dict[int, SetBound]) -> 
             quat = _child_rotation(grammar, r, child.chain, idx, qv)
             xyz = _child_position(grammar.rules[r].translation, child.chain, idx, xv, qv, quat)
             cand.add(e_c, xyz, quat)
+            _aimed(grammar, r, cand, e_c, child.chain, idx, xv, qv)
+            copies = sum(1 for c in st.children[v] if st.rule[c] == r)
+            _at_rule_mode(grammar, r, cand, e_c, child.chain, idx, xv, qv, copies)
             _turned_parent(grammar, st, cand, e_p, sb, k, child.chain, rows[:MAX_TURNED])
             earlier = made.setdefault((v, r, e_c), [])
             for rows_0, xyz_0, quat_0 in earlier:  # copies of a `repeat` at one pose
                 _append_shared(cand, e_c, rows, xyz, quat, rows_0, xyz_0, quat_0)
             earlier.append((rows, xyz, quat))
+
+
+def _at_rule_mode(grammar, r, cand, e_c, lift: Lifted, idx, xv, qv, copies) -> None:  # type: ignore[no-untyped-def]
+    """The child also at the rotation its rule's parent-frame Bingham puts at its mode, from
+    its member's rotation qv (where its own children do not pin it): `_child_rotation` keeps
+    the child's own assignment rotation there, which ignores its parent.  A `repeat`'s
+    copies each get the pose once (appended as it is, `Candidates.add` would merge them):
+    the model over proposals gives a candidate pose to one copy only."""
+    rot = grammar.rules[r].rotation
+    mode = rot.mode() if rot.frame == Frame.PARENT and rot.point is None else None
+    if mode is None or _is_revolute(rot):
+        return
+    free = ~(lift.rows.ok[idx] & ~np.isnan(lift.rows.pin[idx, 0]))
+    if not np.any(free):
+        return
+    quat = quat_multiply(qv[free], np.broadcast_to(mode, (int(free.sum()), 4)))
+    quat = _onto_own_arc(lift.rows, idx[free], quat)
+    law = grammar.rules[r].translation
+    xyz = _child_position(law, lift, idx[free], xv[free], qv[free], quat)
+    cand.add(e_c, xyz, quat)
+    if copies > 1:
+        n = min(len(xyz), MAX_SHARED_ROWS)
+        cand.xyz[e_c] = np.vstack([cand.xyz[e_c], *[xyz[:n]] * (copies - 1)])
+        cand.quat[e_c] = np.vstack([cand.quat[e_c], *[quat[:n]] * (copies - 1)])
+
+
+def _onto_own_arc(rows: ChainRows, idx: IntArray, quat: FloatArray) -> FloatArray:
+    """Each rotation moved to the nearest point of its row's arc, where its children hold
+    the row's rotation to one (a revolute child): off it the child's density is zero."""
+    on = rows.revolute[idx]
+    if not np.any(on):
+        return quat
+    V, arc = rows.V[idx], rows.arc[idx]
+    s = np.einsum("nab,na->nb", V, quat)
+    psi = np.arctan2(s[:, 1], s[:, 0])
+    best, fit = psi, np.full(len(psi), -np.inf)
+    for shift in (-np.pi, 0.0, np.pi):  # q and -q are one rotation: ψ is known mod π
+        at = np.clip(psi + shift, arc[:, 0], arc[:, 1])
+        q = np.einsum("nab,nb->na", V, np.stack([np.cos(at), np.sin(at)], axis=1))
+        score = np.abs(np.einsum("na,na->n", q, quat))
+        better = score > fit
+        best, fit = np.where(better, at, best), np.where(better, score, fit)
+    q = np.einsum("nab,nb->na", V, np.stack([np.cos(best), np.sin(best)], axis=1))
+    return np.where(on[:, None], q, quat)
+
+
+def _is_revolute(rot) -> bool:  # type: ignore[no-untyped-def]
+    from ssgc.laws.rotation_revolute import RevoluteRotation
+
+    return isinstance(rot, RevoluteRotation)
 
 
 MAX_TURNED = 50  # parent rows also offered turned to their child's own rotation
@@ -386,6 +491,8 @@ def _turned_parent(grammar, st, cand, e_p, sb, k, lift: Lifted, rows) -> None:  
     elif isinstance(rot, RevoluteRotation):
         angle = float(np.clip(0.0, rot.revolute.lo, rot.revolute.hi))
         mode = axis_angle_to_quat(np.asarray(rot.axis, float)[None], np.array([angle]))[0]
+    elif rot.frame == Frame.PARENT and rot.mode() is not None:  # a parent-frame Bingham
+        mode = np.asarray(rot.mode(), float)
     elif rot.frame != Frame.PARENT:
         return  # the child's rotation does not follow its parent's
     qc = np.where(
@@ -468,9 +575,11 @@ def _child_position(law, lift: Lifted, idx, xv, qv, qc) -> FloatArray:  # type: 
 BOX_MARGIN_IN = 2e-9  # metres: a proposal inside the child's box (the bound widened it by 1e-9)
 
 
-def _child_rotation(grammar: Grammar, r: int, lift: Lifted, idx, qv) -> FloatArray:  # type: ignore[no-untyped-def]
+def _child_rotation(grammar: Grammar, r: int, lift: Lifted, idx, qv, xv=None) -> FloatArray:  # type: ignore[no-untyped-def]
     """The child's rotation: its pin, else what its rule makes of the member's rotation (a
-    fixed offset; a revolute law's rotation nearest its own assignment's), else its own."""
+    fixed offset; a revolute law's rotation nearest its own assignment's, or, given `xv`,
+    the one that points its children's mean offset at their mean position seen from where
+    the rule puts it), else its own."""
     from ssgc.parse.proposals import onto_arc, revolute_arc
 
     rot = grammar.rules[r].rotation
@@ -479,5 +588,46 @@ def _child_rotation(grammar: Grammar, r: int, lift: Lifted, idx, qv) -> FloatArr
     if rot.point is not None and rot.frame == Frame.PARENT:
         out = quat_multiply(qv, np.broadcast_to(rot.point, qv.shape))
     elif (arc := revolute_arc(grammar, r)) is not None:
-        out = onto_arc(qv, arc, out)
+        aligns = ()
+        if xv is not None:  # `_aimed`: rows whose children turn with the child
+            aligns = (_turning_aim(grammar.rules[r].translation, lift, idx, xv, qv),)
+        out = onto_arc(qv, arc, out, aligns)
     return np.where(pinned[:, None], np.nan_to_num(lift.rows.pin[idx]), out)
+
+
+def _aimed(grammar, r, cand, e_c, lift: Lifted, idx, xv, qv) -> None:  # type: ignore[no-untyped-def]
+    """The child also at the rotation of its rule's revolute arc that aims its turning
+    children (`_turning_aim`), as a further candidate: its own assignment's rotation, which
+    `_child_rotation` moves onto the arc, is arbitrary where its position was free."""
+    from ssgc.parse.proposals import revolute_arc
+
+    turning = lift.rows.turning[idx]
+    if revolute_arc(grammar, r) is None or not np.any(turning):
+        return
+    sel = np.flatnonzero(turning)
+    quat = _child_rotation(grammar, r, lift, idx[sel], qv[sel], xv[sel])
+    law = grammar.rules[r].translation
+    cand.add(e_c, _child_position(law, lift, idx[sel], xv[sel], qv[sel], quat), quat)
+
+
+def _turning_aim(law, lift: Lifted, idx, xv, qv) -> tuple[FloatArray, FloatArray]:  # type: ignore[no-untyped-def]
+    """For rows whose children turn with the child set's rotation: their weighted mean
+    offset m̄ (in the set's frame) and the world direction from the set's likely position
+    (its rule's mode from the member pose (xv, qv), else its own) to their mean position ĉ.
+    A revolute law then fixes its angle by mapping the one onto the other (`onto_arc`): the
+    child's own assignment rotation is arbitrary there (its position was free)."""
+    rows = lift.rows
+    p = rows.weight[idx]
+    total = p.sum(axis=1)
+    share = p / np.where(total > 0, total, 1.0)[:, None]
+    m_bar = share @ rows.m if len(rows.m) else np.zeros((len(idx), 3))
+    c_hat = np.einsum("nk,nki->ni", share, rows.c[idx])
+    form = law.concave_form()
+    at = lift.xyz[idx]
+    if law.point is not None and law.frame == Frame.PARENT:
+        at = xv + quat_rotate(qv, np.broadcast_to(law.point, xv.shape))
+    elif form is not None and law.frame == Frame.PARENT:
+        at = xv + quat_rotate(qv, np.broadcast_to(form[0], xv.shape))
+    elif form is not None and law.frame == Frame.WORLD_OFFSET:
+        at = xv + form[0]
+    return m_bar, c_hat - at
