@@ -266,8 +266,12 @@ def relay_meets(first: Arc, relay: Relay) -> FloatArray:
     c = quat_rotate(quat_conjugate(w), c_arc.axis / np.linalg.norm(c_arc.axis))
     found = []
     mc = quat_rotate(m, c)
-    if 1.0 - abs(float(b @ c)) < 1e-9:  # the relay's two axes are one: its angle is free
-        if 1.0 - abs(float(a1 @ c)) < 1e-9 or abs(float(a1 @ c) - float(a1 @ mc)) > 1e-9:
+    # The relay's two axes are one, to within δ < 4.5e-7 rad (rounding alone leaves ~5e-8):
+    # its angle is free, and the meet holds to O(δ).  Wider apart, `two_axis_angles` resolves
+    # φ to ~1e-16 / δ.
+    off = float(np.linalg.norm(np.cross(b, c)))
+    if 1.0 - abs(float(b @ c)) < 1e-13:
+        if 1.0 - abs(float(a1 @ c)) < 1e-9 or abs(float(a1 @ c - a1 @ mc)) > 1e-9 + 2 * off:
             return np.zeros((0, 4))  # all coaxial (the sampled arc covers it), or no meet
         q = first.at(np.array([_turn(a1, c, mc)]))
         return q[first.holds(q)]
