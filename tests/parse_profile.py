@@ -174,10 +174,13 @@ def run_profile(
     methods: tuple[str, ...] = ("ip", "micp"),
     time_limit: float | None = 10.0,
     cases: list[dict[str, Any]] | None = None,
+    first: int = 0,
 ) -> dict[str, Any]:
     """Random grammars, sampled scenes, parsed with each method: counts and false answers.
     `cases`, when given, receives one entry per uncertified parse (grammar index, scene,
-    method, status, gap, and for `micp` its cause): the list to work through next."""
+    method, status, gap, and for `micp` its cause): the list to work through next.  `first`
+    skips the grammars before it (the same grammars as a run from 0: two processes can share
+    a profile); the CPU seconds of every parse are in `cpu_seconds_all`."""
     rng = np.random.default_rng(seed)
     counts: Counter[str] = Counter()
     by_law: dict[str, Counter[str]] = defaultdict(Counter)
@@ -191,6 +194,8 @@ def run_profile(
     t_start = time.perf_counter()
     for gi in range(n_grammars):
         spec = gg.random_spec(rng)
+        if gi < first:
+            continue
         grammar = gg.compile_spec(spec)
         scenes = gg.sampled_scenes(grammar, scenes_per, seed + gi)
         used = gg.laws(spec)
@@ -253,7 +258,7 @@ def run_profile(
         grammars_all_parsed += all_parsed
     share = {k: v / max(scenes_tried, 1) for k, v in sorted(counts.items()) if ":" not in k}
     return {
-        "grammars": n_grammars,
+        "grammars": n_grammars - first,
         "grammars_all_parsed": grammars_all_parsed,
         "scene_parses": scenes_tried,
         "seconds": round(time.perf_counter() - t_start, 1),
@@ -264,6 +269,7 @@ def run_profile(
         "false_kinds": dict(Counter(k.split(":")[0] for f in false for k in f["false"])),
         "parse_seconds": _quantiles(times),
         "parse_cpu_seconds": _quantiles(cpu),
+        "cpu_seconds_all": [round(c, 5) for c in cpu],
         "by_law": {law: _shares(c) for law, c in sorted(by_law.items())},
         "micp_causes": dict(causes.most_common()),
         "micp_by_shape": {k: dict(c.most_common()) for k, c in sorted(by_shape.items())},
@@ -333,6 +339,7 @@ def main() -> None:
     ap.add_argument("--methods", default="ip,micp")
     ap.add_argument("--ip-breakdown", action="store_true", help="why `ip` is uncertified")
     ap.add_argument("--cases", help="write every uncertified parse to this JSON file")
+    ap.add_argument("--first", type=int, default=0, help="skip the grammars before this one")
     a = ap.parse_args()
     if a.ip_breakdown:
         causes = ip_breakdown(a.grammars, a.scenes, a.seed, a.time_limit or None)
@@ -340,7 +347,13 @@ def main() -> None:
         return
     cases: list[dict[str, Any]] | None = [] if a.cases else None
     out = run_profile(
-        a.grammars, a.scenes, a.seed, tuple(a.methods.split(",")), a.time_limit or None, cases
+        a.grammars,
+        a.scenes,
+        a.seed,
+        tuple(a.methods.split(",")),
+        a.time_limit or None,
+        cases,
+        a.first,
     )
     if a.cases:
         Path(a.cases).write_text(json.dumps(cases, indent=0))
