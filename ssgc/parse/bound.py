@@ -660,6 +660,14 @@ def assignment_problem(
             of_e = counted & (parent_set == e)
             counted[of_e] = ~sb.free_rows[parent_row[of_e]]
         counted &= ~(head & np.isin(set_of, list(bounds)))  # a latent child's bound holds it
-        inst.score[counted] = 0.0  # the assignment's bound already counts these edges
+        # The assignment's bound already counts these edges.  Each named child keeps a share
+        # of it, its exact edge at the row's pose where positive (else 0), taken from the
+        # head: with every named child present the head and its children add up to the bound
+        # (each tree has that encoding, so the bound holds), and a row whose optional child is
+        # left out (attached elsewhere) loses the child's share instead of counting it twice.
+        share = inst.score[counted]
+        share = np.where(np.isfinite(share) & (share > 0.0), share, 0.0)
+        np.subtract.at(inst.score, inst.top[inst.parent[counted]], share)
+        inst.score[counted] = share
 
     return reduce_posed(grammar, st, scene, posed, adjust if upper else None, restrict, deadline)
