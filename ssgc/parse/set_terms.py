@@ -30,7 +30,7 @@ from ssgc.geometry import (
     quat_to_matrix,
 )
 from ssgc.ir import Grammar
-from ssgc.laws.base import ROT_TOL, Frame
+from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.rules import rotation_log_density, translation_log_density
@@ -149,6 +149,19 @@ def _arc_meet(
     piece = np.where(first[:, None], np.stack([lo1, hi1], 1), np.stack([lo2, hi2], 1))
     out[one] = piece[one]
     return out, ~full & ~first & ~wrap
+
+
+def _align(a: FloatArray, b: FloatArray) -> FloatArray:
+    """(n, 4): the shortest turns taking unit vectors a to unit vectors b (a half turn
+    about an axis across a where they are opposite)."""
+    w = 1.0 + np.sum(a * b, axis=1)
+    xyz = np.cross(a, b)
+    opposite = w <= 1e-12
+    side = np.cross(a, np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    q = np.where(
+        opposite[:, None], np.hstack([np.zeros((len(a), 1)), side]), np.hstack([w[:, None], xyz])
+    )
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _isotropic(precision: FloatArray) -> bool:
@@ -372,12 +385,52 @@ class _LocalBounds:
         angle, R(axis, φ) u = v with u = post·m and v = base⁻¹·(cx - t), wherever the parts
         of u and v across the axis are long enough (PIN_LEVER) to fix φ to ~POS_TOL / |u⊥|
         and agree.  Elsewhere the steep quadratic of `_child_translation` stays (a bound)."""
-        rows = ~np.isnan(self.fam_base[:, 0]) & ~self.pinned
-        rows &= np.all(self.hi - self.lo <= 4 * BOX_MARGIN, axis=1)
+        placed = np.all(self.hi - self.lo <= 4 * BOX_MARGIN, axis=1) & ~self.pinned
+        with np.errstate(invalid="ignore"):  # rows without a family or a pinned position
+            self._family_by_offsets(placed)
+        rows = ~np.isnan(self.fam_base[:, 0]) & placed
         if not np.any(rows):
             return
-        with np.errstate(invalid="ignore"):  # rows without a family or a pinned position
+        with np.errstate(invalid="ignore"):
             self._pin_by_offsets(rows)
+
+    def _family_by_offsets(self, rows: NDArray[np.bool_]) -> None:
+        """Rows whose position is pinned and whose rotation is free (no family, no pin): a
+        child placed by a fixed parent-frame translation m (at least PIN_LEVER long) with
+        cx - t of the same length (within PIN_AGREE) holds the rotation to R m = cx - t,
+        the family q = align(m → cx - t) ⊗ rot(m̂, φ), φ any angle (a full revolute arc).
+        Every rotation of the family puts the child exactly at cx (`_child_translation`
+        then drops its steep quadratic), and a second such child pins the angle
+        (`_pin_by_offsets`).  Where no child qualifies the rotation stays free.
+
+        A child whose distance from the pinned position differs from |m| by more than the
+        scorer's tolerance (√3·POS_TOL, and the position box) fits no rotation: the row is
+        ruled out (any family or not)."""
+        if not np.any(rows):
+            return
+        t = 0.5 * (self.lo + self.hi)
+        for r, off_t, off_q, cx, on in self.fixed_children:
+            law = self.g.rules[r].translation
+            if law.point is None or law.frame != Frame.PARENT or not np.any(rows & on):
+                continue
+            m = off_t + quat_rotate(off_q, law.point)
+            length = float(np.linalg.norm(m))
+            v = cx - t
+            reach = np.linalg.norm(v, axis=1)
+            miss = np.abs(reach - length)
+            self.clash |= rows & on & (miss > np.sqrt(3.0) * (POS_TOL + 4 * BOX_MARGIN))
+            sel = rows & on & np.isnan(self.fam_base[:, 0])
+            if length < PIN_LEVER or not np.any(sel):
+                continue
+            use = sel & (miss <= PIN_AGREE)
+            if not np.any(use):
+                continue
+            a = np.broadcast_to(m / length, (self.n, 3))
+            b = v / np.where(reach > 0, reach, 1.0)[:, None]
+            self.fam_base = np.where(use[:, None], _align(a, b), self.fam_base)
+            self.fam_axis = np.where(use[:, None], a, self.fam_axis)
+            self.fam_post = np.where(use[:, None], IDENTITY, self.fam_post)
+            self.fam_range = np.where(use[:, None], [-np.pi, np.pi], self.fam_range)
 
     def _pin_by_offsets(self, rows: NDArray[np.bool_]) -> None:
         for r, off_t, off_q, cx, on in self.fixed_children:
@@ -474,8 +527,16 @@ class _LocalBounds:
         elif law.point is not None and law.frame == Frame.PARENT:
             m = off_t + quat_rotate(off_q, law.point)
             self.box(cx - R0 @ m, cx - R0 @ m, pinned)
-            self.quadratic(cx, m, STEEP * np.eye(3), on & ~pinned)
-            self._translation_exact(bool(np.all(pinned == on)))
+            # on a family whose every rotation turns m alike (m along its axis), the
+            # child's place fixes the position exactly: a box, no steep quadratic
+            fam = on & ~pinned & ~np.isnan(self.fam_base[:, 0])
+            u = quat_rotate(self.fam_post, np.broadcast_to(m, (n, 3)))
+            along = np.sum(u * self.fam_axis, axis=1)[:, None] * self.fam_axis
+            still = fam & (np.linalg.norm(u - along, axis=1) <= PIN_AGREE)
+            at = cx - quat_rotate(np.where(still[:, None], self.fam_base, IDENTITY), u)
+            self.box(at, at, still)
+            self.quadratic(cx, m, STEEP * np.eye(3), on & ~pinned & ~still)
+            self._translation_exact(bool(np.all((pinned | still) == on)))
         else:
             self.add(np.full(n, law.supremum()), on)
             self._translation_exact(False)
