@@ -465,17 +465,18 @@ def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: 
         for f in np.linspace(-1.0, 1.0, REVOLUTE_GRID):
             psi = np.clip(centre + f * half * width, lo, hi)
             q = _arc_point(part, psi)
-            if part.t_complete:
-                t = _h_and_gradient(part, np.einsum("na,nb->nab", q, q))[2]
-            else:
-                t = best_x
-            t = np.clip(t, part.lo + SNAP_MARGIN, np.maximum(part.hi - SNAP_MARGIN, part.lo))
-            v = _owned_values(grammar, sub, sub_owner, t, q)
-            better = v > best_v
-            best_v = np.where(better, v, best_v)
-            best_x = np.where(better[:, None], t, best_x)
-            best_q = np.where(better[:, None], q, best_q)
-            psi0 = np.where(better, psi, psi0)
+            # the relaxation's best position for this rotation (exact where every
+            # translation term is; with a steep stand-in for a fixed child offset, within
+            # ~1e-7 m of the child's place), and else also the best position so far
+            t_best = _h_and_gradient(part, np.einsum("na,nb->nab", q, q))[2]
+            for t in (t_best,) if part.t_complete else (t_best, best_x):
+                t = np.clip(t, part.lo + SNAP_MARGIN, np.maximum(part.hi - SNAP_MARGIN, part.lo))
+                v = _owned_values(grammar, sub, sub_owner, t, q)
+                better = v > best_v
+                best_v = np.where(better, v, best_v)
+                best_x = np.where(better[:, None], t, best_x)
+                best_q = np.where(better[:, None], q, best_q)
+                psi0 = np.where(better, psi, psi0)
         centre = np.where(np.isfinite(best_v), psi0, centre)
     xyz, quat = xyz.copy(), quat.copy()
     xyz[rows], quat[rows] = best_x, best_q
