@@ -73,6 +73,7 @@ from ssgc.parse.set_terms import (
     _LocalBounds,
     _subset,
     _Terms,
+    best_position,
     counted_supremum,
     relaxed_upper_bound,
 )
@@ -388,6 +389,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline, lift=None):  # ty
     xyz, quat = t, q
     if not (terms.complete and np.all(terms.pinned)):  # else the relaxation's pose is exact
         xyz, quat = polish(grammar, st, cand, top_rule, bound, deadline)
+        xyz, quat = _better_pose(grammar, st, cand, top_rule, bound, terms, (xyz, quat))
     xyz, quat = _snap(terms, xyz, quat, t, q)
     if np.any(terms.revolute):
         edges = local_edges(grammar, st, cand, top_rule, bound)
@@ -483,6 +485,21 @@ def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: 
     return xyz, quat
 
 
+def _better_pose(grammar, st, cand, top_rule, bound, terms, polished):  # type: ignore[no-untyped-def]
+    """Per row, the polished pose or the relaxation's (`bound.xyz`, `bound.quat`), both made
+    feasible (`_snap`), whichever scores higher exactly: Newton on the exact densities can
+    leave a box optimum the relaxation found (a pinned rotation under a turned anisotropic
+    Normal and an active box)."""
+    edges = local_edges(grammar, st, cand, top_rule, bound)
+    owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
+    t, q = bound.xyz, bound.quat
+    poses = [_snap(terms, *polished, t, q), _snap(terms, t, q, t, q)]
+    values = [_owned_values(grammar, edges, owner, x, r) for x, r in poses]
+    keep = ~(values[1] > values[0])
+    xyz = np.where(keep[:, None], poses[0][0], poses[1][0])
+    return xyz, np.where(keep[:, None], poses[0][1], poses[1][1])
+
+
 def _placed(parent):  # type: ignore[no-untyped-def]
     """SetBound's (parent, decoupled) from `known_parent`'s answer (False: not known)."""
     return (None, True) if parent is False else (parent, False)
@@ -500,7 +517,7 @@ def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: 
     quat = np.where(bad[:, None], q0, quat)
     quat = np.where(terms.pinned[:, None], np.nan_to_num(terms.pin), quat)
     if terms.t_complete:
-        xyz = _h_and_gradient(terms, np.einsum("na,nb->nab", quat, quat))[2]
+        xyz = best_position(terms, quat)
     lo, hi = terms.lo + SNAP_MARGIN, terms.hi - SNAP_MARGIN
     with np.errstate(invalid="ignore"):  # -inf + inf on an unbounded axis: never used
         mid = 0.5 * (terms.lo + terms.hi)

@@ -664,7 +664,41 @@ def _pinned_bound(terms: _Terms, X: FloatArray) -> FloatArray:
     slack = np.einsum("ni,ni->n", np.abs(Pd.sum(axis=1)), width)
     slack = np.where(np.isnan(slack), np.inf, slack)  # a zero gradient on an unbounded axis
     exact = np.where(terms.diagonal, _h_and_gradient(terms, X)[0], np.inf)
-    return np.minimum(np.minimum(free, h + slack), exact)
+    return np.minimum(np.minimum(free, h + slack), np.minimum(exact, _box_bound(terms, e, X)))
+
+
+BOX_SWEEPS = 60  # coordinate-ascent sweeps for the best position in a box
+
+
+def _box_position(terms: _Terms, e: FloatArray) -> FloatArray:
+    """The best t in the box of Σ -½ (e_k - t)ᵀ P_k (e_k - t) for any total precision:
+    coordinate ascent from the clipped free optimum (converges to the box's optimum; any
+    point of the box is feasible, and `_box_bound` pays for what is left)."""
+    H = terms.P.sum(axis=1)
+    b = np.einsum("nkij,nkj->ni", terms.P, e)
+    t = np.clip(np.einsum("nij,nj->ni", terms.inverse, b), terms.lo, terms.hi)
+    t = np.where(np.isfinite(t), t, 0.0)
+    diag = np.maximum(np.einsum("nii->ni", H), 1e-300)
+    for _ in range(BOX_SWEEPS):
+        for k in range(3):
+            rest = b[:, k] - np.einsum("nj,nj->n", H[:, k], t) + H[:, k, k] * t[:, k]
+            t[:, k] = np.clip(rest / diag[:, k], terms.lo[:, k], terms.hi[:, k])
+    return t
+
+
+def _box_bound(terms: _Terms, e: FloatArray, X: FloatArray) -> FloatArray:
+    """max over t in the box of g(t, X) for a fixed X, as h(t) + max over the box of
+    ∇h(t)·(s - t) at the coordinate-ascent point t (concavity): exact at the box's
+    optimum, for any total precision (a pinned rotation under a turned anisotropic
+    Normal and a box).  Rows with an unbounded axis get ∞ (the other bounds hold)."""
+    t = _box_position(terms, e)
+    h, Pd = _value(terms, e, t, X)
+    grad = Pd.sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        gain = np.maximum(grad * (terms.hi - t), grad * (terms.lo - t))
+    gain = np.where(np.isnan(gain), np.inf, gain).sum(axis=1)
+    bounded = np.all(np.isfinite(terms.lo) & np.isfinite(terms.hi), axis=1)
+    return np.where(bounded, h + gain, np.inf)
 
 
 def relaxed_upper_bound(
@@ -706,8 +740,21 @@ def relaxed_upper_bound(
         c = np.einsum("nab,na->nb", terms.V, q)
         psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
         q = np.where(fam[:, None], _arc_point(terms, psi), q)
-    t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
-    return best, t, q
+    return best, best_position(terms, q), q
+
+
+def best_position(terms: _Terms, q: FloatArray) -> FloatArray:
+    """The best position for rotations q: the closed form (clipped where the total
+    precision is diagonal, else free), and where it is not diagonal and the box is bounded
+    the box's optimum by coordinate ascent (`_box_position`)."""
+    X = np.einsum("na,nb->nab", q, q)
+    t = _h_and_gradient(terms, X)[2]
+    rows = ~terms.diagonal & np.all(np.isfinite(terms.lo) & np.isfinite(terms.hi), axis=1)
+    if np.any(rows):
+        sub = _subset(terms, rows)
+        R = np.einsum("ijab,nab->nij", K_ROT, X[rows])
+        t[rows] = _box_position(sub, sub.c - np.einsum("nij,kj->nki", R, sub.m))
+    return t
 
 
 def _isotropic_rows(terms: _Terms) -> NDArray[np.bool_]:
