@@ -759,11 +759,20 @@ def best_position(terms: _Terms, q: FloatArray) -> FloatArray:
 
 def _isotropic_rows(terms: _Terms) -> NDArray[np.bool_]:
     """Rows whose translation terms all have isotropic precision and whose position has no
-    box: there max over t of g(t, R) is linear in R on rotations (`_isotropic_bound`)."""
+    box or is pinned (`_placed`): there max over t of g(t, R) is linear in R on rotations
+    (`_isotropic_bound`)."""
     P = terms.P
     iso = np.all(np.abs(P - P[..., :1, :1] * np.eye(3)) <= 1e-12 * (1 + np.abs(P)), axis=(1, 2, 3))
     unboxed = np.all(np.isinf(terms.lo) & np.isinf(terms.hi), axis=1)
-    return iso & unboxed
+    return iso & (unboxed | _placed(terms))
+
+
+def _placed(terms: _Terms) -> NDArray[np.bool_]:
+    """Rows whose position is pinned (a box no wider than its rounding margins) and that
+    have no steep stand-in term: their best t is the pin, up to a slack `_isotropic_bound`
+    pays for (small at moderate precisions, not at STEEP's)."""
+    narrow = np.all(terms.hi - terms.lo <= 4 * BOX_MARGIN, axis=1)
+    return narrow & (np.max(terms.P[..., 0, 0], axis=1, initial=0.0) < STEEP)
 
 
 def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
@@ -776,15 +785,30 @@ def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
     + tr(B X) + const, using |R m'|² = |m'|² on rotations: linear in R, hence in X = q qᵀ,
     and its maximum over unit q is the top eigenvalue of a 4×4 matrix (over a revolute
     family, the arc's best point, `_arc_lmo`).  No relaxation gap.  The centred form keeps
-    the sums small where one term is steep (STEEP)."""
+    the sums small where one term is steep (STEEP).  At a pinned position t0 the same holds
+    with c'_k = c_k - t0 and m'_k = m_k (plus the slack of the pin's rounding margin)."""
     p = terms.P[..., 0, 0]  # (A, K)
     total = p.sum(axis=1)
     weight = p / np.where(total > 0, total, 1.0)[:, None]
     c = terms.c - np.einsum("nk,nki->ni", weight, terms.c)[:, None, :]
     m = terms.m[None] - np.einsum("nk,ki->ni", weight, terms.m)[:, None, :]
+    # a pinned position t0 (`_placed`): e_k - t0 = (c_k - t0) - R m_k, not centred; t may
+    # still move by w (half the box) per axis, worth at most |w|·|∇_t| with |∇_t| ≤
+    # |Σ p_k (c_k - t0)| + |Σ p_k m_k| (concavity), added to the bound
+    placed = _placed(terms) & ~np.all(np.isinf(terms.lo) & np.isinf(terms.hi), axis=1)
+    slack = np.zeros(len(p))
+    if np.any(placed):
+        t0 = 0.5 * (terms.lo[placed] + terms.hi[placed])
+        c[placed] = terms.c[placed] - t0[:, None, :]
+        m[placed] = terms.m[None]
+        half = np.linalg.norm(0.5 * (terms.hi[placed] - terms.lo[placed]), axis=1)
+        pull = np.linalg.norm(np.einsum("nk,nki->ni", p[placed], c[placed]), axis=1)
+        pull += np.linalg.norm(np.einsum("nk,ki->ni", p[placed], terms.m), axis=1)
+        slack[placed] = half * pull
     G_R = np.einsum("nk,nki,nkj->nij", p, c, m)
     C = np.einsum("nij,ijab->nab", G_R, K_ROT) + terms.B
     const = -0.5 * np.einsum("nk,nki,nki->n", p, c, c) - 0.5 * np.einsum("nk,nki,nki->n", p, m, m)
+    const += slack
     w, v = np.linalg.eigh(C)
     value, q = w[:, -1], v[..., -1]
     if np.any(terms.revolute):
