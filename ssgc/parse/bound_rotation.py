@@ -493,6 +493,8 @@ def rotation_search(
     p = _problem(_subset(terms, rows), rot.subset(rows))
     idx = np.flatnonzero(rows)
     start, t_start = _exact(p, np.arange(len(idx)), quat_to_matrix(quat[idx]))
+    xyz = xyz.copy()  # the best position for each row's rotation, its rotating terms counted
+    xyz[idx] = np.where(np.isfinite(start)[:, None], t_start, xyz[idx])
     gap = upper[idx] - start
     open_ = gap > TOL_REL * np.maximum(1.0, np.abs(start))
     if not np.any(open_):
