@@ -13,7 +13,11 @@ branch-and-bound, with the position eliminated in closed form:
 - on a cell, with the Normal terms' precisions held fixed, the score Φ(R) = max over the
   position of Σ -½ rᵀ W r + ⟨G_B, R⟩ (a Bingham density is linear in R) is concave in R's
   entries, so Φ(R) ≤ Φ(R0) + ⟨∇Φ(R0), R - R0⟩, and the linear term's maximum over the cell
-  follows from Rodrigues' formula (`_linear_max`).  Three versions, the lowest bound kept:
+  follows from Rodrigues' formula (`_linear_max`).  Four versions, the lowest bound kept:
+  the *second-order* bound (`_bound_second_order`: every precision and the box exact at the
+  centre's best position t0, and what moving t can add paid for by the score's curvature in
+  t, so its excess is O(δ²) near a stationary rotation even with an active box or an
+  anisotropic world-frame Normal next to a rotating one), and three first-order ones:
   the *world frame* (residuals c - t - R m: world-frame precisions exact, rotating ones
   R P Rᵀ replaced on the cell by a lower bound W, R0 P R0ᵀ - εI with ε = 2 sin(δ/2)
   (λmax - λmin), or λmin I: the score only grows), the *top frame* (t = R s, residuals
@@ -27,10 +31,9 @@ branch-and-bound, with the position eliminated in closed form:
   deadline runs out.  The row's bound is then the largest of its incumbent and its cells'
   bounds: valid whenever it stops.
 
-Where nothing is lowered and no box is active at the optimum the cell bound's error is O(δ²)
-(only the dropped concave term), so cells near the optimum need only δ ~ √tolerance; a
-lowered precision or an active box makes it O(δ), and such rows usually end at the budget
-with a looser bound.
+The cell bound's error is O(δ²) (the second-order bound everywhere; the first-order ones
+where nothing is lowered and no box is active), so cells near the optimum need only
+δ ~ √tolerance and a row closes after a few thousand cells.
 """
 
 from __future__ import annotations
