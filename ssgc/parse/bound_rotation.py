@@ -484,13 +484,15 @@ def rotation_search(
     cell (a start for the exact polish).  Other rows pass through unchanged.
 
     Searched: a free rotation with rotating terms (the relaxation holds their supremum),
-    and a revolute arc (one dimension: cheap) with anything but isotropic unboxed Normals
-    (Frank–Wolfe's hull of the arc).  Not searched: Frank–Wolfe's rows over all rotations,
+    a revolute arc (one dimension: cheap) with anything but isotropic unboxed Normals
+    (Frank–Wolfe's hull of the arc), and a boxed position that is not exact (Frank–Wolfe's
+    unclipped position).  Not searched: Frank–Wolfe's other rows over all rotations,
     where many assignments have small gaps that the MILP never picks (the bundled
     singles_pairs_constituency: a tenth of its rows, each over 1e-2) and a search of every
     one would cost more than the parse."""
     inexact = terms.revolute & ~_isotropic_rows(terms)
-    rows = ~terms.pinned & (rot.rows | inexact)
+    boxed = np.any(np.isfinite(terms.lo) | np.isfinite(terms.hi), axis=1) & ~_isotropic_rows(terms)
+    rows = ~terms.pinned & (rot.rows | inexact | boxed)
     if not np.any(rows):
         return upper, xyz, quat
     p = _problem(_subset(terms, rows), rot.subset(rows))
