@@ -1,12 +1,13 @@
 """Re-run the uncertified parses that `parse_profile.py --cases FILE` listed (issue 11).
 
-    python tests/parse_cases.py CASES.json [--method micp] [--cause coupled] [--time-limit 10]
-        [--out RESULTS.json]
+    python tests/parse_cases.py CASES.json [--method micp] [--cause coupled] [--with ip]
+        [--time-limit 10] [--out RESULTS.json]
 
 rebuilds each listed grammar with `parse_profile.case(seed, index)`, parses the listed scenes
 with the given method, and prints one line per parse (grammar, scene, status, certified,
 gap, CPU seconds) and a JSON summary: parses, certified, false answers, CPU.  Entries are
-kept when their method matches and their cause starts with `--cause` (if given): the list of
+kept when their method matches and their cause starts with `--cause` (if given); `--with`
+parses them with another method (e.g. `ip` on the scenes of `micp`'s causes).  The list of
 one measurement becomes the work set of the next, before and after a change.
 """
 
@@ -54,6 +55,7 @@ def main() -> None:
     ap.add_argument("cases")
     ap.add_argument("--method", default="micp")
     ap.add_argument("--cause", default="", help="keep entries whose cause starts with this")
+    ap.add_argument("--with", dest="parse_with", help="parse with this method instead")
     ap.add_argument("--time-limit", type=float, default=10.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out")
@@ -64,7 +66,7 @@ def main() -> None:
         for e in entries
         if e["method"] == a.method and str(e.get("cause") or "").startswith(a.cause)
     ]
-    results = rerun(entries, a.method, a.time_limit or None, a.seed)
+    results = rerun(entries, a.parse_with or a.method, a.time_limit or None, a.seed)
     summary = {
         "parses": len(results),
         "certified": sum(r["certified"] for r in results),
