@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.geometry import axis_angle_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
-from ssgc.parse.set_terms import K_ROT, Rotating, _isotropic_rows, _subset
+from ssgc.parse.set_terms import K_ROT, STEEP, Rotating, _isotropic_rows, _subset
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -486,12 +486,14 @@ def rotation_search(
     Searched: a free rotation with rotating terms (the relaxation holds their supremum),
     a revolute arc (one dimension: cheap) with anything but isotropic unboxed Normals
     (Frank–Wolfe's hull of the arc), and a boxed position that is not exact (Frank–Wolfe's
-    unclipped position).  Not searched: Frank–Wolfe's other rows over all rotations,
+    unclipped position) unless a steep stand-in term makes every cell bound loose.  Not
+    searched: Frank–Wolfe's other rows over all rotations,
     where many assignments have small gaps that the MILP never picks (the bundled
     singles_pairs_constituency: a tenth of its rows, each over 1e-2) and a search of every
     one would cost more than the parse."""
     inexact = terms.revolute & ~_isotropic_rows(terms)
     boxed = np.any(np.isfinite(terms.lo) | np.isfinite(terms.hi), axis=1) & ~_isotropic_rows(terms)
+    boxed &= np.max(np.abs(terms.P), axis=(1, 2, 3), initial=0.0) < STEEP  # cells cannot close
     rows = ~terms.pinned & (rot.rows | inexact | boxed)
     if not np.any(rows):
         return upper, xyz, quat
