@@ -1,91 +1,85 @@
-"""Re-parse the scenes of a profile's `--cases` file (issue 11): before/after on a work set.
+"""Re-run the uncertified parses that `parse_profile.py --cases FILE` listed (issue 11).
 
-    python tests/parse_cases.py CASES.json OUT.json [CAUSE_PREFIXES]
+    python tests/parse_cases.py CASES.json [--method micp] [--cause coupled] [--with ip]
+        [--time-limit 10] [--out RESULTS.json]
 
-CASES.json is what `python tests/parse_profile.py --cases CASES.json` wrote (seed 0); every
-scene whose `micp` cause starts with one of the comma-separated prefixes (default: all) is
-parsed again alone with each method under `--time-limit 10`, and one row per parse (status,
-phase, certified, gap, CPU seconds by `time.process_time`, whether the answer is false) goes
-to OUT.json.  Run it with `PYTHONPATH` at another checkout for the "before" column.
+rebuilds each listed grammar with `parse_profile.case(seed, index)`, parses the listed scenes
+with the given method, and prints one line per parse (grammar, scene, status, certified,
+gap, CPU seconds) and a JSON summary: parses, certified, false answers, CPU.  Entries are
+kept when their method matches and their cause starts with `--cause` (if given; several
+prefixes separated by commas); `--with`
+parses them with another method (e.g. `ip` on the scenes of `micp`'s causes).  The list of
+one measurement becomes the work set of the next, before and after a change.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).parent))
 
-from parse_profile import SCORE_TOL, case, certified, micp_cause
+from parse_profile import case, check_scene
 
 from ssgc.parse.parser import Parser
 
 
-def rerun(cases: list[dict[str, Any]], prefixes: tuple[str, ...]) -> list[dict[str, Any]]:
-    keys = sorted(
-        {
-            (e["grammar"], e["scene"])
-            for e in cases
-            if e["method"] == "micp" and str(e["cause"]).startswith(prefixes)
-        }
-    )
-    grammars: dict[int, Any] = {}
-    rows = []
-    for gi, name in keys:
-        if gi not in grammars:
-            grammars[gi] = case(0, gi)
-        grammar, scenes, _ = grammars[gi]
-        scene = next(s for s in scenes if s.name == name)
-        truth = float(scene.log_prob)
-        for method in ("ip", "micp"):
-            parser = Parser(grammar, method=method)
+def rerun(
+    entries: list[dict[str, Any]], method: str, time_limit: float | None, seed: int = 0
+) -> list[dict[str, Any]]:
+    """One result per listed (grammar, scene), grammars in order."""
+    wanted: dict[int, set[str]] = {}
+    for entry in entries:
+        wanted.setdefault(int(entry["grammar"]), set()).add(str(entry["scene"]))
+    out = []
+    for index, names in sorted(wanted.items()):
+        grammar, scenes, _ = case(seed, index)
+        parser = Parser(grammar, method=method)
+        for scene in (s for s in scenes if s.name in names):
             c0 = time.process_time()
-            result = parser.parse(scene, time_limit=10)
+            v = check_scene(grammar, parser, scene, time_limit)
             cpu = time.process_time() - c0
-            best = result.parses[0] if result.parses else None
-            below = best is not None and best.score < truth - SCORE_TOL * max(1.0, abs(truth))
-            row = {
-                "grammar": gi,
-                "scene": name,
-                "method": method,
-                "status": result.status,
-                "phase": result.phase,
-                "certified": certified(result),
-                "gap": best.gap if best is not None and np.isfinite(best.gap) else None,
-                "cpu": round(cpu, 3),
-                "false": bool(result.status == "optimal" and below),
-            }
-            if method == "micp":
-                row["cause"] = micp_cause(grammar, parser, scene, result)
-            rows.append(row)
-    return rows
+            gap = v.result.parses[0].gap if v.result is not None and v.result.parses else None
+            row = {"grammar": index, "scene": scene.name, "status": v.status}
+            row |= {"certified": v.certified, "gap": gap, "false": v.false, "cpu": cpu}
+            out.append(row)
+            print(index, scene.name, v.status, v.certified, gap, round(cpu, 3), flush=True)
+    return out
 
 
 def main() -> None:
-    cases = json.loads(Path(sys.argv[1]).read_text())
-    prefixes = tuple(sys.argv[3].split(",")) if len(sys.argv) > 3 else ("",)
-    rows = rerun(cases, prefixes)
-    Path(sys.argv[2]).write_text(json.dumps(rows, indent=0))
-    for m in ("ip", "micp"):
-        mine = [r for r in rows if r["method"] == m]
-        print(
-            m,
-            "certified",
-            sum(r["certified"] for r in mine),
-            "of",
-            len(mine),
-            "no_parse",
-            sum(r["status"] == "no_parse" for r in mine),
-            "cpu",
-            round(sum(r["cpu"] for r in mine), 1),
-            "false",
-            sum(r["false"] for r in mine),
-        )
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("cases")
+    ap.add_argument("--method", default="micp")
+    ap.add_argument(
+        "--cause", default="", help="keep entries whose cause starts with this (comma: any of)"
+    )
+    ap.add_argument("--with", dest="parse_with", help="parse with this method instead")
+    ap.add_argument("--time-limit", type=float, default=10.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out")
+    a = ap.parse_args()
+    entries = json.loads(Path(a.cases).read_text())
+    entries = [
+        e
+        for e in entries
+        if e["method"] == a.method
+        and str(e.get("cause") or "").startswith(tuple(a.cause.split(",")))
+    ]
+    results = rerun(entries, a.parse_with or a.method, a.time_limit or None, a.seed)
+    summary = {
+        "parses": len(results),
+        "certified": sum(r["certified"] for r in results),
+        "false": sum(bool(r["false"]) for r in results),
+        "cpu_seconds": round(sum(r["cpu"] for r in results), 2),
+    }
+    print(json.dumps(summary))
+    if a.out:
+        Path(a.out).write_text(json.dumps(results, indent=0))
 
 
 if __name__ == "__main__":

@@ -74,6 +74,7 @@ from ssgc.parse.set_terms import (
     _LocalBounds,
     _subset,
     _Terms,
+    best_position,
     counted_supremum,
     relaxed_upper_bound,
 )
@@ -389,6 +390,7 @@ def _bound_one(grammar, st, cand, e, groups, parent, deadline, lift=None):  # ty
     xyz, quat = t, q
     if not (terms.complete and np.all(terms.pinned)):  # else the relaxation's pose is exact
         xyz, quat = polish(grammar, st, cand, top_rule, bound, deadline)
+        xyz, quat = _better_pose(grammar, st, cand, top_rule, bound, terms, (xyz, quat))
     xyz, quat = _snap(terms, xyz, quat, t, q)
     if np.any(terms.revolute):
         edges = local_edges(grammar, st, cand, top_rule, bound)
@@ -466,21 +468,37 @@ def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: 
         for f in np.linspace(-1.0, 1.0, REVOLUTE_GRID):
             psi = np.clip(centre + f * half * width, lo, hi)
             q = _arc_point(part, psi)
-            if part.t_complete:
-                t = _h_and_gradient(part, np.einsum("na,nb->nab", q, q))[2]
-            else:
-                t = best_x
-            t = np.clip(t, part.lo + SNAP_MARGIN, np.maximum(part.hi - SNAP_MARGIN, part.lo))
-            v = _owned_values(grammar, sub, sub_owner, t, q)
-            better = v > best_v
-            best_v = np.where(better, v, best_v)
-            best_x = np.where(better[:, None], t, best_x)
-            best_q = np.where(better[:, None], q, best_q)
-            psi0 = np.where(better, psi, psi0)
+            # the relaxation's best position for this rotation (exact where every
+            # translation term is; with a steep stand-in for a fixed child offset, within
+            # ~1e-7 m of the child's place), and else also the best position so far
+            t_best = _h_and_gradient(part, np.einsum("na,nb->nab", q, q))[2]
+            for t in (t_best,) if part.t_complete else (t_best, best_x):
+                t = np.clip(t, part.lo + SNAP_MARGIN, np.maximum(part.hi - SNAP_MARGIN, part.lo))
+                v = _owned_values(grammar, sub, sub_owner, t, q)
+                better = v > best_v
+                best_v = np.where(better, v, best_v)
+                best_x = np.where(better[:, None], t, best_x)
+                best_q = np.where(better[:, None], q, best_q)
+                psi0 = np.where(better, psi, psi0)
         centre = np.where(np.isfinite(best_v), psi0, centre)
     xyz, quat = xyz.copy(), quat.copy()
     xyz[rows], quat[rows] = best_x, best_q
     return xyz, quat
+
+
+def _better_pose(grammar, st, cand, top_rule, bound, terms, polished):  # type: ignore[no-untyped-def]
+    """Per row, the polished pose or the relaxation's (`bound.xyz`, `bound.quat`), both made
+    feasible (`_snap`), whichever scores higher exactly: Newton on the exact densities can
+    leave a box optimum the relaxation found (a pinned rotation under a turned anisotropic
+    Normal and an active box)."""
+    edges = local_edges(grammar, st, cand, top_rule, bound)
+    owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
+    t, q = bound.xyz, bound.quat
+    poses = [_snap(terms, *polished, t, q), _snap(terms, t, q, t, q)]
+    values = [_owned_values(grammar, edges, owner, x, r) for x, r in poses]
+    keep = ~(values[1] > values[0])
+    xyz = np.where(keep[:, None], poses[0][0], poses[1][0])
+    return xyz, np.where(keep[:, None], poses[0][1], poses[1][1])
 
 
 def _placed(parent):  # type: ignore[no-untyped-def]
@@ -500,7 +518,7 @@ def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: 
     quat = np.where(bad[:, None], q0, quat)
     quat = np.where(terms.pinned[:, None], np.nan_to_num(terms.pin), quat)
     if terms.t_complete:
-        xyz = _h_and_gradient(terms, np.einsum("na,nb->nab", quat, quat))[2]
+        xyz = best_position(terms, quat)
     lo, hi = terms.lo + SNAP_MARGIN, terms.hi - SNAP_MARGIN
     with np.errstate(invalid="ignore"):  # -inf + inf on an unbounded axis: never used
         mid = 0.5 * (terms.lo + terms.hi)
@@ -670,6 +688,14 @@ def assignment_problem(
             of_e = counted & (parent_set == e)
             counted[of_e] = ~sb.free_rows[parent_row[of_e]]
         counted &= ~(head & np.isin(set_of, list(bounds)))  # a latent child's bound holds it
-        inst.score[counted] = 0.0  # the assignment's bound already counts these edges
+        # The assignment's bound already counts these edges.  Each named child keeps a share
+        # of it, its exact edge at the row's pose where positive (else 0), taken from the
+        # head: with every named child present the head and its children add up to the bound
+        # (each tree has that encoding, so the bound holds), and a row whose optional child is
+        # left out (attached elsewhere) loses the child's share instead of counting it twice.
+        share = inst.score[counted]
+        share = np.where(np.isfinite(share) & (share > 0.0), share, 0.0)
+        np.subtract.at(inst.score, inst.top[inst.parent[counted]], share)
+        inst.score[counted] = share
 
     return reduce_posed(grammar, st, scene, posed, adjust if upper else None, restrict, deadline)

@@ -13,7 +13,11 @@ branch-and-bound, with the position eliminated in closed form:
 - on a cell, with the Normal terms' precisions held fixed, the score Φ(R) = max over the
   position of Σ -½ rᵀ W r + ⟨G_B, R⟩ (a Bingham density is linear in R) is concave in R's
   entries, so Φ(R) ≤ Φ(R0) + ⟨∇Φ(R0), R - R0⟩, and the linear term's maximum over the cell
-  follows from Rodrigues' formula (`_linear_max`).  Three versions, the lowest bound kept:
+  follows from Rodrigues' formula (`_linear_max`).  Four versions, the lowest bound kept:
+  the *second-order* bound (`_bound_second_order`: every precision and the box exact at the
+  centre's best position t0, and what moving t can add paid for by the score's curvature in
+  t, so its excess is O(δ²) near a stationary rotation even with an active box or an
+  anisotropic world-frame Normal next to a rotating one), and three first-order ones:
   the *world frame* (residuals c - t - R m: world-frame precisions exact, rotating ones
   R P Rᵀ replaced on the cell by a lower bound W, R0 P R0ᵀ - εI with ε = 2 sin(δ/2)
   (λmax - λmin), or λmin I: the score only grows), the *top frame* (t = R s, residuals
@@ -27,10 +31,9 @@ branch-and-bound, with the position eliminated in closed form:
   deadline runs out.  The row's bound is then the largest of its incumbent and its cells'
   bounds: valid whenever it stops.
 
-Where nothing is lowered and no box is active at the optimum the cell bound's error is O(δ²)
-(only the dropped concave term), so cells near the optimum need only δ ~ √tolerance; a
-lowered precision or an active box makes it O(δ), and such rows usually end at the budget
-with a looser bound.
+The cell bound's error is O(δ²) (the second-order bound everywhere; the first-order ones
+where nothing is lowered and no box is active), so cells near the optimum need only
+δ ~ √tolerance and a row closes after a few thousand cells.
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.geometry import axis_angle_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
-from ssgc.parse.set_terms import K_ROT, Rotating, _isotropic_rows, _subset
+from ssgc.parse.set_terms import K_ROT, STEEP, Rotating, _isotropic_rows, _subset
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -264,14 +267,77 @@ def _bound_pinned(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  
     return phi, grad
 
 
-def _cell_bound(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray) -> FloatArray:
+def _bound_second_order(  # type: ignore[no-untyped-def]
+    p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray, t0: FloatArray
+):
+    """Φ-part and ∇_R at (t0, R0) of the *second-order* cell bound: every precision exact,
+    the box exact, the position's move paid for by the score's curvature in t.
+
+    For a fixed t, g(t, ·) is concave in R's entries (each term is minus a squared norm of
+    an affine function of R), so g(t, E R0) ≤ g(t, R0) + ⟨M(t), E - I⟩ with M(t) =
+    ∇_R g(t, R0) R0ᵀ.  Write t = t0 + d.  M(t) = M(t0) + L d - (d dᵀ R0 Σ_A P_A) R0ᵀ
+    (L linear: the world-frame terms' -P d mᵀ, the rotating terms' (w dᵀ + d wᵀ) R0 P
+    - d mᵀ P, w = c - t0), and ‖E - I‖_F = 2√2 sin(θ/2) =: s, so ⟨M(t) - M(t0), E - I⟩ ≤
+    s (|L d| + ‖Σ_A P_A‖ |d|²).  g(t, R0) is a concave quadratic in t with Hessian -H,
+    g(t, R0) = g(t0, R0) + ∇_t·d - ½ dᵀ H d, and ∇_t·d ≤ the box slack on the box.  So
+    max over the cell and the box ≤ g(t0, R0) + slack + max ⟨M(t0), E - I⟩
+    + max over d of [s |L d| - ½ dᵀ (H - 2 s ‖Σ_A P_A‖ I) d], the last = s² λmax(H'⁻¹ LᵀL)/2
+    (∞ where H' is not positive definite; also at most s (‖L‖ ρ + ‖Σ P_A‖ ρ²) with ρ the
+    box's reach from t0).  Its excess over the true maximum is O(δ²) near a stationary
+    rotation, with or without an active box or anisotropic world-frame terms: the
+    cells the first-order frames leave at their budget close here.
+
+    Returns (phi + slack + gain, ∇_R g(t0, R0)), like the other frames."""
+    eye = np.eye(3)
+    w = p.cA[i] - t0[:, None, :]  # (n, J, 3)
+    rho = np.einsum("nji,nkj->nki", R, w) - p.mA[None]  # top-frame residuals
+    PArho = np.einsum("nkij,nkj->nki", p.PA[i], rho)
+    r = p.cB[i] - t0[:, None, :] - np.einsum("nij,kj->nki", R, p.mB)
+    PBr = np.einsum("nkij,nkj->nki", p.PB[i], r)
+    phi = -0.5 * (np.einsum("nki,nki->n", rho, PArho) + np.einsum("nki,nki->n", r, PBr))
+    grad_R = np.einsum("nki,kj->nij", PBr, p.mB) - np.einsum("nki,nkj->nij", w, PArho)
+    grad_t = np.einsum("nij,nkj->ni", R, PArho) + PBr.sum(axis=1)
+    slack = np.where(p.boxed[i], _box_slack(grad_t, t0, p.lo[i], p.hi[i]), 0.0)
+    RPA = np.einsum("nij,nkjl->nkil", R, p.PA[i])  # (n, J, 3, 3): R0 P_A
+    H = np.einsum("nkij,nlj->nil", RPA, R) + p.PB[i].sum(axis=1)
+    # L[n, a] = the 3×3 change of ∇_R g per unit move of t along axis a
+    L = -np.einsum("nkia,kj->naij", p.PB[i], p.mB)
+    L += np.einsum("nki,nkaj->naij", w, RPA)
+    along = np.einsum("nki,nkij->nj", w, RPA) - np.einsum("ki,nkij->nj", p.mA, p.PA[i])
+    L += eye[None, :, :, None] * along[:, None, None, :]
+    gram = np.einsum("naij,nbij->nab", L, L)
+    curv = _extremes(p.PA[i].sum(axis=1, keepdims=True))[:, 0, 1]  # ‖Σ_A P_A‖
+    s = 2.0 * np.sqrt(2.0) * np.sin(0.5 * np.minimum(delta, np.pi))
+    Hs = H - (2.0 * s * curv)[:, None, None] * eye
+    h, U = np.linalg.eigh(Hs)
+    pd = h[:, 0] > 1e-12 * np.maximum(1.0, h[:, -1])
+    scale = np.where(pd[:, None], 1.0 / np.sqrt(np.where(pd[:, None], h, 1.0)), 0.0)
+    root = np.einsum("nij,nj,nkj->nik", U, scale, U)  # H'^(-1/2)
+    top = np.linalg.eigvalsh(np.einsum("nij,njk,nkl->nil", root, gram, root))[:, -1]
+    gain = np.where(pd, 0.5 * s**2 * np.maximum(top, 0.0), np.inf)
+    with np.errstate(invalid="ignore"):
+        reach = np.linalg.norm(np.maximum(p.hi[i] - t0, t0 - p.lo[i]), axis=1)
+    reach = np.where(np.isnan(reach), np.inf, reach)
+    norm_L = np.sqrt(np.maximum(np.linalg.eigvalsh(gram)[:, -1], 0.0))
+    with np.errstate(invalid="ignore"):
+        boxed_gain = s * (norm_L * reach + curv * reach**2)
+    gain = np.minimum(gain, np.where(np.isnan(boxed_gain), np.inf, boxed_gain))
+    return phi + slack + gain, grad_R
+
+
+def _cell_bound(
+    p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray, t0: FloatArray
+) -> FloatArray:
     """An upper bound on the score over every rotation E R0 with ∠E ≤ δ (about the family's
-    axis on revolute rows): Φ(R0) + max ⟨∇Φ(R0), R - R0⟩ for two valid Φ (module
-    docstring), the lowest of them: the world frame and the top frame (t in its box, or
-    near it) and, for a pinned position, the exact quadratic of R."""
+    axis on revolute rows): Φ(R0) + max ⟨∇Φ(R0), R - R0⟩ for valid Φ (module docstring),
+    the lowest of them: the world frame and the top frame (t in its box, or near it), the
+    second-order bound from the best position t0 at R0 and, for a pinned position, the exact
+    quadratic of R."""
     lin = p.GB[i]
     base = np.einsum("nij,nij->n", lin, R) + p.const[i]
-    best = np.full(len(i), np.inf)
+    phi, grad = _bound_second_order(p, i, R, delta, t0)
+    M = (grad + lin) @ np.swapaxes(R, 1, 2)
+    best = base + phi + _linear_max(M, delta, p.axis[i], p.arc_rows[i])
     fixed = p.fixed[i]
     for frame in (_bound_world_frame, _bound_top_frame, _bound_pinned):
         if frame is _bound_pinned and not np.any(fixed):
@@ -400,7 +466,7 @@ def _evaluate_chunk(p: _Problem, cells: _Cells):  # type: ignore[no-untyped-def]
     R = quat_to_matrix(q)
     delta = np.where(arc, 2.0 * cells.half, np.sqrt(3.0) * cells.half)
     value, t = _exact(p, cells.row, R)
-    upper = np.maximum(_cell_bound(p, cells.row, R, delta), value)
+    upper = np.maximum(_cell_bound(p, cells.row, R, delta, t), value)
     return q, value, t, upper
 
 
@@ -418,18 +484,24 @@ def rotation_search(
     cell (a start for the exact polish).  Other rows pass through unchanged.
 
     Searched: a free rotation with rotating terms (the relaxation holds their supremum),
-    and a revolute arc (one dimension: cheap) with anything but isotropic unboxed Normals
-    (Frank–Wolfe's hull of the arc).  Not searched: Frank–Wolfe's rows over all rotations,
+    a revolute arc (one dimension: cheap) with anything but isotropic unboxed Normals
+    (Frank–Wolfe's hull of the arc), and a boxed position that is not exact (Frank–Wolfe's
+    unclipped position) unless a steep stand-in term makes every cell bound loose.  Not
+    searched: Frank–Wolfe's other rows over all rotations,
     where many assignments have small gaps that the MILP never picks (the bundled
     singles_pairs_constituency: a tenth of its rows, each over 1e-2) and a search of every
     one would cost more than the parse."""
     inexact = terms.revolute & ~_isotropic_rows(terms)
-    rows = ~terms.pinned & (rot.rows | inexact)
+    boxed = np.any(np.isfinite(terms.lo) | np.isfinite(terms.hi), axis=1) & ~_isotropic_rows(terms)
+    boxed &= np.max(np.abs(terms.P), axis=(1, 2, 3), initial=0.0) < STEEP  # cells cannot close
+    rows = ~terms.pinned & (rot.rows | inexact | boxed)
     if not np.any(rows):
         return upper, xyz, quat
     p = _problem(_subset(terms, rows), rot.subset(rows))
     idx = np.flatnonzero(rows)
     start, t_start = _exact(p, np.arange(len(idx)), quat_to_matrix(quat[idx]))
+    xyz = xyz.copy()  # the best position for each row's rotation, its rotating terms counted
+    xyz[idx] = np.where(np.isfinite(start)[:, None], t_start, xyz[idx])
     gap = upper[idx] - start
     open_ = gap > TOL_REL * np.maximum(1.0, np.abs(start))
     if not np.any(open_):

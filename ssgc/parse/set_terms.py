@@ -30,7 +30,7 @@ from ssgc.geometry import (
     quat_to_matrix,
 )
 from ssgc.ir import Grammar
-from ssgc.laws.base import ROT_TOL, Frame
+from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.rules import rotation_log_density, translation_log_density
@@ -150,6 +150,19 @@ def _arc_meet(
     piece = np.where(first[:, None], np.stack([lo1, hi1], 1), np.stack([lo2, hi2], 1))
     out[one] = piece[one]
     return out, ~full & ~first & ~wrap
+
+
+def _align(a: FloatArray, b: FloatArray) -> FloatArray:
+    """(n, 4): the shortest turns taking unit vectors a to unit vectors b (a half turn
+    about an axis across a where they are opposite)."""
+    w = 1.0 + np.sum(a * b, axis=1)
+    xyz = np.cross(a, b)
+    opposite = w <= 1e-12
+    side = np.cross(a, np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    q = np.where(
+        opposite[:, None], np.hstack([np.zeros((len(a), 1)), side]), np.hstack([w[:, None], xyz])
+    )
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _isotropic(precision: FloatArray) -> bool:
@@ -382,12 +395,52 @@ class _LocalBounds:
         angle, R(axis, φ) u = v with u = post·m and v = base⁻¹·(cx - t), wherever the parts
         of u and v across the axis are long enough (PIN_LEVER) to fix φ to ~POS_TOL / |u⊥|
         and agree.  Elsewhere the steep quadratic of `_child_translation` stays (a bound)."""
-        rows = ~np.isnan(self.fam_base[:, 0]) & ~self.pinned
-        rows &= np.all(self.hi - self.lo <= 4 * BOX_MARGIN, axis=1)
+        placed = np.all(self.hi - self.lo <= 4 * BOX_MARGIN, axis=1) & ~self.pinned
+        with np.errstate(invalid="ignore"):  # rows without a family or a pinned position
+            self._family_by_offsets(placed)
+        rows = ~np.isnan(self.fam_base[:, 0]) & placed
         if not np.any(rows):
             return
-        with np.errstate(invalid="ignore"):  # rows without a family or a pinned position
+        with np.errstate(invalid="ignore"):
             self._pin_by_offsets(rows)
+
+    def _family_by_offsets(self, rows: NDArray[np.bool_]) -> None:
+        """Rows whose position is pinned and whose rotation is free (no family, no pin): a
+        child placed by a fixed parent-frame translation m (at least PIN_LEVER long) with
+        cx - t of the same length (within PIN_AGREE) holds the rotation to R m = cx - t,
+        the family q = align(m → cx - t) ⊗ rot(m̂, φ), φ any angle (a full revolute arc).
+        Every rotation of the family puts the child exactly at cx (`_child_translation`
+        then drops its steep quadratic), and a second such child pins the angle
+        (`_pin_by_offsets`).  Where no child qualifies the rotation stays free.
+
+        A child whose distance from the pinned position differs from |m| by more than the
+        scorer's tolerance (√3·POS_TOL, and the position box) fits no rotation: the row is
+        ruled out (any family or not)."""
+        if not np.any(rows):
+            return
+        t = 0.5 * (self.lo + self.hi)
+        for r, off_t, off_q, cx, on in self.fixed_children:
+            law = self.g.rules[r].translation
+            if law.point is None or law.frame != Frame.PARENT or not np.any(rows & on):
+                continue
+            m = off_t + quat_rotate(off_q, law.point)
+            length = float(np.linalg.norm(m))
+            v = cx - t
+            reach = np.linalg.norm(v, axis=1)
+            miss = np.abs(reach - length)
+            self.clash |= rows & on & (miss > np.sqrt(3.0) * (POS_TOL + 4 * BOX_MARGIN))
+            sel = rows & on & np.isnan(self.fam_base[:, 0])
+            if length < PIN_LEVER or not np.any(sel):
+                continue
+            use = sel & (miss <= PIN_AGREE)
+            if not np.any(use):
+                continue
+            a = np.broadcast_to(m / length, (self.n, 3))
+            b = v / np.where(reach > 0, reach, 1.0)[:, None]
+            self.fam_base = np.where(use[:, None], _align(a, b), self.fam_base)
+            self.fam_axis = np.where(use[:, None], a, self.fam_axis)
+            self.fam_post = np.where(use[:, None], IDENTITY, self.fam_post)
+            self.fam_range = np.where(use[:, None], [-np.pi, np.pi], self.fam_range)
 
     def _pin_by_offsets(self, rows: NDArray[np.bool_]) -> None:
         for r, off_t, off_q, cx, on in self.fixed_children:
@@ -486,8 +539,16 @@ class _LocalBounds:
             # a child at the member's own position (no offset) pins t whatever the rotation
             exact = pinned | (bool(np.all(np.abs(m) <= 1e-12)) & on)
             self.box(cx - R0 @ m, cx - R0 @ m, exact)
-            self.quadratic(cx, m, STEEP * np.eye(3), on & ~exact, hard=True)
-            self._translation_exact(bool(np.all(exact == on)))
+            # on a family whose every rotation turns m alike (m along its axis), the
+            # child's place fixes the position exactly: a box, no steep quadratic
+            fam = on & ~exact & ~np.isnan(self.fam_base[:, 0])
+            u = quat_rotate(self.fam_post, np.broadcast_to(m, (n, 3)))
+            along = np.sum(u * self.fam_axis, axis=1)[:, None] * self.fam_axis
+            still = fam & (np.linalg.norm(u - along, axis=1) <= PIN_AGREE)
+            at = cx - quat_rotate(np.where(still[:, None], self.fam_base, IDENTITY), u)
+            self.box(at, at, still)
+            self.quadratic(cx, m, STEEP * np.eye(3), on & ~exact & ~still, hard=True)
+            self._translation_exact(bool(np.all((exact | still) == on)))
         else:
             self.add(np.full(n, law.supremum()), on)
             self._translation_exact(False)
@@ -616,7 +677,41 @@ def _pinned_bound(terms: _Terms, X: FloatArray) -> FloatArray:
     slack = np.einsum("ni,ni->n", np.abs(Pd.sum(axis=1)), width)
     slack = np.where(np.isnan(slack), np.inf, slack)  # a zero gradient on an unbounded axis
     exact = np.where(terms.diagonal, _h_and_gradient(terms, X)[0], np.inf)
-    return np.minimum(np.minimum(free, h + slack), exact)
+    return np.minimum(np.minimum(free, h + slack), np.minimum(exact, _box_bound(terms, e, X)))
+
+
+BOX_SWEEPS = 60  # coordinate-ascent sweeps for the best position in a box
+
+
+def _box_position(terms: _Terms, e: FloatArray) -> FloatArray:
+    """The best t in the box of Σ -½ (e_k - t)ᵀ P_k (e_k - t) for any total precision:
+    coordinate ascent from the clipped free optimum (converges to the box's optimum; any
+    point of the box is feasible, and `_box_bound` pays for what is left)."""
+    H = terms.P.sum(axis=1)
+    b = np.einsum("nkij,nkj->ni", terms.P, e)
+    t = np.clip(np.einsum("nij,nj->ni", terms.inverse, b), terms.lo, terms.hi)
+    t = np.where(np.isfinite(t), t, 0.0)
+    diag = np.maximum(np.einsum("nii->ni", H), 1e-300)
+    for _ in range(BOX_SWEEPS):
+        for k in range(3):
+            rest = b[:, k] - np.einsum("nj,nj->n", H[:, k], t) + H[:, k, k] * t[:, k]
+            t[:, k] = np.clip(rest / diag[:, k], terms.lo[:, k], terms.hi[:, k])
+    return t
+
+
+def _box_bound(terms: _Terms, e: FloatArray, X: FloatArray) -> FloatArray:
+    """max over t in the box of g(t, X) for a fixed X, as h(t) + max over the box of
+    ∇h(t)·(s - t) at the coordinate-ascent point t (concavity): exact at the box's
+    optimum, for any total precision (a pinned rotation under a turned anisotropic
+    Normal and a box).  Rows with an unbounded axis get ∞ (the other bounds hold)."""
+    t = _box_position(terms, e)
+    h, Pd = _value(terms, e, t, X)
+    grad = Pd.sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        gain = np.maximum(grad * (terms.hi - t), grad * (terms.lo - t))
+    gain = np.where(np.isnan(gain), np.inf, gain).sum(axis=1)
+    bounded = np.all(np.isfinite(terms.lo) & np.isfinite(terms.hi), axis=1)
+    return np.where(bounded, h + gain, np.inf)
 
 
 def relaxed_upper_bound(
@@ -658,17 +753,39 @@ def relaxed_upper_bound(
         c = np.einsum("nab,na->nb", terms.V, q)
         psi = np.clip(np.arctan2(c[:, 1], c[:, 0]), terms.arc[:, 0], terms.arc[:, 1])
         q = np.where(fam[:, None], _arc_point(terms, psi), q)
-    t = _h_and_gradient(terms, np.einsum("na,nb->nab", q, q))[2]
-    return best, t, q
+    return best, best_position(terms, q), q
+
+
+def best_position(terms: _Terms, q: FloatArray) -> FloatArray:
+    """The best position for rotations q: the closed form (clipped where the total
+    precision is diagonal, else free), and where it is not diagonal and the box is bounded
+    the box's optimum by coordinate ascent (`_box_position`)."""
+    X = np.einsum("na,nb->nab", q, q)
+    t = _h_and_gradient(terms, X)[2]
+    rows = ~terms.diagonal & np.all(np.isfinite(terms.lo) & np.isfinite(terms.hi), axis=1)
+    if np.any(rows):
+        sub = _subset(terms, rows)
+        R = np.einsum("ijab,nab->nij", K_ROT, X[rows])
+        t[rows] = _box_position(sub, sub.c - np.einsum("nij,kj->nki", R, sub.m))
+    return t
 
 
 def _isotropic_rows(terms: _Terms) -> NDArray[np.bool_]:
     """Rows whose translation terms all have isotropic precision and whose position has no
-    box: there max over t of g(t, R) is linear in R on rotations (`_isotropic_bound`)."""
+    box or is pinned (`_placed`): there max over t of g(t, R) is linear in R on rotations
+    (`_isotropic_bound`)."""
     P = terms.P
     iso = np.all(np.abs(P - P[..., :1, :1] * np.eye(3)) <= 1e-12 * (1 + np.abs(P)), axis=(1, 2, 3))
     unboxed = np.all(np.isinf(terms.lo) & np.isinf(terms.hi), axis=1)
-    return iso & unboxed
+    return iso & (unboxed | _placed(terms))
+
+
+def _placed(terms: _Terms) -> NDArray[np.bool_]:
+    """Rows whose position is pinned (a box no wider than its rounding margins) and that
+    have no steep stand-in term: their best t is the pin, up to a slack `_isotropic_bound`
+    pays for (small at moderate precisions, not at STEEP's)."""
+    narrow = np.all(terms.hi - terms.lo <= 4 * BOX_MARGIN, axis=1)
+    return narrow & (np.max(terms.P[..., 0, 0], axis=1, initial=0.0) < STEEP)
 
 
 def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
@@ -681,7 +798,8 @@ def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
     + tr(B X) + const, using |R m'|² = |m'|² on rotations: linear in R, hence in X = q qᵀ,
     and its maximum over unit q is the top eigenvalue of a 4×4 matrix (over a revolute
     family, the arc's best point, `_arc_lmo`).  No relaxation gap.  The centred form keeps
-    the sums small where one term is steep (STEEP).
+    the sums small where one term is steep (STEEP).  At a pinned position t0 the same holds
+    with c'_k = c_k - t0 and m'_k = m_k (plus the slack of the pin's rounding margin).
 
     A steep term that stands in for a fixed translation (`_Terms.hard`) is a pin: t is then
     its c - R m (the mean of such terms), where the other terms are evaluated exactly, instead
@@ -697,9 +815,23 @@ def _isotropic_bound(terms: _Terms) -> tuple[FloatArray, FloatArray]:
         weight = np.where((count > 0)[:, None], by_pin, weight)
     c = terms.c - np.einsum("nk,nki->ni", weight, terms.c)[:, None, :]
     m = terms.m[None] - np.einsum("nk,ki->ni", weight, terms.m)[:, None, :]
+    # a pinned position t0 (`_placed`): e_k - t0 = (c_k - t0) - R m_k, not centred; t may
+    # still move by w (half the box) per axis, worth at most |w|·|∇_t| with |∇_t| ≤
+    # |Σ p_k (c_k - t0)| + |Σ p_k m_k| (concavity), added to the bound
+    placed = _placed(terms) & ~np.all(np.isinf(terms.lo) & np.isinf(terms.hi), axis=1)
+    slack = np.zeros(len(p))
+    if np.any(placed):
+        t0 = 0.5 * (terms.lo[placed] + terms.hi[placed])
+        c[placed] = terms.c[placed] - t0[:, None, :]
+        m[placed] = terms.m[None]
+        half = np.linalg.norm(0.5 * (terms.hi[placed] - terms.lo[placed]), axis=1)
+        pull = np.linalg.norm(np.einsum("nk,nki->ni", p[placed], c[placed]), axis=1)
+        pull += np.linalg.norm(np.einsum("nk,ki->ni", p[placed], terms.m), axis=1)
+        slack[placed] = half * pull
     G_R = np.einsum("nk,nki,nkj->nij", p, c, m)
     C = np.einsum("nij,ijab->nab", G_R, K_ROT) + terms.B
     const = -0.5 * np.einsum("nk,nki,nki->n", p, c, c) - 0.5 * np.einsum("nk,nki,nki->n", p, m, m)
+    const += slack
     w, v = np.linalg.eigh(C)
     value, q = w[:, -1], v[..., -1]
     if np.any(terms.revolute):
