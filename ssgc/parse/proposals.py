@@ -742,7 +742,8 @@ def _child_combos(
     singles = []
     for (v, r, via), (e_c, copies) in slots.items():
         k = _preferred(cand, e_c, solved, HARD_CHILDREN)
-        singles.append([(v, r, cand.xyz[e_c][i], cand.quat[e_c][i], via, copies) for i in k])
+        if len(k):  # a child set with no candidate pose (yet) offers nothing to combine
+            singles.append([(v, r, cand.xyz[e_c][i], cand.quat[e_c][i], via, copies) for i in k])
     own = [s for s in singles if s[0][4] is None]
     combos: list[tuple] = [()]  # the set's own children first, then grandchildren
     combos += [(c[:5],) for s in own + [s for s in singles if s[0][4] is not None] for c in s]
