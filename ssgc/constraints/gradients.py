@@ -161,6 +161,11 @@ def _inside_box_gradient(c: InsideBox, batch: Any) -> tuple[FloatArray, FloatArr
     the node about the frame's origin: d gap / d ω_frame = direction × (x - p)."""
     m, g_xyz = c.gradient(batch)
     g_rot = np.zeros((len(batch.type), 3))
+    if c.shapes is not None:  # `geometry: true`: the reach turns with the node and the frame
+        turned = c.types.copy()
+        if c.frame is not None:
+            turned[c.frame] = True
+        return m, g_xyz, rotation_difference(c, batch, turned)
     if c.frame is None:
         return m, g_xyz, g_rot
     nodes, q, ok, gaps = c._gaps(batch)
