@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
 from latent_grammars import random_grammar
 from posed_reference import reference_candidates, reference_unroll
 
@@ -207,3 +209,22 @@ def test_explain_budget_is_reported() -> None:
     local = {o.index: o.pose_gain for o in spent.objects}
     for o in full.objects:  # a re-parse can only add to the local repair's gain
         assert o.pose_gain >= local[o.index] - 1e-9
+
+
+@settings(max_examples=40, deadline=None)
+@given(hs.integers(0, 10_000), hs.integers(1, 30), hs.integers(0, 12))
+def test_near_pairs_match_the_dense_distances(seed: int, n_objects: int, crowd: int) -> None:
+    """`posed._near_pairs` (a k-d tree, 8 neighbours, dense where all 8 are near) finds the
+    same (point, object) pairs within POS_TOL as the dense distance array it replaced, also
+    where more than 8 objects share a spot."""
+    from ssgc.parse.posed import _near_pairs
+    from ssgc.rules import POS_TOL
+
+    rng = np.random.default_rng(seed)
+    objects = rng.uniform(-1, 1, (n_objects, 3))
+    objects = np.vstack([objects, np.repeat(objects[:1], crowd, axis=0)])  # a crowded spot
+    near = objects[rng.integers(len(objects), size=50)] + rng.normal(0, POS_TOL, (50, 3))
+    points = np.vstack([near, rng.uniform(-1, 1, (50, 3))])
+    got = set(zip(*_near_pairs(points, objects), strict=True))
+    dense = np.linalg.norm(points[:, None] - objects[None], axis=2) <= POS_TOL
+    assert got == set(zip(*np.nonzero(dense), strict=True))
