@@ -157,7 +157,7 @@ def run_chains(
     target = FixedTrees(grammar, trees, constraints, settings.eps, settings.rotations)
     exact_cs = target.constraints
     free = target.free
-    nuts = Nuts(target, trees.scene, free, n, rng, settings.max_depth)
+    nuts = Nuts(target, trees.scene, free, n, rng, settings.max_depth, lambda: _check(deadline))
     z = target.z0
     lp, g = target(z)
     adapt = DualAveraging(np.full(n, settings.first_step))

@@ -63,9 +63,12 @@ class Nuts:
         n_chains: int,
         rng: np.random.Generator,
         max_depth: int = MAX_DEPTH,
+        check: Callable[[], None] | None = None,
     ) -> None:
+        """`check` is called before every gradient evaluation (a trajectory of depth 8 is 256
+        of them, each a pass over every constraint): it may raise to stop at a deadline."""
         self.target, self.chain, self.free, self.n = target, chain, free, n_chains
-        self.rng, self.max_depth = rng, max_depth
+        self.rng, self.max_depth, self.check = rng, max_depth, check
 
     def _dot(self, a: FloatArray, b: FloatArray) -> FloatArray:
         return np.bincount(self.chain, np.sum(a * b, axis=1), minlength=self.n)
@@ -79,6 +82,8 @@ class Nuts:
     def _leaf(
         self, z: FloatArray, r: FloatArray, g: FloatArray, step: FloatArray, h0: FloatArray
     ) -> _Tree:
+        if self.check is not None:
+            self.check()
         s = self._per_node(step)
         r1 = r + 0.5 * s * g
         z1 = np.where(self.free, z + s * r1, z)
