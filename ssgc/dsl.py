@@ -561,6 +561,13 @@ ConstraintName = Annotated[
 class Root(Strict):
     type: TypeName
     pose: Pose = Field(default_factory=Pose)
+    required: bool = Field(
+        False,
+        description=(
+            "Every scene shows the root object: a scene without one has no parse (default: a"
+            " scene may leave an observed root out, and it is then implied at its pose)."
+        ),
+    )
 
 
 class NoiseSpec(Strict):

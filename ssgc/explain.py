@@ -1085,6 +1085,9 @@ def diagnose(
     parser = parser or Parser(grammar)
     t_end = time.perf_counter() + time_limit
     names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
+    need = grammar.required_root
+    if need is not None and not np.any(scene.types == need):
+        return _without_root(grammar, scene, names)
     never = [o for o in range(len(scene)) if parser.capacity[scene.types[o]] == 0]
     found: list[tuple[float, list[int], Trees]] = []
     base = set(never)
@@ -1136,6 +1139,30 @@ def diagnose(
 
 
 SMALL_M, SMALL_DEG = 0.05, 10.0  # offsets a sensor's error could explain
+
+
+def _without_root(grammar: Grammar, scene: Scene, names: list[str]) -> Diagnosis:
+    """A scene without the root its grammar requires: no removal helps, so name the objects
+    that lie where the root is (within what a sensor's error could explain): the root given
+    another type is the likely story (a detector's wrong label keeps the pose)."""
+    from ssgc.parse.parser import missing_root
+
+    off = np.linalg.norm(scene.xyz - grammar.root_xyz, axis=1)
+    turn = np.degrees(quat_angle(scene.quat, np.broadcast_to(grammar.root_quat, scene.quat.shape)))
+    at = [int(o) for o in np.flatnonzero((off <= SMALL_M) & (turn <= SMALL_DEG))]
+    assert grammar.required_root is not None
+    root = grammar.types[grammar.required_root].name
+    reasons = {
+        o: [f"lies at the pose of the missing {root} ({100 * off[o]:.1f} cm, {turn[o]:.1f}° off)"]
+        for o in at
+    }
+    message = missing_root(grammar, scene.name) + "; "
+    if at:
+        message += " and ".join(names[o] for o in at) + f" lies where the {root} is: "
+        message += f"a {root} given another type?"
+    else:
+        message += f"no object lies where the {root} is"
+    return Diagnosis(scene.name, at, reasons, [], message)
 
 
 def _hint(grammar: Grammar, reasons: list[str]) -> str:

@@ -494,7 +494,11 @@ observation = mapping(
 grammar_doc = mapping(
     {
         "grammar": sometimes_junk(names),
-        "root": st.one_of(type_names, mapping({"type": type_names}, {"pose": orientation}), junk),
+        "root": st.one_of(
+            type_names,
+            mapping({"type": type_names}, {"pose": orientation, "required": st.booleans()}),
+            junk,
+        ),
         "types": st.one_of(
             st.dictionaries(type_names, sometimes_junk(node_type), min_size=1, max_size=5), junk
         ),
