@@ -85,7 +85,7 @@ def overlaps(
     rel = related(tree, top, obj_of, len(scene))
     batch = _Objects(scene)
     for c in checks:
-        i, j, dist = c.pair_distances(batch)
+        i, j, dist = c.pair_distances(batch, separation=True)
         keep = (dist < 0) & ~rel[i, j]
         out += [
             Overlap(c.name, int(a), int(b), float(-d))
