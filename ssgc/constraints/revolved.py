@@ -24,6 +24,7 @@ FloatArray = NDArray[np.float64]
 
 MESH_SECTIONS = 48  # facets around the axis of the triangle mesh (FCL, exports, render)
 SAMPLE_SPACING = 0.004  # m: surface points for penetration depths, along and around
+MAX_SAMPLES = 400  # along the profile and around a ring: a huge profile gets sparser points
 
 
 def profile_problem(profile: list[list[float]]) -> str | None:
@@ -31,6 +32,11 @@ def profile_problem(profile: list[list[float]]) -> str | None:
     three points, each [r, z] with r >= 0, the first and last on the axis (r = 0) and no others,
     edges that do not cross, and a non-zero area."""
     p = np.asarray(profile, float)
+    with np.errstate(all="ignore"):  # huge coordinates overflow to a clear message below
+        return _problem(p)
+
+
+def _problem(p: FloatArray) -> str | None:
     if p.ndim != 2 or p.shape[1] != 2 or len(p) < 3:
         return "a profile is a list of at least three [r, z] points"
     if np.any(p[:, 0] < 0):
@@ -39,7 +45,7 @@ def profile_problem(profile: list[list[float]]) -> str | None:
         return "a profile starts and ends on the axis (r = 0), going around the material"
     if np.any(p[1:-1, 0] == 0):
         return "only a profile's first and last points lie on the axis (r = 0)"
-    if abs(_area(p)) < 1e-12:
+    if not abs(_area(p)) >= 1e-12:  # also when it overflows to nan
         return "a profile encloses no area"
     if _crossing(p):
         return "a profile's edges cross each other"
@@ -124,13 +130,18 @@ class Revolved:
     @cached_property
     def surface_points(self) -> FloatArray:
         """(m, 3) points on its surface, about `SAMPLE_SPACING` apart along the profile and
-        around the axis (the points a penetration depth is measured on)."""
+        around the axis (the points a penetration depth is measured on); farther apart on a
+        profile too long or too wide for `MAX_SAMPLES` points along it or around it."""
+        edges = np.hypot(*np.diff(self.rz, axis=0).T)
+        spacing = max(
+            SAMPLE_SPACING, edges.sum() / MAX_SAMPLES, 2 * np.pi * self.radius / MAX_SAMPLES
+        )
         pts = [self.rz[:1]]
-        for a, b in zip(self.rz[:-1], self.rz[1:], strict=True):
-            k = max(1, int(np.ceil(np.hypot(*(b - a)) / SAMPLE_SPACING)))
+        for a, b, length in zip(self.rz[:-1], self.rz[1:], edges, strict=True):
+            k = max(1, int(np.ceil(length / spacing)))
             pts.append(a + (b - a) * (np.arange(1, k + 1) / k)[:, None])
         rz = np.concatenate(pts)
-        rings = np.maximum(1, np.ceil(2 * np.pi * rz[:, 0] / SAMPLE_SPACING)).astype(np.int64)
+        rings = np.maximum(1, np.ceil(2 * np.pi * rz[:, 0] / spacing)).astype(np.int64)
         ring = np.repeat(np.arange(len(rz)), rings)
         step = np.arange(len(ring)) - np.repeat(np.cumsum(rings) - rings, rings)
         angle = 2 * np.pi * step / rings[ring]
@@ -150,7 +161,9 @@ class Revolved:
             [
                 np.array([[0.0, 0.0, z[i]]])
                 if on_axis[i]
-                else np.stack([r[i] * np.cos(angle), r[i] * np.sin(angle), np.full(sections, z[i])], 1)
+                else np.stack(
+                    [r[i] * np.cos(angle), r[i] * np.sin(angle), np.full(sections, z[i])], 1
+                )
                 for i in range(len(self.rz))
             ]
         )
@@ -172,9 +185,7 @@ class Revolved:
         return verts, tri
 
 
-def penetration_depth(
-    a: Revolved, b: Revolved, rot_ab: FloatArray, at_ab: FloatArray
-) -> float:
+def penetration_depth(a: Revolved, b: Revolved, rot_ab: FloatArray, at_ab: FloatArray) -> float:
     """How deep the deepest surface point of either solid lies inside the other (0 if none),
     with b's frame at `at_ab`, turned by `rot_ab` (3, 3), in a's frame."""
     in_a = b.surface_points @ rot_ab.T + at_ab
