@@ -113,19 +113,36 @@ class Revolved:
         """(n,) signed distance of points (n, 3), in its own frame, to its surface: negative
         inside (minus the depth), exact (the closest surface point is in the point's meridian
         plane)."""
-        r = np.hypot(points[:, 0], points[:, 1])[:, None]
-        z = points[:, 2][:, None]
-        a, b = self.rz[:-1], self.rz[1:]  # the surface's edges (the axis edge is not surface)
+        r, z = np.hypot(points[:, 0], points[:, 1]), points[:, 2]
+        return np.where(self._inside(r, z), -1.0, 1.0) * self._distance(r, z)
+
+    def deepest(self, points: FloatArray) -> float:
+        """The depth of the deepest of the points (n, 3), in its own frame, inside it (0 when
+        none is): only points within its bounding cylinder are tested."""
+        r, z = np.hypot(points[:, 0], points[:, 1]), points[:, 2]
+        near = (r < self.radius) & (z > self.rz[:, 1].min()) & (z < self.rz[:, 1].max())
+        r, z = r[near], z[near]
+        inside = self._inside(r, z)
+        return float(self._distance(r[inside], z[inside]).max(initial=0.0))
+
+    def _distance(self, r: FloatArray, z: FloatArray) -> FloatArray:
+        """Each (r, z)'s distance to the profile's edges (the axis edge is not surface)."""
+        r, z = r[:, None], z[:, None]
+        a, b = self.rz[:-1], self.rz[1:]
         d = b - a
         length2 = np.maximum(np.sum(d * d, axis=1), 1e-30)
         t = np.clip(((r - a[:, 0]) * d[:, 0] + (z - a[:, 1]) * d[:, 1]) / length2, 0.0, 1.0)
-        dist = np.hypot(r - (a[:, 0] + t * d[:, 0]), z - (a[:, 1] + t * d[:, 1])).min(axis=1)
-        above = a[:, 1] > z
-        straddle = above != (b[:, 1] > z)
+        return np.hypot(r - (a[:, 0] + t * d[:, 0]), z - (a[:, 1] + t * d[:, 1])).min(axis=1)
+
+    def _inside(self, r: FloatArray, z: FloatArray) -> NDArray[np.bool_]:
+        """Whether each (r, z) is inside the closed profile: an odd number of its edges cross
+        the ray from the point away from the axis (the axis edge never does)."""
+        r, z = r[:, None], z[:, None]
+        a, b = self.rz[:-1], self.rz[1:]
+        straddle = (a[:, 1] > z) != (b[:, 1] > z)
         with np.errstate(divide="ignore", invalid="ignore"):
-            r_cross = a[:, 0] + (z - a[:, 1]) * d[:, 0] / d[:, 1]
-        inside = (np.count_nonzero(straddle & (r_cross > r), axis=1) % 2) == 1
-        return np.where(inside, -dist, dist)
+            r_cross = a[:, 0] + (z - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+        return (np.count_nonzero(straddle & (r_cross > r), axis=1) % 2) == 1
 
     @cached_property
     def surface_points(self) -> FloatArray:
@@ -190,5 +207,4 @@ def penetration_depth(a: Revolved, b: Revolved, rot_ab: FloatArray, at_ab: Float
     with b's frame at `at_ab`, turned by `rot_ab` (3, 3), in a's frame."""
     in_a = b.surface_points @ rot_ab.T + at_ab
     in_b = (a.surface_points - at_ab) @ rot_ab
-    deepest = min(a.signed_distance(in_a).min(), b.signed_distance(in_b).min())
-    return float(max(0.0, -deepest))
+    return max(a.deepest(in_a), b.deepest(in_b))
