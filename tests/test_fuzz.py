@@ -405,6 +405,23 @@ shape = one_of_keys(
             {"file": st.one_of(st.sampled_from(MESH_FILES), names)},
             {"scale": st.one_of(numbers, vec(3))},
         ),
+        # a profile: [r, z] points, often from the axis back to it, sometimes crossing itself,
+        # off the axis, with negative r or points of the wrong length
+        "revolve": mapping(
+            {
+                "profile": sometimes_junk(
+                    st.one_of(
+                        st.builds(
+                            lambda mid, z0, z1: [[0, z0], *mid, [0, z1]],
+                            st.lists(vec(2), max_size=6),
+                            numbers,
+                            numbers,
+                        ),
+                        st.lists(st.one_of(vec(2), vec(3), junk), max_size=6),
+                    )
+                )
+            }
+        ),
     }
 )
 # a shape, sometimes with its `origin` in the object's frame beside it (or only the origin)
