@@ -9,9 +9,10 @@ declares `non_penetration` on its objects; this module evaluates that constraint
 Geometries overlap in real scenes too: a solid cylinder standing for a bowl overlaps what lies
 in it (a hollow `revolve` does not), and any shape guessed for a real model is a few
 millimetres off.  `ssg explain` measures a pair's overlap as how far one must move to free it
-(`NonPenetration.pair_distances(separation=True)`: thin walls that cross count fully).  Pairs the parse tree relates — one object's block is an
-ancestor of the other (carrier and carried, at any depth) — are where the grammar itself puts
-things close: they are left out.  What remains is an overlap the tree does not account for.
+(`NonPenetration.pair_distances(separation=True)`: thin walls that cross count fully).
+Pairs the parse tree relates — one object's block is an ancestor of the other (carrier and
+carried, at any depth) — are where the grammar itself puts things close: they are left out.
+What remains is an overlap the tree does not account for.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 
 MESH_SECTIONS = 48  # facets around the axis of the triangle mesh (FCL, exports, render)
-SAMPLE_SPACING = 0.004  # m: surface points for penetration depths, along and around
+SAMPLE_SPACING = 0.008  # m: surface points for penetration depths (the samplers' margins)
 MAX_SAMPLES = 400  # along the profile and around a ring: a huge profile gets sparser points
 
 
@@ -204,7 +204,14 @@ class Revolved:
 
 def penetration_depth(a: Revolved, b: Revolved, rot_ab: FloatArray, at_ab: FloatArray) -> float:
     """How deep the deepest surface point of either solid lies inside the other (0 if none),
-    with b's frame at `at_ab`, turned by `rot_ab` (3, 3), in a's frame."""
-    in_a = b.surface_points @ rot_ab.T + at_ab
-    in_b = (a.surface_points - at_ab) @ rot_ab
-    return max(a.deepest(in_a), b.deepest(in_b))
+    with b's frame at `at_ab`, turned by `rot_ab` (3, 3), in a's frame.  Only points within
+    the other's bounding sphere are turned into its frame and tested."""
+    a_in_b = -(rot_ab.T @ at_ab)  # a's origin in b's frame
+    near_b = _within(b.surface_points, a_in_b, a.bounding_radius)
+    near_a = _within(a.surface_points, at_ab, b.bounding_radius)
+    return max(a.deepest(near_b @ rot_ab.T + at_ab), b.deepest((near_a - at_ab) @ rot_ab))
+
+
+def _within(points: FloatArray, centre: FloatArray, radius: float) -> FloatArray:
+    d = points - centre
+    return points[np.einsum("ij,ij->i", d, d) <= radius * radius]
