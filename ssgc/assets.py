@@ -120,12 +120,16 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
     body = t.body if t.body is not None else dsl.Body()
     g = t.geometry
     origin = np.asarray(g.origin, float)
-    if isinstance(g, dsl.MeshG):
-        mesh = _load_mesh(mesh_path(grammar, t), g.mesh.scale)
+    if isinstance(g, dsl.MeshG | dsl.RevolveG):  # a revolve's surface is a mesh to exporters
+        mesh = (
+            _load_mesh(mesh_path(grammar, t), g.mesh.scale)
+            if isinstance(g, dsl.MeshG)
+            else _revolve_mesh(trimesh, g)
+        )
         mesh.apply_translation(origin)  # type: ignore[attr-defined]
         volume, com, unit_inertia = _mesh_mass_properties(mesh)
         pieces = _collision_pieces(mesh, body.collision, t.name) if collision else ()
-        kind, size, source = "mesh", (), g.mesh.file
+        kind, size, source = "mesh", (), g.mesh.file if isinstance(g, dsl.MeshG) else ""
     else:
         kind, size = _primitive(g)
         mesh = _primitive_mesh(trimesh, kind, size)
@@ -146,6 +150,14 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
         source,
         (float(origin[0]), float(origin[1]), float(origin[2])),
     )
+
+
+def _revolve_mesh(trimesh, g: dsl.RevolveG) -> object:  # type: ignore[no-untyped-def]
+    """A revolve's closed surface (ssgc/constraints/revolved.py) as a triangle mesh."""
+    from ssgc.constraints.revolved import Revolved
+
+    vertices, faces = Revolved(g.revolve.profile).mesh(PRIMITIVE_SECTIONS)
+    return trimesh.Trimesh(vertices, faces, process=True)
 
 
 def _primitive(g: object) -> tuple[str, tuple[float, ...]]:

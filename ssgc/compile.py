@@ -367,6 +367,12 @@ class Compiler(Report):
         rules: list[Rule] = []
         types = [self.node_type(name, spec, rules) for name, spec in self.doc.types.items()]
         root = self.ids.get(root_spec.type)
+        if root is not None and root_spec.required and not types[root].observed:
+            self.error(
+                ("root", "required"),
+                f"the root type '{root_spec.type}' is not observed, so no scene shows it: "
+                "only an observed root can be required",
+            )
         self.add(check_references(types, rules, root, self.base_dir, self.allow_outside))
         if root is not None:
             self.add(check_recursion(types, rules))
@@ -396,6 +402,7 @@ class Compiler(Report):
             type_ids=seen.ids,
             constraints=constraints,
             observation=self.doc.observation,
+            required_root=seen.ids[root_spec.type] if root_spec.required else None,
         )
 
     # ----------------------------------------------------------------- node types ---

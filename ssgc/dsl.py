@@ -316,6 +316,24 @@ class MeshGeometry(Strict):
     scale: Positive | Annotated[list[Positive], Field(min_length=3, max_length=3)] = 1.0
 
 
+class RevolveGeometry(Strict):
+    """A solid of revolution (a dish): its cross-section, turned about the geometry's z axis."""
+
+    profile: list[Annotated[list[Finite], Field(min_length=2, max_length=2)]] = Field(
+        description="[r, z] points in metres from a point on the axis (r = 0), around the "
+        "material, back to the axis; the axis closes it."
+    )
+
+    @model_validator(mode="after")
+    def _solid(self) -> RevolveGeometry:
+        from ssgc.constraints.revolved import profile_problem
+
+        problem = profile_problem(self.profile)
+        if problem is not None:
+            raise ValueError(problem)
+        return self
+
+
 class PlacedGeometry(Strict):
     """Where a geometry sits in its object's frame: the data may put an object's frame at its
     base (a dish on a floor), while a primitive is centred on its own origin."""
@@ -342,7 +360,11 @@ class MeshG(PlacedGeometry):
     mesh: MeshGeometry
 
 
-GEOMETRY_KINDS = ("box", "cylinder", "sphere", "mesh")
+class RevolveG(PlacedGeometry):
+    revolve: RevolveGeometry
+
+
+GEOMETRY_KINDS = ("box", "cylinder", "sphere", "mesh", "revolve")
 
 
 def geometry_key(value: Any) -> str | None:
@@ -364,11 +386,12 @@ Geometry = Annotated[
         Annotated[CylinderG, Tag("cylinder-geometry")],
         Annotated[SphereG, Tag("sphere-geometry")],
         Annotated[MeshG, Tag("mesh-geometry")],
+        Annotated[RevolveG, Tag("revolve-geometry")],
     ],
     Discriminator(
         geometry_key,
         custom_error_type="invalid_choice",
-        custom_error_message="expected a geometry: one of box, cylinder, sphere, mesh "
+        custom_error_message="expected a geometry: one of box, cylinder, sphere, mesh, revolve "
         "(and optionally origin)",
     ),
 ]
@@ -561,6 +584,13 @@ ConstraintName = Annotated[
 class Root(Strict):
     type: TypeName
     pose: Pose = Field(default_factory=Pose)
+    required: bool = Field(
+        False,
+        description=(
+            "Every scene shows the root object: a scene without one has no parse (default: a"
+            " scene may leave an observed root out, and it is then implied at its pose)."
+        ),
+    )
 
 
 class NoiseSpec(Strict):

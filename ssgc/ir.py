@@ -124,6 +124,9 @@ class Grammar:
     type_ids: dict[str, int] = field(default_factory=dict)
     constraints: tuple[Any, ...] = ()  # ssgc.constraints.Constraint, in file order
     observation: Any = None  # the validated `observation` section (ssgc.observation), if any
+    # the root type every scene must show (`root: {required: true}`), else None: a scene may
+    # leave an observed root out (it is then implied at its pose, at no cost)
+    required_root: int | None = None
 
     def type_id(self, name: str) -> int:
         return self.type_ids[name]

@@ -375,6 +375,54 @@ def test_a_type_the_grammar_never_makes_is_named():
     assert "never produces a Fork" in d.message
 
 
+BIN = """
+grammar: bin
+root: {type: Bin, pose: {xyz: [0.5, 0, 0]}, required: true}
+types:
+  Bin:
+    observed: true
+    repeat:
+      count: {probs: [0.2, 0.3, 0.3, 0.2]}
+      rule:
+        child: Mug
+        translation: {world_normal_offset: {mean: [0, 0, 0.02], variance: [0.01, 0.01, 0.01]}}
+        rotation: uniform
+  Mug: {observed: true}
+"""
+
+
+def bin_scene(g, first: str = "Bin") -> Scene:
+    """A bin (object 0, at the root's pose, unless `first` names another type) and two mugs."""
+    xyz = np.array([[0.5, 0.0, 0.0], [0.45, 0.05, 0.02], [0.6, -0.1, 0.03]])
+    types = np.array([g.type_ids[first], g.type_ids["Mug"], g.type_ids["Mug"]])
+    return Scene("bin", types, xyz, rpy_to_quat(np.zeros((3, 3))))
+
+
+def test_a_required_root_given_another_type_is_named():
+    """The bin called a mug: with `required: true` no tree holds the scene (and no removal
+    helps), and the diagnosis names the object lying where the bin is; without it the scene
+    parses with an implied bin and one more mug."""
+    g = compile_text(BIN)
+    assert Parser(g).parse(bin_scene(g)).parses
+    scene = bin_scene(g, first="Mug")
+    result = Parser(g).parse(scene)
+    assert not result.parses and result.status == "infeasible"
+    assert "has no Bin" in result.message
+    d = diagnose(g, scene)
+    assert d.objects == [0] and "Mug #0 lies where the Bin is" in d.message
+    assert "lies at the pose of the missing Bin (0.0 cm, 0.0° off)" in d.reasons[0]
+    lenient = compile_text(BIN.replace(", required: true", ""))
+    assert Parser(lenient).parse(scene).parses
+
+
+def test_a_missing_required_root_with_nothing_at_its_pose_names_no_object():
+    g = compile_text(BIN)
+    scene = bin_scene(g)
+    scene = replace(scene, types=scene.types[1:], xyz=scene.xyz[1:], quat=scene.quat[1:])
+    d = diagnose(g, scene)
+    assert d.objects == [] and "no object lies where the Bin is" in d.message
+
+
 def test_parse_cli_names_the_object(dinner, tmp_path):
     scene = moved(dinner_scene(dinner), 3, [0.0, 0.0, -0.02])
     grammar, path = tmp_path / "dinner.yaml", tmp_path / "scene.json"

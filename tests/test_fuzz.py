@@ -405,6 +405,23 @@ shape = one_of_keys(
             {"file": st.one_of(st.sampled_from(MESH_FILES), names)},
             {"scale": st.one_of(numbers, vec(3))},
         ),
+        # a profile: [r, z] points, often from the axis back to it, sometimes crossing itself,
+        # off the axis, with negative r or points of the wrong length
+        "revolve": mapping(
+            {
+                "profile": sometimes_junk(
+                    st.one_of(
+                        st.builds(
+                            lambda mid, z0, z1: [[0, z0], *mid, [0, z1]],
+                            st.lists(vec(2), max_size=6),
+                            numbers,
+                            numbers,
+                        ),
+                        st.lists(st.one_of(vec(2), vec(3), junk), max_size=6),
+                    )
+                )
+            }
+        ),
     }
 )
 # a shape, sometimes with its `origin` in the object's frame beside it (or only the origin)
@@ -494,7 +511,11 @@ observation = mapping(
 grammar_doc = mapping(
     {
         "grammar": sometimes_junk(names),
-        "root": st.one_of(type_names, mapping({"type": type_names}, {"pose": orientation}), junk),
+        "root": st.one_of(
+            type_names,
+            mapping({"type": type_names}, {"pose": orientation, "required": st.booleans()}),
+            junk,
+        ),
         "types": st.one_of(
             st.dictionaries(type_names, sometimes_junk(node_type), min_size=1, max_size=5), junk
         ),

@@ -869,6 +869,18 @@ CASES = [
         "label 'cup' already names type 'Cup'",
         id="label-claimed-twice",
     ),
+    pytest.param(
+        doc("Root: {}\n", root="{type: Root, required: true}"),
+        "required: |true",
+        "only an observed root can be required",
+        id="required-latent-root",
+    ),
+    pytest.param(
+        doc("Root: {observed: true}\n", root="{type: Root, required: 1}"),
+        "required: |1",
+        "expected true or false",
+        id="required-not-a-bool",
+    ),
 ]
 
 

@@ -26,6 +26,7 @@ from ssgc.constraints.shapes import (
     extents_of,
     geometry_origin,
     keep_out_radius,
+    solid_of,
 )
 from ssgc.constraints.structural import Children, Count, LongestChain
 from ssgc.ir import Kind, NodeType, Rule
@@ -311,10 +312,14 @@ class _Builder:
             return None
         shapes: list[Any] = [None] * self.n
         origins = [(0.0, 0.0, 0.0)] * self.n
+        solids: list[Any] = [None] * self.n
+        hollow = [False] * self.n
         r = np.zeros(self.n)
         for t in ids:
             try:
                 shapes[t] = collision_shape(self.types[t].geometry, self.c.base_dir)
+                solids[t] = solid_of(self.types[t].geometry)
+                hollow[t] = isinstance(self.types[t].geometry, dsl.RevolveG)
                 origins[t] = tuple(geometry_origin(self.types[t].geometry).tolist())
                 r[t] = bounding_radius(self.types[t].geometry, self.c.base_dir)
             except ShapeError as exc:
@@ -329,7 +334,14 @@ class _Builder:
             exempt_ancestors=s.exempt_ancestors,
         )
         return NonPenetration(
-            name, loc, pairs_of=sel, shapes=tuple(shapes), origins=tuple(origins), gap=s.margin
+            name,
+            loc,
+            pairs_of=sel,
+            shapes=tuple(shapes),
+            origins=tuple(origins),
+            solids=tuple(solids),
+            hollow=tuple(hollow),
+            gap=s.margin,
         )
 
     # ------------------------------------------------- what the grammar can produce ---

@@ -5,6 +5,13 @@ are farther apart than `SCREEN` beyond the required margin cannot decide the con
 its sphere gap (a lower bound of its true distance) stands in for its distance.  Only the
 remaining pairs go to FCL, one call each.  So the sign of a tree's margin is always exact;
 its value is exact whenever the closest pair was close enough to be measured.
+
+A `revolve` geometry (a hollow dish) goes to FCL as a triangle mesh, whose contacts say that
+two shapes touch but not how deeply: when one of a colliding pair is a revolve and the other a
+solid of revolution too (revolve, cylinder, sphere), the depth is the deepest surface point of
+either inside the other, exact in its meridian plane (ssgc/constraints/revolved.py).  That
+depth is small for thin walls that cross; `ssg explain` asks instead for how far one of the
+pair must be moved to free it (`separation`), a search with FCL's collision test.
 """
 
 from __future__ import annotations
@@ -17,9 +24,15 @@ from numpy.typing import NDArray
 
 from ssgc.constraints.base import Constraint, FloatArray, per_scene_min
 from ssgc.constraints.pose import Clearance
-from ssgc.geometry import quat_rotate
+from ssgc.constraints.revolved import Revolved, penetration_depth
+from ssgc.geometry import quat_rotate, quat_to_matrix
 
 SCREEN = 0.05  # m
+MIN_DEPTH = 1e-4  # m: a colliding pair's least depth (a collision is never a zero margin)
+SEPARATION_MAX = 0.5  # m: the farthest a separation search looks
+SEPARATION_STEPS = np.concatenate([[0.0], 0.001 * 1.25 ** np.arange(28)])  # m, to 0.41 m
+_DIAGONALS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) / np.sqrt(3)
+DIRECTIONS = np.concatenate([np.eye(3), -np.eye(3), _DIAGONALS])  # world directions tried
 
 
 @dataclass(frozen=True)
@@ -29,6 +42,8 @@ class NonPenetration(Constraint):
     pairs_of: Clearance | None = None  # selection, exemptions (radius = bounding radius)
     shapes: tuple[Any, ...] = ()  # per type: FCL geometry or None
     origins: tuple[tuple[float, float, float], ...] = ()  # per type: geometry's place in frame
+    solids: tuple[Revolved | None, ...] = ()  # per type: as a solid of revolution, or None
+    hollow: tuple[bool, ...] = ()  # per type: a revolve (its FCL mesh gives no depth)
     gap: float = 0.0
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "non_penetration"
@@ -40,11 +55,14 @@ class NonPenetration(Constraint):
         i, _, dist = self.pair_distances(batch)
         return per_scene_min(batch.scene[i], dist - self.gap, batch.n_scenes)
 
-    def pair_distances(self, batch: Any) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatArray]:
+    def pair_distances(
+        self, batch: Any, separation: bool = False
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatArray]:
         """(i, j, distance) for every non-exempt pair: FCL's signed distance (minus the
         penetration depth when they collide) for pairs closer than `SCREEN` beyond the gap,
         their bounding spheres' gap (a lower bound) for the others.  `ssg explain` reads the
-        pairs (ssgc/overlaps.py)."""
+        pairs (ssgc/overlaps.py) with `separation`: a colliding pair with a revolve then gets
+        minus its `separation` (how far one must move to free it) as its distance."""
         assert self.pairs_of is not None
         i, j = self.pairs_of.pairs(batch)
         r = self.pairs_of.radius
@@ -57,10 +75,12 @@ class NonPenetration(Constraint):
         self.screened[0] += len(i)
         self.screened[1] += len(near)
         if len(near):
-            dist[near] = self._distances(batch, i[near], j[near])
+            dist[near] = self._distances(batch, i[near], j[near], separation)
         return i, j, dist
 
-    def _distances(self, batch: Any, i: NDArray[np.int64], j: NDArray[np.int64]) -> FloatArray:
+    def _distances(
+        self, batch: Any, i: NDArray[np.int64], j: NDArray[np.int64], separation: bool = False
+    ) -> FloatArray:
         import fcl
 
         out = np.empty(len(i))
@@ -71,11 +91,71 @@ class NonPenetration(Constraint):
             ob = self._object(batch, int(b))
             cres = fcl.CollisionResult()
             if fcl.collide(oa, ob, creq, cres):
+                if separation and self._is_hollow(batch, int(a), int(b)):
+                    out[k] = -max(MIN_DEPTH, self.separation(oa, ob))
+                    continue
+                profiled = self._profiled_depth(batch, int(a), int(b))
                 depth = [c.penetration_depth for c in cres.contacts]
-                out[k] = -max(depth, default=0.0)
+                out[k] = -(max(depth, default=0.0) if profiled is None else profiled)
             else:
                 out[k] = fcl.distance(oa, ob, request, fcl.DistanceResult())
         return out
+
+    def _is_hollow(self, batch: Any, a: int, b: int) -> bool:
+        return bool(self.hollow) and (
+            self.hollow[int(batch.type[a])] or self.hollow[int(batch.type[b])]
+        )
+
+    @staticmethod
+    def separation(oa: Any, ob: Any) -> float:
+        """How far `ob` must be moved to no longer collide with `oa` (FCL collision objects):
+        the least over `DIRECTIONS` and the line between their centres of the first
+        `SEPARATION_STEPS` distance that frees it, refined by bisection.  A penetration depth
+        that means something for hollow shapes, whose crossing walls are thin
+        (`SEPARATION_MAX` when nothing within it frees the pair)."""
+        import fcl
+
+        start = np.asarray(ob.getTranslation(), float)
+        centre = start - np.asarray(oa.getTranslation(), float)
+        norm = np.linalg.norm(centre)
+        ways = DIRECTIONS if norm < 1e-9 else np.vstack([DIRECTIONS, centre / norm])
+        request = fcl.CollisionRequest()
+
+        def hits(t: float, u: FloatArray) -> bool:
+            ob.setTranslation(start + t * u)
+            return bool(fcl.collide(oa, ob, request, fcl.CollisionResult()))
+
+        best = SEPARATION_MAX
+        for u in ways:
+            below = 0.0
+            for t in SEPARATION_STEPS[1:]:
+                if t >= best:
+                    break
+                if not hits(float(t), u):
+                    for _ in range(6):  # bisect between the last hit and the first miss
+                        mid = (below + t) / 2
+                        below, t = (mid, t) if hits(mid, u) else (below, mid)
+                    best = min(best, float(t))
+                    break
+                below = float(t)
+        ob.setTranslation(start)
+        return best
+
+    def _profiled_depth(self, batch: Any, a: int, b: int) -> float | None:
+        """The penetration depth of a colliding pair measured on the solids' surface points
+        when one is a revolve and both are solids of revolution, else None (FCL's depth).  At
+        least `MIN_DEPTH`: FCL found them colliding even if no surface point lies inside (thin
+        walls crossing between points)."""
+        ta, tb = int(batch.type[a]), int(batch.type[b])
+        if not self.hollow or not (self.hollow[ta] or self.hollow[tb]):
+            return None
+        sa, sb = self.solids[ta], self.solids[tb]
+        if sa is None or sb is None:
+            return None
+        ra, rb = quat_to_matrix(np.stack([batch.quat[a], batch.quat[b]]))
+        pa = batch.xyz[a] + ra @ np.asarray(self.origins[ta] or (0, 0, 0), float)
+        pb = batch.xyz[b] + rb @ np.asarray(self.origins[tb] or (0, 0, 0), float)
+        return max(MIN_DEPTH, penetration_depth(sa, sb, ra.T @ rb, ra.T @ (pb - pa)))
 
     def _object(self, batch: Any, node: int) -> Any:
         import fcl

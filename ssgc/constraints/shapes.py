@@ -2,8 +2,9 @@
 
 The one place constraints read a type's `geometry` (so a richer geometry description only
 changes this file).  Primitives are centred on the geometry's `origin` (a point in the type's
-frame, default the frame's origin); a cylinder's axis is its z axis (as in SDF and FCL).
-Radii are about the type's frame, so they include the origin's offset.
+frame, default the frame's origin); a cylinder's axis is its z axis (as in SDF and FCL).  A
+`revolve` (a solid of revolution, ssgc/constraints/revolved.py) has its profile's z = 0 and
+axis at the origin.  Radii are about the type's frame, so they include the origin's offset.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc import dsl
+from ssgc.constraints.revolved import Revolved
 
 
 class ShapeError(ValueError):
@@ -58,6 +60,8 @@ def _footprint_radius(geometry: Any, base_dir: Path | None) -> float:
     if isinstance(geometry, dsl.BoxG):
         x, y, _ = geometry.box.size
         return float(np.hypot(x, y) / 2)
+    if isinstance(geometry, dsl.RevolveG):
+        return Revolved(geometry.revolve.profile).radius
     v = _mesh_vertices(geometry.mesh, base_dir)
     return float(np.max(np.hypot(v[:, 0], v[:, 1]), initial=0.0))
 
@@ -77,6 +81,8 @@ def _own_radius(geometry: Any, base_dir: Path | None) -> float:
         return float(geometry.sphere.radius)
     if isinstance(geometry, dsl.BoxG):
         return float(np.linalg.norm(geometry.box.size) / 2)
+    if isinstance(geometry, dsl.RevolveG):
+        return Revolved(geometry.revolve.profile).bounding_radius
     v = _mesh_vertices(geometry.mesh, base_dir)
     return float(np.max(np.linalg.norm(v, axis=1), initial=0.0))
 
@@ -98,10 +104,13 @@ def collision_shape(geometry: Any, base_dir: Path | None = None) -> Any:
         return fcl.Sphere(geometry.sphere.radius)
     if isinstance(geometry, dsl.BoxG):
         return fcl.Box(*geometry.box.size)
-    import trimesh
+    if isinstance(geometry, dsl.RevolveG):
+        v, faces = Revolved(geometry.revolve.profile).mesh()
+    else:
+        import trimesh
 
-    v = _mesh_vertices(geometry.mesh, base_dir)
-    faces = np.asarray(trimesh.load(base_dir / geometry.mesh.file, force="mesh").faces)  # type: ignore[operator]
+        v = _mesh_vertices(geometry.mesh, base_dir)
+        faces = np.asarray(trimesh.load(base_dir / geometry.mesh.file, force="mesh").faces)  # type: ignore[operator]
     model = fcl.BVHModel()
     model.beginModel(len(v), len(faces))
     model.addSubModel(v, faces)
@@ -109,27 +118,40 @@ def collision_shape(geometry: Any, base_dir: Path | None = None) -> Any:
     return model
 
 
+def solid_of(geometry: Any) -> Revolved | None:
+    """The geometry as a solid of revolution about its origin (a revolve, a cylinder, a
+    sphere), whose penetration depths are measured on its surface points; None for a box, a
+    mesh or no geometry."""
+    if isinstance(geometry, dsl.RevolveG):
+        return Revolved(geometry.revolve.profile)
+    if isinstance(geometry, dsl.CylinderG):
+        return Revolved.cylinder(geometry.cylinder.radius, geometry.cylinder.length)
+    if isinstance(geometry, dsl.SphereG):
+        return Revolved.sphere(geometry.sphere.radius)
+    return None
+
+
 @dataclass(frozen=True)
 class Extents:
     """Per type, what `frame_extents` needs to bound its geometry along any axes: the kind
-    (0 none, 1 box, 2 cylinder, 3 sphere, 4 mesh), the half sizes (box: half sides; cylinder:
-    radius, half length; sphere: radius), the geometry's origin in the type's frame, and a
-    mesh's vertices (about its own origin)."""
+    (0 none, 1 box, 2 cylinder, 3 sphere, 4 mesh, 5 revolve), the half sizes (box: half sides;
+    cylinder: radius, half length; sphere: radius), the geometry's origin in the type's frame,
+    and a mesh's vertices (about its own origin) or a revolve's solid."""
 
     kind: NDArray[np.int64]
     half: NDArray[np.float64]  # (types, 3)
     origin: NDArray[np.float64]  # (types, 3)
-    vertices: tuple[NDArray[np.float64] | None, ...]
+    vertices: tuple[NDArray[np.float64] | Revolved | None, ...]
 
 
-NO_SHAPE, BOX, CYLINDER, SPHERE, MESH = range(5)
+NO_SHAPE, BOX, CYLINDER, SPHERE, MESH, REVOLVE = range(6)
 
 
 def extents_of(geometries: list[Any], base_dir: Path | None = None) -> Extents:
     """The `Extents` of each type's geometry (None: a point at the type's origin)."""
     n = len(geometries)
     kind, half, origin = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3))
-    vertices: list[NDArray[np.float64] | None] = [None] * n
+    vertices: list[NDArray[np.float64] | Revolved | None] = [None] * n
     for t, g in enumerate(geometries):
         if g is None:
             continue
@@ -140,6 +162,8 @@ def extents_of(geometries: list[Any], base_dir: Path | None = None) -> Extents:
             kind[t], half[t] = CYLINDER, (g.cylinder.radius, g.cylinder.length / 2, 0.0)
         elif isinstance(g, dsl.SphereG):
             kind[t], half[t] = SPHERE, (g.sphere.radius, 0.0, 0.0)
+        elif isinstance(g, dsl.RevolveG):
+            kind[t], vertices[t] = REVOLVE, Revolved(g.revolve.profile)
         else:
             kind[t], vertices[t] = MESH, _mesh_vertices(g.mesh, base_dir)
     return Extents(kind, half, origin, tuple(vertices))
@@ -151,7 +175,8 @@ def frame_extents(
     """(lo, hi), each (n, 3): the lowest and highest coordinate of each node's geometry along
     the axes of a frame, relative to the node's origin, where `rot` (n, 3, 3) is the node's
     rotation in that frame.  Closed forms for primitives (a cylinder of axis a reaches
-    |a_k| h + r sqrt(1 - a_k^2) along axis k); a mesh's vertices otherwise."""
+    |a_k| h + r sqrt(1 - a_k^2) along axis k) and per profile vertex for a revolve
+    (`Revolved.reach`); a mesh's vertices otherwise."""
     centre = np.einsum("nij,nj->ni", rot, ext.origin[types])
     half = np.zeros((len(types), 3))
     k, h = ext.kind[types], ext.half[types]
@@ -168,4 +193,10 @@ def frame_extents(
         m = np.flatnonzero(types == t)
         v = np.einsum("nij,vj->nvi", rot[m], ext.vertices[int(t)])
         lo[m], hi[m] = centre[m] + v.min(axis=1), centre[m] + v.max(axis=1)
+    for t in np.unique(types[k == REVOLVE]):
+        m = np.flatnonzero(types == t)
+        solid = ext.vertices[int(t)]
+        assert isinstance(solid, Revolved)
+        low, high = solid.reach(rot[m][:, :, 2])
+        lo[m], hi[m] = centre[m] + low, centre[m] + high
     return lo, hi

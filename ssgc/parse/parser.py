@@ -262,8 +262,11 @@ class Parser:
 
     def check_capacity(self, scene: Scene) -> None:
         """Refuse, before any model is built, a scene with more objects (of one type, or in
-        all) than any tree of the grammar can hold."""
+        all) than any tree of the grammar can hold, or without the root the grammar requires."""
         counts = np.bincount(scene.types, minlength=len(self.grammar.types))
+        need = self.grammar.required_root
+        if need is not None and counts[need] == 0:
+            raise UnparseableScene.single(missing_root(self.grammar, scene.name), exit_code=2)
         over = np.flatnonzero(counts > self.capacity[:-1])
         parts = [
             f"{counts[t]} {self.grammar.types[t].name} (at most {self.capacity[t]})" for t in over
@@ -784,3 +787,13 @@ def result_to_json(grammar: Grammar, result: SceneParses) -> dict[str, Any]:
     if result.message:
         out["message"] = result.message
     return out
+
+
+def missing_root(grammar: Grammar, scene_name: str) -> str:
+    """Why a scene without its grammar's required root has no tree."""
+    assert grammar.required_root is not None
+    name = grammar.types[grammar.required_root].name
+    return (
+        f"scene '{scene_name}' has no {name}: every scene of this grammar shows its root "
+        f"(`root: {{required: true}}` in {grammar.file})"
+    )
