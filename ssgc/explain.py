@@ -1100,8 +1100,9 @@ def diagnose(
             drop = sorted(base | set(extra))
             if not drop:
                 continue
-            rest = _without(scene, drop)
-            result = parser.parse(rest, top=1, time_limit=max(0.5, min(left, 10.0)))
+            rest = _without(scene, drop)  # a required root set aside is implied at its pose
+            limit = max(0.5, min(left, 10.0))
+            result = parser.parse(rest, top=1, time_limit=limit, imply_root=True)
             if result.parses:
                 found.append((result.parses[0].score, drop, result.parses[0].tree))
         if found:

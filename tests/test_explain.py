@@ -415,6 +415,14 @@ def test_a_required_root_given_another_type_is_named():
     assert Parser(lenient).parse(scene).parses
 
 
+def test_a_moved_required_root_is_named():
+    """The bin moved off the root's pose: set aside by the diagnosis, the rest parses with the
+    bin implied (the search must not stop at "the scene has no Bin")."""
+    g = compile_text(BIN)
+    d = diagnose(g, moved(bin_scene(g), 0, [0.15, 0.0, 0.0]))
+    assert d.objects == [0] and "Bin #0" in d.message
+
+
 def test_a_missing_required_root_with_nothing_at_its_pose_names_no_object():
     g = compile_text(BIN)
     scene = bin_scene(g)

@@ -136,19 +136,29 @@ class Parser:
     def has_latent(self) -> bool:
         return bool(np.any(self.latent))
 
-    def parse(self, scene: Scene, top: int = 1, time_limit: float | None = None) -> SceneParses:
-        """The top parses of one scene; `time_limit` (seconds) bounds everything it does."""
+    def parse(
+        self,
+        scene: Scene,
+        top: int = 1,
+        time_limit: float | None = None,
+        imply_root: bool = False,
+    ) -> SceneParses:
+        """The top parses of one scene; `time_limit` (seconds) bounds everything it does.
+        `imply_root`: a scene without the root the grammar requires still parses, the root
+        implied at its pose (the diagnosis sets a misplaced root aside this way)."""
         if time_limit is None or not gc.isenabled():
-            return self._parse(scene, top, time_limit)
+            return self._parse(scene, top, time_limit, imply_root)
         # A full garbage collection of a large heap can pause for a tenth of a second, a
         # fifth of a short limit; reference counting still frees what one parse discards.
         gc.disable()
         try:
-            return self._parse(scene, top, time_limit)
+            return self._parse(scene, top, time_limit, imply_root)
         finally:
             gc.enable()
 
-    def _parse(self, scene: Scene, top: int, time_limit: float | None) -> SceneParses:
+    def _parse(
+        self, scene: Scene, top: int, time_limit: float | None, imply_root: bool = False
+    ) -> SceneParses:
         t0 = time.perf_counter()
         # the last steps after a deadline check (a vectorised pass, HiGHS's exit) take a moment
         deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
@@ -158,7 +168,7 @@ class Parser:
         run: _Run | None = None
         propose_s = 0.0
         try:
-            self.check_capacity(scene)
+            self.check_capacity(scene, imply_root)
             step = "build"  # the poses the objects imply: part of every model
             cand = candidate_poses(self.grammar, self.supertree, scene, deadline)
             step = "proposals"
@@ -260,12 +270,12 @@ class Parser:
         objects), and for a reduction that says so (`complete = True`)."""
         return not request.latent or bool(getattr(reduction, "complete", False))
 
-    def check_capacity(self, scene: Scene) -> None:
+    def check_capacity(self, scene: Scene, imply_root: bool = False) -> None:
         """Refuse, before any model is built, a scene with more objects (of one type, or in
         all) than any tree of the grammar can hold, or without the root the grammar requires."""
         counts = np.bincount(scene.types, minlength=len(self.grammar.types))
         need = self.grammar.required_root
-        if need is not None and counts[need] == 0:
+        if need is not None and counts[need] == 0 and not imply_root:
             raise UnparseableScene.single(missing_root(self.grammar, scene.name), exit_code=2)
         over = np.flatnonzero(counts > self.capacity[:-1])
         parts = [
