@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from ssgc.constraints.base import Constraint, FloatArray, per_scene_min
+from ssgc.constraints.base import Constraint, FloatArray, per_scene_argmin, per_scene_min
 from ssgc.constraints.pose import Clearance
 from ssgc.constraints.revolved import Revolved, penetration_depth
 from ssgc.geometry import quat_rotate, quat_to_matrix
@@ -65,6 +65,13 @@ class NonPenetration(Constraint):
         minus its `separation` (how far one must move to free it) as its distance."""
         assert self.pairs_of is not None
         i, j = self.pairs_of.pairs(batch)
+        return i, j, self.distances_of(batch, i, j, separation)
+
+    def distances_of(
+        self, batch: Any, i: NDArray[np.int64], j: NDArray[np.int64], separation: bool = False
+    ) -> FloatArray:
+        """The distances of `pair_distances` for the given pairs only (nodes i[k], j[k])."""
+        assert self.pairs_of is not None
         r = self.pairs_of.radius
         dist = (
             np.linalg.norm(batch.xyz[i] - batch.xyz[j], axis=1)
@@ -76,7 +83,18 @@ class NonPenetration(Constraint):
         self.screened[1] += len(near)
         if len(near):
             dist[near] = self._distances(batch, i[near], j[near], separation)
-        return i, j, dist
+        return dist
+
+    def closest_pairs(self, batch: Any) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.int64]]:
+        """(margins (n_scenes,), a, b): each tree's margin and its closest pair's nodes (one
+        entry per tree that has pairs).  The margin is the minimum over pairs, so its
+        gradient is that pair's distance's (a subgradient at ties): the samplers difference
+        two nodes, not every node against every pair."""
+        i, j, dist = self.pair_distances(batch)
+        m = per_scene_min(batch.scene[i], dist - self.gap, batch.n_scenes)
+        best = per_scene_argmin(batch.scene[i], dist, batch.n_scenes)
+        k = best[best >= 0]
+        return m, i[k], j[k]
 
     def _distances(
         self, batch: Any, i: NDArray[np.int64], j: NDArray[np.int64], separation: bool = False
