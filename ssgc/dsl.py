@@ -326,7 +326,7 @@ class RevolveGeometry(Strict):
 
     @model_validator(mode="after")
     def _solid(self) -> RevolveGeometry:
-        from ssgc.constraints.revolved import profile_problem
+        from ssgc.geometry import profile_problem
 
         problem = profile_problem(self.profile)
         if problem is not None:

@@ -15,9 +15,9 @@ from typer.testing import CliRunner
 from ssgc.cli.app import app
 from ssgc.compile import compile_text
 from ssgc.constraints.penetration import NonPenetration
-from ssgc.constraints.revolved import Revolved, profile_problem
+from ssgc.constraints.revolved import Revolved
 from ssgc.constraints.shapes import Extents, frame_extents
-from ssgc.geometry import quat_to_matrix
+from ssgc.geometry import profile_problem, quat_to_matrix
 
 BOWL = [[0, 0], [0.045, 0], [0.08, 0.062], [0.076, 0.062], [0.041, 0.005], [0, 0.005]]
 MUG = [[0, 0], [0.04, 0], [0.045, 0.1], [0.041, 0.1], [0.036, 0.005], [0, 0.005]]

@@ -20,58 +20,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ssgc.geometry import profile_area
+
 FloatArray = NDArray[np.float64]
 
 MESH_SECTIONS = 48  # facets around the axis of the triangle mesh (FCL, exports, render)
 SAMPLE_SPACING = 0.008  # m: surface points for penetration depths (the samplers' margins)
 MAX_SAMPLES = 400  # along the profile and around a ring: a huge profile gets sparser points
-
-
-def profile_problem(profile: list[list[float]]) -> str | None:
-    """Why a `revolve` profile is not a solid's cross-section, or None when it is: at least
-    three points, each [r, z] with r >= 0, the first and last on the axis (r = 0) and no others,
-    edges that do not cross, and a non-zero area."""
-    p = np.asarray(profile, float)
-    with np.errstate(all="ignore"):  # huge coordinates overflow to a clear message below
-        return _problem(p)
-
-
-def _problem(p: FloatArray) -> str | None:
-    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 3:
-        return "a profile is a list of at least three [r, z] points"
-    if np.any(p[:, 0] < 0):
-        return "every r of a profile is >= 0 (the axis is r = 0)"
-    if p[0, 0] != 0 or p[-1, 0] != 0:
-        return "a profile starts and ends on the axis (r = 0), going around the material"
-    if np.any(p[1:-1, 0] == 0):
-        return "only a profile's first and last points lie on the axis (r = 0)"
-    if not abs(_area(p)) >= 1e-12:  # also when it overflows to nan
-        return "a profile encloses no area"
-    if _crossing(p):
-        return "a profile's edges cross each other"
-    return None
-
-
-def _area(p: FloatArray) -> float:
-    r, z = p[:, 0], p[:, 1]
-    return float(0.5 * np.sum(r * np.roll(z, -1) - np.roll(r, -1) * z))
-
-
-def _crossing(p: FloatArray) -> bool:
-    """Whether two non-adjacent edges of the closed polygon (the axis closes it) properly
-    cross."""
-    a, b = p, np.roll(p, -1, axis=0)
-    n = len(p)
-    i, j = np.triu_indices(n, k=2)
-    keep = ~((i == 0) & (j == n - 1))  # the closing edge meets the first one
-    i, j = i[keep], j[keep]
-
-    def side(o: FloatArray, x: FloatArray, y: FloatArray) -> FloatArray:
-        return (x[:, 0] - o[:, 0]) * (y[:, 1] - o[:, 1]) - (x[:, 1] - o[:, 1]) * (y[:, 0] - o[:, 0])
-
-    d1, d2 = side(a[j], b[j], a[i]), side(a[j], b[j], b[i])
-    d3, d4 = side(a[i], b[i], a[j]), side(a[i], b[i], b[j])
-    return bool(np.any((d1 * d2 < 0) & (d3 * d4 < 0)))
 
 
 class Revolved:
@@ -197,7 +152,7 @@ class Revolved:
                 faces.append(np.stack([a + k, a + k1, b + k1], 1))
                 faces.append(np.stack([a + k, b + k1, b + k], 1))
         tri = np.concatenate(faces)
-        if _area(self.rz) < 0:  # clockwise profile: the faces above point inwards
+        if profile_area(self.rz) < 0:  # clockwise profile: the faces above point inwards
             tri = tri[:, ::-1]
         return verts, tri
 
