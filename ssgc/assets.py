@@ -121,15 +121,14 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
     g = t.geometry
     origin = np.asarray(g.origin, float)
     if isinstance(g, dsl.MeshG | dsl.RevolveG):  # a revolve's surface is a mesh to exporters
-        mesh = (
-            _load_mesh(mesh_path(grammar, t), g.mesh.scale)
-            if isinstance(g, dsl.MeshG)
-            else _revolve_mesh(trimesh, g)
-        )
+        if isinstance(g, dsl.MeshG):
+            mesh, source = _load_mesh(mesh_path(grammar, t), g.mesh.scale), g.mesh.file
+        else:
+            mesh, source = _revolve_mesh(trimesh, g), ""
         mesh.apply_translation(origin)  # type: ignore[attr-defined]
         volume, com, unit_inertia = _mesh_mass_properties(mesh)
         pieces = _collision_pieces(mesh, body.collision, t.name) if collision else ()
-        kind, size, source = "mesh", (), g.mesh.file if isinstance(g, dsl.MeshG) else ""
+        kind, size = "mesh", ()
     else:
         kind, size = _primitive(g)
         mesh = _primitive_mesh(trimesh, kind, size)

@@ -59,6 +59,13 @@ def closest_pair_gradient(
     return m, g_xyz, g_rot
 
 
+def _small_turn(axis: int, sign: float) -> FloatArray:
+    """The quaternion of a turn by ±FD_ANGLE about a world axis."""
+    q = np.zeros(4)
+    q[0], q[1 + axis] = np.cos(FD_ANGLE / 2), sign * np.sin(FD_ANGLE / 2)
+    return q
+
+
 def _pair_difference(
     c: NonPenetration, batch: Any, a: Any, b: Any, nodes: Any, axis: int, turn: bool
 ) -> FloatArray:
@@ -67,10 +74,8 @@ def _pair_difference(
     diff = np.zeros(len(a))
     for sign in (1.0, -1.0):
         if turn:
-            q = np.zeros(4)
-            q[0], q[1 + axis] = np.cos(FD_ANGLE / 2), sign * np.sin(FD_ANGLE / 2)
             quat = batch.quat.copy()
-            quat[nodes] = quat_multiply(q, quat[nodes])
+            quat[nodes] = quat_multiply(_small_turn(axis, sign), quat[nodes])
             moved = replace(batch, quat=quat)
         else:
             xyz = batch.xyz.copy()
@@ -234,10 +239,8 @@ def rotation_difference(c: Constraint, batch: Any, types: Any) -> FloatArray:
         for axis in range(3):
             diff = np.zeros(batch.n_scenes)
             for sign in (1.0, -1.0):
-                turn = np.zeros(4)
-                turn[0], turn[1 + axis] = np.cos(FD_ANGLE / 2), sign * np.sin(FD_ANGLE / 2)
                 quat = batch.quat.copy()
-                quat[at] = quat_multiply(turn, quat[at])
+                quat[at] = quat_multiply(_small_turn(axis, sign), quat[at])
                 m = c.margin(replace(batch, quat=quat))
                 diff += sign * np.where(np.isfinite(m), m, 0.0)
             grad[at, axis] = diff[batch.scene[at]] / (2 * FD_ANGLE)

@@ -164,9 +164,9 @@ class NonPenetration(Constraint):
         when one is a revolve and both are solids of revolution, else None (FCL's depth).  At
         least `MIN_DEPTH`: FCL found them colliding even if no surface point lies inside (thin
         walls crossing between points)."""
-        ta, tb = int(batch.type[a]), int(batch.type[b])
-        if not self.hollow or not (self.hollow[ta] or self.hollow[tb]):
+        if not self._is_hollow(batch, a, b):
             return None
+        ta, tb = int(batch.type[a]), int(batch.type[b])
         sa, sb = self.solids[ta], self.solids[tb]
         if sa is None or sb is None:
             return None
