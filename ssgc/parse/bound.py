@@ -27,7 +27,6 @@ wrong one.
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -51,6 +50,7 @@ from ssgc.parse.bound_chain import (
     pin_column,
 )
 from ssgc.parse.bound_rotation import rotation_search
+from ssgc.parse.clock import past
 from ssgc.parse.milp import Milp
 from ssgc.parse.posed import (
     FREE_CHILD,
@@ -450,8 +450,9 @@ def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: 
     """For rows held to a revolute family, the best rotation along its arc under the exact
     densities (a grid, then a finer grid around its best point), each with its best position;
     a row keeps its pose unless the search finds a better one.  The Newton polish cannot move
-    along the arc: off it the law's density is -inf.  Past the deadline the finer grids are
-    skipped (the pose found so far stands: the bound does not depend on it)."""
+    along the arc: off it the law's density is -inf.  Past the deadline the search stops, at
+    any grid point (the pose found so far stands: the bound does not depend on it); the first
+    grid alone took 0.3 s of CPU on a random latent grammar's rows."""
     rows = np.flatnonzero(terms.revolute)
     owner = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)
     sub, _ = _sub_edges(edges, owner, rows)
@@ -461,11 +462,11 @@ def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: 
     best_v = _owned_values(grammar, sub, sub_owner, best_x, best_q)
     lo, hi = part.arc[:, 0], part.arc[:, 1]
     centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    for level, width in enumerate((2.0 / REVOLUTE_GRID) ** np.arange(REVOLUTE_LEVELS)):
-        if level and deadline is not None and time.perf_counter() >= deadline:
-            break
+    for width in (2.0 / REVOLUTE_GRID) ** np.arange(REVOLUTE_LEVELS):
         psi0 = centre.copy()  # a grid that finds nothing better keeps its centre
         for f in np.linspace(-1.0, 1.0, REVOLUTE_GRID):
+            if past(deadline):
+                break
             psi = np.clip(centre + f * half * width, lo, hi)
             q = _arc_point(part, psi)
             # the relaxation's best position for this rotation (exact where every
@@ -481,6 +482,8 @@ def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: 
                 best_q = np.where(better[:, None], q, best_q)
                 psi0 = np.where(better, psi, psi0)
         centre = np.where(np.isfinite(best_v), psi0, centre)
+        if past(deadline):
+            break
     xyz, quat = xyz.copy(), quat.copy()
     xyz[rows], quat[rows] = best_x, best_q
     return xyz, quat

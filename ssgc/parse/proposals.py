@@ -37,7 +37,7 @@ from ssgc.laws.base import POS_TOL, ROT_TOL, Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
 from ssgc.parse import hard_laws
-from ssgc.parse.clock import check_deadline
+from ssgc.parse.clock import check_deadline, past
 from ssgc.parse.poses import PoseEdges, maximize_independent
 from ssgc.parse.supertree import Supertree
 from ssgc.rules import sample_children
@@ -591,7 +591,7 @@ def add_hard_poses(
         for e in sets:
             if deadline is not None and time.perf_counter() >= deadline:
                 return
-            xyz, quat = _hard_set(grammar, st, cand, int(e), solved)
+            xyz, quat = _hard_set(grammar, st, cand, int(e), solved, deadline)
             if len(xyz):
                 n_old = len(cand.xyz[e])
                 cand.add(int(e), xyz, quat)
@@ -607,8 +607,15 @@ def _preferred(cand: Candidates, e: int, solved: dict[int, FloatArray], n: int) 
 
 
 def _hard_set(
-    grammar: Grammar, st: Supertree, cand: Candidates, e: int, solved: dict[int, FloatArray]
+    grammar: Grammar,
+    st: Supertree,
+    cand: Candidates,
+    e: int,
+    solved: dict[int, FloatArray],
+    deadline: float | None = None,
 ) -> tuple[FloatArray, FloatArray]:
+    """Hard-law poses of set e; past `deadline` it returns those solved so far (one set's
+    combinations take up to a tenth of a second: a check per set let a parse overrun)."""
     top = int(st.set_top[e])
     r0 = int(st.rule[top])
     p = int(st.parent[top])
@@ -635,7 +642,7 @@ def _hard_set(
     for group in (relayed, pairs, [c for c in combos if len(c) == 1] + [()]):
         found = 0
         for combo in group:
-            if found >= HARD_PER_SET // 2:
+            if found >= HARD_PER_SET // 2 or past(deadline):
                 break
             found_here = 0
             for p_xyz, p_quat in parents:
