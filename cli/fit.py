@@ -77,6 +77,14 @@ def fit(
     min_variance: Annotated[
         float, typer.Option(min=1e-300, help="Floor of fitted variances (m²).")
     ] = DEFAULTS["min_variance"],
+    max_concentration: Annotated[
+        float,
+        typer.Option(
+            min=1e-6,
+            max=1e4,
+            help="Ceiling of fitted Bingham concentrations (c: a spread of about √(2/c) rad).",
+        ),
+    ] = DEFAULTS["max_concentration"],
     tol: Annotated[
         float,
         typer.Option(min=0.0, help="Stop when the log-evidence changes less (nats per scene)."),
@@ -155,6 +163,7 @@ def fit(
         samples=samples,
         pseudocount=pseudocount,
         min_variance=min_variance,
+        max_concentration=max_concentration,
         jobs=jobs,
     )
     with (
