@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from enum import StrEnum
 from pathlib import Path
@@ -23,6 +24,7 @@ from ssgc.cli.app import (
 from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
 from ssgc.io.outputs import check_output, lock_outputs, write_output_text
+from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 
 DEFAULTS = fit_defaults()  # `ssgc.fit`'s: one place for the defaults of the API and the command
 
@@ -75,8 +77,20 @@ def fit(
         ),
     ] = DEFAULTS["pseudocount"],
     min_variance: Annotated[
-        float, typer.Option(min=1e-300, help="Floor of fitted variances (m²).")
+        float,
+        typer.Option(
+            callback=lambda v: _in_range(v, "--min-variance", 0.0, math.inf),
+            help="Floor of fitted variances (m², > 0).",
+        ),
     ] = DEFAULTS["min_variance"],
+    max_concentration: Annotated[
+        float,
+        typer.Option(
+            callback=lambda v: _in_range(v, "--max-concentration", 0.0, MAX_CONCENTRATION),
+            help="Ceiling of fitted Bingham concentrations (0 < c ≤ 10000: a spread of about "
+            "√(2/c) rad).",
+        ),
+    ] = DEFAULTS["max_concentration"],
     tol: Annotated[
         float,
         typer.Option(min=0.0, help="Stop when the log-evidence changes less (nats per scene)."),
@@ -155,6 +169,7 @@ def fit(
         samples=samples,
         pseudocount=pseudocount,
         min_variance=min_variance,
+        max_concentration=max_concentration,
         jobs=jobs,
     )
     with (
@@ -200,6 +215,15 @@ def fit(
             journal.delete()
     if not quiet:
         _summary(dest, f"{result.message}; wrote {dest.name}")
+
+
+def _in_range(value: float, flag: str, low: float, high: float) -> float:
+    """A positive bound of the M-step, checked here so that the message reads as numbers are
+    written (typer prints a range's 1e-300 with all its zeros); NaN fails every comparison."""
+    if not (low < value <= high and math.isfinite(value)):
+        upper = " and finite" if math.isinf(high) else f" and at most {high:g}"
+        raise typer.BadParameter(f"must be above {low:g}{upper}, got {value:g}", param_hint=flag)
+    return value
 
 
 def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:

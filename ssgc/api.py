@@ -117,6 +117,7 @@ def fit(
     samples: int = 100,
     pseudocount: float = 0.01,
     min_variance: float = 1e-6,
+    max_concentration: float = 1e4,
     jobs: int = 1,
     time_limit: float | None = None,
 ) -> FitResult:
@@ -139,6 +140,7 @@ def fit(
         samples=samples,
         pseudocount=pseudocount,
         min_variance=min_variance,
+        max_concentration=max_concentration,
         jobs=jobs,
     )
     with open_fit(grammar, [s.data for s in scenes], where, options) as run:
@@ -167,6 +169,7 @@ def fit_options(
     samples: int,
     pseudocount: float,
     min_variance: float,
+    max_concentration: float,
     jobs: int,
 ) -> FitOptions:
     """`fit`'s options (and `ssg fit`'s flags) as the fitter (`ssgc.fit.em`) takes them."""
@@ -182,7 +185,11 @@ def fit_options(
         jobs=jobs,
         estep=estep,
         samples=samples,
-        settings=FitSettings(pseudocount=pseudocount, min_variance=min_variance),
+        settings=FitSettings(
+            pseudocount=pseudocount,
+            min_variance=min_variance,
+            max_concentration=max_concentration,
+        ),
     )
 
 

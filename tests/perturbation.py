@@ -27,13 +27,13 @@ KINDS = ("move", "flip", "retype", "move3d")
 # How the check's grammar is fitted: `ssg fit ssgc/data/sink/saved_scenes.yaml -g
 # grammars/sink_detailed.yaml -o FIT.yaml --top 1 --iterations 3` (hard EM on each scene's best
 # tree: the default top 10 took minutes for single scenes of this grammar).
-FIT = ("--top", "1", "--iterations", "3")
+FIT = ("--top", "1", "--iterations", "3", "--max-concentration", "400")
 # What was measured on all 80 scenes (docs/explain.md, "Where it stands": grammars/
 # sink_detailed.yaml fitted with FIT, its dishes `revolve` shapes, its bin required; one literal
-# run of move, flip and retype): move 63 / 80, flip 73 / 80, retype 63 / 80, less a margin of
+# run of move, flip and retype): move 64 / 80, flip 73 / 80, retype 65 / 80, less a margin of
 # about three scenes: a regression guard.  Issue 16 asks for 0.9 per kind; docs/explain.md
 # says why move and retype fall short.
-FLOORS = {"move": 0.75, "flip": 0.87, "retype": 0.75}
+FLOORS = {"move": 0.76, "flip": 0.87, "retype": 0.77}
 DETECTABLE = 2.0  # nats: the change lowers the best tree's log-probability at least this much
 SINK = "ssgc/data/sink/saved_scenes.yaml"
 

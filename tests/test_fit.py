@@ -15,6 +15,7 @@ from scipy import optimize
 from scipy.special import logsumexp
 from typer.testing import CliRunner
 
+import ssgc
 from ssgc.cli.app import app
 from ssgc.compile import compile_text
 from ssgc.distributions.bingham import Bingham
@@ -376,3 +377,40 @@ def test_a_merged_anchor_that_would_get_two_values_is_a_user_error(tmp_path):
     _, scenes = scenes_of(text, 20, 2)
     with pytest.raises(SsgError, match="cannot give one YAML node two values"):
         run_fit(tmp_path, text, scenes, iterations=1, top=1)
+
+
+def test_max_concentration_caps_every_fitted_bingham(tmp_path):
+    """`--max-concentration` is the ceiling of the fitted rotation laws: scenes drawn with a
+    concentration of 50 fit near 50 without it and at exactly the ceiling of 20 with it (the
+    data say tighter), through the CLI and `ssgc.fit` alike."""
+    data = write_dataset(
+        tmp_path / "data", (GRAMMARS / "singles_pairs_dependency.yaml").read_text(), 30, 2
+    )
+    start = tmp_path / "start.yaml"
+    start.write_text(SP_START)
+
+    def fitted_concentrations(*flags):
+        out = tmp_path / f"fitted{len(flags)}.yaml"
+        args = ["fit", str(data), "-g", str(start), "-o", str(out), "--top", "2"]
+        result = CliRunner().invoke(app, [*args, "--iterations", "2", "-q", *flags])
+        assert result.exit_code == 0, result.output
+        g = compile_text(out.read_text())
+        return np.concatenate(
+            [r.rotation.bingham.concentration for r in g.rules if hasattr(r.rotation, "bingham")]
+        )
+
+    free = fitted_concentrations()
+    assert free.max() > 30.0
+    capped = fitted_concentrations("--max-concentration", "20")
+    assert capped.max() == pytest.approx(20.0)
+    api = ssgc.fit(ssgc.load_grammar(start), data, iterations=2, top=2, max_concentration=20.0)
+    np.testing.assert_allclose(
+        np.concatenate(
+            [
+                r.rotation.bingham.concentration
+                for r in api.grammar.ir.rules
+                if hasattr(r.rotation, "bingham")
+            ]
+        ),
+        capped,
+    )

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import pytest
 from conftest import GRAMMARS, SINK_DATA
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner, Result
 
@@ -1125,6 +1125,40 @@ def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes, estep: str 
         compile_text(out.read_text(), str(out))
     else:
         assert not out.exists()
+
+
+FIT_BOUNDS = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.sampled_from(["1e-300", "10000", "10000.0001", "0", "-0", "1e4x", "", "0x10"]),
+)
+
+
+@fuzz(quick=12)
+@given(variance=FIT_BOUNDS, ceiling=FIT_BOUNDS)
+@example(variance="inf", ceiling="400")
+@example(variance="1e-4", ceiling="nan")
+def test_fuzz_fit_bounds(work: Path, variance: str, ceiling: str) -> None:
+    """`--min-variance` and `--max-concentration` given any text: a fit, or a usage message
+    naming the flag (exit 2) and no file, never an internal error (`inf` was one)."""
+    data = work / "bounds_data"
+    if not data.exists():
+        assert (
+            invoke(["sample", str(GRAMMARS / "gmm.yaml"), "-n", "4", "-o", str(data), "-q"])[
+                0
+            ].exit_code
+            == 0
+        )
+    out = work / "bounds.yaml"
+    out.unlink(missing_ok=True)
+    args = ["fit", str(data), "-g", str(GRAMMARS / "gmm.yaml"), "-o", str(out), "-q"]
+    bounds = [f"--min-variance={variance}", f"--max-concentration={ceiling}"]
+    result, _ = invoke([*args, "--iterations", "1", "--top", "1", *bounds])
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.output
+    assert result.exit_code in (0, 2), result.output
+    assert "Traceback" not in result.output
+    assert out.exists() == (result.exit_code == 0)
+    if result.exit_code == 2:
+        assert "--min-variance" in result.output or "--max-concentration" in result.output
 
 
 @fuzz(quick=8)
