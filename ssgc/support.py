@@ -40,7 +40,17 @@ IntArray = NDArray[np.int64]
 
 # The tolerance and the sink defaults live in ssgc/tails.py; a grammar's `inside_box` gives its
 # own tails (`floating:`, `outside:`), `ssg fit` measures them (ssgc/fit/tails.py).
-__all__ = ["FLOATING", "OUTSIDE", "TOLERANCE", "Finding", "Tail", "findings", "nats", "sentence"]
+__all__ = [
+    "FLOATING",
+    "OUTSIDE",
+    "TOLERANCE",
+    "Finding",
+    "Tail",
+    "findings",
+    "judged",
+    "nats",
+    "sentence",
+]
 
 
 @dataclass(frozen=True)
@@ -100,8 +110,7 @@ def findings(grammar: Grammar, scene: Scene, tree: Trees, obj_of: IntArray) -> l
     batch = _posed_tree(scene, tree, obj_of)
     out: list[Finding] = []
     for box in boxes:
-        nodes, _, ok, gaps = box.face_gaps(batch)
-        nodes, gaps = nodes[ok & (obj_of[nodes] >= 0)], gaps[ok & (obj_of[nodes] >= 0)]
+        nodes, gaps = _judged(box, batch, obj_of)
         if not len(nodes):
             continue
         container = _containers(box, batch, nodes, obj_of)
@@ -119,6 +128,21 @@ def findings(grammar: Grammar, scene: Scene, tree: Trees, obj_of: IntArray) -> l
                 o, c = int(obj_of[nodes[k]]), int(container[k])
                 out.append(Finding(kind, box.name, o, c, float(depth[k])))
     return sorted(out, key=lambda f: -f.distance)
+
+
+def _judged(box: InsideBox, batch: Trees, obj_of: IntArray) -> tuple[IntArray, FloatArray]:
+    """The nodes the box judges (of its types, with its frame, observed) and their face gaps."""
+    nodes, _, ok, gaps = box.face_gaps(batch)
+    keep = ok & (obj_of[nodes] >= 0)
+    return nodes[keep], gaps[keep]
+
+
+def judged(grammar: Grammar, scene: Scene, tree: Trees, obj_of: IntArray) -> dict[str, int]:
+    """How many of the scene's objects each `inside_box` constraint with `geometry: true`
+    judges: the objects its findings are a share of (`ssg fit` measures the tails with it)."""
+    boxes = [c for c in grammar.constraints if isinstance(c, InsideBox) and c.shapes is not None]
+    batch = _posed_tree(scene, tree, obj_of)
+    return {box.name: len(_judged(box, batch, obj_of)[0]) for box in boxes}
 
 
 def _containers(box: InsideBox, batch: Trees, nodes: IntArray, obj_of: IntArray) -> IntArray:
