@@ -267,6 +267,17 @@ def test_the_tails_change_no_fitted_law(tmp_path: Path) -> None:
     ]
 
 
+def test_resume_gives_the_same_tails(tmp_path: Path) -> None:
+    """The tails are a function of the journal: a finished fit resumed writes them again."""
+    _, scenes, first = fit_tub(tmp_path, TUB)
+    opts = FitOptions(iterations=1, top=1)
+    header = fit_header(TUB, tmp_path, scenes, opts)
+    with FitJournal(tmp_path / "fit.partial.jsonl", header, resume=True) as journal:
+        again = fit_grammar(TUB, GrammarSource("tub.yaml"), scenes, opts, journal)
+    assert again.text == first.text and again.tails == first.tails
+    assert "tail: {rate:" in again.text
+
+
 def test_a_grammar_without_such_constraints_gets_nothing_written(tmp_path: Path) -> None:
     text = TUB[: TUB.index("constraints:")]
     _, _, result = fit_tub(tmp_path, text)
@@ -294,7 +305,7 @@ def test_written_tails_load_and_validate(rate: float, mean: float, key: str, wri
     text = with_tails("{rate: 0.5, mean: 0.02}", "{rate: 0.5, mean: 0.02}") if written else TUB
     g = compile_text(text, "tub.yaml")
     name = "apart" if key == "tail" else "in_tub"
-    m = Measured(name, key, objects=1, found=1, sizes=[])
+    m = Measured(name, key, objects=1, found=1)
     update = tail_updates(g, [m])[0]
     update.values[key] = {"rate": rate, "mean": mean}
     out = compile_text(apply_updates(text, [update], "tub.yaml"), "tub.yaml")

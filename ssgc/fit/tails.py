@@ -27,7 +27,7 @@ The estimator, per constraint and kind of finding, over the objects the constrai
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -53,7 +53,9 @@ class Measured:
     key: str
     objects: int = 0  # objects the constraint judges, over the dataset
     found: int = 0  # of them, those with a finding
-    sizes: list[float] | None = None  # each finding's size (m; overlaps: per object, summed)
+    sizes: list[float] = field(
+        default_factory=list
+    )  # each finding's size (m; overlaps: per object)
 
     def tail(self) -> Tail | None:
         """The estimator of the module docstring; None when the dataset has no such object."""
@@ -82,10 +84,10 @@ def measure_tails(
     out: dict[tuple[str, str], Measured] = {}
     for c in grammar.constraints:
         if isinstance(c, NonPenetration):
-            out[c.name, "tail"] = Measured(c.name, "tail", sizes=[])
+            out[c.name, "tail"] = Measured(c.name, "tail")
         elif isinstance(c, InsideBox) and c.shapes is not None:
             for key in ("floating", "outside"):
-                out[c.name, key] = Measured(c.name, key, sizes=[])
+                out[c.name, key] = Measured(c.name, key)
     if not out:
         return []
     for scene, tree in zip(scenes, trees, strict=True):
@@ -110,7 +112,7 @@ def _measure_scene(
         m = out[c.name, "tail"]
         m.objects += int(np.count_nonzero(c.pairs_of.types[scene.types]))
         m.found += int(np.count_nonzero(depth > 0))
-        m.sizes += depth[depth > 0].tolist()  # type: ignore[operator]
+        m.sizes += depth[depth > 0].tolist()
     counts = judged(grammar, scene, tree, obj_of)
     for name, n in counts.items():
         out[name, "floating"].objects += n
@@ -118,7 +120,7 @@ def _measure_scene(
     seen: set[tuple[str, str, int]] = set()
     for f in findings(grammar, scene, tree, obj_of):
         m = out[f.constraint, KEYS[f.kind]]
-        m.sizes.append(f.distance - TOLERANCE)  # type: ignore[union-attr]
+        m.sizes.append(f.distance - TOLERANCE)
         if (f.constraint, m.key, f.obj) not in seen:
             seen.add((f.constraint, m.key, f.obj))
             m.found += 1
