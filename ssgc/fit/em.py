@@ -199,7 +199,7 @@ def fit_grammar(
         start = len(journal.scenes)
         for parsed in parse_scenes(parser, scenes, start, options.top, deadline, options.jobs):
             if parsed.limit is not None and _cut_short(parsed.result, parsed.limit):
-                return _out_of_time(current, journal.reports)
+                return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
             assert parsed.result is not None
             record = _scene_record(journal.iteration, parsed.index, parsed.result, source.dataset)
             journal.add_scene(record)
@@ -209,7 +209,7 @@ def fit_grammar(
         if options.estep == "mcmc":
             sampled = _posterior(grammar, journal, options, ties, deadline)
             if sampled is None:  # resumed, the journalled parses give the same chains
-                return _out_of_time(current, journal.reports)
+                return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
             trees, weights, report["posterior"] = sampled
             report["trees"] = len(weights)
         updates = m_step(grammar, trees, weights, options.settings, ties)

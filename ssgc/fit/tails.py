@@ -61,7 +61,7 @@ class Measured:
         """The estimator of the module docstring; None when the dataset has no such object."""
         if self.objects == 0:
             return None
-        mean = float(np.median(self.sizes)) / np.log(2) if self.sizes else 0.0
+        mean = float(np.median(self.sizes) / np.log(2)) if self.sizes else 0.0
         return Tail(rate=max(self.found, 1) / self.objects, mean=max(mean, TOLERANCE))
 
     def to_json(self) -> dict[str, object]:
