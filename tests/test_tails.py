@@ -288,6 +288,24 @@ def test_resume_gives_the_same_tails(tmp_path: Path) -> None:
     assert "tail: {rate:" in again.text
 
 
+def test_a_tail_shared_by_two_constraints_is_not_written_twice(tmp_path: Path) -> None:
+    """Two constraints whose `tail:` is one YAML node (an anchor and its alias) measure
+    different tails, which one node cannot hold: none is written, the result says why, and
+    the laws are fitted as ever."""
+    text = with_tails(overlap="&t {rate: 0.5, mean: 0.02}").replace(
+        "  in_tub:\n", "  mugs:\n    non_penetration: {types: [Mug], tail: *t}\n  in_tub:\n", 1
+    )
+    g = compile_text(text, "tub.yaml")
+    scenes = [tub_scene(g, m) for m in MOVES]
+    opts = FitOptions(iterations=1, top=1)
+    with FitJournal(tmp_path / "j.jsonl", fit_header(text, tmp_path, scenes, opts), False) as j:
+        result = fit_grammar(text, GrammarSource("tub.yaml"), scenes, opts, j)
+    tails = {m["constraint"]: (m["rate"], m["mean"]) for m in result.tails if m["key"] == "tail"}
+    assert tails["apart"] != tails["mugs"]
+    assert "were not written" in result.message and "one YAML node" not in result.text
+    assert "tail: &t {rate: 0.5, mean: 0.02}" in result.text and "floating" not in result.text
+
+
 def test_a_grammar_without_such_constraints_gets_nothing_written(tmp_path: Path) -> None:
     text = TUB[: TUB.index("constraints:")]
     _, _, result = fit_tub(tmp_path, text)

@@ -242,9 +242,13 @@ def _with_tails(
     ]
     measured = measure_tails(grammar, scenes, best)
     updates = tail_updates(grammar, measured)
-    if updates:
+    if not updates:
+        return result
+    result.tails = [m.to_json() for m in measured]
+    try:  # a constraint body or a tail shared through a YAML alias cannot take two tails
         result.text = apply_updates(result.text, updates, grammar.file)
-        result.tails = [m.to_json() for m in measured]
+    except SharedValueConflict as exc:
+        result.message += f"; the measured tails of ssg explain were not written: {exc}"
     return result
 
 
