@@ -145,7 +145,8 @@ def fit(
     )
     with open_fit(grammar, [s.data for s in scenes], where, options) as run:
         result = run.fit(time_limit)
-    return FitResult(run.fitted(result), result.iterations, result.status, result.message)
+    fitted = run.fitted(result)
+    return FitResult(fitted, result.iterations, result.status, result.message, result.tails)
 
 
 def fit_defaults() -> dict[str, Any]:
@@ -519,6 +520,8 @@ class FitResult:
     iterations: list[dict[str, Any]] = field(default_factory=list)  # one report each
     status: str = ""  # converged, iterations (the limit was reached) or time_limit
     message: str = ""
+    # the physical tails of `ssg explain` measured and written (docs/fitting.md, section 4.4)
+    tails: list[dict[str, Any]] = field(default_factory=list)
 
     def __repr__(self) -> str:
         return f"<FitResult: {self.status}, {len(self.iterations)} iteration(s)>"

@@ -480,6 +480,19 @@ Radii = dict[TypeName, NonNegative]
 TypePair = Annotated[list[TypeName], Field(min_length=2, max_length=2)]
 
 
+class TailC(Strict):
+    """How rare a physical finding is among the objects of real scenes, for `ssg explain`
+    (docs/explain.md): P(D >= d) = rate * exp(-excess / mean).  `ssg fit` measures it."""
+
+    rate: Annotated[float, Field(allow_inf_nan=False, gt=0, le=1)] = Field(
+        description="Share of a real scene's objects (of the constraint's types) with such a "
+        "finding, in (0, 1]."
+    )
+    mean: Annotated[float, Field(allow_inf_nan=False, gt=0)] = Field(
+        description="Mean size of such a finding beyond where the tail starts (m), > 0."
+    )
+
+
 class InsideBoxC(Strict):
     """Every node of `types` has its origin inside a box given in a frame."""
 
@@ -499,6 +512,17 @@ class InsideBoxC(Strict):
         False,
         description="The whole geometry (turned with the object, at its origin) must be in the "
         "box, not only the object's origin.",
+    )
+    floating: TailC | None = Field(
+        None,
+        description="With geometry: how rare objects floating more than 1 cm above the floor or "
+        "what lies under them are in real scenes, and by how much beyond 1 cm (default: the "
+        "sink's).",
+    )
+    outside: TailC | None = Field(
+        None,
+        description="With geometry: how rare objects going more than 1 cm through the floor or "
+        "a wall are in real scenes, and by how much beyond 1 cm (default: the sink's).",
     )
 
     @model_validator(mode="after")
@@ -536,6 +560,11 @@ class NonPenetrationC(Strict):
     margin: Finite = 0.0
     exempt: list[TypePair] = Field(default_factory=list)
     exempt_ancestors: bool = False
+    tail: TailC | None = Field(
+        None,
+        description="How rare overlapping another object the parse does not relate is in real "
+        "scenes, and the mean summed overlap depth (m) (default: the sink's).",
+    )
 
 
 class CountSpec(Strict):

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
+from ssgc.constraints.penetration import NonPenetration
 from ssgc.errors import SsgError
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
@@ -61,14 +62,6 @@ MC_DRAWS = 4000  # draws per rule for expected log-densities and rotation percen
 # (docs/explain.md "Cost"): enough for every object of the real sink scenes.
 EXPLAIN_BUDGET_S = 30.0
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
-# Overlaps of objects the tree does not relate (docs/explain.md, "Overlaps"), measured on the
-# real sink scenes 0-39 parsed with the fitted sink_detailed grammar, its dishes hollow solids
-# of revolution (`revolve`): the share of dishes that overlap a dish the tree does not relate
-# to them (34 of 169), and the mean of their summed depth (how far one must move to free the
-# other).  Sink measurements, applied to every grammar that declares `non_penetration`
-# (another grammar's real scenes may overlap more or less).
-OVERLAP_RATE = 34 / 169
-OVERLAP_MEAN = 0.0113  # m
 
 
 @dataclass
@@ -396,16 +389,18 @@ def overlap_reasons(
 ) -> dict[int, tuple[float, list[Reason]]]:
     """Each overlapping object's nats and a reason per overlap it takes part in
     (`ssgc.overlaps`: the grammar's `non_penetration` constraints, pairs of which neither
-    carries the other).  An object's overlap depths add up to D; its nats are −log of how
-    rare so much overlap is among the objects of real scenes, an exponential tail
-    P(D ≥ d) = OVERLAP_RATE · exp(−d / OVERLAP_MEAN) (docs/explain.md, "Overlaps")."""
+    carries the other).  An object's overlap depths under one constraint add up to D; their
+    nats are −log of how rare so much overlap is among the objects of real scenes, the
+    constraint's exponential tail P(D ≥ d) = rate · exp(−d / mean) (its `tail:`, else the sink
+    default: ssgc/tails.py; docs/explain.md, "Overlaps"), summed over the constraints."""
     found = overlaps(grammar, scene, tree, blocks(grammar, tree), obj_of)
     if not found:
         return {}
-    depth = np.zeros(len(scene))
-    np.add.at(depth, [v.a for v in found], [v.depth for v in found])
-    np.add.at(depth, [v.b for v in found], [v.depth for v in found])
-    nats = -np.log(OVERLAP_RATE) + depth / OVERLAP_MEAN
+    tails = {c.name: c.tail for c in grammar.constraints if isinstance(c, NonPenetration)}
+    depth = {name: np.zeros(len(scene)) for name in tails}  # per constraint and object
+    for v in found:
+        depth[v.constraint][[v.a, v.b]] += v.depth
+    nats = {name: np.where(d > 0, tails[name].nats(d), 0.0) for name, d in depth.items()}
     names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
     out: dict[int, tuple[float, list[Reason]]] = {}
     for v in found:
@@ -414,9 +409,10 @@ def overlap_reasons(
                 f"overlaps {names[other]} by {100 * v.depth:.1f} cm, though neither carries "
                 f"the other ({v.constraint})"
             )
-            part = v.depth / depth[me] * nats[me]  # the object's nats, split by depth
-            reason = Reason(v.constraint, "overlap", -part, 0.0, part, None, None, text)
-            out.setdefault(me, (float(nats[me]), []))[1].append(reason)
+            c = v.constraint  # the object's nats under c, split by depth
+            part = float(v.depth / depth[c][me] * nats[c][me])
+            reason = Reason(c, "overlap", -part, 0.0, part, None, None, text)
+            out.setdefault(me, (sum(float(n[me]) for n in nats.values()), []))[1].append(reason)
     return out
 
 
@@ -429,7 +425,7 @@ def support_reasons(
     names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
     out: dict[int, tuple[float, list[Reason]]] = {}
     for f in support_findings(grammar, scene, tree, obj_of):
-        part = support_nats(f)
+        part = support_nats(grammar, f)
         reason = Reason(
             f.constraint, f.kind, -part, 0.0, part, None, None, support_sentence(f, names)
         )

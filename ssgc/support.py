@@ -14,8 +14,9 @@ listed types' whole geometries must lie in.  For each object of those types this
   whichever is smaller: "floats 4.0 cm above anything under it".
 
 Each kind of finding gets nats from how rare it is among the objects of real scenes, an
-exponential tail P(D >= d) = rate * exp(-d / mean) for d above a tolerance (as overlaps do:
-ssgc/overlaps.py), so an object's evidence is -log rate + d / mean.
+exponential tail P(D >= d) = rate * exp(-(d - tolerance) / mean) for d above a tolerance (as
+overlaps do: ssgc/overlaps.py), so an object's evidence is -log rate + (d - tolerance) / mean.
+The tails are the constraint's (`floating:`, `outside:`; ssgc/tails.py).
 """
 
 from __future__ import annotations
@@ -31,36 +32,25 @@ from ssgc.constraints.shapes import frame_extents
 from ssgc.geometry import quat_to_matrix
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar
+from ssgc.tails import FLOATING, OUTSIDE, TOLERANCE, Tail
 from ssgc.tree import Trees
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-TOLERANCE = 0.01  # m: closer than this to the floor or to a dish below counts as resting
-
-
-@dataclass(frozen=True)
-class Tail:
-    """P(D >= d) = rate * exp(-(d - TOLERANCE) / mean) for d > TOLERANCE, measured on real
-    scenes: `rate` is the share of real objects with such a finding, `mean` their mean excess
-    over the tolerance, floored at the tolerance itself (few real findings cannot show a steeper
-    tail)."""
-
-    rate: float
-    mean: float  # m
-
-    def nats(self, d: float) -> float:
-        return float(-np.log(self.rate) + (d - TOLERANCE) / self.mean)
-
-
-# Measured on the real sink scenes 0-39 (169 dishes, each scene's best parse under the fitted
-# sink_detailed grammar with its dishes as hollow solids of revolution, `revolve`): 15 dishes
-# float (by 1.0-2.5 cm, mean excess 4.1 mm), none goes through the floor or a wall (counted as
-# fewer than one in 169: rate 1/169); both excesses floored at 1 cm.  docs/explain.md, "Support,
-# floor and walls".  They are sink measurements, applied to every grammar that declares a
-# container.
-FLOATING = Tail(rate=15 / 169, mean=TOLERANCE)
-OUTSIDE = Tail(rate=1 / 169, mean=TOLERANCE)
+# The tolerance and the sink defaults live in ssgc/tails.py; a grammar's `inside_box` gives its
+# own tails (`floating:`, `outside:`), `ssg fit` measures them (ssgc/fit/tails.py).
+__all__ = [
+    "FLOATING",
+    "OUTSIDE",
+    "TOLERANCE",
+    "Finding",
+    "Tail",
+    "findings",
+    "judged",
+    "nats",
+    "sentence",
+]
 
 
 @dataclass(frozen=True)
@@ -120,8 +110,7 @@ def findings(grammar: Grammar, scene: Scene, tree: Trees, obj_of: IntArray) -> l
     batch = _posed_tree(scene, tree, obj_of)
     out: list[Finding] = []
     for box in boxes:
-        nodes, _, ok, gaps = box.face_gaps(batch)
-        nodes, gaps = nodes[ok & (obj_of[nodes] >= 0)], gaps[ok & (obj_of[nodes] >= 0)]
+        nodes, gaps = _judged(box, batch, obj_of)
         if not len(nodes):
             continue
         container = _containers(box, batch, nodes, obj_of)
@@ -141,6 +130,21 @@ def findings(grammar: Grammar, scene: Scene, tree: Trees, obj_of: IntArray) -> l
     return sorted(out, key=lambda f: -f.distance)
 
 
+def _judged(box: InsideBox, batch: Trees, obj_of: IntArray) -> tuple[IntArray, FloatArray]:
+    """The nodes the box judges (of its types, with its frame, observed) and their face gaps."""
+    nodes, _, ok, gaps = box.face_gaps(batch)
+    keep = ok & (obj_of[nodes] >= 0)
+    return nodes[keep], gaps[keep]
+
+
+def judged(grammar: Grammar, scene: Scene, tree: Trees, obj_of: IntArray) -> dict[str, int]:
+    """How many of the scene's objects each `inside_box` constraint with `geometry: true`
+    judges: the objects its findings are a share of (`ssg fit` measures the tails with it)."""
+    boxes = [c for c in grammar.constraints if isinstance(c, InsideBox) and c.shapes is not None]
+    batch = _posed_tree(scene, tree, obj_of)
+    return {box.name: len(_judged(box, batch, obj_of)[0]) for box in boxes}
+
+
 def _containers(box: InsideBox, batch: Trees, nodes: IntArray, obj_of: IntArray) -> IntArray:
     """Each node's container object (its nearest ancestor of the box's frame type), or -1."""
     from ssgc.constraints.base import nearest_ancestor
@@ -151,9 +155,12 @@ def _containers(box: InsideBox, batch: Trees, nodes: IntArray, obj_of: IntArray)
     return np.where(anc >= 0, obj_of[np.maximum(anc, 0)], -1)
 
 
-def nats(finding: Finding) -> float:
-    """How rare so much of this finding is among the objects of real scenes."""
-    return (FLOATING if finding.kind == "floats" else OUTSIDE).nats(finding.distance)
+def nats(grammar: Grammar, finding: Finding) -> float:
+    """How rare so much of this finding is among the objects of real scenes: the tail its
+    `inside_box` constraint gives (`floating:` or `outside:`), beyond the tolerance."""
+    box = next(c for c in grammar.constraints if c.name == finding.constraint)
+    tail = box.floating if finding.kind == "floats" else box.outside
+    return float(tail.nats(finding.distance - TOLERANCE))
 
 
 def sentence(finding: Finding, names: list[str]) -> str:

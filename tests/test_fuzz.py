@@ -463,6 +463,9 @@ type_list = st.one_of(st.lists(type_names, max_size=3), junk)
 axis = st.sampled_from(["x", "y", "z", "w"])
 exempt = st.one_of(st.lists(st.lists(type_names, max_size=3), max_size=2), junk)
 radius = st.one_of(st.dictionaries(type_names, numbers, max_size=2), junk)
+tail = sometimes_junk(
+    mapping({"rate": st.one_of(st.floats(0, 1.5), numbers), "mean": numbers})
+)  # a physical tail of ssg explain (ssgc/tails.py)
 box_corner = st.one_of(st.lists(st.one_of(numbers, st.none()), min_size=3, max_size=3), junk)
 constraint = one_of_keys(
     {
@@ -476,6 +479,8 @@ constraint = one_of_keys(
                 "keep_out": st.booleans(),
                 "radius": radius,
                 "geometry": sometimes_junk(st.booleans()),
+                "floating": tail,
+                "outside": tail,
             },
         ),
         "clearance": mapping(
@@ -486,7 +491,9 @@ constraint = one_of_keys(
             {"types": type_list, "max_angle_deg": numbers},
             {"axis": axis, "frame": type_names, "frame_axis": axis},
         ),
-        "non_penetration": mapping({"types": type_list}, {"margin": numbers, "exempt": exempt}),
+        "non_penetration": mapping(
+            {"types": type_list}, {"margin": numbers, "exempt": exempt, "tail": tail}
+        ),
     }
 )
 noise_spec = mapping({}, {"position": numbers, "rotation_deg": numbers})

@@ -30,6 +30,7 @@ from ssgc.constraints.shapes import (
 )
 from ssgc.constraints.structural import Children, Count, LongestChain
 from ssgc.ir import Kind, NodeType, Rule
+from ssgc.tails import FLOATING, OUTSIDE, OVERLAP, Tail
 
 MAX_STATES = 200_000  # feasibility of count bounds is checked only below this many states
 AXIS = {"x": 0, "y": 1, "z": 2}
@@ -47,6 +48,11 @@ def build_constraints(
         if c is not None:
             out.append(c)
     return tuple(out)
+
+
+def _tail(spec: dsl.TailC | None, default: Tail) -> Tail:
+    """The grammar's tail, or the sink default where it gives none (ssgc/tails.py)."""
+    return default if spec is None else Tail(rate=spec.rate, mean=spec.mean)
 
 
 class _Builder:
@@ -244,6 +250,14 @@ class _Builder:
         shapes = self.extents(ids, loc) if s.geometry else None
         if s.geometry and shapes is None:
             return None
+        for key in ("floating", "outside"):
+            if getattr(s, key) is not None and not s.geometry:
+                self.c.error(
+                    (*loc, key),
+                    f"`{key}` calibrates the floor and walls that only `geometry: true` "
+                    "declares; add `geometry: true` or remove it",
+                )
+                return None
         return InsideBox(
             name,
             loc,
@@ -253,6 +267,8 @@ class _Builder:
             hi=hi,
             radius=r,
             shapes=shapes,
+            floating=_tail(s.floating, FLOATING),
+            outside=_tail(s.outside, OUTSIDE),
         )
 
     def extents(self, ids: list[int], loc: Loc) -> Extents | None:
@@ -342,6 +358,7 @@ class _Builder:
             solids=tuple(solids),
             hollow=tuple(hollow),
             gap=s.margin,
+            tail=_tail(s.tail, OVERLAP),
         )
 
     # ------------------------------------------------- what the grammar can produce ---

@@ -26,6 +26,7 @@ from ssgc.constraints.base import Constraint, FloatArray, per_scene_argmin, per_
 from ssgc.constraints.pose import Clearance
 from ssgc.constraints.revolved import Revolved, penetration_depth
 from ssgc.geometry import quat_rotate, quat_to_matrix
+from ssgc.tails import OVERLAP, Tail
 
 SCREEN = 0.05  # m
 MIN_DEPTH = 1e-4  # m: a colliding pair's least depth (a collision is never a zero margin)
@@ -45,6 +46,9 @@ class NonPenetration(Constraint):
     solids: tuple[Revolved | None, ...] = ()  # per type: as a solid of revolution, or None
     hollow: tuple[bool, ...] = ()  # per type: a revolve (its FCL mesh gives no depth)
     gap: float = 0.0
+    # How rare overlapping is in real scenes (`ssg explain`, ssgc/overlaps.py): the grammar's
+    # `tail:`, else the sink default.
+    tail: Tail = OVERLAP
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "non_penetration"
     rank: ClassVar[int] = 2  # one FCL call per close pair: last, on the fewest candidates

@@ -25,6 +25,7 @@ from ssgc.constraints.base import (
 )
 from ssgc.constraints.shapes import Extents, frame_extents
 from ssgc.geometry import quat_conjugate, quat_multiply, quat_rotate, quat_to_matrix
+from ssgc.tails import FLOATING, OUTSIDE, Tail
 
 UNIT = np.eye(3)
 
@@ -57,6 +58,10 @@ class InsideBox(Constraint):
     hi: FloatArray = field(default_factory=lambda: np.full(3, np.nan))
     radius: FloatArray = field(default_factory=lambda: np.zeros(0))  # per type; 0 without keep_out
     shapes: Extents | None = None  # `geometry: true`: the whole geometry must be inside
+    # How rare floating and going through the floor or walls are in real scenes (`ssg explain`,
+    # ssgc/support.py): the grammar's `floating:` and `outside:`, else the sink defaults.
+    floating: Tail = FLOATING
+    outside: Tail = OUTSIDE
     kind: ClassVar[str] = "pose"
     word: ClassVar[str] = "inside_box"
 

@@ -39,6 +39,7 @@ from ssgc.errors import SsgError
 from ssgc.fit.estep import parse_scenes
 from ssgc.fit.mstep import FitSettings, Ties, m_step
 from ssgc.fit.posterior import McmcSettings, log_orders, posterior_e_step
+from ssgc.fit.tails import measure_tails, tail_updates
 from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
 from ssgc.io.journal import Journal, journal_path, scenes_digest
 from ssgc.io.scene import Scene
@@ -75,6 +76,7 @@ class FitResult:
     status: str  # "converged", "iterations" (the limit was reached) or "time_limit"
     message: str = ""
     mmd: dict[str, dict[str, float]] | None = None  # grammar -> object type -> MMD² to the data
+    tails: list[dict[str, Any]] = field(default_factory=list)  # measured (ssgc.fit.tails)
 
 
 class FitJournal(Journal):
@@ -92,6 +94,7 @@ class FitJournal(Journal):
     def __init__(self, path: Path, header: dict[str, Any], resume: bool) -> None:
         self.iteration = 1  # the iteration under way
         self.scenes: list[dict[str, Any]] = []  # its finished scenes
+        self.last_scenes: list[dict[str, Any]] = []  # the scenes of the last finished iteration
         self.text: str | None = None  # the last fitted grammar
         self.reports: list[dict[str, Any]] = []
         self.scene_count = int(header["scene_count"])
@@ -120,7 +123,7 @@ class FitJournal(Journal):
     def _end_iteration(self, text: str, report: dict[str, Any]) -> None:
         self.text = text
         self.reports.append(report)
-        self.scenes = []
+        self.last_scenes, self.scenes = self.scenes, []
         self.iteration += 1
 
     def __enter__(self) -> FitJournal:
@@ -188,15 +191,15 @@ def fit_grammar(
     while True:
         stop = _stop_reason(journal.reports, options, len(scenes))
         if stop:
-            return FitResult(current, journal.reports, *stop)
+            return _with_tails(FitResult(current, journal.reports, *stop), grammar, journal, scenes)
         if deadline is not None and time.monotonic() >= deadline:
-            return _out_of_time(current, journal.reports)
+            return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
         started = time.monotonic()
         parser = Parser(grammar, method=options.method, seed=options.seed)
         start = len(journal.scenes)
         for parsed in parse_scenes(parser, scenes, start, options.top, deadline, options.jobs):
             if parsed.limit is not None and _cut_short(parsed.result, parsed.limit):
-                return _out_of_time(current, journal.reports)
+                return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
             assert parsed.result is not None
             record = _scene_record(journal.iteration, parsed.index, parsed.result, source.dataset)
             journal.add_scene(record)
@@ -206,7 +209,7 @@ def fit_grammar(
         if options.estep == "mcmc":
             sampled = _posterior(grammar, journal, options, ties, deadline)
             if sampled is None:  # resumed, the journalled parses give the same chains
-                return _out_of_time(current, journal.reports)
+                return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
             trees, weights, report["posterior"] = sampled
             report["trees"] = len(weights)
         updates = m_step(grammar, trees, weights, options.settings, ties)
@@ -222,6 +225,31 @@ def fit_grammar(
         journal.add_iteration(current, report)
         if on_iteration is not None:
             on_iteration(report)
+
+
+def _with_tails(
+    result: FitResult, grammar: Grammar, journal: FitJournal, scenes: Sequence[Scene]
+) -> FitResult:
+    """The fitted grammar with the physical tails of `ssg explain` measured on the last
+    iteration's best parses (`ssgc.fit.tails`), where its constraints have such tails.  Done
+    once, after the last M-step, so it changes no fitted law; a function of the journal, so
+    `--resume` gives the same."""
+    if not journal.last_scenes:
+        return result
+    best = [
+        _tree_from_json(r["trees"][int(np.argmax(r["scores"]))]) if r["scores"] else None
+        for r in journal.last_scenes
+    ]
+    measured = measure_tails(grammar, scenes, best)
+    updates = tail_updates(grammar, measured)
+    if not updates:
+        return result
+    result.tails = [m.to_json() for m in measured]
+    try:  # a constraint body or a tail shared through a YAML alias cannot take two tails
+        result.text = apply_updates(result.text, updates, grammar.file)
+    except SharedValueConflict as exc:
+        result.message += f"; the measured tails of ssg explain were not written: {exc}"
+    return result
 
 
 def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
@@ -415,4 +443,6 @@ def report_json(result: FitResult) -> str:
     }
     if result.mmd is not None:
         doc["mmd"] = result.mmd
+    if result.tails:
+        doc["tails"] = result.tails
     return json.dumps(doc, indent=1) + "\n"

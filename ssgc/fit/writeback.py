@@ -43,7 +43,8 @@ class SharedValueConflict(ValueError):
 @dataclass(frozen=True)
 class Update:
     """Set `values[key]` in the mapping at document path `path` (keys/indices from the root).
-    A value is a float, an int, a (nested) list of floats, or an `Orientation`."""
+    A value is a float, an int, a (nested) list of floats, an `Orientation`, or a mapping of
+    numbers (a tail's `{rate, mean}`: edited key by key where one is written)."""
 
     path: Loc
     values: dict[str, Any]
@@ -103,6 +104,8 @@ def _plain(value: Any, digits: int, where: str) -> Any:
         return Orientation((w, x, y, z))
     if isinstance(value, (list, tuple)):
         return [_plain(v, digits, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, dict):  # a small mapping of numbers, such as a tail's {rate, mean}
+        return {k: _plain(v, digits, f"{where}.{k}") for k, v in value.items()}
     return _number(value, digits, where)
 
 
@@ -264,6 +267,12 @@ def _assign(container: Any, key: Any, value: Any) -> None:
     if isinstance(value, list) and isinstance(old, CommentedSeq) and len(old) == len(value):
         for i, item in enumerate(value):
             _assign(old, i, item)
+    elif isinstance(value, dict) and isinstance(old, CommentedMap):  # its keys, in place
+        for k, item in value.items():
+            if k in old:
+                _assign(old, k, item)
+            else:
+                _insert(old, k, _node(item))
     else:
         container[key] = _node(value)
 
