@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_support import BIN, FLIP, UP
 from typer.testing import CliRunner
 
 from ssgc.cli.app import app
@@ -20,7 +21,6 @@ from ssgc.explain import blocks, match_objects, overlap_reasons, support_reasons
 from ssgc.fit.em import FitJournal, FitOptions, GrammarSource, fit_grammar, fit_header
 from ssgc.fit.tails import Measured, tail_updates
 from ssgc.fit.writeback import apply_updates
-from ssgc.geometry import axis_angle_to_quat
 from ssgc.io.scene import Scene
 from ssgc.overlaps import overlaps
 from ssgc.parse.parser import Parser
@@ -30,47 +30,9 @@ from ssgc.tails import FLOATING, OUTSIDE, OVERLAP, TOLERANCE, Tail
 pytest.importorskip("fcl")
 runner = CliRunner()
 
-# A tub with plates on its floor and mugs on the plates (as tests/test_support.py).
-TUB = """\
-grammar: tub
-root: {type: Tub, pose: {xyz: [0, 0, 0]}}
-types:
-  Tub:
-    observed: true
-    geometry: {box: {size: [0.6, 0.6, 0.3]}, origin: [0, 0, 0.15]}
-    repeat:
-      count: {probs: [0, 0.3, 0.4, 0.3]}
-      rule:
-        child: Plate
-        translation: {world_normal_offset: {mean: [0, 0, 0], variance: [0.01, 0.01, 1], pin: [z]}}
-        rotation: {world_bingham: {concentration: [300, 300, 0]}}
-  Plate:
-    observed: true
-    geometry: {cylinder: {radius: 0.1, length: 0.02}, origin: [0, 0, 0.01]}
-    repeat:
-      count: {probs: [0.5, 0.5]}
-      rule:
-        child: Mug
-        translation:
-          parent_normal_offset: {mean: [0, 0, 0.02], variance: [0.001, 0.001, 1], pin: [z]}
-        rotation: {world_bingham: {concentration: [300, 300, 0]}}
-  Mug:
-    observed: true
-    geometry: {cylinder: {radius: 0.04, length: 0.1}, origin: [0, 0, 0.05]}
-constraints:
-  apart:
-    # plates and mugs keep apart
-    non_penetration: {types: [Plate, Mug]}
-  in_tub:
-    inside_box:
-      types: [Plate, Mug]
-      frame: Tub
-      min: [-0.3, -0.3, 0.0]
-      max: [0.3, 0.3, null]
-      geometry: true
-"""
-UP = np.array([1.0, 0, 0, 0])
-FLIP = axis_angle_to_quat(np.array([1.0, 0, 0]), np.pi)
+# tests/test_support.py's tub (plates on its floor, mugs on the plates), with a comment that a
+# fit must keep.
+TUB = BIN.lstrip("\n").replace("  apart:\n", "  apart:\n    # plates and mugs keep apart\n")
 TAIL = "    non_penetration: {types: [Plate, Mug]}\n"
 BOX = "      geometry: true\n"
 
