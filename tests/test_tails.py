@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_support import BIN, FLIP, UP
+from test_support import BIN, FLIP, UP, tub_scene
 from typer.testing import CliRunner
 
 from ssgc.cli.app import app
@@ -21,7 +21,6 @@ from ssgc.explain import blocks, match_objects, overlap_reasons, support_reasons
 from ssgc.fit.em import FitJournal, FitOptions, GrammarSource, fit_grammar, fit_header
 from ssgc.fit.tails import Measured, tail_updates
 from ssgc.fit.writeback import apply_updates
-from ssgc.io.scene import Scene
 from ssgc.overlaps import overlaps
 from ssgc.parse.parser import Parser
 from ssgc.support import findings
@@ -45,17 +44,6 @@ def with_tails(overlap: str = "", floating: str = "", outside: str = "") -> str:
         f"      outside: {outside}\n" if outside else ""
     )
     return text.replace(BOX, BOX + extra)
-
-
-def tub_scene(g, moves=None) -> Scene:
-    """Tub #0; plates #1 (at x -0.15) and #2 (x 0.15); mug #3 on plate #1."""
-    xyz = np.array([[0, 0, 0], [-0.15, 0, 0], [0.15, 0, 0], [-0.15, 0, 0.02]], float)
-    quat = np.tile(UP, (4, 1))
-    for o, (dx, q) in (moves or {}).items():
-        xyz[o] += dx
-        quat[o] = q
-    types = np.array([g.type_ids[n] for n in ("Tub", "Plate", "Plate", "Mug")])
-    return Scene("tub", types, xyz, quat)
 
 
 def constraint(g, name: str):
