@@ -30,10 +30,10 @@ KINDS = ("move", "flip", "retype", "move3d")
 FIT = ("--top", "1", "--iterations", "3", "--max-concentration", "400")
 # What was measured on all 80 scenes (docs/explain.md, "Where it stands": grammars/
 # sink_detailed.yaml fitted with FIT, its dishes `revolve` shapes, its bin required; one literal
-# run of move, flip and retype): move 64 / 80, flip 73 / 80, retype 65 / 80, less a margin of
-# about three scenes: a regression guard.  Issue 16 asks for 0.9 per kind; docs/explain.md
-# says why move and retype fall short.
-FLOORS = {"move": 0.76, "flip": 0.87, "retype": 0.77}
+# run of move, flip and retype, with the tails the fit writes): move 61 / 80, flip 74 / 80,
+# retype 64 / 80, less a margin of about three scenes: a regression guard.  Issue 16 asks for
+# 0.9 per kind; docs/explain.md says why move and retype fall short.
+FLOORS = {"move": 0.72, "flip": 0.88, "retype": 0.76}
 DETECTABLE = 2.0  # nats: the change lowers the best tree's log-probability at least this much
 SINK = "ssgc/data/sink/saved_scenes.yaml"
 
