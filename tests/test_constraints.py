@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import GRAMMARS
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from ruamel.yaml import YAML
 from scipy import stats
@@ -520,6 +520,7 @@ constraints:
     lo=st.integers(0, 8),
     width=st.integers(0, 8),
 )
+@example(probs=[5e-324, 0.0], lo=0, width=0)  # u * cum[-1] rounded up to cum[-1]
 @settings(max_examples=40, deadline=None)
 def test_restricted_counts_stay_in_range_and_follow_the_law(
     probs: list[float], lo: int, width: int

@@ -282,7 +282,9 @@ def _restricted_counts(
     if cum[-1] <= 0:  # no count in range (validation refuses such bounds): all rejected
         return np.zeros(n, np.int64)
     u = rng.random(n) * cum[-1]
-    return np.minimum(np.searchsorted(cum, u, side="right"), len(probs) - 1).astype(np.int64)
+    # u can round up to cum[-1] (probabilities as small as 5e-324): the last count with weight
+    last = int(np.flatnonzero(weights > 0)[-1])
+    return np.minimum(np.searchsorted(cum, u, side="right"), last).astype(np.int64)
 
 
 def blocked_rules(
