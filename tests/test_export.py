@@ -20,6 +20,7 @@ from ssgc.cli.app import app
 from ssgc.compile import compile_text, load_grammar
 from ssgc.errors import GrammarError
 from ssgc.geometry import quat_to_matrix
+from ssgc.io.scene import scene_stem
 
 runner = CliRunner()
 DIMSUM = GRAMMARS / "dimsum_table.yaml"
@@ -195,6 +196,23 @@ def test_unknown_format_and_unwritable_output_are_messages(tmp_path: Path) -> No
         "export", scenes, "-g", GRAMMARS / "gmm.yaml", "-f", "glb", "-o", tmp_path / "file"
     )
     assert result.exit_code == 1 and "Traceback" not in result.output
+
+
+def test_a_scene_with_a_very_long_name_exports_to_a_short_file_name(tmp_path: Path) -> None:
+    """A 300-character name made `File name too long` (the name, its suffix and the temporary
+    file's additions passed 255 bytes); the file is named by a cut stem and a hash."""
+    scenes = tmp_path / "s"
+    assert run("sample", GRAMMARS / "gmm.yaml", "-n", 1, "-o", scenes, "-q").exit_code == 0
+    doc = json.loads(next(scenes.glob("*.json")).read_text())
+    for name in ("x" * 300, "x" * 299 + "y"):
+        (tmp_path / "long.json").write_text(json.dumps({**doc, "name": name}))
+        args = ("export", tmp_path / "long.json", "-g", GRAMMARS / "gmm.yaml", "-f", "dmd")
+        result = run(*args, "-o", tmp_path / "o", "-q")
+        assert result.exit_code == 0, result.output
+    files = sorted((tmp_path / "o").glob("*.dmd.yaml"))
+    assert len(files) == 2  # the two names share their first 299 characters, not their file
+    assert all(len(f.name) <= 120 and f.name.startswith("x" * 80) for f in files)
+    assert scene_stem("a b") == "a_b"  # short names keep their stem
 
 
 # ------------------------------------------------------------- geometry and mass ---

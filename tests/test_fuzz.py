@@ -985,6 +985,7 @@ def test_fuzz_sample_constrained(work: Path, data: bytes, names: str, more: list
     grammar=st.sampled_from(PARSE_GRAMMARS),
     fmt=st.sampled_from(["dmd", "sdf", "mjcf", "glb", "usd"]),
 )
+@example(data=b'{"objects": [], "name": "' + b"x" * 250 + b'"}', grammar="sink.yaml", fmt="dmd")
 def test_fuzz_export_json(work: Path, data: bytes, grammar: str, fmt: str) -> None:
     path = write(work / "scene.json", data)
     grammar_path = GRAMMARS / grammar

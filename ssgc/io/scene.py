@@ -15,6 +15,7 @@ index in the parent's rule list.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from dataclasses import dataclass, field
@@ -184,10 +185,18 @@ def tree_to_json(grammar: Grammar, tree: Trees) -> dict[str, Any]:
     }
 
 
+MAX_STEM = 100  # characters: a stem, its suffix and a temporary file's name fit in 255 bytes
+
+
 def scene_stem(name: str) -> str:
-    """A grammar's or a scene's name as a file-name stem: never a path, never hidden."""
-    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).lstrip(".")
-    return stem or "scene"
+    """A grammar's or a scene's name as a file-name stem: never a path, never hidden, never
+    longer than MAX_STEM (a long name is cut and ends in a hash of the whole name, so two
+    long names that share their start still name two files)."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).lstrip(".") or "scene"
+    if len(stem) > MAX_STEM:
+        digest = hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:12]
+        stem = f"{stem[: MAX_STEM - 13]}-{digest}"
+    return stem
 
 
 def dumps_json(doc: Any) -> str:
