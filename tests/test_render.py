@@ -150,7 +150,7 @@ def test_bad_inputs_are_clear_messages(tmp_path, content, message):
 def test_bad_options_are_clear_messages(scenes, tmp_path):
     scene = scenes / "sink_000000.json"
     cases = [
-        (("-o", tmp_path / "out.jpg"), "must end in .png or .svg"),
+        (("-o", tmp_path / "out.jpg"), f"{tmp_path / 'out.jpg'}: error: the output must end in"),
         (("-o", tmp_path / "no" / "out.png"), "does not exist"),
         (("-o", tmp_path / "out.png", "-n", 0), "-n must be between"),
         (("-o", tmp_path / "out.png", "--scene", "nope"), "no scene named 'nope'"),

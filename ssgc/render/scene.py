@@ -72,7 +72,9 @@ def check_output(path: Path, inputs: tuple[str | Path, ...] = ()) -> tuple[Outpu
     if out.stream and suffix not in FORMATS:
         return out, "png"
     if suffix not in FORMATS:
-        raise SsgError.single(f"the output must end in .png or .svg, got '{Path(path).name}'")
+        raise SsgError.single(
+            f"the output must end in .png or .svg, got '{Path(path).name}'", str(path)
+        )
     return out, suffix[1:]
 
 
