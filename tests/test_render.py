@@ -153,7 +153,7 @@ def test_bad_options_are_clear_messages(scenes, tmp_path):
         (("-o", tmp_path / "out.jpg"), f"{tmp_path / 'out.jpg'}: error: the output must end in"),
         (("-o", tmp_path / "no" / "out.png"), "does not exist"),
         (("-o", tmp_path / "out.png", "-n", 0), "-n must be between"),
-        (("-o", tmp_path / "out.png", "--scene", "nope"), "no scene named 'nope'"),
+        (("-o", tmp_path / "out.png", "--scene", "nope"), f"{scene}: error: no scene named 'nope'"),
     ]
     for args, message in cases:
         result = run("render", scene, *args)

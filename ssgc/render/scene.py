@@ -97,7 +97,7 @@ def render_file(
     else:
         views = [v for v in load_views(Path(source), sys.maxsize, grammar) if v.name == scene]
         if not views:
-            raise SsgError.single(f"no scene named '{scene}' in {source}")
+            raise SsgError.single(f"no scene named '{scene}' in it", str(source))
         views = views[:n]
     fig = draw_views(views, geometry_of(grammar))
     save_figure(fig, out, fmt)
