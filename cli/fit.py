@@ -23,6 +23,7 @@ from ssgc.cli.app import (
 )
 from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
+from ssgc.fit.mstep import MAX_MIN_VARIANCE
 from ssgc.io.outputs import check_output, lock_outputs, write_output_text
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 
@@ -79,8 +80,8 @@ def fit(
     min_variance: Annotated[
         float,
         typer.Option(
-            callback=lambda v: _in_range(v, "--min-variance", 0.0, math.inf),
-            help="Floor of fitted variances (m², > 0).",
+            callback=lambda v: _in_range(v, "--min-variance", 0.0, MAX_MIN_VARIANCE),
+            help="Floor of fitted variances (m², 0 < v ≤ 1e6).",
         ),
     ] = DEFAULTS["min_variance"],
     max_concentration: Annotated[

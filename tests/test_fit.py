@@ -414,3 +414,20 @@ def test_max_concentration_caps_every_fitted_bingham(tmp_path):
         ),
         capped,
     )
+
+
+@pytest.mark.parametrize(
+    "setting",
+    [
+        {"min_variance": 5.99e307},  # the full-covariance fit overflowed to inf
+        {"min_variance": 0.0},
+        {"max_concentration": 2e4},
+        {"max_concentration": float("nan")},
+        {"pseudocount": -1.0},
+    ],
+)
+def test_fit_settings_out_of_range_are_one_message(setting):
+    """`ssgc.fit`'s bounds are checked as `ssg fit`'s flags are: one message naming the
+    setting, before any work (a variance floor of 6e307 was an internal error at write-back)."""
+    with pytest.raises(SsgError, match=next(iter(setting)) + " must be"):
+        FitSettings(**setting)

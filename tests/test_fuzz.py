@@ -1145,6 +1145,7 @@ FIT_BOUNDS = st.one_of(
 @given(variance=FIT_BOUNDS, ceiling=FIT_BOUNDS)
 @example(variance="inf", ceiling="400")
 @example(variance="1e-4", ceiling="nan")
+@example(variance="5.992310449541053e+307", ceiling="1e-300")  # the fit overflowed to inf
 def test_fuzz_fit_bounds(work: Path, variance: str, ceiling: str) -> None:
     """`--min-variance` and `--max-concentration` given any text: a fit, or a usage message
     naming the flag (exit 2) and no file, never an internal error (`inf` was one)."""

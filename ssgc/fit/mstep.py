@@ -22,11 +22,13 @@ The output is a list of `Update`s: document paths and the numbers to put there, 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from ssgc.errors import SsgError
 from ssgc.fit.writeback import Update
 from ssgc.ir import Grammar, Kind, NodeType
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
@@ -38,6 +40,11 @@ FloatArray = NDArray[np.float64]
 MM_ROUNDS = 200  # rule-frequency iterations when max_nesting blocks rules at some nodes
 
 
+# m²: the largest variance floor (a 1 km deviation).  A floor near the largest float made the
+# full-covariance fit's eigenvalue products overflow to inf, which no grammar can hold.
+MAX_MIN_VARIANCE = 1e6
+
+
 @dataclass(frozen=True)
 class FitSettings:
     """How the M-step regularises: see `ssg fit --help` and docs/fitting.md."""
@@ -45,6 +52,27 @@ class FitSettings:
     pseudocount: float = 0.01  # added to every possible outcome of a discrete law
     min_variance: float = 1e-6  # m², the floor of every fitted variance (1 mm std)
     max_concentration: float = MAX_CONCENTRATION
+
+    def __post_init__(self) -> None:
+        """Out-of-range settings are the caller's mistake, told before any work."""
+        checks = (
+            ("pseudocount", self.pseudocount, 0.0 <= self.pseudocount < math.inf, "≥ 0 and finite"),
+            (
+                "min_variance",
+                self.min_variance,
+                0.0 < self.min_variance <= MAX_MIN_VARIANCE,
+                f"above 0 and at most {MAX_MIN_VARIANCE:g} m²",
+            ),
+            (
+                "max_concentration",
+                self.max_concentration,
+                0.0 < self.max_concentration <= MAX_CONCENTRATION,
+                f"above 0 and at most {MAX_CONCENTRATION:g}",
+            ),
+        )
+        for name, value, ok, wanted in checks:
+            if not ok:
+                raise SsgError.single(f"{name} must be {wanted}, got {value!r}")
 
 
 @dataclass(frozen=True)
