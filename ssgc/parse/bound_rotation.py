@@ -353,10 +353,7 @@ def _coupled_turn(  # type: ignore[no-untyped-def]
     and C ⪰ 0, the first part joins M's symmetric part in `_linear_max`: it is counted only
     along the turn that gains."""
     N = np.einsum("naij,nkj->naik", L, R)
-    W = np.stack(
-        [N[..., 2, 1] - N[..., 1, 2], N[..., 0, 2] - N[..., 2, 0], N[..., 1, 0] - N[..., 0, 1]],
-        axis=1,
-    )  # (n, 3, a): the skew vector of N_a for each axis a of d
+    W = np.moveaxis(_skew_vector(N), -1, 1)  # (n, 3, a): the skew vector of N_a per axis a of d
     WH = np.einsum("nka,nab->nkb", W, root)
     C = np.einsum("nka,nla->nkl", WH, WH)
     omega = np.linalg.norm(WH, ord=2, axis=(1, 2))
@@ -398,7 +395,7 @@ def _linear_max(
     """max ⟨M, E - I⟩ over turns E by at most δ (about `axis` where `on_axis`):
     E - I = sin θ [a]× + (1 - cos θ)(a aᵀ - I), so ⟨M, E - I⟩ = sin θ a·v + (1 - cos θ)
     (aᵀ M a - tr M), v the vector of M's skew part."""
-    v = np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], 1)
+    v = _skew_vector(M)
     Ms = 0.5 * (M + np.swapaxes(M, 1, 2))
     tr = np.trace(M, axis1=1, axis2=2)
     top = np.linalg.eigvalsh(Ms)[:, -1]
@@ -408,6 +405,15 @@ def _linear_max(
     return (
         np.sin(np.minimum(delta, 0.5 * np.pi)) * first
         + (1 - np.cos(np.minimum(delta, np.pi))) * second
+    )
+
+
+def _skew_vector(M: FloatArray) -> FloatArray:
+    """v with ⟨M, [a]×⟩ = a·v for every a, over the last two axes: twice the axial vector of
+    M's skew part, the first-order gain of a turn."""
+    return np.stack(
+        [M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]],
+        axis=-1,
     )
 
 
