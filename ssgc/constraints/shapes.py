@@ -94,7 +94,8 @@ def collision_shape(geometry: Any, base_dir: Path | None = None) -> Any:
         import fcl
     except ImportError:
         raise ShapeError(
-            "3-D non-penetration needs python-fcl: pip install 'ssgc[constraints]'"
+            "3-D non-penetration needs python-fcl, a dependency of ssgc that is not installed: "
+            "pip install python-fcl"
         ) from None
     if geometry is None:
         raise ShapeError("it has no geometry")
