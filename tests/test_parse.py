@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -244,3 +245,35 @@ def test_a_grammar_without_rules_parses_its_empty_scenes():
     result = Parser(grammar).parse(scene, top=2)
     assert result.status == "optimal" and [p.score for p in result.parses] == [0.0]
     assert len(result.parses[0].tree) == 1  # the root, always in the tree
+
+
+def test_the_highs_banner_never_reaches_standard_output(
+    monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """highspy 1.16 prints "Running HiGHS ..." to the C standard output while `Highs()` is
+    built, before its log can be turned off, and `ssg parse` writes its JSON there (a fresh
+    `pip install .` got 1.16 and printed invalid JSON).  A Highs that writes its banner both
+    straight to the file descriptor and through C's buffered stdio stands in for it here."""
+    import ctypes
+
+    import ssgc
+    from ssgc.parse import highs
+
+    libc = ctypes.CDLL(None)
+
+    class Loud(highs.highspy.Highs):  # type: ignore[misc, name-defined]
+        def __init__(self) -> None:
+            os.write(1, b"Running HiGHS (unbuffered)\n")
+            libc.printf(b"Running HiGHS (buffered)\n")
+            super().__init__()
+
+    monkeypatch.setattr(highs.highspy, "Highs", Loud)
+    g = ssgc.load_grammar(GRAMMARS / "gmm.yaml")
+    scene = g.sample(1, seed=0)[0]
+    print("before", flush=True)
+    assert highs.quiet_highs().getOptionValue("output_flag")[1] is False
+    result = ssgc.parse(g, scene)
+    libc.fflush(None)
+    print("after", flush=True)
+    assert result.best is not None
+    assert capfd.readouterr().out == "before\nafter\n"

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import ctypes
+import functools
+import os
+import sys
 import time
+from typing import Any
 
 import highspy
 import numpy as np
@@ -13,13 +18,54 @@ from ssgc.parse.milp import FloatArray, Milp, Solution
 INF = highspy.kHighsInf
 
 
+def quiet_highs() -> Any:
+    """A `highspy.Highs` that writes nothing.  highspy 1.16 prints its banner ("Running HiGHS
+    ...") to the process's standard output while the object is built, before `output_flag` can
+    be set, and `ssg parse` and `ssg explain --json` write their JSON there: so standard output
+    is pointed at the null device for that moment, at the file-descriptor level (the banner is
+    written by C code, which `sys.stdout` does not reach), and C's own buffer is flushed before
+    it is pointed back, so that nothing buffered surfaces later."""
+    sys.stdout.flush()
+    _flush_c_stdio()  # what was written before goes where it was meant to
+    try:
+        saved = os.dup(1)
+    except OSError:  # no standard output to protect
+        h = highspy.Highs()
+    else:
+        try:
+            with open(os.devnull, "wb") as null:
+                os.dup2(null.fileno(), 1)
+                try:
+                    h = highspy.Highs()
+                finally:
+                    _flush_c_stdio()
+                    os.dup2(saved, 1)
+        finally:
+            os.close(saved)
+    h.setOptionValue("output_flag", False)
+    return h
+
+
+def _flush_c_stdio() -> None:
+    libc = _libc()
+    if libc is not None:
+        libc.fflush(None)
+
+
+@functools.cache
+def _libc() -> Any:
+    try:
+        return ctypes.CDLL(None)
+    except (OSError, TypeError):  # no C library to ask (Windows)
+        return None
+
+
 class HighsSession:
     """One HiGHS model, solved repeatedly with cuts added in between (for top-N)."""
 
     def __init__(self, milp: Milp, time_limit: float | None = None) -> None:
         self.milp = milp
-        self.h = highspy.Highs()
-        self.h.setOptionValue("output_flag", False)
+        self.h = quiet_highs()
         self.h.setOptionValue("mip_rel_gap", 0.0)  # rankings must be exact
         self.h.setOptionValue("mip_abs_gap", 1e-9)
         self.h.setOptionValue("threads", 1)
