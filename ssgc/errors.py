@@ -41,7 +41,8 @@ class Diagnostic:
     severity: Severity = "error"
 
     def __str__(self) -> str:
-        where = self.file or "<input>"
+        # a message about no file (a missing package, an option) is the program's own
+        where = self.file or ("<input>" if self.line is not None else "ssg")
         if self.line is not None:
             where += f":{self.line}"
             if self.column is not None:

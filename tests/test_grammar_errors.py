@@ -1193,3 +1193,9 @@ def test_missing_file_is_a_grammar_error(tmp_path: Path) -> None:
 def test_sink_grammar_still_compiles() -> None:
     g = load_grammar(SINK)
     assert g.name == "sink" and not g.warnings
+
+
+def test_a_message_is_located_at_its_file_its_text_or_the_program() -> None:
+    assert str(Diagnostic("bad", "g.yaml", 3, 4)) == "g.yaml:3:4: error: bad"
+    assert str(Diagnostic("bad", None, 3, 4)) == "<input>:3:4: error: bad"  # text, no file
+    assert str(Diagnostic("needs mujoco")) == "ssg: error: needs mujoco"  # about no input

@@ -118,6 +118,7 @@ def test_missing_matplotlib_is_a_clear_message_and_no_file(scenes, tmp_path, mon
         result = run(*args)
         assert result.exit_code == 1
         assert "needs matplotlib" in result.output and "pip install 'ssgc[viz]'" in result.output
+        assert result.output.startswith("ssg: error: ")  # about no input file
         assert not out.exists()
     assert list(tmp_path.iterdir()) == []  # no temporary file either
 
