@@ -674,3 +674,25 @@ def test_report_largest_mc_error(mc_results):
     )
     print(f"\nlargest |F_quad / F_mc - 1| = {worst:.2e}")
     assert worst < 1e-3
+
+
+@pytest.mark.parametrize("spread", [0.0, 0.1])
+def test_fit_about_a_mode_a_half_turn_from_the_data_finds_them(spread: float) -> None:
+    """Rotations about a half turn (about body x) from the start mode: the alternation from
+    that start stalled at a free turn about x (concentration 0, the data on its circle of
+    modes); the fit now also starts from the scatter's top eigenvector and gives the data's
+    mode and three concentrations, the same as from a start at the data.  With no mass on the
+    start mode at all (spread 0: λ = 0 there), without a NumPy warning either."""
+    import warnings
+
+    rng = np.random.default_rng(0)
+    q = np.tile([0.0, 1.0, 0.0, 0.0], (50, 1)) + rng.normal(0.0, 0.01, (50, 4))
+    q[:, 0] = spread * rng.normal(size=50)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mode, conc = Bingham.fit_about_mode(q, np.ones(50), [1.0, 0.0, 0.0, 0.0], False)
+    near, near_conc = Bingham.fit_about_mode(q, np.ones(50), [0.0, 1.0, 0.0, 0.0], False)
+    assert abs(mode @ near) > 1 - 1e-9
+    np.testing.assert_allclose(conc, near_conc, rtol=1e-6)
+    assert np.all(conc > 10)  # the stall left 0 on x

@@ -455,32 +455,29 @@ class Bingham:
         ``Σ_i z_i m_iᵀ S m_i - log F(z)``: concave in ``z`` for a fixed mode, and for a fixed
         ``z`` a quadratic form ``modeᵀ A mode`` with ``A = Σ_i z_i R_iᵀ S R_i`` (``R_i`` the
         right multiplication by ``(0, e_i)``), maximised by A's top eigenvector.  Alternating
-        the two exact steps from ``start_mode`` never lowers the likelihood.  ``isotropic``
-        ties the three concentrations (one scalar), for which the top eigenvector of ``S`` is
-        the exact mode and one round suffices.
+        the two exact steps from ``start_mode`` never lowers the likelihood, but from a start
+        a half turn about a body axis away from the data it stalls at a free turn about that
+        axis (its concentration 0: the data lie on the circle of modes); so it also starts from
+        the top eigenvector of ``S`` and keeps the likelier end.  ``isotropic`` ties the three
+        concentrations (one scalar), for which the top eigenvector of ``S`` is the exact mode
+        and one round suffices.
         """
         arr = _as_unit_quaternions(np.asarray(q, dtype=np.float64))
         w = np.asarray(weights, dtype=np.float64)
         scatter = (arr * (w / w.sum())[:, None]).T @ arr
         scatter = 0.5 * (scatter + scatter.T)
-        right = _right_multipliers()
         if isotropic:
             mode = np.linalg.eigh(scatter)[1][:, -1]
             lam_mode = float(mode @ scatter @ mode)
             lam = np.append(np.full(3, (1.0 - lam_mode) / 3.0), lam_mode)
             z = _fit_concentrations(np.clip(lam, 0.0, None), max_concentration)
             return _canonical_sign(mode), np.full(3, -float(np.mean(z[:3])))
-        mode = _as_unit_quaternions(np.asarray(start_mode, dtype=np.float64))
-        z = np.zeros(4)
-        for _ in range(rounds):
-            axes = right @ mode  # (3, 4): mode ⊗ (0, e_i)
-            lam = np.append(np.einsum("ij,jk,ik->i", axes, scatter, axes), mode @ scatter @ mode)
-            z = _fit_concentrations(np.clip(lam, 0.0, None), max_concentration)
-            a = np.einsum("i,ikj,kl,ilm->jm", z[:3], right, scatter, right)
-            new = np.linalg.eigh(0.5 * (a + a.T))[1][:, -1]
-            if abs(float(new @ mode)) > 1.0 - 1e-15:
-                break
-            mode = new
+        starts = (
+            _as_unit_quaternions(np.asarray(start_mode, dtype=np.float64)),
+            np.linalg.eigh(scatter)[1][:, -1],
+        )
+        fits = [_alternate(scatter, s, max_concentration, rounds) for s in starts]
+        mode, z, _ = max(fits, key=lambda f: f[2])
         return _canonical_sign(mode), -z[:3]
 
     # -- properties ---------------------------------------------------------
@@ -608,6 +605,25 @@ def fit_bingham(
     return Bingham.fit(q, weights=weights, max_concentration=max_concentration)
 
 
+def _alternate(
+    scatter: np.ndarray, mode: np.ndarray, max_concentration: float, rounds: int
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """`Bingham.fit_about_mode`'s alternation from one start: (mode, z, log-likelihood per
+    unit weight, Σ z_i λ_i - log F(z))."""
+    right = _right_multipliers()
+    z, lam = np.zeros(4), np.zeros(4)
+    for _ in range(rounds):
+        axes = right @ mode  # (3, 4): mode ⊗ (0, e_i)
+        lam = np.append(np.einsum("ij,jk,ik->i", axes, scatter, axes), mode @ scatter @ mode)
+        z = _fit_concentrations(np.clip(lam, 0.0, None), max_concentration)
+        a = np.einsum("i,ikj,kl,ilm->jm", z[:3], right, scatter, right)
+        new = np.linalg.eigh(0.5 * (a + a.T))[1][:, -1]
+        if abs(float(new @ mode)) > 1.0 - 1e-15:
+            break
+        mode = new
+    return mode, z, float(z @ lam - log_normalizer(z))
+
+
 def _fit_concentrations(lam: Sequence[float], max_concentration: float) -> np.ndarray:
     """Solve the Bingham MLE for ``Z`` given scatter eigenvalues ``lam`` (ascending).
 
@@ -619,8 +635,8 @@ def _fit_concentrations(lam: Sequence[float], max_concentration: float) -> np.nd
     """
     lam = np.asarray(lam, dtype=np.float64)
     free = lam[:3]
-    with np.errstate(divide="ignore"):
-        guess = 0.5 / free - 0.5 / lam[3]
+    with np.errstate(divide="ignore", invalid="ignore"):  # λ = 0: ∞, or ∞ - ∞ (no mass on
+        guess = 0.5 / free - 0.5 / lam[3]  # the mode, in `fit_about_mode`) guesses 0 below
     guess = np.clip(np.nan_to_num(guess, posinf=max_concentration), 0.0, max_concentration)
     with np.errstate(divide="ignore"):
         s = np.clip(np.nan_to_num(0.5 / free, posinf=max_concentration), 1.0, max_concentration)
