@@ -696,3 +696,79 @@ def test_fit_about_a_mode_a_half_turn_from_the_data_finds_them(spread: float) ->
     assert abs(mode @ near) > 1 - 1e-9
     np.testing.assert_allclose(conc, near_conc, rtol=1e-6)
     assert np.all(conc > 10)  # the stall left 0 on x
+
+
+# log F and the moments E[x_i²] (in the order of z sorted decreasing) of the module docstring's
+# one-dimensional integral, evaluated with mpmath at 30 digits (Bessel functions and adaptive
+# quadrature in arbitrary precision, break points at 2^-k from both ends): an independent check
+# of the Gauss–Legendre panels, from a uniform law to concentrations of 1e10.
+HIGH_PRECISION = [
+    (
+        (0.0, -1.0, -2.0, -3.0),
+        1.6866096368596349584,
+        (0.390247414014864872, 0.267401322327849898, 0.194147415054253818, 0.148203848603031412),
+    ),
+    (
+        (0.0, -0.5, -40.0, -400.0),
+        -2.0889741387652403608,
+        (0.553436388165282583, 0.432743737593171211, 0.0125691879576977741, 0.00125068628384843132),
+    ),
+    (
+        (0.0, -400.0, -400.0, -400.0),
+        -6.57507272976688475,
+        (
+            0.996245276965134845,
+            0.00125157434495505155,
+            0.00125157434495505155,
+            0.00125157434495505155,
+        ),
+    ),
+    (
+        (0.0, -10000.0, -2000.0, -7.0),
+        -6.9243173602901542165,
+        (
+            0.920248236582132659,
+            0.0794516910351967071,
+            0.000250069600551327302,
+            0.0000500027821193065153,
+        ),
+    ),
+    ((0.0, 0.0, -10000.0, -10000.0), -6.2277334197174370784, (0.49995, 0.49995, 0.00005, 0.00005)),
+    (
+        (0.0, -300.0, -300.0, 0.0),
+        -2.7211755223974554017,
+        (
+            0.498333333333333333,
+            0.498333333333333333,
+            0.00166666666666666667,
+            0.00166666666666666667,
+        ),
+    ),
+    (
+        (0.0, -1000000.0, -100000000.0, -10000000000.0),
+        -25.220778854069251349,
+        (
+            0.999999494949749974,
+            5.00000250000501298e-7,
+            5.00000002500002669e-9,
+            5.00000000025000047e-11,
+        ),
+    ),
+    (
+        (-5.0, 0.0, -10000000000.0, -2.5),
+        -10.157760036347032431,
+        (0.661110786876134602, 0.225158380183712571, 0.113730832890152827, 5.00000000031577506e-11),
+    ),
+]
+
+
+@pytest.mark.parametrize("z, log_f, second_moments", HIGH_PRECISION)
+def test_normaliser_and_moments_match_high_precision_values(z, log_f, second_moments):
+    z = np.array(z)
+    assert log_normalizer(z) == pytest.approx(log_f, abs=1e-14)
+    found = moments(z)[np.argsort(-z, kind="stable")]
+    # relative to each moment where every concentration is at most 1e4 (what fits reach);
+    # beyond, E[x2²] = (i0e - i1e) / ... loses digits to cancellation, so 1e-6 of it and 1e-16
+    fit_range = np.max(-z + np.max(z)) <= 1e4
+    rel = 1e-13 if fit_range else 1e-6
+    assert np.allclose(found, second_moments, rtol=rel, atol=0.0 if fit_range else 1e-16)

@@ -35,11 +35,18 @@ integrand becomes ``exp(-(1-t)·|z3|) · i0e(t (z1-z2)/2) · i0e((1-t)(z3-z4)/2)
 which is bounded by 1, so nothing overflows.  Its only sharp features sit at
 the end points ``t = 0`` and ``t = 1`` on length scales ``1/|z|``.  The interval
 is split at ``t = 1/2`` and the upper half is integrated in ``u = 1 - t`` (so
-both small variables are exact near their end point); the adaptive
-Gauss–Kronrod rule (QUADPACK via :func:`scipy.integrate.quad`) is given
-geometric break points at those scales.  In checks against 30-digit reference
-values (mpmath) the relative error of ``F`` stayed below 1e-13 for
-concentrations from 0 to 1e10.
+both small variables are exact near their end point).  Each half is cut into
+panels that halve toward its end point, down to 1/16 of the shortest length
+scale, and each panel gets a 16-point Gauss–Legendre rule: every factor is
+smooth on a panel relative to the panel's length, and all four moments and
+``F`` come from one vectorised evaluation of about 16 · 2 · log2(16 |z|)
+points.  Against 30-digit reference values (mpmath, `tests/test_bingham.py`)
+``log F`` is exact to 2e-15 for concentrations from 0 to 1e10, and the moments
+to 1e-14 relative up to concentrations of 1e4 (beyond, the smallest moments
+lose digits to the cancellation in ``i0e - i1e``).  The adaptive Gauss–Kronrod
+rule of QUADPACK used before agreed to 4e-15 in ``log F`` and 2e-16 in the
+moments on 604 random ``Z``, at 16 times the CPU time (3.4 ms against 0.21 ms
+for ``log F`` with its moments).
 
 The second moments ``E[x_i²] = ∂ log F / ∂z_i`` follow from the same
 integral with the conditional expectations (given t)
@@ -67,11 +74,11 @@ from __future__ import annotations
 import functools
 import math
 import operator
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
-from scipy import integrate, optimize, special
+from scipy import optimize, special
 
 from ssgc.distributions.arrays import frozen
 from ssgc.geometry import quat_multiply
@@ -94,8 +101,8 @@ _DIM = 4
 #: Maximum deviation of ``MᵀM`` from the identity accepted by :class:`Bingham`.
 ORTHOGONALITY_TOL = 1e-6
 
-_QUAD_EPSREL = 1e-12
-_QUAD_LIMIT = 400
+#: Gauss–Legendre rule of each panel of the normaliser's quadrature (:func:`_nodes`).
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
 
 ArrayLike = npt.ArrayLike
 
@@ -140,88 +147,66 @@ def _pair_parameters(zs: tuple[float, ...]) -> tuple[float, float, float]:
     return d1, c, d2
 
 
-def _break_points(scales: Sequence[float]) -> list[float]:
-    """Geometric break points in (0, 1/2) resolving features at ``x ~ 1/scale``."""
-    points: set[float] = set()
-    for scale in scales:
-        if scale <= 4.0:
-            continue
-        s = 0.25 / scale
-        while s < 0.3:
-            points.add(s)
-            s *= 4.0
-    return sorted(points)
+def _halvings(scales: Sequence[float]) -> int:
+    """How many halving panels :func:`_nodes` needs to reach 1/(16 · largest scale)."""
+    return max(3, math.ceil(math.log2(16.0 * max(4.0, *scales))) - 1)
 
 
-def _integrate(func: Callable[[float, float], float], d1: float, c: float, d2: float) -> float:
-    """``∫₀¹ func(t, 1 - t) dt`` for an integrand of the form described in the module docstring.
+@functools.lru_cache(maxsize=128)
+def _nodes(halvings: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss–Legendre nodes and weights on [0, 1/2]: panels [2⁻ᵏ⁻¹, 2⁻ᵏ], k = 1 ... halvings,
+    and the panel from 0 to the last edge.  A factor varying on a length ``1/scale`` next to 0
+    (``i0e(x · scale)``, a power of x on the scale's far side; ``exp(-x · scale)``) is smooth
+    on every panel relative to the panel's own length, so a fixed rule per panel converges."""
+    edges = np.append(0.5 ** np.arange(1, halvings + 2), 0.0)  # 1/2, 1/4, ..., 0
+    lo, hi = edges[1:, None], edges[:-1, None]
+    x = (0.5 * (hi - lo) * (_GL_X + 1.0) + lo).ravel()
+    w = (0.5 * (hi - lo) * _GL_W).ravel()
+    return x, w
 
-    The interval is split at 1/2 and the upper half is integrated in ``u = 1 - t``,
-    so that both small variables are represented exactly near their end point.  The
-    factor depending on ``t·d1`` varies on the scale ``1/d1`` next to ``t = 0``; the
-    factors depending on ``u·c`` and ``u·d2`` vary on the scales ``1/c`` and
-    ``1/d2`` next to ``u = 0``.  Geometric break points at those scales let the
-    adaptive Gauss–Kronrod rule resolve peaks of any width.
-    """
-    total = 0.0
-    for scales, integrand in (
-        ((d1,), lambda t: func(t, 1.0 - t)),
-        ((c, d2), lambda u: func(1.0 - u, u)),
-    ):
-        points = _break_points(scales)
-        value, _err = integrate.quad(
-            integrand,
-            0.0,
-            0.5,
-            points=points or None,
-            epsabs=0.0,
-            epsrel=_QUAD_EPSREL,
-            limit=_QUAD_LIMIT + len(points),
-        )
-        total += value
-    return float(total)
+
+def _numerators(d1: float, c: float, d2: float) -> np.ndarray:
+    """``∫₀¹ nᵢ(t) dt`` for the four numerators of the moments (module docstring): with ``u =
+    1 - t``, ``n1,2 = (t/2) e^{-uc} (i0e(t d1) ± i1e(t d1)) i0e(u d2)`` and ``n3,4`` the same
+    with the roles of ``(t, d1)`` and ``(u, d2)`` exchanged.  Their sum is the integrand of
+    ``F / 2π²``.  The interval is split at 1/2 and the upper half is integrated in ``u``, so
+    both small variables are exact near their end point, each half on the geometric panels of
+    :func:`_nodes` at the scales of the factors that vary there."""
+    xt, wt = _nodes(_halvings((d1,)))
+    xu, wu = _nodes(_halvings((c, d2)))
+    t = np.concatenate([xt, 1.0 - xu])
+    u = np.concatenate([1.0 - xt, xu])
+    i0 = special.i0e(np.concatenate([t * d1, u * d2]))
+    i1 = special.i1e(np.concatenate([t * d1, u * d2]))
+    n = t.size
+    i0a, i1a, i0b, i1b = i0[:n], i1[:n], i0[n:], i1[n:]
+    weight = 0.5 * np.exp(-u * c) * np.concatenate([wt, wu])
+    ta, ub = weight * t * i0b, weight * u * i0a
+    return np.array([ta @ (i0a + i1a), ta @ (i0a - i1a), ub @ (i0b + i1b), ub @ (i0b - i1b)])
 
 
 @functools.lru_cache(maxsize=4096)
+def _numerators_sorted(zs: tuple[float, ...]) -> tuple[float, float, float, float]:
+    """:func:`_numerators` for decreasing ``zs`` with ``zs[0] == 0`` (cached: the fit asks
+    for ``log F`` and the moments at the same ``z``)."""
+    return tuple(float(v) for v in _numerators(*_pair_parameters(zs)))  # type: ignore[return-value]
+
+
 def _log_normalizer_sorted(zs: tuple[float, ...]) -> float:
-    """log F for decreasing ``zs`` with ``zs[0] == 0`` (cached)."""
-    d1, c, d2 = _pair_parameters(zs)
-    if d1 == 0.0 and c == 0.0 and d2 == 0.0:
+    """log F for decreasing ``zs`` with ``zs[0] == 0``."""
+    if zs == (0.0, 0.0, 0.0, 0.0):
         return _LOG_SPHERE_AREA
-
-    def integrand(t: float, u: float) -> float:
-        return math.exp(-u * c) * special.i0e(t * d1) * special.i0e(u * d2)
-
-    return _LOG_SPHERE_AREA + math.log(_integrate(integrand, d1, c, d2))
+    return _LOG_SPHERE_AREA + math.log(math.fsum(_numerators_sorted(zs)))
 
 
-@functools.lru_cache(maxsize=4096)
 def _moments_sorted(zs: tuple[float, ...]) -> tuple[float, float, float, float]:
-    """``E[x_i²]`` for decreasing ``zs`` with ``zs[0] == 0`` (cached)."""
-    d1, c, d2 = _pair_parameters(zs)
+    """``E[x_i²]`` for decreasing ``zs`` with ``zs[0] == 0``.
 
-    # Conditional on t: E[x1²|t] ∝ (t/2)(I0(a) + I1(a)), E[x2²|t] ∝ (t/2)(I0(a) - I1(a))
-    # with a = t·d1 >= 0, and likewise with u = 1-t and b = u·d2 for x3, x4.  Writing
-    # the numerators directly with scaled Bessel functions avoids dividing by I0.
-    def n1(t: float, u: float) -> float:
-        a = t * d1
-        return 0.5 * t * math.exp(-u * c) * (special.i0e(a) + special.i1e(a)) * special.i0e(u * d2)
-
-    def n2(t: float, u: float) -> float:
-        a = t * d1
-        return 0.5 * t * math.exp(-u * c) * (special.i0e(a) - special.i1e(a)) * special.i0e(u * d2)
-
-    def n3(t: float, u: float) -> float:
-        b = u * d2
-        return 0.5 * u * math.exp(-u * c) * special.i0e(t * d1) * (special.i0e(b) + special.i1e(b))
-
-    def n4(t: float, u: float) -> float:
-        b = u * d2
-        return 0.5 * u * math.exp(-u * c) * special.i0e(t * d1) * (special.i0e(b) - special.i1e(b))
-
-    parts = [_integrate(f, d1, c, d2) for f in (n1, n2, n3, n4)]
-    # The four numerators sum to ∫ integrand dt = F / 2π²; normalising by their sum
-    # (rather than by a separately computed F) makes the moments sum to one exactly.
+    Conditional on t, ``E[x1²|t] ∝ (t/2)(I0(a) + I1(a))`` and ``E[x2²|t] ∝ (t/2)(I0(a) -
+    I1(a))`` with ``a = t·d1``, and likewise with ``u = 1 - t`` and ``b = u·d2`` for x3, x4;
+    the numerators are written with scaled Bessel functions, so nothing is divided by I0.
+    Normalising by their sum (the integral of ``F / 2π²``) makes the moments sum to one."""
+    parts = _numerators_sorted(zs)
     total = math.fsum(parts)
     return tuple(p / total for p in parts)  # type: ignore[return-value]
 
