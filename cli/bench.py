@@ -1,4 +1,5 @@
-"""`ssg bench sample` and `ssg bench parse`: speed measurements, JSON with --json."""
+"""`ssg bench sample`, `ssg bench parse` and `ssg bench fit`: speed measurements, JSON with
+--json."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import typer
 
 from ssgc.bench import bench_sample
 from ssgc.cli.app import GrammarArg, _check_method, _command, bench_app, out
+from ssgc.cli.fit import _in_range
 from ssgc.compile import load_grammar
+from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 
 
 @bench_app.command("sample")
@@ -63,6 +66,34 @@ def bench_parse_cmd(
 
     _check_method(method, "highs")
     result = bench_parse(load_grammar(grammar), scenes, seed, top, time_limit, method)
+    if as_json:
+        print(json.dumps(result, indent=1))
+    else:
+        for key, value in result["summary"].items():
+            out.print(f"{key:>22}: {value}", markup=False, highlight=False)
+
+
+@bench_app.command("fit")
+@_command
+def bench_fit_cmd(
+    grammar: GrammarArg,
+    dataset: Annotated[str, typer.Argument(help="Scenes to fit to (anything ssg fit reads).")],
+    iterations: Annotated[int, typer.Option("--iterations", min=1)] = 2,
+    top: Annotated[int, typer.Option("--top", min=1)] = 1,
+    jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Processes parsing.")] = 1,
+    max_concentration: Annotated[
+        float,
+        typer.Option(
+            callback=lambda v: _in_range(v, "--max-concentration", 0.0, MAX_CONCENTRATION),
+            help="As ssg fit's.",
+        ),
+    ] = 1e4,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+) -> None:
+    """EM speed: seconds per iteration, split into the E-step (parsing) and the M-step."""
+    from ssgc.bench import bench_fit
+
+    result = bench_fit(str(grammar), dataset, iterations, top, jobs, max_concentration)
     if as_json:
         print(json.dumps(result, indent=1))
     else:

@@ -221,6 +221,62 @@ def bench_constrained(
     }
 
 
+def bench_fit(
+    grammar_path: str,
+    dataset: str,
+    iterations: int = 2,
+    top: int = 1,
+    jobs: int = 1,
+    max_concentration: float = 1e4,
+) -> dict[str, Any]:
+    """Seconds per EM iteration of `ssgc.fit` on a dataset, split into the E-step (parsing
+    every scene) and the M-step (every law's maximum-likelihood update, the write-back and
+    the recompile), with the fit's CPU time and the machine's load next to them."""
+    from ssgc.api import fit, load_grammar
+
+    grammar = load_grammar(grammar_path)
+    cpu0 = _cpu_seconds()
+    t0 = time.perf_counter()
+    result = fit(
+        grammar,
+        dataset,
+        iterations=iterations,
+        top=top,
+        jobs=jobs,
+        tol=0.0,
+        max_concentration=max_concentration,
+    )
+    seconds = time.perf_counter() - t0
+    rows = [
+        {
+            "iteration": r["iteration"],
+            "log_evidence": r["log_evidence"],
+            "seconds": round(r["seconds"], 3),
+            "estep_seconds": round(r["seconds"] - r["mstep_seconds"], 3),
+            "mstep_seconds": round(r["mstep_seconds"], 3),
+        }
+        for r in result.iterations
+    ]
+    return {
+        "grammar": grammar.ir.name,
+        "dataset": dataset,
+        "scenes": result.iterations[0]["scenes"] if result.iterations else 0,
+        "top": top,
+        "jobs": jobs,
+        "iterations": rows,
+        "summary": {
+            "seconds": round(seconds, 3),
+            "cpu_seconds": round(_cpu_seconds() - cpu0, 3),
+            "mean_estep_seconds": round(float(np.mean([r["estep_seconds"] for r in rows])), 3),
+            "mean_mstep_seconds": round(float(np.mean([r["mstep_seconds"] for r in rows])), 3),
+        },
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+    }
+
+
 def _cpu_seconds() -> float:
     """CPU time of this process and of its finished (waited-for) worker processes."""
     own = resource.getrusage(resource.RUSAGE_SELF)

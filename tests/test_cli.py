@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 
@@ -98,6 +99,24 @@ def test_bench_sample_json():
     data = json.loads(result.output)
     assert data["scenes_per_second"] > 0 and data["score_seconds_per_tree"] > 0
     assert data["max_abs_score_minus_sample_logp"] < 1e-9
+
+
+def test_bench_fit_json(tmp_path):
+    data = tmp_path / "scenes"
+    assert (
+        run("sample", GRAMMARS / "sink.yaml", "-n", 6, "--seed", 1, "-o", data, "-q").exit_code == 0
+    )
+    result = run("bench", "fit", GRAMMARS / "sink.yaml", data, "--iterations", 2, "--json")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert report["scenes"] == 6 and [r["iteration"] for r in report["iterations"]] == [1, 2]
+    for r in report["iterations"]:
+        assert r["mstep_seconds"] > 0 and r["estep_seconds"] > 0
+        assert abs(r["estep_seconds"] + r["mstep_seconds"] - r["seconds"]) < 0.01
+        assert math.isfinite(r["log_evidence"])
+    assert report["summary"]["seconds"] >= sum(r["seconds"] for r in report["iterations"]) - 0.01
+    bad = run("bench", "fit", GRAMMARS / "sink.yaml", data, "--max-concentration", 0)
+    assert bad.exit_code == 2 and "--max-concentration" in bad.output
 
 
 def test_console_script_exit_codes(tmp_path):

@@ -441,7 +441,7 @@ def normal(path: Path) -> Any:
         doc = json.loads(path.read_bytes())
     except ValueError:
         return path.read_bytes()
-    return _drop(doc, {"timing", "seconds"})
+    return _drop(doc, {"timing", "seconds", "mstep_seconds"})
 
 
 def _drop(doc: Any, keys: set[str]) -> Any:

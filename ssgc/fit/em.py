@@ -212,6 +212,7 @@ def fit_grammar(
                 return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
             trees, weights, report["posterior"] = sampled
             report["trees"] = len(weights)
+        m_started = time.monotonic()
         updates = m_step(grammar, trees, weights, options.settings, ties)
         try:
             current = apply_updates(current, updates, source.file)
@@ -222,6 +223,7 @@ def fit_grammar(
             ) from None
         grammar = compile_text(current, source.file, source.base_dir, source.allow_outside)
         report["seconds"] = round(time.monotonic() - started, 6)
+        report["mstep_seconds"] = round(time.monotonic() - m_started, 6)
         journal.add_iteration(current, report)
         if on_iteration is not None:
             on_iteration(report)
