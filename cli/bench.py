@@ -66,11 +66,7 @@ def bench_parse_cmd(
 
     _check_method(method, "highs")
     result = bench_parse(load_grammar(grammar), scenes, seed, top, time_limit, method)
-    if as_json:
-        print(json.dumps(result, indent=1))
-    else:
-        for key, value in result["summary"].items():
-            out.print(f"{key:>22}: {value}", markup=False, highlight=False)
+    _print(result, as_json)
 
 
 @bench_app.command("fit")
@@ -94,6 +90,11 @@ def bench_fit_cmd(
     from ssgc.bench import bench_fit
 
     result = bench_fit(str(grammar), dataset, iterations, top, jobs, max_concentration)
+    _print(result, as_json)
+
+
+def _print(result: dict, as_json: bool) -> None:
+    """The whole result as JSON, or its summary as aligned lines."""
     if as_json:
         print(json.dumps(result, indent=1))
     else:
