@@ -293,6 +293,7 @@ class _Renumbered:
 
     def __init__(self, source: SourceMap, kept: dict[tuple, list[int]]) -> None:
         self.source, self.kept, self.file = source, kept, source.file
+        self.notes: tuple[Diagnostic, ...] = ()  # the loader's warnings: the first pass has them
 
     def diagnostic(self, loc: Any, message: str, severity: str = "error") -> Diagnostic:
         loc = tuple(loc)
@@ -309,7 +310,7 @@ class Report:
         self.source = source
         self.names = names
         self.errors: list[Diagnostic] = []
-        self.warnings: list[Diagnostic] = []
+        self.warnings: list[Diagnostic] = list(source.notes)
         self.suggestions = 0
 
     def error(self, loc: Loc, message: str) -> None:

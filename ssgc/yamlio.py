@@ -15,6 +15,7 @@ import datetime
 import difflib
 import math
 import re
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,8 @@ from typing import Any
 from pydantic import ValidationError
 from ruamel.yaml import YAML
 from ruamel.yaml.comments import CommentedMap, CommentedSeq, TaggedScalar
-from ruamel.yaml.error import MarkedYAMLError, YAMLError
+from ruamel.yaml.error import MarkedYAMLError, ReusedAnchorWarning, YAMLError
+from ruamel.yaml.events import AliasEvent
 from ruamel.yaml.nodes import MappingNode, ScalarNode, SequenceNode
 from ruamel.yaml.reader import ReaderError
 from ruamel.yaml.scalarbool import ScalarBoolean
@@ -46,6 +48,7 @@ class SourceMap:
 
     file: str
     tree: Any
+    notes: tuple[Diagnostic, ...] = ()  # the loader's warnings (an anchor defined twice)
 
     def walk(self, loc: Iterable[Any]) -> tuple[list[Any], Any, tuple[int, int], tuple[int, int]]:
         """Follow `loc` into the document as far as it exists.
@@ -139,7 +142,7 @@ def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
     yaml = YAML(typ="rt", pure=True)
     yaml.allow_duplicate_keys = False
     try:
-        tree = yaml.load(text)
+        tree = load_quietly(yaml, text)
     except MarkedYAMLError as exc:
         raise SsgError([_syntax_diagnostic(exc, file)]) from None
     except ReaderError as exc:  # a control character: ruamel gives its offset, not a mark
@@ -159,8 +162,38 @@ def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
         # `!!int abc`, `!!bool maybe`, a key that is a mapping holding a list): find the node
         # that fails, for its position.
         raise SsgError([_unreadable_value(text, file)]) from None
-    source = SourceMap(file, tree)
+    source = SourceMap(file, tree, _reused_anchors(text, file) if "&" in text else ())
     return _Plain(source).convert(tree, ()), source
+
+
+def load_quietly(yaml: YAML, text: str) -> Any:
+    """`yaml.load(text)` without ruamel's warning about an anchor defined twice, which it
+    prints as its own text (its source file, '<unicode string>'); `_reused_anchors` says it
+    in ssg's words where a user should hear it."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReusedAnchorWarning)
+        return yaml.load(text)
+
+
+def _reused_anchors(text: str, file: str) -> tuple[Diagnostic, ...]:
+    """A warning where an anchor is defined again: YAML allows it, and every later alias then
+    means the new value, which in a grammar is most often a copied line left unrenamed."""
+    first: dict[str, tuple[int, int]] = {}
+    found = []
+    for event in YAML(typ="rt", pure=True).parse(text):
+        name = getattr(event, "anchor", None)
+        if name is None or isinstance(event, AliasEvent):  # `*p` names the anchor it uses
+            continue
+        at = (event.start_mark.line + 1, event.start_mark.column + 1)
+        if name in first:
+            line, col = first[name]
+            message = (
+                f"anchor &{name} is defined again (first at line {line}, column {col}); "
+                f"the aliases *{name} after this point mean this value"
+            )
+            found.append(Diagnostic(message, file, *at, severity="warning"))
+        first[name] = at
+    return tuple(found)
 
 
 def _syntax_diagnostic(exc: MarkedYAMLError, file: str) -> Diagnostic:

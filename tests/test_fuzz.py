@@ -59,6 +59,10 @@ if PROFILE not in ("quick", "long") and not PROFILE.isdigit():
     raise ValueError(f"SSG_FUZZ must be 'quick', 'long' or a number of cases, got {PROFILE!r}")
 LONG_CASES = 10_000
 HANG_SECONDS = 60.0  # one input taking longer than this is a hang
+# A warning of the YAML reader reaches the user's terminal as ruamel's own text (its source
+# file, '<unicode string>' for the file): ssg turns what it warns about into located
+# diagnostics, so here any such warning is an uncaught exception.
+pytestmark = pytest.mark.filterwarnings("error::ruamel.yaml.error.YAMLWarning")
 PARSE_GRAMMARS = ("sink.yaml", "singles_pairs_dependency.yaml")
 
 

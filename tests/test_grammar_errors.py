@@ -1199,3 +1199,38 @@ def test_a_message_is_located_at_its_file_its_text_or_the_program() -> None:
     assert str(Diagnostic("bad", "g.yaml", 3, 4)) == "g.yaml:3:4: error: bad"
     assert str(Diagnostic("bad", None, 3, 4)) == "<input>:3:4: error: bad"  # text, no file
     assert str(Diagnostic("needs mujoco")) == "ssg: error: needs mujoco"  # about no input
+
+
+REUSED_ANCHOR = """\
+grammar: anchors
+root: A
+types:
+  A:
+    and:
+      - {child: B, translation: &p {offset: [0, 0, 0]}}
+      - {child: C, translation: &p {offset: [0, 0, 1]}}
+      - {child: D, translation: *p}
+  B: {observed: true}
+  C: {observed: true}
+  D: {observed: true}
+"""
+
+
+def test_an_anchor_defined_twice_is_one_located_warning(tmp_path, recwarn):
+    """YAML lets a later `&p` replace an earlier one; ssg says where, in its own words (ruamel
+    printed its source file and '<unicode string>' instead)."""
+    from typer.testing import CliRunner
+
+    from ssgc.cli.app import app
+
+    path = tmp_path / "anchors.yaml"
+    path.write_text(REUSED_ANCHOR)
+    g = load_grammar(path)
+    (w,) = g.warnings
+    assert (w.file, w.line, w.column, w.severity) == (str(path), 7, 33, "warning")
+    assert "anchor &p is defined again (first at line 6, column 33)" in w.message
+    assert list(g.rules[-1].translation.offset) == [0, 0, 1]  # *p means the second value
+    result = CliRunner().invoke(app, ["validate", str(path)])
+    assert result.exit_code == 0
+    assert result.stderr.strip() == str(w)
+    assert not [r for r in recwarn if "anchor" in str(r.message)]

@@ -27,6 +27,7 @@ from ruamel.yaml.representer import RoundTripRepresenter
 
 from ssgc.geometry import quat_to_rpy
 from ssgc.laws.base import Orientation
+from ssgc.yamlio import load_quietly
 
 Loc = tuple[str | int, ...]
 
@@ -185,7 +186,7 @@ def apply_updates(
     for one anchored node raise ValueError (the caller's bug, or a tie the fit broke)."""
     head, body, tail = _split_document(text)
     yaml = _loader(body)
-    tree = yaml.load(body)
+    tree = load_quietly(yaml, body)
     written: dict[Any, tuple[str, Any]] = {}  # what each node got, to catch broken ties
     for update in updates:
         node = _resolve(tree, update.path, file)
@@ -233,7 +234,7 @@ def _split_document(text: str) -> tuple[str, str, str]:
 def shared_nodes(text: str, paths: list[Loc], file: str = "<grammar>") -> list[list[Loc]]:
     """Groups (two or more, in the order given) of `paths` that reach the same mapping: one
     parameter set written through an anchor and its aliases, so the fitter pools them."""
-    tree = YAML(typ="rt", pure=True).load(text)
+    tree = load_quietly(YAML(typ="rt", pure=True), text)
     groups: dict[int, list[Loc]] = {}
     for path in paths:
         groups.setdefault(id(_resolve(tree, path, file)), []).append(path)
