@@ -151,6 +151,7 @@ def test_a_relay_meets_its_arc_at_the_truth(qv, tv, rv, av, bv, cv, psi, phi) ->
 @given(axes, axes, axes, hs.floats(-3.0, 3.0), hs.floats(-3.0, 3.0))
 @example([0.0, 1.0, 1.0], [0.25, 0.75, 0.75], [0.0, 1.0, 1.0], 0.0, 0.0)  # 7.7e-8 unpolished
 @example([0.0, 1.0, 1.0], [0.0, 0.75, 0.59375], [0.0, 1.0, 1.0], 0.0, 0.0)  # 1.1e-7, numpy 1.26
+@example([0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [4e-09, 1.0, 0.0], 0.0, 4e-09)  # 1.2e-9, p ~ a
 def test_two_axis_angles_map_the_vector(av, bv, pv, psi, phi) -> None:  # type: ignore[no-untyped-def]
     """Every (ψ, φ) returned maps p onto q = R(a, ψ) R(b, φ) p to rounding: near tangency (p
     along a, the two solutions merging) the square root alone left errors up to 1e-7."""
