@@ -254,7 +254,7 @@ def _polish(
     merge, γ ≈ 0) the square root above loses half the digits: an error of 1e-7 where the data
     hold 1e-16.  With p within nanometres of a, ψ turns only p's tiny part across a, so ψ and
     φ act like the angle and radius of polar coordinates near their centre, and a full step
-    overshoots (session 26: residuals up to 4.5e-8 before the halving, 1.3e-15 after, on 40,000
+    overshoots (session 26: residuals up to 5.5e-8 before the halving, 1.3e-15 after, on 40,000
     random and near-tangent cases)."""
 
     def residual(psi: float, phi: float) -> tuple[FloatArray, FloatArray, FloatArray]:
