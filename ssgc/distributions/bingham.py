@@ -176,8 +176,8 @@ def _numerators(d1: float, c: float, d2: float) -> np.ndarray:
     xu, wu = _nodes(_halvings((c, d2)))
     t = np.concatenate([xt, 1.0 - xu])
     u = np.concatenate([1.0 - xt, xu])
-    i0 = special.i0e(np.concatenate([t * d1, u * d2]))
-    i1 = special.i1e(np.concatenate([t * d1, u * d2]))
+    args = np.concatenate([t * d1, u * d2])
+    i0, i1 = special.i0e(args), special.i1e(args)
     n = t.size
     i0a, i1a, i0b, i1b = i0[:n], i1[:n], i0[n:], i1[n:]
     weight = 0.5 * np.exp(-u * c) * np.concatenate([wt, wu])
