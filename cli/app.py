@@ -7,6 +7,7 @@ reported in one paragraph (set SSG_DEBUG=1 for the traceback), still never a raw
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import sys
@@ -170,6 +171,15 @@ def _note_discarded(journal: Any, quiet: bool) -> None:
             markup=False,
             highlight=False,
         )
+
+
+def _in_range(value: float, flag: str, low: float, high: float) -> float:
+    """A positive bound of the M-step, checked here so that the message reads as numbers are
+    written (typer prints a range's 1e-300 with all its zeros); NaN fails every comparison."""
+    if not (low < value <= high and math.isfinite(value)):
+        upper = " and finite" if math.isinf(high) else f" and at most {high:g}"
+        raise typer.BadParameter(f"must be above {low:g}{upper}, got {value:g}", param_hint=flag)
+    return value
 
 
 def _check_method(method: str, solver: str) -> None:

@@ -9,8 +9,7 @@ from typing import Annotated
 import typer
 
 from ssgc.bench import bench_sample
-from ssgc.cli.app import GrammarArg, _check_method, _command, bench_app, out
-from ssgc.cli.fit import _in_range
+from ssgc.cli.app import GrammarArg, _check_method, _command, _in_range, bench_app, out
 from ssgc.compile import load_grammar
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 

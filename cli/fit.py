@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import sys
 from enum import StrEnum
 from pathlib import Path
@@ -15,6 +14,7 @@ from ssgc.cli.app import (
     AllowOutside,
     _check_method,
     _command,
+    _in_range,
     _note_discarded,
     _progress,
     _summary,
@@ -216,15 +216,6 @@ def fit(
             journal.delete()
     if not quiet:
         _summary(dest, f"{result.message}; wrote {dest.name}")
-
-
-def _in_range(value: float, flag: str, low: float, high: float) -> float:
-    """A positive bound of the M-step, checked here so that the message reads as numbers are
-    written (typer prints a range's 1e-300 with all its zeros); NaN fails every comparison."""
-    if not (low < value <= high and math.isfinite(value)):
-        upper = " and finite" if math.isinf(high) else f" and at most {high:g}"
-        raise typer.BadParameter(f"must be above {low:g}{upper}, got {value:g}", param_hint=flag)
-    return value
 
 
 def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:

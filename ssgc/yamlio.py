@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from pydantic import ValidationError
 from ruamel.yaml import YAML
 from ruamel.yaml.comments import CommentedMap, CommentedSeq, TaggedScalar
@@ -34,6 +35,7 @@ from ssgc.errors import Diagnostic, SsgError
 
 MAX_GRAMMAR_BYTES = 4 * 1024 * 1024
 MAX_VALUES = 2_000_000
+MAX_DEPTH = 200
 _PLAIN_TAGS = {
     f"tag:yaml.org,2002:{t}" for t in ("map", "seq", "str", "int", "float", "bool", "null")
 }
@@ -139,6 +141,7 @@ def _byte_position(data: bytes, index: int) -> tuple[int, int]:
 
 def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
     """Parse YAML/JSON text into plain data plus a `SourceMap` of the round-trip tree."""
+    _refuse_deep_flow(text, file)
     yaml = YAML(typ="rt", pure=True)
     yaml.allow_duplicate_keys = False
     try:
@@ -164,6 +167,39 @@ def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
         raise SsgError([_unreadable_value(text, file)]) from None
     source = SourceMap(file, tree, _reused_anchors(text, file) if "&" in text else ())
     return _Plain(source).convert(tree, ()), source
+
+
+# What can hide a bracket from the flow-depth count: quoted scalars and comments.
+_FLOW_TOKENS = re.compile(
+    r""""(?:[^"\\]|\\.)*"?"""  # a double-quoted scalar, escapes included
+    r"|'(?:[^']|'')*'?"  # a single-quoted scalar ('' is a quote)
+    r"|(?:^|(?<=\s))#[^\n]*"  # a comment
+    r"|[\[\]{}]",
+    re.M,
+)
+
+
+def _refuse_deep_flow(text: str, file: str) -> None:
+    """Refuse flow collections (`[[[`, `{a: {a:`) nested deeper than `MAX_DEPTH`, before
+    ruamel reads them: its scanner does work proportional to the open depth for every token, so
+    2,000 open brackets took it 5 s to refuse (a RecursionError).  The count skips quoted
+    scalars and comments; brackets inside plain or block scalars count too, which can only
+    refuse a document with more than `MAX_DEPTH` of them unclosed, never pass a deep one."""
+    if text.count("[") + text.count("{") <= MAX_DEPTH:
+        return
+    matches = [m for m in _FLOW_TOKENS.finditer(text) if m.group() in "[]{}"]
+    if len(matches) <= MAX_DEPTH:
+        return
+    steps = np.array([1 if m.group() in "[{" else -1 for m in matches])
+    walk = np.cumsum(steps)
+    depth = walk - np.minimum.accumulate(np.minimum(walk, 0))  # a stray closer resets to 0
+    deepest = np.flatnonzero(depth > MAX_DEPTH)
+    if deepest.size:
+        start = matches[int(deepest[0])].start()
+        line = text.count("\n", 0, start) + 1
+        column = start - (text.rfind("\n", 0, start) + 1) + 1
+        message = f"document is nested more than {MAX_DEPTH} levels deep"
+        raise SsgError.single(message, file, line, column)
 
 
 def load_quietly(yaml: YAML, text: str) -> Any:
@@ -301,8 +337,8 @@ class _Plain:
         self.budget -= 1
         if self.budget < 0:
             raise self.fail(loc, f"document has more than {MAX_VALUES} values (alias bomb?)")
-        if len(loc) > 200:
-            raise self.fail(loc, "document is nested more than 200 levels deep")
+        if len(loc) > MAX_DEPTH:
+            raise self.fail(loc, f"document is nested more than {MAX_DEPTH} levels deep")
         tag = getattr(getattr(node, "tag", None), "value", None)
         if isinstance(node, TaggedScalar) and tag == "tag:yaml.org,2002:str":
             return self.text(str(node.value), loc)  # `!!str 2024-01-01`: quoting with a tag

@@ -1346,6 +1346,34 @@ def test_unbounded_recursion_in_a_long_cycle_is_reported(work: Path) -> None:
     assert "T2999 -> T3000 -> T1; set `max_nesting`" in result.stderr
 
 
+@pytest.mark.parametrize(
+    ("text", "at"),
+    [
+        ("[" * 3000, (1, 201)),
+        ("{a: " * 3000, (1, 801)),
+        ("grammar: g\nroot: [" + "[" * 250, (2, 207)),
+    ],
+    ids=["brackets", "braces", "in-a-grammar"],
+)
+def test_deep_flow_collections_are_refused_where_they_pass_the_limit(
+    text: str, at: tuple[int, int]
+) -> None:
+    """Was "invalid YAML: nested too deeply" with no position, after 5-10 s in ruamel's
+    scanner (its work per token grows with the open depth): 10 s of a CI fuzz run each."""
+    with pytest.raises(GrammarError) as info:
+        compile_text(text, "case.yaml")
+    (d,) = info.value.diagnostics
+    assert (d.line, d.column) == at
+    assert d.message == "document is nested more than 200 levels deep"
+
+
+def test_brackets_in_comments_and_quotes_are_not_nesting() -> None:
+    """The depth count before ruamel skips quoted scalars and comments."""
+    text = GRAMMAR_TEXTS["gmm.yaml"].replace("grammar: gmm", 'grammar: "gmm' + "[" * 150 + '"')
+    grammar = compile_text(text + "# " + "{" * 300 + "\n", "case.yaml")
+    assert grammar.name == "gmm" + "[" * 150
+
+
 def test_supertree_too_large_to_count(work: Path) -> None:
     """Two bounded types nested 100 deep each, 1000 copies a level: more than 10**18 nodes."""
     probs = ", ".join(["0"] * 1000 + ["1"])
