@@ -33,7 +33,8 @@ class Tail:
 
 # The defaults, measured on the real sink scenes 0-39 (169 dishes), each scene's best parse
 # under the fitted sink_detailed grammar with its dishes as hollow solids of revolution
-# (`revolve`), docs/explain.md:
+# (`revolve`); docs/explain.md ("Overlaps", "Support, floor and walls") and docs/perturbation.md
+# ("With hollow dishes"):
 # - overlaps: 34 of 169 dishes overlap a dish the tree does not relate to them, by 1.13 cm on
 #   average (summed per dish);
 # - floating: 15 dishes float by more than 1 cm (mean excess 4.1 mm, floored at 1 cm);
