@@ -1352,8 +1352,9 @@ def test_unbounded_recursion_in_a_long_cycle_is_reported(work: Path) -> None:
         ("[" * 3000, (1, 201)),
         ("{a: " * 3000, (1, 801)),
         ("grammar: g\nroot: [" + "[" * 250, (2, 207)),
+        ("# '\"\nü: [" + "[" * 250, (2, 204)),  # columns count characters, not bytes
     ],
-    ids=["brackets", "braces", "in-a-grammar"],
+    ids=["brackets", "braces", "in-a-grammar", "after-non-ascii"],
 )
 def test_deep_flow_collections_are_refused_where_they_pass_the_limit(
     text: str, at: tuple[int, int]
