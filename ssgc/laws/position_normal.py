@@ -11,7 +11,7 @@ from enum import Enum
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtrc
 
 from ssgc import dsl
 from ssgc.distributions.normal import Normal
@@ -170,7 +170,7 @@ class NormalTranslation(TranslationLaw):
         """Distance from the mean over the free axes, and how many draws land farther (χ²)."""
         d = float(np.linalg.norm(np.where(self.free, u - self.offset, 0.0)))
         m2 = max(0.0, -2.0 * (log_prob - self.supremum()))
-        sigma, farther = float(np.sqrt(m2)), float(chi2.sf(m2, int(self.free.sum())))
+        sigma, farther = float(np.sqrt(m2)), float(chdtrc(int(self.free.sum()), m2))
         return Deviation(
             f"position {d:.2f} m from where its parent {ctx.parent} places it ({sigma:.1f}σ, "
             f"{percent(farther)} of placements are farther)",
