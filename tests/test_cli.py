@@ -140,3 +140,12 @@ def test_committed_schemas_are_current(name):
     assert committed == schema_text(SCHEMA_FILES[name]), (
         f"schemas/{name} is stale: run `ssg schema schemas`"
     )
+
+
+def test_starting_ssg_does_not_import_scipy_stats() -> None:
+    """scipy.stats takes 0.4-0.9 s to import, which every `ssg` command paid before it did
+    anything; the code that needs it imports it where it runs."""
+    code = "import sys, ssgc.cli.app; print('scipy.stats' in sys.modules)"
+    shown = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert shown.returncode == 0, shown.stderr
+    assert shown.stdout.strip() == "False"
