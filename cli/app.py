@@ -11,6 +11,7 @@ import math
 import os
 import signal
 import sys
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -23,7 +24,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ssgc import __version__
 from ssgc.cli import render as render_cli
-from ssgc.errors import SsgError
+from ssgc.errors import SsgError, SsgWarning, one_line
 from ssgc.io.outputs import ENVIRONMENT_ERRNOS, Output
 
 app = typer.Typer(
@@ -227,6 +228,20 @@ class _Steps(Progress):
         if _CtrlC.pressed:
             raise KeyboardInterrupt
         super().advance(task_id, advance)
+
+
+@contextmanager
+def _warnings_about(file: Path | str) -> Iterator[None]:
+    """Print each `SsgWarning` raised inside as ``FILE: warning: message``, about the input it
+    concerns; other warnings pass on as they were."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        if isinstance(w.message, SsgWarning):
+            err.print(f"{file}: warning: {one_line(str(w.message))}", highlight=False)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 @contextmanager

@@ -18,6 +18,7 @@ from ssgc.cli.app import (
     _note_discarded,
     _progress,
     _summary,
+    _warnings_about,
     app,
     err,
 )
@@ -211,7 +212,8 @@ def fit(
         if plots is not None and fitted is not None:
             from ssgc.render.fit import plot_fit
 
-            plot_fit(plots, result.iterations, items, fitted.ir, g.ir, seed)
+            with _warnings_about(grammar):  # the pictures' names are the grammar's types
+                plot_fit(plots, result.iterations, items, fitted.ir, g.ir, seed)
         if result.status != "time_limit":
             journal.delete()
     if not quiet:

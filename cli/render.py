@@ -32,22 +32,26 @@ def render(
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No summary line.")] = False,
 ) -> None:
     """Draw scenes in 3-D and from above, with their trees; a parse's edges by rule score."""
+    from ssgc.cli.app import _warnings_about  # here: app imports this module at its top
     from ssgc.render.scene import check_output, render_file, require_matplotlib
 
     check_output(output, inputs=(source,))
     require_matplotlib()
     g = load_grammar(grammar) if grammar is not None else None
-    count = render_file(source, output, n=num, grammar=g, scene=scene)
+    with _warnings_about(source):
+        count = render_file(source, output, n=num, grammar=g, scene=scene)
     if not quiet:
         typer.echo(f"drew {count} scene(s) of {source} to {output}")
 
 
 def diagram(grammar_path: Path, output: Path, allow_outside: bool) -> None:
     """`ssg inspect --diagram`: the grammar's types and rules as a layered graph."""
+    from ssgc.cli.app import _warnings_about
     from ssgc.render.diagram import render_diagram
     from ssgc.render.scene import check_output, require_matplotlib
 
     check_output(output, inputs=(grammar_path,))
     require_matplotlib()
-    render_diagram(load_grammar(grammar_path, allow_outside=allow_outside), output)
+    with _warnings_about(grammar_path):
+        render_diagram(load_grammar(grammar_path, allow_outside=allow_outside), output)
     typer.echo(f"drew the diagram of {grammar_path} to {output}")

@@ -81,3 +81,11 @@ class GrammarError(SsgError):
 
 class SceneError(SsgError):
     """A scene file is invalid or cannot be read with the given grammar."""
+
+
+class SsgWarning(UserWarning):
+    """Something a user should hear about that does not stop the command, said in ssg's words.
+
+    Library code warns with it (`warnings.warn`); the command line prints it as
+    ``FILE: warning: message`` about the input it concerns, never as Python's warning text
+    (a source path and a line of code)."""

@@ -62,7 +62,11 @@ HANG_SECONDS = 60.0  # one input taking longer than this is a hang
 # A warning of the YAML reader reaches the user's terminal as ruamel's own text (its source
 # file, '<unicode string>' for the file): ssg turns what it warns about into located
 # diagnostics, so here any such warning is an uncaught exception.
-pytestmark = pytest.mark.filterwarnings("error::ruamel.yaml.error.YAMLWarning")
+pytestmark = [
+    pytest.mark.filterwarnings("error::ruamel.yaml.error.YAMLWarning"),
+    # and matplotlib's, once per character its font lacks (`ssg render` says it once, located)
+    pytest.mark.filterwarnings("error:Glyph"),
+]
 PARSE_GRAMMARS = ("sink.yaml", "singles_pairs_dependency.yaml")
 
 

@@ -162,3 +162,20 @@ def test_bad_options_are_clear_messages(scenes, tmp_path):
     missing = run("render", tmp_path / "missing.json", "-o", tmp_path / "out.png")
     assert missing.exit_code == 1 and "internal error" not in missing.output
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.filterwarnings("error:Glyph")  # matplotlib's own warning must not escape
+def test_characters_the_font_lacks_are_one_warning_in_ssg_words(scenes, tmp_path):
+    """A scene named in Japanese printed matplotlib's warning text three times, each with
+    our source path and line of code; now one line names the characters drawn as boxes."""
+    doc = json.loads((scenes / "sink_000001.json").read_text())
+    doc["name"] = "茶碗 \U0007b730"
+    scene = tmp_path / "named.json"
+    scene.write_text(json.dumps(doc, ensure_ascii=False), encoding="utf-8")
+    result = run("render", scene, "-o", tmp_path / "named.png", "-q")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "named.png").exists()
+    assert result.stderr.splitlines() == [
+        f"{scene}: warning: 3 character(s) of the names are not in the font DejaVu Sans and "
+        "are drawn as boxes: U+8336, U+7897, U+7B730"
+    ]

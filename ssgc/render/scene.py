@@ -14,7 +14,9 @@ from __future__ import annotations
 import io
 import json
 import math
+import re
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from ssgc.errors import SceneError, SsgError
+from ssgc.errors import SceneError, SsgError, SsgWarning
 from ssgc.geometry import quat_to_matrix, rpy_to_quat
 from ssgc.io.outputs import Output, write_output_bytes
 from ssgc.io.outputs import check_output as check_output_path
@@ -524,6 +526,37 @@ def save_figure(fig: Any, output: Output, fmt: str) -> None:
     import matplotlib
 
     buf = io.BytesIO()
-    with matplotlib.rc_context({"svg.fonttype": "none", "svg.hashsalt": "ssgc"}):
+    with (
+        warnings.catch_warnings(record=True) as caught,
+        matplotlib.rc_context({"svg.fonttype": "none", "svg.hashsalt": "ssgc"}),
+    ):
+        warnings.simplefilter("always")
         fig.savefig(buf, format=fmt, dpi=100)
     write_output_bytes(output, buf.getvalue())
+    _say_missing_glyphs(caught)
+
+
+_GLYPH = re.compile(r"Glyph (\d+) .* missing from font\(s\) (.+)\.$")
+
+
+def _say_missing_glyphs(caught: list[warnings.WarningMessage]) -> None:
+    """matplotlib warns once per character its font lacks (a name in Japanese, an emoji), in
+    its own words and with our source line; one `SsgWarning` says which characters the picture
+    shows as boxes.  Other warnings pass on as they were."""
+    missing: dict[int, None] = {}
+    fonts: set[str] = set()
+    for w in caught:
+        found = _GLYPH.match(str(w.message))
+        if found:
+            missing[int(found.group(1))] = None
+            fonts.add(found.group(2))
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    if missing:
+        codes = ", ".join(f"U+{c:04X}" for c in missing)
+        font = ", ".join(sorted(fonts))
+        message = (
+            f"{len(missing)} character(s) of the names are not in the font {font} and are "
+            f"drawn as boxes: {codes}"
+        )
+        warnings.warn(SsgWarning(message), stacklevel=2)
