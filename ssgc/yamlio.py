@@ -121,22 +121,23 @@ def read_text(path: Path, limit: int, what: str) -> str:
     except OSError as exc:
         raise SsgError.single(f"cannot read {what}: {exc.strerror}", name) from None
     if b"\x00" in data:
-        line, col = _byte_position(data, data.index(b"\x00"))
+        line, col = _position(data, data.index(b"\x00"))
         raise SsgError.single(f"{what} is not a text file (it contains NUL bytes)", name, line, col)
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         start = exc.start + (3 if data.startswith(b"\xef\xbb\xbf") else 0)
-        line, col = _byte_position(data, start)
+        line, col = _position(data, start)
         raise SsgError.single(
             f"{what} is not valid UTF-8 (byte {start}: {exc.reason})", name, line, col
         ) from None
 
 
-def _byte_position(data: bytes, index: int) -> tuple[int, int]:
-    """1-based line and column of byte `index`, so an editor can jump to a bad byte."""
-    line_start = data.rfind(b"\n", 0, index) + 1
-    return data.count(b"\n", 0, index) + 1, index - line_start + 1
+def _position(data: str | bytes, index: int) -> tuple[int, int]:
+    """1-based line and column of character (or byte) `index`, so an editor can jump to it."""
+    newline = b"\n" if isinstance(data, bytes) else "\n"
+    line_start = data.rfind(newline, 0, index) + 1  # type: ignore[arg-type]
+    return data.count(newline, 0, index) + 1, index - line_start + 1  # type: ignore[arg-type]
 
 
 def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
@@ -149,8 +150,7 @@ def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
     except MarkedYAMLError as exc:
         raise SsgError([_syntax_diagnostic(exc, file)]) from None
     except ReaderError as exc:  # a control character: ruamel gives its offset, not a mark
-        before = text[: exc.position]
-        line, col = before.count("\n") + 1, exc.position - (before.rfind("\n") + 1) + 1
+        line, col = _position(text, exc.position)
         char = exc.character
         shown = f"#x{char:04x}" if isinstance(char, int) else repr(char)
         raise SsgError.single(
@@ -196,11 +196,8 @@ def _refuse_deep_flow(text: str, file: str) -> None:
     depth = walk - np.minimum.accumulate(np.minimum(walk, 0))  # a stray closer resets to 0
     deepest = np.flatnonzero(depth > MAX_DEPTH)
     if deepest.size:
-        start = int(deepest[0])
-        line = text.count("\n", 0, start) + 1
-        column = start - (text.rfind("\n", 0, start) + 1) + 1
         message = f"document is nested more than {MAX_DEPTH} levels deep"
-        raise SsgError.single(message, file, line, column)
+        raise SsgError.single(message, file, *_position(text, int(deepest[0])))
 
 
 def load_quietly(yaml: YAML, text: str) -> Any:
