@@ -17,6 +17,17 @@ settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
 
+
+@pytest.hookimpl(optionalhook=True, tryfirst=True)
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
+    """The suite runs in one process per core (`-n auto` in pyproject), but what a test prints
+    under `-s`, and hypothesis's statistics, are not shown from worker processes: the measuring
+    runs the docs quote (`-m slow -s`, `--hypothesis-show-statistics`) stay in one process."""
+    if config.getoption("capture") == "no" or config.getoption("hypothesis_show_statistics", False):
+        return 0
+    return None  # xdist's own count
+
+
 ROOT = Path(__file__).resolve().parent.parent
 GRAMMARS = ROOT / "grammars"
 SINK_DATA = ROOT / "ssgc" / "data" / "sink" / "saved_scenes.yaml"
