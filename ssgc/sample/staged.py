@@ -732,13 +732,9 @@ def rejection_batch(
     stats = _Stats([c.name for c in constraints])
     nodes = roots(grammar, size)
     logp = np.zeros(size)
-
-    # 1. the structure of the part that structural constraints depend on
     restricted = count_proposals(grammar, constraints)
-    forced = forced_rules(grammar, constraints)
     chain = chain_proposal(grammar, constraints, restricted)
-    relevant = relevant_types(grammar, constraints)
-    # The proposed chains' trays above their roots are grown with the rest (step 3), for
+    # The proposed chains' trays above their roots are grown with the rest (stage 3), for
     # the candidates whose roots' poses pass, when no other structural constraint needs them.
     late_chain = (
         chain is not None
@@ -746,12 +742,52 @@ def rejection_batch(
             chain.chain_type
         ]
     )
+    pending, alive = _structure_stage(
+        grammar, constraints, nodes, rng, logp, stats, restricted, chain, late_chain
+    )
+    _check(deadline)
+    pending, read = _pose_stage_partial(grammar, nodes, pose, alive, rng, logp, stats, pending)
+    _check(deadline)
+    late = chain if late_chain else None
+    rest = (pending, read, chain, late)
+    _rest_stage(grammar, constraints, nodes, pose, alive, rng, logp, stats, *rest)
+    full = view(nodes, alive)
+    margins = {c.name: c.margin(full) for c in constraints}
+    trees = _as_trees(nodes, alive)
+    kept = np.flatnonzero(alive)
+    return Outcome(
+        trees=trees,
+        logp=logp[kept],
+        margins={k: v[kept] for k, v in margins.items()},
+        evaluated=stats.evaluated,
+        rejected=stats.rejected,
+        best=stats.best,
+        drawn=size,
+    )
+
+
+def _structure_stage(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    nodes: Nodes,
+    rng: np.random.Generator,
+    logp: FloatArray,
+    stats: _Stats,
+    restricted: dict[int, tuple[int, int | None]],
+    chain: ChainProposal | None,
+    late_chain: bool,
+) -> tuple[IntArray, NDArray[np.bool_]]:
+    """Stage 1: grow the structure that structural constraints depend on, judging it as it
+    grows (the chain proposal's trays too unless `late_chain`).  Returns the pending nodes
+    and the candidates alive."""
+    size = nodes.n_scenes
+    forced = forced_rules(grammar, constraints)
+    relevant = relevant_types(grammar, constraints)
+    watched = constraints
     if late_chain:
         assert chain is not None
         relevant[chain.chain_type] = False
         watched = [c for c in constraints if c.name != chain.constraint]
-    else:
-        watched = constraints
     watch = Watch(grammar, watched, size, stats, chain)
     levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
     pending = grow(
@@ -776,11 +812,25 @@ def rejection_batch(
     for c in constraints:  # registered structural kinds that Watch does not follow
         if c.kind == "structure" and not _watched(c) and np.any(alive):
             alive &= stats.judge(c, c.margin(nodes), alive)
-    _check(deadline)
-    # 2. its poses, depth by depth, and the pose constraints on the partial trees
+    return pending, alive
+
+
+def _pose_stage_partial(
+    grammar: Grammar,
+    nodes: Nodes,
+    pose: list[Constraint],
+    alive: NDArray[np.bool_],
+    rng: np.random.Generator,
+    logp: FloatArray,
+    stats: _Stats,
+    pending: IntArray,
+) -> tuple[IntArray, NDArray[np.bool_]]:
+    """Stage 2: the poses of stage 1's structure, depth by depth, with the pose constraints
+    judged on the partial trees.  Returns the pending nodes (renumbered) and which types the
+    pose constraints read."""
     nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
     nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
-    # Pending nodes that no pose constraint reads get their poses with the rest (below):
+    # Pending nodes that no pose constraint reads get their poses with the rest (stage 3):
     # they are not needed to judge the partial trees, and most candidates die first.
     read = np.zeros(len(grammar.types), bool)
     for c in pose:
@@ -789,41 +839,43 @@ def rejection_batch(
     deferred[pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]] = True
     todo = np.flatnonzero((nodes.parent >= 0) & ~deferred)
     moved = pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
-    if moved is not None:
-        pending = renumber(moved, pending)
-    _check(deadline)
-    # 3. the rest of each surviving tree: its structure, then its poses (and the deferred
-    # ones) depth by depth, judged on the partial trees as in 2 (the nodes of 2 passed, so
-    # only the terms with a node of the rest are new); then each kept tree's margins in full
+    return (pending if moved is None else renumber(moved, pending)), read
+
+
+def _rest_stage(
+    grammar: Grammar,
+    constraints: list[Constraint],
+    nodes: Nodes,
+    pose: list[Constraint],
+    alive: NDArray[np.bool_],
+    rng: np.random.Generator,
+    logp: FloatArray,
+    stats: _Stats,
+    pending: IntArray,
+    read: NDArray[np.bool_],
+    chain: ChainProposal | None,
+    late_chain: ChainProposal | None,
+) -> None:
+    """Stage 3: the rest of each surviving tree: its structure (with the trays of
+    `late_chain`, the chain proposal when stage 1 left them), then its poses (and the
+    deferred ones) depth by depth, judged on the partial trees as in stage 2 (its nodes
+    passed, so only the terms with a node of the rest are new)."""
+    size = nodes.n_scenes
     pending = nodes.compact(alive, pending)
     late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
     grown_from = len(nodes.type)
     grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), False, rng, logp, chain=chain)
-    if late_chain and np.any(alive):
-        assert chain is not None
-        (c,) = [c for c in constraints if c.name == chain.constraint]
+    if late_chain is not None and np.any(alive):
+        (c,) = [c for c in constraints if c.name == late_chain.constraint]
         alive &= stats.judge(c, c.margin(nodes), alive)
-        run = chain_runs(nodes.type, nodes.parent, chain.chain_type)
-        tall = np.bincount(nodes.scene[run == chain.length], minlength=size)
-        _keep_one_in_k(chain, tall, alive, rng, stats)
+        run = chain_runs(nodes.type, nodes.parent, late_chain.chain_type)
+        tall = np.bincount(nodes.scene[run == late_chain.length], minlength=size)
+        _keep_one_in_k(late_chain, tall, alive, rng, stats)
     grown = len(nodes.type) - grown_from
     nodes.xyz = np.concatenate([nodes.xyz, np.zeros((grown, 3))])
     nodes.quat = np.concatenate([nodes.quat, np.zeros((grown, 4))])
     todo = np.r_[late, np.arange(grown_from, len(nodes.type))]
     pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
-    full = view(nodes, alive)
-    margins = {c.name: c.margin(full) for c in constraints}
-    trees = _as_trees(nodes, alive)
-    kept = np.flatnonzero(alive)
-    return Outcome(
-        trees=trees,
-        logp=logp[kept],
-        margins={k: v[kept] for k, v in margins.items()},
-        evaluated=stats.evaluated,
-        rejected=stats.rejected,
-        best=stats.best,
-        drawn=size,
-    )
 
 
 def _keep_one_in_k(
