@@ -145,7 +145,6 @@ def grow(
     nodes: Nodes,
     start: IntArray,
     expand: NDArray[np.bool_],
-    poses: bool,
     rng: np.random.Generator,
     logp: FloatArray,
     watch: Watch | None = None,
@@ -154,14 +153,13 @@ def grow(
     forced: frozenset[int] = frozenset(),
     chain: ChainProposal | None = None,
 ) -> IntArray:
-    """Expand the nodes `start` level by level, only nodes whose type is in `expand`; with
-    `poses`, children get poses drawn by their rules (the store must have poses).  Adds the
-    log-probability of every choice and pose to `logp` (per scene).  A `watch` sees every
-    level and may kill candidates (their nodes stop growing).  Returns the nodes left
-    unexpanded (pending).  With `levels`, the new nodes are put there, not in the store
-    (for `Nodes.extend_kept`).  `counts_in` restricts `repeat` counts (`count_proposals`),
-    `forced` makes `independent` rules fire (`forced_rules`), `chain` forces one chain of
-    each candidate to its constraint's length (`chain_proposal`)."""
+    """Expand the nodes `start` level by level, only nodes whose type is in `expand`, without
+    poses (the pose stages draw them).  Adds the log-probability of every choice to `logp`
+    (per scene).  A `watch` sees every level and may kill candidates (their nodes stop
+    growing).  Returns the nodes left unexpanded (pending).  With `levels`, the new nodes are
+    put there, not in the store (for `Nodes.extend_kept`).  `counts_in` restricts `repeat`
+    counts (`count_proposals`), `forced` makes `independent` rules fire (`forced_rules`),
+    `chain` forces one chain of each candidate to its constraint's length (`chain_proposal`)."""
     tb = grammar.tables
     kind = tb.type_kind
     f_id = start
@@ -172,9 +170,6 @@ def grow(
         "depth": nodes.depth[f_id],
         "force": nodes.force[f_id],
     }
-    if poses:
-        assert nodes.xyz is not None and nodes.quat is not None
-        f["xyz"], f["quat"] = nodes.xyz[f_id], nodes.quat[f_id]
     if watch is not None:
         watch.start(f["type"], f["scene"])
     pending = []
@@ -203,34 +198,7 @@ def grow(
         logp += np.bincount(f["scene"], lp, minlength=len(logp))
         if not fires:
             break
-        # The children as arrays over the level: everything follows from the frontier
-        # position `at` of each child's parent and the rule that made it.
-        at = np.concatenate([where for _, where in fires])
-        rid = np.repeat([r for r, _ in fires], [len(where) for _, where in fires])
-        child = tb.rule_child[rid]
-        level = {
-            "scene": f["scene"][at],
-            "type": child,
-            "nest": f["nest"][at] + nest_step[child],
-            "depth": f["depth"][at] + 1,
-            "parent": f_id[at],
-            "rule": rid,
-        }
-        level["force"] = (
-            np.zeros(len(at), np.int64)
-            if chain is None
-            else chain.child_force(f["force"], at, rid, rng)
-        )
-        if poses:
-            xyz, quat = [], []
-            for r, where in fires:
-                c_xyz, c_quat, lp_pose = sample_children(
-                    grammar, r, f["xyz"][where], f["quat"][where], rng
-                )
-                logp += np.bincount(f["scene"][where], lp_pose, minlength=len(logp))
-                xyz.append(c_xyz)
-                quat.append(c_quat)
-            level["xyz"], level["quat"] = np.concatenate(xyz), np.concatenate(quat)
+        level, at = _next_level(grammar, fires, f, f_id, nest_step, chain, rng)
         levels.append(level)
         f_id = next_id + np.arange(len(at))
         next_id += len(at)
@@ -240,6 +208,36 @@ def grow(
     if not keep_levels:
         nodes.extend(levels)
     return np.concatenate(pending) if pending else np.zeros(0, np.int64)
+
+
+def _next_level(
+    grammar: Grammar,
+    fires: list[tuple[int, IntArray]],
+    f: dict[str, NDArray],  # type: ignore[type-arg]
+    f_id: IntArray,
+    nest_step: IntArray,
+    chain: ChainProposal | None,
+    rng: np.random.Generator,
+) -> tuple[dict[str, NDArray], IntArray]:  # type: ignore[type-arg]
+    """The children of the frontier `f` (node ids `f_id`) made by the rules that fire, as
+    arrays over the new level: everything follows from the frontier position `at` of each
+    child's parent and the rule that made it.  Returns the level and `at`."""
+    tb = grammar.tables
+    at = np.concatenate([where for _, where in fires])
+    rid = np.repeat([r for r, _ in fires], [len(where) for _, where in fires])
+    child = tb.rule_child[rid]
+    level = {
+        "scene": f["scene"][at],
+        "type": child,
+        "nest": f["nest"][at] + nest_step[child],
+        "depth": f["depth"][at] + 1,
+        "parent": f_id[at],
+        "rule": rid,
+    }
+    level["force"] = np.zeros(len(at), np.int64)
+    if chain is not None:
+        level["force"] = chain.child_force(f["force"], at, rid, rng)
+    return level, at
 
 
 def nesting_steps(grammar: Grammar) -> IntArray:
@@ -795,7 +793,6 @@ def _structure_stage(
         nodes,
         np.arange(size),
         relevant,
-        False,
         rng,
         logp,
         watch,
@@ -864,7 +861,7 @@ def _rest_stage(
     pending = nodes.compact(alive, pending)
     late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
     grown_from = len(nodes.type)
-    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), False, rng, logp, chain=chain)
+    grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), rng, logp, chain=chain)
     if late_chain is not None and np.any(alive):
         (c,) = [c for c in constraints if c.name == late_chain.constraint]
         alive &= stats.judge(c, c.margin(nodes), alive)
