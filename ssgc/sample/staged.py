@@ -285,9 +285,7 @@ def pose_stage(
     waiting = np.zeros(len(nodes.type), bool)  # not posed yet: left out of the views
     waiting[order] = True
     fresh = np.zeros(len(nodes.type), bool)  # posed since the last judgement
-    key = nodes.depth[order] * n_rules + nodes.rule[order]
-    cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
-    depth_of_cut = nodes.depth[order[cuts[:-1]]]
+    cuts, depth_of_cut = _runs(nodes, order, n_rules)
     early = [c for c in constraints if c.progressive]
     reads = {c.name: c.reads(len(grammar.types)) for c in early}
     touched = {c.name: np.zeros(len(alive), bool) for c in early}
@@ -298,19 +296,10 @@ def pose_stage(
         stop = start
         while stop < len(cuts) - 1 and depth_of_cut[stop] == d:
             stop += 1
-        posed = []
-        for a, b in zip(cuts[start:stop], cuts[start + 1 : stop + 1], strict=True):
-            idx = order[a:b]
-            idx = idx[alive[nodes.scene[idx]]]
-            if not len(idx):
-                continue
-            par = nodes.parent[idx]
-            xyz, quat, lp = sample_children(
-                grammar, int(nodes.rule[idx[0]]), nodes.xyz[par], nodes.quat[par], rng
-            )
-            nodes.xyz[idx], nodes.quat[idx] = xyz, quat
-            logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
-            posed.append(idx)
+        runs = [
+            order[a:b] for a, b in zip(cuts[start:stop], cuts[start + 1 : stop + 1], strict=True)
+        ]
+        posed = _draw_runs(grammar, nodes, runs, alive, rng, logp)
         start = stop
         if posed:
             new = np.concatenate(posed)
@@ -324,29 +313,16 @@ def pose_stage(
         # the next depths are posed first and judged together (always after the last one).
         if rate < SKIP_BELOW and start < len(cuts) - 1:
             continue
-        among = np.logical_or.reduce(list(touched.values())) & alive
-        if not np.any(among):
+        judged = _judge_partial(nodes, early, touched, alive, fresh, waiting, stats)
+        if judged is None:
             continue
-        partial = view(nodes, among, fresh=fresh, waiting=waiting)  # one for every constraint
-        before = int(np.count_nonzero(among))
-        fresh_here = partial.fresh
-        assert fresh_here is not None
-        for c in early:
-            judged = touched[c.name] & alive
-            if np.any(judged):
-                # trees an earlier constraint just rejected are not looked at again
-                partial.fresh = fresh_here & alive[partial.scene]
-                alive &= stats.judge(c, c.margin(partial), judged)
-            touched[c.name][:] = False
-        rate = 1.0 - np.count_nonzero(among & alive) / before
+        rate = judged
         fresh[:] = False
         if np.count_nonzero(alive) < COMPACT_BELOW * stored and start < len(cuts) - 1:
             new = nodes.keep(alive)
             moved = new if moved is None else np.where(moved >= 0, new[moved], -1)
             order = renumber(new, order[cuts[start] :])
-            key = nodes.depth[order] * n_rules + nodes.rule[order]
-            cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
-            depth_of_cut = nodes.depth[order[cuts[:-1]]]
+            cuts, depth_of_cut = _runs(nodes, order, n_rules)
             start = 0
             waiting = np.zeros(len(nodes.type), bool)
             waiting[order] = True
@@ -357,6 +333,69 @@ def pose_stage(
             whole = view(nodes, alive, waiting=waiting)
             alive &= stats.judge(c, c.margin(whole), alive)
     return moved
+
+
+def _judge_partial(
+    nodes: Nodes,
+    early: list[Constraint],
+    touched: dict[str, NDArray[np.bool_]],
+    alive: NDArray[np.bool_],
+    fresh: NDArray[np.bool_],
+    waiting: NDArray[np.bool_],
+    stats: _Stats,
+) -> float | None:
+    """Judge the progressive constraints on the partial trees of the candidates whose nodes
+    they read were posed (`touched`, cleared here), updating `alive` in place.  Returns the
+    share of those candidates rejected (None: no candidate to judge)."""
+    among = np.logical_or.reduce(list(touched.values())) & alive
+    if not np.any(among):
+        return None
+    partial = view(nodes, among, fresh=fresh, waiting=waiting)  # one for every constraint
+    before = int(np.count_nonzero(among))
+    fresh_here = partial.fresh
+    assert fresh_here is not None
+    for c in early:
+        judged = touched[c.name] & alive
+        if np.any(judged):
+            # trees an earlier constraint just rejected are not looked at again
+            partial.fresh = fresh_here & alive[partial.scene]
+            alive &= stats.judge(c, c.margin(partial), judged)
+        touched[c.name][:] = False
+    return 1.0 - np.count_nonzero(among & alive) / before
+
+
+def _runs(nodes: Nodes, order: IntArray, n_rules: int) -> tuple[IntArray, IntArray]:
+    """Where the nodes `order` (sorted by depth, then rule) change depth or rule: the runs
+    whose poses one call of the rule's sampler draws, and each run's depth."""
+    key = nodes.depth[order] * n_rules + nodes.rule[order]
+    cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+    return cuts, nodes.depth[order[cuts[:-1]]]
+
+
+def _draw_runs(
+    grammar: Grammar,
+    nodes: Nodes,
+    runs: list[IntArray],
+    alive: NDArray[np.bool_],
+    rng: np.random.Generator,
+    logp: FloatArray,
+) -> list[IntArray]:
+    """Draw the poses of each run's nodes of the candidates `alive` (one rule per run, their
+    parents posed), adding their log-densities to `logp`; returns the nodes posed."""
+    assert nodes.xyz is not None and nodes.quat is not None
+    posed = []
+    for run in runs:
+        idx = run[alive[nodes.scene[run]]]
+        if not len(idx):
+            continue
+        par = nodes.parent[idx]
+        xyz, quat, lp = sample_children(
+            grammar, int(nodes.rule[idx[0]]), nodes.xyz[par], nodes.quat[par], rng
+        )
+        nodes.xyz[idx], nodes.quat[idx] = xyz, quat
+        logp += np.bincount(nodes.scene[idx], lp, minlength=len(logp))
+        posed.append(idx)
+    return posed
 
 
 @dataclass
