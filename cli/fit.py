@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -27,6 +27,10 @@ from ssgc.errors import SsgError
 from ssgc.fit.mstep import MAX_MIN_VARIANCE
 from ssgc.io.outputs import check_output, lock_outputs, write_output_text
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
+
+if TYPE_CHECKING:
+    from ssgc.api import FitRun
+    from ssgc.fit.em import FitResult as FitReport
 
 DEFAULTS = fit_defaults()  # `ssgc.fit`'s: one place for the defaults of the API and the command
 
@@ -179,26 +183,7 @@ def fit(
         open_fit(g, items, scenes, options, None if dest.stream else dest.target, resume) as run,
     ):
         journal = run.journal
-        _note_discarded(journal, quiet)
-        for r in journal.reports:
-            _print_iteration(r, quiet, resumed=True)
-        with _progress(quiet) as progress:
-            task = progress.add_task(
-                f"iteration {journal.iteration}", total=len(items), completed=len(journal.scenes)
-            )
-            lines = SceneLines(err, len(items), not quiet and not sys.stderr.isatty())
-            lines.start(journal.iteration, len(journal.scenes))
-
-            def on_scene() -> None:
-                progress.advance(task)
-                lines.scene()
-
-            def on_iteration(r: dict[str, Any]) -> None:
-                _print_iteration(r, quiet)
-                progress.reset(task, description=f"iteration {r['iteration'] + 1}")
-                lines.start(r["iteration"] + 1, 0)
-
-            result = run.fit(time_limit, on_scene=on_scene, on_iteration=on_iteration)
+        result = _run_with_progress(run, len(items), time_limit, quiet)
         fitted: Grammar | None = None
         if mmd or plots is not None:
             fitted = run.fitted(result)
@@ -218,6 +203,34 @@ def fit(
             journal.delete()
     if not quiet:
         _summary(dest, f"{result.message}; wrote {dest.name}")
+
+
+def _run_with_progress(
+    run: FitRun, n_scenes: int, time_limit: float | None, quiet: bool
+) -> FitReport:
+    """Run the fit with a progress bar per iteration (one line per scene when stderr is not a
+    terminal), after saying what a resumed journal already holds."""
+    journal = run.journal
+    _note_discarded(journal, quiet)
+    for r in journal.reports:
+        _print_iteration(r, quiet, resumed=True)
+    with _progress(quiet) as progress:
+        task = progress.add_task(
+            f"iteration {journal.iteration}", total=n_scenes, completed=len(journal.scenes)
+        )
+        lines = SceneLines(err, n_scenes, not quiet and not sys.stderr.isatty())
+        lines.start(journal.iteration, len(journal.scenes))
+
+        def on_scene() -> None:
+            progress.advance(task)
+            lines.scene()
+
+        def on_iteration(r: dict[str, Any]) -> None:
+            _print_iteration(r, quiet)
+            progress.reset(task, description=f"iteration {r['iteration'] + 1}")
+            lines.start(r["iteration"] + 1, 0)
+
+        return run.fit(time_limit, on_scene=on_scene, on_iteration=on_iteration)
 
 
 def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:
