@@ -896,3 +896,32 @@ def test_export_and_settle_directories_checked_first(data: Path, tmp_path: Path)
         "settle", data, "-g", GMM, "-o", tmp_path / "s", "--report", tmp_path / "no/r.json"
     )
     assert report.exit_code == 1 and not (tmp_path / "s").exists(), report.output
+
+
+# ------------------------------------------------------------- Ctrl-C while writing ---
+
+
+def test_ctrl_c_taken_by_another_thread_leaves_no_temporary_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A Ctrl-C is delivered to whichever thread does not block SIGINT (rich's refresh thread,
+    a worker's), and Python then raises KeyboardInterrupt in the main thread at its next
+    bytecode, whatever the main thread's signal mask: here inside `mkstemp`, just after the
+    temporary file was created (seen once in six runs of
+    test_resume.py::test_sample_interrupted_with_ctrl_c_then_resumed, leaving
+    .sink_000300.json.odu7vsfe.tmp).  The write must still end with the file removed."""
+    real = atomic.tempfile.mkstemp
+
+    def mkstemp_then_ctrl_c(*args: Any, **kwargs: Any) -> tuple[int, str]:
+        made = real(*args, **kwargs)
+        other = threading.Thread(target=os.kill, args=(os.getpid(), signal.SIGINT))
+        other.start()
+        other.join()
+        time.sleep(0.01)  # bytecodes for the main thread to run the pending handler in
+        return made
+
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", mkstemp_then_ctrl_c)
+    target = tmp_path / "scene.json"
+    with pytest.raises(KeyboardInterrupt):
+        atomic.write_text_atomic(target, "{}")
+    assert os.listdir(tmp_path) == []

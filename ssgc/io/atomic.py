@@ -105,19 +105,27 @@ def atomic_writer(path: str | Path) -> Iterator[TextSink]:
 
 @contextmanager
 def _ctrl_c_deferred() -> Iterator[None]:
-    """Hold SIGINT during a few system calls; a Ctrl-C that arrives is delivered right after,
-    as a KeyboardInterrupt at a point where the temporary file's fate is known."""
-    can_block = hasattr(signal, "pthread_sigmask") and (
-        threading.current_thread() is threading.main_thread()
-    )
-    if not can_block:
+    """Hold a Ctrl-C during a few system calls; one that arrives is delivered right after, as
+    a KeyboardInterrupt at a point where the temporary file's fate is known.
+
+    Held at Python's level, not by the thread's signal mask: the kernel gives a SIGINT that
+    the main thread blocks to another thread (a numerical library's worker), and Python
+    then runs the handler in the main thread at its next bytecode whatever that thread's mask,
+    which once raised inside `mkstemp` after the file was made and left it behind."""
+    held = signal.getsignal(signal.SIGINT)
+    # Only the main thread gets KeyboardInterrupt and may set handlers; a handler installed
+    # by C code (None) could not be put back.
+    if threading.current_thread() is not threading.main_thread() or held is None:
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    pressed: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: pressed.append(signum))
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        signal.signal(signal.SIGINT, held)
+    if pressed:
+        signal.raise_signal(signal.SIGINT)  # to the handler of before: it raises here
 
 
 def temp_target(filename: str) -> str | None:
