@@ -779,15 +779,12 @@ def rejection_batch(
             chain.chain_type
         ]
     )
-    pending, alive = _structure_stage(
-        grammar, constraints, nodes, rng, logp, stats, restricted, chain, late_chain
-    )
+    batch = _Batch(grammar, constraints, pose, nodes, logp, rng, stats)
+    pending, alive = _structure_stage(batch, restricted, chain, late_chain)
     _check(deadline)
-    pending, read = _pose_stage_partial(grammar, nodes, pose, alive, rng, logp, stats, pending)
+    pending, read = _pose_stage_partial(batch, alive, pending)
     _check(deadline)
-    late = chain if late_chain else None
-    rest = (pending, read, chain, late)
-    _rest_stage(grammar, constraints, nodes, pose, alive, rng, logp, stats, *rest)
+    _rest_stage(batch, alive, pending, read, chain, chain if late_chain else None)
     full = view(nodes, alive)
     margins = {c.name: c.margin(full) for c in constraints}
     trees = _as_trees(nodes, alive)
@@ -803,13 +800,23 @@ def rejection_batch(
     )
 
 
+@dataclass
+class _Batch:
+    """What the stages of one batch share: the grammar and the constraints (`pose`: those on
+    poses, cheapest first), the candidates' node store and log-probabilities, the random
+    stream and the constraints' tallies."""
+
+    grammar: Grammar
+    constraints: list[Constraint]
+    pose: list[Constraint]
+    nodes: Nodes
+    logp: FloatArray
+    rng: np.random.Generator
+    stats: _Stats
+
+
 def _structure_stage(
-    grammar: Grammar,
-    constraints: list[Constraint],
-    nodes: Nodes,
-    rng: np.random.Generator,
-    logp: FloatArray,
-    stats: _Stats,
+    batch: _Batch,
     restricted: dict[int, tuple[int, int | None]],
     chain: ChainProposal | None,
     late_chain: bool,
@@ -817,6 +824,13 @@ def _structure_stage(
     """Stage 1: grow the structure that structural constraints depend on, judging it as it
     grows (the chain proposal's trays too unless `late_chain`).  Returns the pending nodes
     and the candidates alive."""
+    grammar, constraints, nodes, rng, stats = (
+        batch.grammar,
+        batch.constraints,
+        batch.nodes,
+        batch.rng,
+        batch.stats,
+    )
     size = nodes.n_scenes
     forced = forced_rules(grammar, constraints)
     relevant = relevant_types(grammar, constraints)
@@ -833,7 +847,7 @@ def _structure_stage(
         np.arange(size),
         relevant,
         rng,
-        logp,
+        batch.logp,
         watch,
         levels,
         restricted,
@@ -852,41 +866,29 @@ def _structure_stage(
 
 
 def _pose_stage_partial(
-    grammar: Grammar,
-    nodes: Nodes,
-    pose: list[Constraint],
-    alive: NDArray[np.bool_],
-    rng: np.random.Generator,
-    logp: FloatArray,
-    stats: _Stats,
-    pending: IntArray,
+    batch: _Batch, alive: NDArray[np.bool_], pending: IntArray
 ) -> tuple[IntArray, NDArray[np.bool_]]:
     """Stage 2: the poses of stage 1's structure, depth by depth, with the pose constraints
     judged on the partial trees.  Returns the pending nodes (renumbered) and which types the
     pose constraints read."""
+    grammar, nodes = batch.grammar, batch.nodes
     nodes.xyz = np.broadcast_to(grammar.root_xyz, (len(nodes.type), 3)).copy()
     nodes.quat = np.broadcast_to(grammar.root_quat, (len(nodes.type), 4)).copy()
     # Pending nodes that no pose constraint reads get their poses with the rest (stage 3):
     # they are not needed to judge the partial trees, and most candidates die first.
     read = np.zeros(len(grammar.types), bool)
-    for c in pose:
+    for c in batch.pose:
         read |= c.reads(len(grammar.types))
     deferred = np.zeros(len(nodes.type), bool)
     deferred[pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]] = True
     todo = np.flatnonzero((nodes.parent >= 0) & ~deferred)
-    moved = pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
+    moved = pose_stage(grammar, nodes, batch.pose, alive, batch.rng, batch.logp, batch.stats, todo)
     return (pending if moved is None else renumber(moved, pending)), read
 
 
 def _rest_stage(
-    grammar: Grammar,
-    constraints: list[Constraint],
-    nodes: Nodes,
-    pose: list[Constraint],
+    batch: _Batch,
     alive: NDArray[np.bool_],
-    rng: np.random.Generator,
-    logp: FloatArray,
-    stats: _Stats,
     pending: IntArray,
     read: NDArray[np.bool_],
     chain: ChainProposal | None,
@@ -896,13 +898,20 @@ def _rest_stage(
     `late_chain`, the chain proposal when stage 1 left them), then its poses (and the
     deferred ones) depth by depth, judged on the partial trees as in stage 2 (its nodes
     passed, so only the terms with a node of the rest are new)."""
+    grammar, nodes, rng, logp, stats = (
+        batch.grammar,
+        batch.nodes,
+        batch.rng,
+        batch.logp,
+        batch.stats,
+    )
     size = nodes.n_scenes
     pending = nodes.compact(alive, pending)
     late = pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]
     grown_from = len(nodes.type)
     grow(grammar, nodes, pending, np.ones(len(grammar.types), bool), rng, logp, chain=chain)
     if late_chain is not None and np.any(alive):
-        (c,) = [c for c in constraints if c.name == late_chain.constraint]
+        (c,) = [c for c in batch.constraints if c.name == late_chain.constraint]
         alive &= stats.judge(c, c.margin(nodes), alive)
         run = chain_runs(nodes.type, nodes.parent, late_chain.chain_type)
         tall = np.bincount(nodes.scene[run == late_chain.length], minlength=size)
@@ -911,7 +920,7 @@ def _rest_stage(
     nodes.xyz = np.concatenate([nodes.xyz, np.zeros((grown, 3))])
     nodes.quat = np.concatenate([nodes.quat, np.zeros((grown, 4))])
     todo = np.r_[late, np.arange(grown_from, len(nodes.type))]
-    pose_stage(grammar, nodes, pose, alive, rng, logp, stats, todo)
+    pose_stage(grammar, nodes, batch.pose, alive, rng, logp, stats, todo)
 
 
 def _keep_one_in_k(
