@@ -16,7 +16,8 @@ import difflib
 import math
 import re
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -204,9 +205,16 @@ def load_quietly(yaml: YAML, text: str) -> Any:
     """`yaml.load(text)` without ruamel's warning about an anchor defined twice, which it
     prints as its own text (its source file, '<unicode string>'); `_reused_anchors` says it
     in ssg's words where a user should hear it."""
+    with _anchors_quiet():
+        return yaml.load(text)
+
+
+@contextmanager
+def _anchors_quiet() -> Iterator[None]:
+    """Silence ruamel's ReusedAnchorWarning for whatever composes the text inside."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ReusedAnchorWarning)
-        return yaml.load(text)
+        yield
 
 
 def _reused_anchors(text: str, file: str) -> tuple[Diagnostic, ...]:
@@ -259,7 +267,8 @@ def _unreadable_value(text: str, file: str) -> Diagnostic:
     """Locate the first collection key or scalar of `text` that ruamel cannot construct."""
     yaml = YAML(typ="rt", pure=True)
     try:
-        stack = [yaml.compose(text)]
+        with _anchors_quiet():  # the loader said it already, in ssg's words
+            stack = [yaml.compose(text)]
     except (YAMLError, ValueError, KeyError, TypeError, OverflowError, RecursionError):
         stack = []  # the failure was not in construction after all
     while stack:

@@ -1234,3 +1234,20 @@ def test_an_anchor_defined_twice_is_one_located_warning(tmp_path, recwarn):
     assert result.exit_code == 0
     assert result.stderr.strip() == str(w)
     assert not [r for r in recwarn if "anchor" in str(r.message)]
+
+
+def test_an_anchor_defined_twice_in_a_grammar_that_cannot_be_read(tmp_path, recwarn):
+    """When a value cannot be constructed, the loader composes the text again to locate it;
+    that pass printed ruamel's own anchor warning twice (found by the fuzz test with seed
+    281126, where the warning is an error: exit 70)."""
+    from typer.testing import CliRunner
+
+    from ssgc.cli.app import app
+
+    path = tmp_path / "anchors.yaml"
+    path.write_text(REUSED_ANCHOR.replace("  B: {observed: true}", "  B: {observed: 2024-13-45}"))
+    result = CliRunner().invoke(app, ["validate", str(path)])
+    assert result.exit_code == 1
+    assert result.stderr.startswith(f"{path}:9:17: error: invalid YAML: cannot read '2024-13-45'")
+    assert "ReusedAnchorWarning" not in result.stderr
+    assert not [r for r in recwarn if "anchor" in str(r.message)]
