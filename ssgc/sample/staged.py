@@ -234,8 +234,9 @@ def _next_level(
         "parent": f_id[at],
         "rule": rid,
     }
-    level["force"] = np.zeros(len(at), np.int64)
-    if chain is not None:
+    if chain is None:
+        level["force"] = np.zeros(len(at), np.int64)
+    else:
         level["force"] = chain.child_force(f["force"], at, rid, rng)
     return level, at
 
@@ -773,18 +774,20 @@ def rejection_batch(
     chain = chain_proposal(grammar, constraints, restricted)
     # The proposed chains' trays above their roots are grown with the rest (stage 3), for
     # the candidates whose roots' poses pass, when no other structural constraint needs them.
-    late_chain = (
-        chain is not None
+    late = (
+        chain
+        if chain is not None
         and not relevant_types(grammar, [c for c in constraints if c.name != chain.constraint])[
             chain.chain_type
         ]
+        else None
     )
     batch = _Batch(grammar, constraints, pose, nodes, logp, rng, stats)
-    pending, alive = _structure_stage(batch, restricted, chain, late_chain)
+    pending, alive = _structure_stage(batch, restricted, chain, late)
     _check(deadline)
     pending, read = _pose_stage_partial(batch, alive, pending)
     _check(deadline)
-    _rest_stage(batch, alive, pending, read, chain, chain if late_chain else None)
+    _rest_stage(batch, alive, pending, read, chain, late)
     full = view(nodes, alive)
     margins = {c.name: c.margin(full) for c in constraints}
     trees = _as_trees(nodes, alive)
@@ -819,11 +822,11 @@ def _structure_stage(
     batch: _Batch,
     restricted: dict[int, tuple[int, int | None]],
     chain: ChainProposal | None,
-    late_chain: bool,
+    late_chain: ChainProposal | None,
 ) -> tuple[IntArray, NDArray[np.bool_]]:
     """Stage 1: grow the structure that structural constraints depend on, judging it as it
-    grows (the chain proposal's trays too unless `late_chain`).  Returns the pending nodes
-    and the candidates alive."""
+    grows (the chain proposal's trays too, unless they are left to stage 3: `late_chain`).
+    Returns the pending nodes and the candidates alive."""
     grammar, constraints, nodes, rng, stats = (
         batch.grammar,
         batch.constraints,
@@ -835,10 +838,9 @@ def _structure_stage(
     forced = forced_rules(grammar, constraints)
     relevant = relevant_types(grammar, constraints)
     watched = constraints
-    if late_chain:
-        assert chain is not None
-        relevant[chain.chain_type] = False
-        watched = [c for c in constraints if c.name != chain.constraint]
+    if late_chain is not None:
+        relevant[late_chain.chain_type] = False
+        watched = [c for c in constraints if c.name != late_chain.constraint]
     watch = Watch(grammar, watched, size, stats, chain)
     levels: list[dict[str, NDArray]] = []  # type: ignore[type-arg]
     pending = grow(
@@ -856,7 +858,7 @@ def _structure_stage(
     )
     watch.finish()
     alive = watch.alive
-    if chain is not None and not late_chain:  # keep a candidate with probability 1/K
+    if chain is not None and late_chain is None:  # keep a candidate with probability 1/K
         _keep_one_in_k(chain, watch.tall, alive, rng, stats)
     pending = nodes.extend_kept(levels, alive, pending)
     for c in constraints:  # registered structural kinds that Watch does not follow
