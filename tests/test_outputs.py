@@ -909,19 +909,34 @@ def test_ctrl_c_taken_by_another_thread_leaves_no_temporary_file(
     bytecode, whatever the main thread's signal mask: here inside `mkstemp`, just after the
     temporary file was created (seen once in six runs of
     test_resume.py::test_sample_interrupted_with_ctrl_c_then_resumed, leaving
-    .sink_000300.json.odu7vsfe.tmp).  The write must still end with the file removed."""
+    .sink_000300.json.odu7vsfe.tmp).  The write must still end with the file removed.
+
+    The other thread exists before the write (as those threads do) and sends the signal to
+    itself, which delivers it before `pthread_kill` returns: the handler is pending in the main
+    thread when `mkstemp` returns, however loaded the machine.  (A process-directed `os.kill`
+    let the kernel pick a thread that might run only after the write had ended.)"""
     real = atomic.tempfile.mkstemp
+    go, sent = threading.Event(), threading.Event()
+
+    def other_thread() -> None:
+        go.wait()
+        signal.pthread_kill(threading.get_ident(), signal.SIGINT)
+        sent.set()
 
     def mkstemp_then_ctrl_c(*args: Any, **kwargs: Any) -> tuple[int, str]:
         made = real(*args, **kwargs)
-        other = threading.Thread(target=os.kill, args=(os.getpid(), signal.SIGINT))
-        other.start()
-        other.join()
-        time.sleep(0.01)  # bytecodes for the main thread to run the pending handler in
+        go.set()
+        sent.wait()
         return made
 
+    other = threading.Thread(target=other_thread)
+    other.start()
     monkeypatch.setattr(atomic.tempfile, "mkstemp", mkstemp_then_ctrl_c)
     target = tmp_path / "scene.json"
-    with pytest.raises(KeyboardInterrupt):
-        atomic.write_text_atomic(target, "{}")
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            atomic.write_text_atomic(target, "{}")
+    finally:
+        go.set()
+        other.join()
     assert os.listdir(tmp_path) == []
