@@ -933,10 +933,13 @@ def test_ctrl_c_taken_by_another_thread_leaves_no_temporary_file(
     other.start()
     monkeypatch.setattr(atomic.tempfile, "mkstemp", mkstemp_then_ctrl_c)
     target = tmp_path / "scene.json"
+    # Ctrl-C as in a terminal: pytest started as a background job inherits an ignored SIGINT
+    ignored = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(KeyboardInterrupt):
             atomic.write_text_atomic(target, "{}")
     finally:
+        signal.signal(signal.SIGINT, ignored)
         go.set()
         other.join()
     assert os.listdir(tmp_path) == []
