@@ -469,7 +469,7 @@ def test_restricted_count_proposal_keeps_the_law() -> None:
     restricted to the bound, and the `independent` rule that makes that node always fires
     (proposals, not changes of law): the scenes still follow plain rejection's law, and the
     proposals are used only where they are exact."""
-    from ssgc.sample.staged import count_proposals, forced_rules
+    from ssgc.sample.proposals import count_proposals, forced_rules
 
     head = (GRAMMARS / "dimsum_table.yaml").read_text().split("\nconstraints:")[0]
     g = compile_text(

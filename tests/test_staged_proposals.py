@@ -22,7 +22,7 @@ from ssgc.constraints.base import depths, fresh_pairs, lineal, lineal_few, tree_
 from ssgc.constraints.structural import chain_runs
 from ssgc.sample.constrained import sample_blocks
 from ssgc.sample.forward import sample_trees
-from ssgc.sample.staged import chain_proposal, count_proposals
+from ssgc.sample.proposals import chain_proposal, count_proposals
 from ssgc.tree import Trees
 
 HEAD = (GRAMMARS / "dimsum_table.yaml").read_text().split("\nconstraints:")[0]

@@ -34,7 +34,7 @@ from ssgc.sample.nuts import DualAveraging, Nuts
 from ssgc.sample.penalty import Penalty
 from ssgc.sample.poses import Levels, PullbackPlan, WorldPlan, local_poses, pullback
 from ssgc.sample.rotspace import RotCoords
-from ssgc.sample.staged import _check
+from ssgc.sample.staged import check_deadline
 from ssgc.tree import Trees
 
 
@@ -157,14 +157,16 @@ def run_chains(
     target = FixedTrees(grammar, trees, constraints, settings.eps, settings.rotations)
     exact_cs = target.constraints
     free = target.free
-    nuts = Nuts(target, trees.scene, free, n, rng, settings.max_depth, lambda: _check(deadline))
+    nuts = Nuts(
+        target, trees.scene, free, n, rng, settings.max_depth, lambda: check_deadline(deadline)
+    )
     z = target.z0
     lp, g = target(z)
     adapt = DualAveraging(np.full(n, settings.first_step))
     for _ in range(settings.warmup):
         z, lp, g, st = nuts.step(z, lp, g, adapt.step)
         adapt.update(st["accept"])
-        _check(deadline)
+        check_deadline(deadline)
     step = np.clip(adapt.final(), 1e-6, 10.0)  # a chain with nothing to move never rejects
     acc, leap, div = np.zeros(n), np.zeros(n), np.zeros(n)
     draws, found = [], []
@@ -182,7 +184,7 @@ def run_chains(
                 good &= c.margin(t) >= 0
             best = np.where(good[trees.scene][:, None], z, best)
             ok |= good
-            _check(deadline)
+            check_deadline(deadline)
         draws.append(replace(target.at(best), rule=trees.rule))
         found.append(ok)
     runs = max(settings.samples * settings.draws, 1)

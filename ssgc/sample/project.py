@@ -27,7 +27,7 @@ from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.forward import sample_chunk
 from ssgc.sample.lawspace import BOX, Coords
 from ssgc.sample.poses import Levels, local_poses, pullback_many
-from ssgc.sample.staged import _check
+from ssgc.sample.staged import check_deadline
 from ssgc.tree import Trees
 
 MAX_ITER = 40  # SLSQP iterations; a tree needing more is dropped (overfull bins never converge)
@@ -55,7 +55,7 @@ def project_batch(
     for i in range(trees.n_scenes):
         t, moved[i], iters[i] = project_tree(grammar, trees.tree(i), pose)
         projected.append(t)
-        _check(deadline)
+        check_deadline(deadline)
     out = Trees.concatenate(projected) if projected else trees
     good = judge.judge(judge.margins(out, ("pose",)), np.ones(out.n_scenes, bool))
     stats = {"distance_moved": moved, "iterations": iters}

@@ -51,7 +51,7 @@ from ssgc.sample.diagnostics import Summary, summary
 from ssgc.sample.forward import grow, sample_chunk
 from ssgc.sample.lawspace import Coords
 from ssgc.sample.poses import choose, local_poses, world_poses
-from ssgc.sample.staged import _check, rejection_batch
+from ssgc.sample.staged import check_deadline, rejection_batch
 from ssgc.score import nesting_counts
 from ssgc.tree import Trees
 
@@ -109,7 +109,7 @@ def rjmcmc_batch(
         chain.sweep(rng)
         done += 1
         since = np.where(chain.feasible, since + 1, -1)
-        _check(deadline)
+        check_deadline(deadline)
         if t0 is None and (chain.feasible.all() or done >= s.max_sweeps // 2):
             t0 = done
         if t0 is None:

@@ -6,9 +6,10 @@ accept/reject decision for each candidate, but draws as little of the candidate 
 
 1. **Structure of the relevant part.**  Only nodes of types from which a structurally
    constrained type can be reached are expanded (no poses).  Other nodes stay *pending*: they
-   can never add or remove a constrained node, so the structural margins are final.  Three
-   exact proposals make fewer candidates fail here (`count_proposals`, `forced_rules`,
-   `chain_proposal`); a proposed chain's links above its root wait for step 3.
+   can never add or remove a constrained node, so the structural margins are final; they
+   are followed level by level (`Watch`, ssgc/sample/watch.py).  Three exact proposals make
+   fewer candidates fail here (`count_proposals`, `forced_rules`, `chain_proposal`:
+   ssgc/sample/proposals.py); a proposed chain's links above its root wait for step 3.
 2. **Poses of that part**, for the candidates whose structure passed, drawn from the
    grammar's own rules depth by depth (`pose_stage`).  Pose margins are minima over nodes or
    pairs, so they can only fall when more nodes are added: a partial tree that already
@@ -36,11 +37,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ssgc.constraints.base import Constraint, range_margin
-from ssgc.constraints.structural import Children, Count, LongestChain, chain_runs
+from ssgc.constraints.base import Constraint
+from ssgc.constraints.structural import chain_runs
 from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
 from ssgc.sample.forward import MAX_CHUNK_NODES, MAX_LEVELS, _choose_rules
+from ssgc.sample.proposals import ChainProposal, chain_proposal, count_proposals, forced_rules
+from ssgc.sample.watch import Watch, is_watched, relevant_types
 from ssgc.tree import Trees
 
 IntArray = NDArray[np.int64]
@@ -445,296 +448,6 @@ def view(
     )
 
 
-def reachers(grammar: Grammar) -> NDArray[np.bool_]:
-    """reach[a, b]: a type-b node can descend from a type-a node (through >= 1 rule)."""
-    n = len(grammar.types)
-    reach = np.zeros((n, n), bool)
-    for r in grammar.rules:
-        reach[r.parent, r.child] = True
-    for k in range(n):  # transitive closure (Warshall), n is small
-        reach |= reach[:, [k]] & reach[[k], :]
-    return reach
-
-
-def relevant_types(grammar: Grammar, constraints: list[Constraint]) -> NDArray[np.bool_]:
-    """Types whose expansion can change a structural margin: the types a structural
-    constraint names, and every type from which one of them can descend."""
-    reach = reachers(grammar)
-    out = np.zeros(len(grammar.types), bool)
-    for c in constraints:
-        if c.kind == "structure":
-            named = _named(c) if _watched(c) else np.flatnonzero(c.reads(len(grammar.types)))
-            for t in named:
-                out[t] = True
-                out |= reach[:, t]
-    return out
-
-
-def _watched(c: Constraint) -> bool:
-    """Structural kinds whose statistic `Watch` keeps level by level; other (registered)
-    structural kinds are judged once the structure stage is over."""
-    return isinstance(c, Count | LongestChain | Children)
-
-
-def count_proposals(
-    grammar: Grammar, constraints: list[Constraint]
-) -> dict[int, tuple[int, int | None]]:
-    """`repeat` types whose count can be drawn from its law restricted to a constraint's
-    range, without changing which trees the sampler returns or their law.
-
-    A `children` constraint on the one `of` node a tree can have (`single`), with `min` >= 1,
-    rejects every tree without that node; if the node is a `repeat` of the counted child
-    type, its number of children is its count.  So every accepted tree has the node with a
-    count in [min, max], and drawing the count from P(count | min <= count <= max) instead of
-    P(count) multiplies the probability of each such tree by the same constant
-    1 / P(min <= count <= max): the accepted trees keep the law P(T | constraints), and the
-    candidates the count alone would reject are never drawn (docs/constraints.md)."""
-    out: dict[int, tuple[int, int | None]] = {}
-    for c in constraints:
-        if not isinstance(c, Children) or not c.single or c.lo < 1:
-            continue
-        node = grammar.types[c.of]
-        if node.kind != Kind.REPEAT or node.count is None:
-            continue
-        if c.child is not None and grammar.rules[node.rules[0]].child != c.child:
-            continue
-        lo, hi = out.get(c.of, (0, None))
-        lo = max(lo, c.lo)
-        hi = c.hi if hi is None else (hi if c.hi is None else min(hi, c.hi))
-        out[c.of] = (lo, hi)
-    return out
-
-
-def forced_rules(grammar: Grammar, constraints: list[Constraint]) -> frozenset[int]:
-    """`independent` rules that can be made to fire without changing the law of the trees
-    the sampler returns.
-
-    A `children` constraint with `min` >= 1 on a type X of which no tree has two nodes
-    (`single`) rejects every tree without an X node.  If X is produced by one rule only, whose
-    parent is an `and` (always fires) or an `independent` (fires with probability p), and so on
-    up to the root, every accepted tree fires each `independent` rule of that chain exactly
-    once: making them fire always multiplies the probability of every accepted tree by the
-    same constant 1 / prod(p) (docs/constraints.md)."""
-    producers: dict[int, list[int]] = {}
-    for rid, r in enumerate(grammar.rules):
-        producers.setdefault(r.child, []).append(rid)
-    out: set[int] = set()
-    for c in constraints:
-        if not isinstance(c, Children) or not c.single or c.lo < 1:
-            continue
-        t = c.of
-        while t != grammar.root and len(producers.get(t, [])) == 1:
-            rid = producers[t][0]
-            parent = grammar.types[grammar.rules[rid].parent]
-            if parent.kind == Kind.INDEPENDENT:
-                if not parent.probs[list(parent.rules).index(rid)] > 0:
-                    break
-                out.add(rid)
-            elif parent.kind != Kind.AND:
-                break
-            t = grammar.rules[rid].parent
-    return frozenset(out)
-
-
-@dataclass(frozen=True)
-class ChainProposal:
-    """Draw the structure with one chain of `chain_type` nodes at least `length` long.
-
-    Under the `repeat` node (type `repeat`, rule `root_rule` makes the chain roots), the
-    count n is drawn size-biased (weight n, on top of its restriction by `count_proposals`),
-    one of the n roots J is picked uniformly, and J and the next `length` - 2 nodes of its
-    chain choose the self rule `self_rule` (index `self_index` among the `or` type's rules);
-    everything else is drawn from the grammar.  A candidate is then kept with probability
-    1/K, K the number of its chains at least `length` long (`chain_proposal` says when and
-    docs/constraints.md why the kept candidates follow the grammar's law given the
-    constraint)."""
-
-    constraint: str
-    repeat: int
-    root_rule: int
-    chain_type: int
-    self_rule: int
-    self_index: int
-    length: int
-
-    def must(self, force: IntArray) -> tuple[NDArray[np.bool_], int, int]:
-        return force > 0, self.chain_type, self.self_index
-
-    def child_force(
-        self, force: IntArray, at: IntArray, rid: IntArray, rng: np.random.Generator
-    ) -> IntArray:
-        """The forced links left to each child: one less than its parent's along the self
-        rule, `length` - 1 for the one chain root picked among each `repeat` node's roots."""
-        out = np.where(rid == self.self_rule, np.maximum(force[at] - 1, 0), 0)
-        new = np.flatnonzero(rid == self.root_rule)
-        if len(new):
-            par = at[new]  # sorted: a repeat node's children are consecutive
-            starts = np.flatnonzero(np.r_[True, par[1:] != par[:-1]])
-            sizes = np.diff(np.r_[starts, len(par)])
-            picked = starts + (rng.random(len(starts)) * sizes).astype(np.int64)
-            out[new[picked]] = self.length - 1
-        return out
-
-
-def chain_proposal(
-    grammar: Grammar,
-    constraints: list[Constraint],
-    counts: dict[int, tuple[int, int | None]],
-) -> ChainProposal | None:
-    """The chain proposal for the first `longest_chain` constraint where it is exact.
-
-    It needs: `min` = m >= 2 on a chain type X of kind `or` with one self rule X -> X of
-    probability p > 0; X produced otherwise only by a `repeat` node R whose count is drawn
-    from a restricted law (`count_proposals`: every accepted tree has exactly one R node,
-    n >= 1 roots); no other rule of X leads back to X (so chains are paths from R's
-    children, one per root) and none has a nesting-bounded child; and m <= X's
-    `max_nesting` (so the m - 1 forced choices are never blocked: each has probability p).
-    Then the proposal's probability of a tree ω is P(ω) K(ω) / (Z p^(m-1)) with Z the
-    size-biased count law's normaliser, and keeping ω with probability 1/K makes it a
-    constant times P(ω) on every tree with K >= 1 (docs/constraints.md)."""
-    tb = grammar.tables
-    reach = reachers(grammar)
-    for c in constraints:
-        if not isinstance(c, LongestChain) or c.lo < 2:
-            continue
-        x = c.type_id
-        node = grammar.types[x]
-        if node.kind != Kind.OR:
-            continue
-        own = [k for k, r in enumerate(node.rules) if grammar.rules[r].child == x]
-        producers = [rid for rid, r in enumerate(grammar.rules) if r.child == x and r.parent != x]
-        if len(own) != 1 or len(producers) != 1 or not node.probs[own[0]] > 0:
-            continue
-        repeat = grammar.rules[producers[0]].parent
-        if repeat not in counts or grammar.types[repeat].kind != Kind.REPEAT:
-            continue
-        others = [grammar.rules[r].child for k, r in enumerate(node.rules) if k != own[0]]
-        if any(reach[o, x] or o == x or tb.nesting_slot[o] >= 0 for o in others):
-            continue
-        slot = tb.nesting_slot[x]
-        if slot >= 0 and c.lo > tb.nesting_max[slot]:
-            continue
-        return ChainProposal(
-            c.name, repeat, producers[0], x, int(node.rules[own[0]]), own[0], int(c.lo)
-        )
-    return None
-
-
-def _named(c: Constraint) -> list[int]:
-    return [
-        int(v) for v in (getattr(c, a, None) for a in ("type_id", "of", "child")) if v is not None
-    ]
-
-
-class Watch:
-    """Structural margins kept up to date level by level during the structure stage, so a
-    candidate is rejected as soon as its fate is sealed: a bound `max` is exceeded (counts
-    only grow), or no node that could still change the statistic is left to expand."""
-
-    def __init__(
-        self,
-        grammar: Grammar,
-        constraints: list[Constraint],
-        n: int,
-        stats: _Stats,
-        chain: ChainProposal | None = None,
-    ):
-        reach = reachers(grammar)
-        self.stats = stats
-        self.chain = chain
-        self.tall = np.zeros(n, np.int64)  # chains reaching the proposal's length (K)
-        self.alive = np.ones(n, bool)
-        self.items = []
-        for c in constraints:
-            if not _watched(c):
-                continue
-            if isinstance(c, Children):
-                opens = reach[:, c.of].copy()
-                opens[c.of] = True
-            else:
-                opens = reach[:, c.type_id].copy()
-            self.items.append(
-                {
-                    "c": c,
-                    "opens": opens,
-                    "stat": np.zeros(n, np.int64),
-                    "undecided": np.arange(n),
-                }
-            )
-        self.f_type = np.zeros(0, np.int64)
-        self.runs: dict[int, IntArray] = {}
-
-    def start(self, f_type: IntArray, f_scene: IntArray) -> None:
-        self.f_type = f_type
-        for it in self.items:
-            c = it["c"]
-            if isinstance(c, Count | LongestChain):
-                hit = f_type == c.type_id
-                np.add.at(it["stat"], f_scene[hit], 1)
-                if isinstance(c, LongestChain):
-                    self.runs[id(c)] = hit.astype(np.int64)
-        self.check(f_type, f_scene)
-
-    def select(self, live: NDArray[np.bool_]) -> None:
-        self.f_type = self.f_type[live]
-        for key in self.runs:
-            self.runs[key] = self.runs[key][live]
-
-    def step(self, at: IntArray, c_type: IntArray, c_scene: IntArray, next_type: IntArray) -> None:
-        p_type = self.f_type[at]
-        for it in self.items:
-            c = it["c"]
-            if isinstance(c, Count):
-                it["stat"] += np.bincount(c_scene[c_type == c.type_id], minlength=len(self.alive))
-            elif isinstance(c, Children):
-                hit = p_type == c.of
-                if c.child is not None:
-                    hit &= c_type == c.child
-                it["stat"] += np.bincount(c_scene[hit], minlength=len(self.alive))
-            else:
-                is_t = c_type == c.type_id
-                run = np.where(is_t, np.where(p_type == c.type_id, self.runs[id(c)][at] + 1, 1), 0)
-                self.runs[id(c)] = run
-                np.maximum.at(it["stat"], c_scene[is_t], run[is_t])
-                if self.chain is not None and self.chain.constraint == c.name:
-                    self.tall += np.bincount(
-                        c_scene[is_t & (run == self.chain.length)], minlength=len(self.alive)
-                    )
-        self.f_type = c_type
-        self.check(next_type, c_scene)
-
-    def check(self, f_type: IntArray, f_scene: IntArray) -> None:
-        """Decide the candidates whose statistic is sealed; only undecided ones are looked at,
-        so a level costs what its frontier and the open candidates cost."""
-        n = len(self.alive)
-        for it in self.items:
-            idx = it["undecided"]
-            idx = idx[self.alive[idx]]
-            if not len(idx):
-                it["undecided"] = idx
-                continue
-            c, stat = it["c"], it["stat"][idx]
-            still_open = (np.bincount(f_scene[it["opens"][f_type]], minlength=n) > 0)[idx]
-            ready = ~still_open
-            if c.hi is not None:
-                ready |= stat > c.hi
-            self.decide(it, idx[ready], range_margin(stat[ready], c.lo, c.hi))
-            it["undecided"] = idx[~ready]
-
-    def finish(self) -> None:
-        for it in self.items:
-            idx = it["undecided"]
-            idx = idx[self.alive[idx]]
-            c = it["c"]
-            self.decide(it, idx, range_margin(it["stat"][idx], c.lo, c.hi))
-            it["undecided"] = idx[:0]
-
-    def decide(self, it: dict, idx: IntArray, margin: FloatArray) -> None:  # type: ignore[type-arg]
-        """Candidates `idx` are decided by `it`'s constraint, with these margins."""
-        self.alive[idx[margin < 0]] = False
-        self.stats.count(it["c"].name, margin)
-
-
 @dataclass
 class Outcome:
     """One batch of candidates: which were kept, and what the constraints said."""
@@ -752,7 +465,7 @@ class OutOfTime(Exception):
     """The deadline passed during an attempt (checked between its stages)."""
 
 
-def _check(deadline: float | None) -> None:
+def check_deadline(deadline: float | None) -> None:
     if deadline is not None and time.monotonic() > deadline:
         raise OutOfTime
 
@@ -784,9 +497,9 @@ def rejection_batch(
     )
     batch = _Batch(grammar, constraints, pose, nodes, logp, rng, stats)
     pending, alive = _structure_stage(batch, restricted, chain, late)
-    _check(deadline)
+    check_deadline(deadline)
     pending, read = _pose_stage_partial(batch, alive, pending)
-    _check(deadline)
+    check_deadline(deadline)
     _rest_stage(batch, alive, pending, read, chain, late)
     full = view(nodes, alive)
     margins = {c.name: c.margin(full) for c in constraints}
@@ -862,7 +575,7 @@ def _structure_stage(
         _keep_one_in_k(chain, watch.tall, alive, rng, stats)
     pending = nodes.extend_kept(levels, alive, pending)
     for c in constraints:  # registered structural kinds that Watch does not follow
-        if c.kind == "structure" and not _watched(c) and np.any(alive):
+        if c.kind == "structure" and not is_watched(c) and np.any(alive):
             alive &= stats.judge(c, c.margin(nodes), alive)
     return pending, alive
 
