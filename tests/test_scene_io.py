@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import numpy as np
 import pytest
@@ -124,11 +125,50 @@ def test_duplicate_json_key_is_located(sink):
     assert "duplicate key" in d.message and (d.line, d.column) == (2, 2)
 
 
+def _sampled_doc(grammar: Any) -> dict[str, Any]:
+    trees, logp = sample_trees(grammar, 1, seed=0)
+    return json.loads(
+        dumps_scene(grammar, scene_from_tree(grammar, trees.tree(0), "t", float(logp[0])))
+    )
+
+
 def test_objects_must_match_the_tree(sink):
-    trees, logp = sample_trees(sink, 1, seed=0)
-    doc = json.loads(dumps_scene(sink, scene_from_tree(sink, trees.tree(0), "t", float(logp[0]))))
+    doc = _sampled_doc(sink)
     doc["objects"][-1]["pose"]["xyz"][0] += 0.5
     with pytest.raises(SceneError, match="observed nodes of `tree`"):
+        parse_scene_text(json.dumps(doc), "t.json", sink)
+
+
+def test_an_edited_object_is_named_with_the_way_out(sink):
+    """A user who moves one object of a sampled scene learns which object disagrees with the
+    tree and that deleting the tree lets the scene be parsed; the scene then reads."""
+    doc = _sampled_doc(sink)
+    k = len(doc["objects"]) - 1
+    doc["objects"][k]["pose"]["xyz"][2] += 0.01
+    text = json.dumps(doc, indent=1)
+    with pytest.raises(SceneError) as exc:
+        parse_scene_text(text, "t.json", sink)
+    (d,) = exc.value.diagnostics
+    name = doc["objects"][k]["type"]
+    assert f"object {k} ({name}) is not at the pose of its node" in d.message
+    assert "delete `tree`" in d.message
+    starts = [n + 1 for n, line in enumerate(text.splitlines()) if line == "  {"]  # objects
+    assert d.line == starts[k]
+    del doc["tree"]
+    scene = parse_scene_text(json.dumps(doc), "t.json", sink)
+    assert scene.xyz[k, 2] == pytest.approx(doc["objects"][k]["pose"]["xyz"][2])
+
+
+def test_objects_of_another_type_or_number_than_the_tree_are_named(sink):
+    doc = _sampled_doc(sink)
+    removed = json.loads(json.dumps(doc))
+    removed["objects"].pop()
+    with pytest.raises(SceneError, match=r"observed node\(s\), `objects` lists"):
+        parse_scene_text(json.dumps(removed), "t.json", sink)
+    k = len(doc["objects"]) - 1
+    other = "DishBin" if doc["objects"][k]["type"] != "DishBin" else "Plate"
+    doc["objects"][k]["type"] = other
+    with pytest.raises(SceneError, match=f"object {k} is a {other}, its node"):
         parse_scene_text(json.dumps(doc), "t.json", sink)
 
 

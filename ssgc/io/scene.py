@@ -368,22 +368,31 @@ def _check_objects_match_tree(
     source: _LazySource,
     errors: list[Diagnostic],
 ) -> None:
-    """A scene's objects are its tree's observed nodes, in node order: a file must agree."""
+    """A scene's objects are its tree's observed nodes, in node order: a file must agree.
+    The message names the first object that does not, and the way out for a user who edited
+    the objects of a sampled scene (to parse or explain it, the tree is not needed)."""
     obs = np.flatnonzero(grammar.tables.type_observed[tree.type])
-    same = len(obs) == len(types) and np.array_equal(tree.type[obs], np.asarray(types, np.int64))
-    if same and len(obs):
-        same = bool(
-            np.allclose(tree.xyz[obs], np.asarray(xyz, float), rtol=0, atol=1e-9)
-            and np.all(np.abs(np.sum(tree.quat[obs] * np.asarray(quat), axis=1)) >= 1 - 1e-9)
-        )
-    if not same:
-        errors.append(
-            source.diagnostic(
-                ("objects",),
-                "`objects` must be the observed nodes of "
-                "`tree`, in node order, with the same poses",
-            )
-        )
+    head = "`objects` must be the observed nodes of `tree`, in node order, with the same poses"
+    way_out = "to change the objects, delete `tree` (parse and explain need only the objects)"
+    if len(obs) != len(types):
+        where: tuple[Any, ...] = ("objects",)
+        why = f"the tree has {len(obs)} observed node(s), `objects` lists {len(types)}"
+    else:
+        t = np.asarray(types, np.int64).reshape(-1)
+        moved = ~np.all(np.isclose(tree.xyz[obs], np.asarray(xyz, float), rtol=0, atol=1e-9), 1)
+        turned = np.abs(np.sum(tree.quat[obs] * np.asarray(quat, float), axis=1)) < 1 - 1e-9
+        bad = np.flatnonzero((tree.type[obs] != t) | moved | turned)
+        if not len(bad):
+            return
+        i = int(bad[0])
+        where = ("objects", i)
+        name, node = grammar.types[t[i]].name, int(obs[i])
+        if tree.type[node] != t[i]:
+            other = grammar.types[tree.type[node]].name
+            why = f"object {i} is a {name}, its node ({node}) a {other}"
+        else:
+            why = f"object {i} ({name}) is not at the pose of its node ({node})"
+    errors.append(source.diagnostic(where, f"{head}: {why}; {way_out}"))
 
 
 def _tree_from_doc(
