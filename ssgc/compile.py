@@ -379,16 +379,21 @@ class Compiler(Report):
             self.add(check_recursion(types, rules))
             if not self.errors:
                 self.add(check_reachable(types, rules, root))
-        constraints = build_constraints(
-            self, types, rules, root, sound=not self.errors and not self.partial
+        sound = not self.errors and not self.partial
+        # The observation adds types (clutter, an observed root's node) after the user's: the
+        # constraints are checked on the grammar as written but sized for every type.
+        seen = (
+            None
+            if self.errors
+            else observation.apply(
+                self.doc.observation, types, rules, self.ids[root_spec.type], self.ids, self
+            )
         )
+        n_types = len(types) if seen is None else len(seen.types)
+        constraints = build_constraints(self, types, rules, root, sound, n_types)
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
-        seen = observation.apply(
-            self.doc.observation, types, rules, self.ids[root_spec.type], self.ids, self
-        )
-        if self.errors:
-            raise GrammarError(self.errors + self.warnings)
+        assert seen is not None
         types_t, rules_t = tuple(seen.types), tuple(seen.rules)
         return Grammar(
             name=self.doc.grammar,

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from test_explain import DINNER, dinner_scene, moved
 from typer.testing import CliRunner
 
+import ssgc.api
 from ssgc.cli.app import app
 from ssgc.compile import compile_text
 from ssgc.errors import GrammarError
@@ -292,3 +293,47 @@ def test_noise_on_some_types_keeps_every_block_observed():
     for i in range(4):
         best = parser.parse(scene_from_tree(g, trees.tree(i), f"s{i}")).parses[0]
         assert best.score >= logp[i] - 1e-6
+
+
+CONSTRAINED = DINNER.replace(
+    "  Plate:\n    observed: true\n",
+    "  Plate:\n    observed: true\n    geometry: {cylinder: {radius: 0.1, length: 0.02}}\n",
+).replace(
+    "  Mug:\n    observed: true\n",
+    "  Mug:\n    observed: true\n    geometry: {cylinder: {radius: 0.04, length: 0.08}}\n",
+) + (
+    "constraints:\n"
+    "  apart: {non_penetration: {types: [Plate, Mug]}}\n"
+    "  spaced: {clearance: {types: [Plate]}}\n"
+    "  mugs_up: {upright: {types: [Mug], max_angle_deg: 30}}\n"
+    "  on_table: {inside_box: {types: [Plate, Mug], min: [-2, -2, 0.5], max: [2, 2, 1.5], "
+    "geometry: true}}\n"
+    "observation:\n  noise:\n    default: {position: 0.004, rotation_deg: 2}\n"
+    "  clutter:\n    region: {min: [-1, -1, 0.7], max: [1, 1, 1.0]}\n"
+    "    rates: {Sponge: 0.2, Mug: 0.1}\n"
+)
+
+
+def test_constraints_of_every_pose_kind_with_an_observation_that_adds_types():
+    """The observation adds types after the user's (clutter, `~clutter`): every constraint's
+    per-type table must cover them.  `ssg explain` of a scene with a clutter object indexed
+    `non_penetration`'s type mask with the clutter node's type and failed with an IndexError
+    (found by trying a sink scene with a sponge and a lifted bowl)."""
+    g = compile_text(CONSTRAINED, "dinner.yaml")
+    n = len(g.types)
+    assert n > len(compile_text(CONSTRAINED.split("observation:")[0]).types)
+    for c in g.constraints:
+        assert len(c.reads(n)) == n and (getattr(c, "types", None) is None or len(c.types) == n)
+    scene = dinner_scene(g)
+    sponge = Scene(
+        "sponge",
+        np.r_[scene.types, g.type_ids["Sponge"]],
+        np.r_[scene.xyz, [[0.6, 0.6, 0.8]]],
+        np.r_[scene.quat, [[1.0, 0, 0, 0]]],
+    )
+    e = explain(g, sponge)
+    assert [o.index for o in e.objects if o.unexplained] == [6]
+    kept = ssgc.api.Grammar(g, CONSTRAINED).sample(4, seed=2, constraints="all")
+    assert len(kept) == 4
+    for s in kept:
+        assert np.isfinite(s.log_prob)

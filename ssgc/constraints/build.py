@@ -37,11 +37,18 @@ AXIS = {"x": 0, "y": 1, "z": 2}
 
 
 def build_constraints(
-    compiler: Any, types: list[NodeType], rules: list[Rule], root: int | None, sound: bool
+    compiler: Any,
+    types: list[NodeType],
+    rules: list[Rule],
+    root: int | None,
+    sound: bool,
+    n_types: int | None = None,
 ) -> tuple[Constraint, ...]:
     """Lower and check every constraint.  `sound`: the grammar itself had no error, so its
-    recursion is bounded and the can-never-hold checks may explore it."""
-    b = _Builder(compiler, types, rules, root if sound else None)
+    recursion is bounded and the can-never-hold checks may explore it.  `n_types`: how many
+    types the compiled grammar has (more than `types` when its observation adds some, which
+    no constraint names); the constraints' per-type tables cover them all."""
+    b = _Builder(compiler, types, rules, root if sound else None, n_types or len(types))
     out = []
     for name, spec in compiler.doc.constraints.items():
         c = b.build(name, spec, ("constraints", name))
@@ -56,12 +63,19 @@ def _tail(spec: dsl.TailC | None, default: Tail) -> Tail:
 
 
 class _Builder:
-    def __init__(self, compiler: Any, types: list[NodeType], rules: list[Rule], root: int | None):
+    def __init__(
+        self,
+        compiler: Any,
+        types: list[NodeType],
+        rules: list[Rule],
+        root: int | None,
+        n_types: int,
+    ):
         self.c = compiler
         self.types = types
         self.rules = rules
         self.root = root
-        self.n = len(types)
+        self.n = n_types  # the length of every per-type table
 
     # ----------------------------------------------------------------- names ---
 
@@ -282,6 +296,7 @@ class _Builder:
         try:
             wanted = set(ids)
             geometries = [t.geometry if k in wanted else None for k, t in enumerate(self.types)]
+            geometries += [None] * (self.n - len(geometries))
             return extents_of(geometries, self.c.base_dir)
         except ShapeError as exc:
             self.c.error((*loc, "types"), f"cannot bound the geometry: {exc}")
