@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from ssgc.compile import load_grammar
+from ssgc.compile import compile_text, load_grammar
 from ssgc.constraints.gradients import margin_gradient
 from ssgc.sample.constrained import METHODS, choose_method, sample_blocks, scene_metadata
 from ssgc.sample.forward import sample_chunk
@@ -399,3 +399,38 @@ def test_pullback_is_the_adjoint_of_moving_local_translations(seed: int, name: s
     lhs = np.sum(g_xyz * (moved.xyz - base.xyz))
     rhs = np.sum(pullback(g, base, g_xyz, levels) * d)
     assert np.isclose(lhs, rhs, rtol=1e-9, atol=1e-9)
+
+
+STACKED = """
+grammar: stacked
+root: L
+types:
+  L:
+    and:
+      - {child: A, translation: same, rotation: {revolute: {axis: [0, 0, 1]}}}
+      - {child: A, translation: same, rotation: uniform}
+  A: {observed: true, geometry: {sphere: {radius: 0.02}}}
+constraints:
+  apart: {non_penetration: {types: [A]}}
+"""
+
+
+def test_a_tree_with_nothing_to_move_is_rejected_quietly(capfd):  # type: ignore[no-untyped-def]
+    """Every position fixed by its rule (`same`): no coordinate for the projection to move
+    (SLSQP was called with none, and LAPACK printed two lines per tree), no `repeat` or
+    `independent` site for RJMCMC's birth or death move (it indexed an empty array).  Every
+    tree violates `apart`: the projection runs out of tries and says so, the chains stay
+    infeasible."""
+    import ssgc.api
+    from ssgc.sample.constrained import Unmet
+
+    g = compile_text(STACKED)
+    with pytest.raises(Unmet):
+        ssgc.api.Grammar(g, STACKED).sample(
+            2, seed=0, constraints="all", method="project", max_tries=8
+        )
+    printed = capfd.readouterr()
+    assert "On entry" not in printed.out + printed.err  # OpenBLAS's xerbla prints to stdout
+    short = RjSettings(min_sweeps=2, max_sweeps=4, start_candidates=16)
+    out = rjmcmc_batch(g, list(g.constraints), 4, np.random.default_rng(0), settings=short)
+    assert out.trees.n_scenes == 0  # every chain still violates `apart`

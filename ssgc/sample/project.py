@@ -80,6 +80,8 @@ def project_tree(
     u0, _ = local_poses(grammar, tree)
     coords = Coords.of(grammar, tree.rule)
     free = np.flatnonzero(coords.free.ravel())
+    if not len(free):  # every position fixed by its rule: nothing to project (SLSQP needs one)
+        return tree, 0.0, 0
     x0 = tree.xyz.copy()
     n3 = x0.size
     jac_x = pullback_many(grammar, tree, np.eye(n3).reshape(n3, -1, 3), levels)

@@ -245,6 +245,8 @@ class Chains:
         min(1, P(k') / P(k) · M / M') 1[C(T')], P the count law (or p and 1 - p)."""
         t = self.trees
         site_node, site_slot = sites(self.grammar, t)
+        if not len(site_node):  # no `repeat` node or `independent` rule in any tree: no move
+            return
         pick = _pick(t.scene[site_node], np.arange(len(site_node)), self.n, rng)
         has = pick >= 0
         v = np.where(has, site_node[np.maximum(pick, 0)], -1)
