@@ -3,7 +3,9 @@
 A grammar has 1–3 latent types (`L0` the root, then `L1`, `L2`), each of any kind (`and`, `or`,
 `independent`, `repeat`), and two observed types (`A`, `B`).  A latent type's rules reach later
 latent types or observed ones, so there are no cycles; every rule draws its translation from
-every translation law and its rotation from every rotation law of docs/grammar.md.
+every translation law and its rotation from every rotation law of docs/grammar.md.  With
+`extras`, the observed types get geometry and pose constraints of every kind, and the grammar
+maybe an `observation` section (noise, clutter, both), which adds types after the user's.
 
 One builder, two drivers: `make_spec(pick)` asks `pick(what, options)` for every choice, so
 hypothesis (`grammars()`, which shrinks) and a numpy generator (`random_spec`, for the long
@@ -78,8 +80,50 @@ def rotation(law: str, pick: Pick) -> Any:
     return {"offset": mode}
 
 
-def make_spec(pick: Pick) -> dict[str, Any]:
-    """A grammar as a YAML-ready dict; `pick(what, options)` makes every choice."""
+def observation(pick: Pick) -> dict[str, Any] | None:
+    """An `observation` section (docs/grammar.md section 9), or None: noise on every observed
+    type, clutter of a type only clutter makes (`C`) and of an observed terminal (`B`), or
+    both.  Clutter adds types after the user's."""
+    which = pick("observation", (None, "noise", "clutter", "both"))
+    if which is None:
+        return None
+    out: dict[str, Any] = {}
+    if which in ("noise", "both"):
+        noise = {"position": pick("noise_position", (0.0, 0.01))}
+        noise["rotation_deg"] = pick("noise_rotation", (0, 2))
+        out["noise"] = {"default": noise}
+    if which in ("clutter", "both"):
+        out["clutter"] = {
+            "region": {"min": [-1.0, -1.0, -1.0], "max": [1.5, 1.5, 1.5]},
+            "rates": {"C": 0.3, "B": pick("clutter_b", (0.1, 0.5))},
+            "max": 2,
+        }
+    return out
+
+
+def constraints(pick: Pick) -> dict[str, Any]:
+    """Pose constraints of every kind on the observed types (which then have geometry)."""
+    kinds = pick(
+        "constraints",
+        (("non_penetration",), ("clearance", "upright"), ("inside_box", "non_penetration")),
+    )
+    out: dict[str, Any] = {}
+    for kind in kinds:
+        if kind == "non_penetration":
+            out["apart"] = {"non_penetration": {"types": list(OBSERVED)}}
+        elif kind == "clearance":
+            out["spaced"] = {"clearance": {"types": list(OBSERVED), "radius": {"A": 0.05}}}
+        elif kind == "upright":
+            out["tilt"] = {"upright": {"types": ["A"], "max_angle_deg": 120}}
+        else:
+            box = {"min": [-3.0, -3.0, -3.0], "max": [3.0, 3.0, 3.0], "geometry": True}
+            out["inside"] = {"inside_box": {"types": list(OBSERVED), **box}}
+    return out
+
+
+def make_spec(pick: Pick, extras: bool = False) -> dict[str, Any]:
+    """A grammar as a YAML-ready dict; `pick(what, options)` makes every choice.  `extras`:
+    also an `observation` section (maybe) and pose constraints on the observed types."""
     n_latent = pick("latent", (1, 2, 3))
     latent = [f"L{i}" for i in range(n_latent)]
     types: dict[str, Any] = {name: {"observed": True} for name in OBSERVED}
@@ -102,7 +146,15 @@ def make_spec(pick: Pick) -> dict[str, Any]:
             types[name] = {"repeat": {"count": count, "rule": rules[0]}}
         else:
             types[name] = {kind: rules}
-    return {"grammar": "generated", "root": latent[0], "types": types}
+    spec = {"grammar": "generated", "root": latent[0], "types": types}
+    if extras:
+        types["A"]["geometry"] = {"sphere": {"radius": 0.02}}
+        types["B"]["geometry"] = {"cylinder": {"radius": 0.02, "length": 0.03}}
+        spec["constraints"] = constraints(pick)
+        seen = observation(pick)
+        if seen is not None:
+            spec["observation"] = seen
+    return spec
 
 
 def to_yaml(spec: dict[str, Any]) -> str:
@@ -118,13 +170,15 @@ def random_spec(rng: np.random.Generator) -> dict[str, Any]:
     return make_spec(lambda what, options: options[int(rng.integers(len(options)))])
 
 
-def grammars() -> Any:
-    """A hypothesis strategy of grammar specs of the family."""
+def grammars(extras: bool = False) -> Any:
+    """A hypothesis strategy of grammar specs of the family (`extras`: see `make_spec`)."""
     from hypothesis import strategies as st
 
     @st.composite
     def strategy(draw: Any) -> dict[str, Any]:
-        return make_spec(lambda what, options: draw(st.sampled_from(list(options)), label=what))
+        return make_spec(
+            lambda what, options: draw(st.sampled_from(list(options)), label=what), extras
+        )
 
     return strategy()
 

@@ -104,6 +104,26 @@ def test_sampled_scenes_get_no_false_status(spec):
         raise AssertionError(f"{exc}\ngrammar:\n{to_yaml(spec)}") from None
 
 
+@settings(
+    max_examples=8,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(spec=grammars(extras=True))
+def test_scenes_with_noise_and_clutter_get_no_false_status(spec):
+    """The same over grammars with an `observation` section (noise on every observed type,
+    clutter objects) and pose constraints (which parsing does not read, but the compiled
+    grammar carries): the scenes sampled from the grammar of what is observed, clutter
+    objects included, are parsed as honestly."""
+    grammar = compile_spec(spec)
+    scenes = sampled_scenes(grammar, 3, seed=0, max_objects=4)
+    try:
+        assert_honest(grammar, scenes, time_limit=5.0)
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}\ngrammar:\n{to_yaml(spec)}") from None
+
+
 def test_latent_and_chain_scenes_are_never_called_infeasible():
     grammar = compile_text(LATENT_AND_CHAIN)
     assert_honest(grammar, sampled_scenes(grammar, 8, seed=1))
