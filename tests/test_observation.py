@@ -148,15 +148,20 @@ def test_an_observed_root_with_noise_gets_its_own_node():
         assert best.score >= logp[i] - 1e-6
 
 
+def with_sponge(g, scene: Scene, xyz: list[float]) -> Scene:  # type: ignore[no-untyped-def]
+    """The scene and one more object, a `Sponge` (a type only clutter makes) at `xyz`."""
+    return Scene(
+        "sponge",
+        np.r_[scene.types, g.type_ids["Sponge"]],
+        np.r_[scene.xyz, [xyz]],
+        np.r_[scene.quat, [[1.0, 0, 0, 0]]],
+    )
+
+
 def test_clutter_flags_the_object_the_grammar_does_not_make():
     g = with_section(CLUTTER)
     scene = dinner_scene(g)
-    sponge = Scene(
-        "sponge",
-        np.r_[scene.types, g.type_ids["Sponge"]],
-        np.r_[scene.xyz, [[0.2, 0.2, 0.8]]],
-        np.r_[scene.quat, [[1.0, 0, 0, 0]]],
-    )
+    sponge = with_sponge(g, scene, [0.2, 0.2, 0.8])
     e = explain(g, sponge)
     assert e.objects[0].index == 6 and e.objects[0].unexplained
     assert [o.index for o in e.objects if o.unexplained] == [6]
@@ -325,12 +330,7 @@ def test_constraints_of_every_pose_kind_with_an_observation_that_adds_types():
     for c in g.constraints:
         assert len(c.reads(n)) == n and (getattr(c, "types", None) is None or len(c.types) == n)
     scene = dinner_scene(g)
-    sponge = Scene(
-        "sponge",
-        np.r_[scene.types, g.type_ids["Sponge"]],
-        np.r_[scene.xyz, [[0.6, 0.6, 0.8]]],
-        np.r_[scene.quat, [[1.0, 0, 0, 0]]],
-    )
+    sponge = with_sponge(g, scene, [0.6, 0.6, 0.8])
     e = explain(g, sponge)
     assert [o.index for o in e.objects if o.unexplained] == [6]
     kept = ssgc.api.Grammar(g, CONSTRAINED).sample(4, seed=2, constraints="all")

@@ -88,6 +88,16 @@ def assert_honest(grammar, scenes, time_limit=None) -> Counter[str]:
     return counts
 
 
+def assert_honest_on_samples(spec) -> None:  # type: ignore[no-untyped-def]
+    """`assert_honest` on three scenes sampled from a generated grammar, naming it on failure."""
+    grammar = compile_spec(spec)
+    scenes = sampled_scenes(grammar, 3, seed=0, max_objects=4)
+    try:
+        assert_honest(grammar, scenes, time_limit=5.0)
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}\ngrammar:\n{to_yaml(spec)}") from None
+
+
 @settings(
     max_examples=10,
     deadline=None,
@@ -96,12 +106,7 @@ def assert_honest(grammar, scenes, time_limit=None) -> Counter[str]:
 )
 @given(spec=grammars())
 def test_sampled_scenes_get_no_false_status(spec):
-    grammar = compile_spec(spec)
-    scenes = sampled_scenes(grammar, 3, seed=0, max_objects=4)
-    try:
-        assert_honest(grammar, scenes, time_limit=5.0)
-    except AssertionError as exc:
-        raise AssertionError(f"{exc}\ngrammar:\n{to_yaml(spec)}") from None
+    assert_honest_on_samples(spec)
 
 
 @settings(
@@ -116,12 +121,7 @@ def test_scenes_with_noise_and_clutter_get_no_false_status(spec):
     clutter objects) and pose constraints (which parsing does not read, but the compiled
     grammar carries): the scenes sampled from the grammar of what is observed, clutter
     objects included, are parsed as honestly."""
-    grammar = compile_spec(spec)
-    scenes = sampled_scenes(grammar, 3, seed=0, max_objects=4)
-    try:
-        assert_honest(grammar, scenes, time_limit=5.0)
-    except AssertionError as exc:
-        raise AssertionError(f"{exc}\ngrammar:\n{to_yaml(spec)}") from None
+    assert_honest_on_samples(spec)
 
 
 def test_latent_and_chain_scenes_are_never_called_infeasible():
