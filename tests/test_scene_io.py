@@ -198,3 +198,19 @@ def test_moved_object_scores_lower_and_impossible_pose_scores_minus_inf(sink):
     xyz[same_child] += 0.01
     broken = type(tree)(**{**tree.__dict__, "xyz": xyz})
     assert score_trees(sink, broken)[0] == -np.inf
+
+
+def test_a_scene_with_no_object_and_its_tree_reads():
+    """A grammar can make a scene without objects (a latent root, no child): its file, with
+    the tree, reads back (the check that objects match the tree broadcast (0, 3) against
+    (0,) and failed with a ValueError; found by `ssg parse` of generated grammars)."""
+    from ssgc.compile import compile_text
+
+    g = compile_text(
+        "grammar: empty\nroot: L\ntypes:\n  L:\n    repeat:\n      count: {probs: [1.0]}\n"
+        "      rule: {child: A}\n  A: {observed: true}\n"
+    )
+    trees, logp = sample_trees(g, 1, seed=0)
+    text = dumps_scene(g, scene_from_tree(g, trees.tree(0), "t", float(logp[0])))
+    scene = parse_scene_text(text, "t.json", g)
+    assert len(scene) == 0 and scene.tree is not None

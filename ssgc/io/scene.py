@@ -379,8 +379,9 @@ def _check_objects_match_tree(
         why = f"the tree has {len(obs)} observed node(s), `objects` lists {len(types)}"
     else:
         t = np.asarray(types, np.int64).reshape(-1)
-        moved = ~np.all(np.isclose(tree.xyz[obs], np.asarray(xyz, float), rtol=0, atol=1e-9), 1)
-        turned = np.abs(np.sum(tree.quat[obs] * np.asarray(quat, float), axis=1)) < 1 - 1e-9
+        xyz_, quat_ = np.asarray(xyz, float).reshape(-1, 3), np.asarray(quat, float).reshape(-1, 4)
+        moved = ~np.all(np.isclose(tree.xyz[obs], xyz_, rtol=0, atol=1e-9), axis=1)
+        turned = np.abs(np.sum(tree.quat[obs] * quat_, axis=1)) < 1 - 1e-9
         bad = np.flatnonzero((tree.type[obs] != t) | moved | turned)
         if not len(bad):
             return
