@@ -334,3 +334,34 @@ def test_revolve_dishes_load_as_meshes_in_drake_usd_and_gltf(tmp_path: Path) -> 
     scene = trimesh.load(tmp_path / "glb" / f"{name}.glb")
     assert all(len(g.faces) > 0 for g in scene.geometry.values())
     assert set(dishes) <= set(scene.graph.nodes)
+
+
+BARE = (
+    "grammar: bare\nroot: L\ntypes:\n  L:\n    repeat:\n      count: {probs: [PROBS]}\n"
+    "      rule:\n        child: A\n"
+    "        translation: {world_normal: {mean: [0, 0, 1], variance: 0.01}}\n"
+    "        rotation: uniform\n  A: {observed: true}\n"
+)
+
+
+@pytest.mark.parametrize("probs", ["0, 0, 1", "1"])
+def test_glb_of_a_scene_without_geometry_has_its_posed_nodes(tmp_path: Path, probs: str) -> None:
+    """Objects of types without geometry (or no object at all): trimesh refuses to export a
+    scene without a mesh ('Can't export empty scenes!', an internal error of `ssg export`,
+    found on generated grammars); the file now holds one posed empty node per object."""
+    import trimesh
+
+    grammar = tmp_path / "bare.yaml"
+    grammar.write_text(BARE.replace("PROBS", probs))
+    out = tmp_path / "s"
+    result = run("sample", grammar, "-n", 1, "--seed", 0, "-o", out, "-q", "--export", "glb")
+    assert result.exit_code == 0, result.output
+    scene = trimesh.load(str(out / "glb" / "bare_000000.glb"))
+    want = expected(out, "bare_000000")
+    assert len(want) == (2 if probs == "0, 0, 1" else 0)
+    got = {}
+    for node in want:
+        matrix, geometry = scene.graph.get(node)
+        assert geometry is None
+        got[node] = (matrix[:3, 3], matrix[:3, :3])
+    assert_same_poses(got, want)

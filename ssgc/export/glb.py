@@ -1,10 +1,15 @@
 """glTF binary (`.glb`) through trimesh: one node per object, named by its id, with its pose.
 
 Geometry is the visual surface only (primitives as triangle meshes); glTF has no collision,
-mass or fixed/free.  Each type's mesh is stored once and instanced by its objects' nodes.
+mass or fixed/free.  Each type's mesh is stored once and instanced by its objects' nodes.  A
+scene without geometry (no object, or only objects of types without one) is still a valid
+file, of posed empty nodes, written here: trimesh refuses to export a scene without a mesh.
 """
 
 from __future__ import annotations
+
+import json
+import struct
 
 import numpy as np
 
@@ -37,5 +42,27 @@ def trimesh_scene(scene: SceneBodies):  # type: ignore[no-untyped-def]
     return out
 
 
+def nodes_only(scene: SceneBodies) -> bytes:
+    """A glb of one empty node per object, with its pose (glTF 2.0: a 12-byte header, then a
+    JSON chunk padded with spaces to 4 bytes; no buffer, and no empty array, which the schema
+    forbids)."""
+    nodes = [
+        {"name": b.name, "matrix": pose_matrix(b.xyz, b.quat).T.ravel().tolist()}  # columns
+        for b in scene.bodies
+    ]
+    world: dict[str, object] = {"name": "world"}
+    doc: dict[str, object] = {"asset": {"version": "2.0", "generator": "ssgc"}, "scene": 0}
+    if nodes:
+        world["nodes"] = list(range(len(nodes)))
+        doc["nodes"] = nodes
+    doc["scenes"] = [world]
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    header = struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(text))
+    return header + struct.pack("<I4s", len(text), b"JSON") + text
+
+
 def files(scene: SceneBodies) -> dict[str, str | bytes]:
+    if all(b.shape is None for b in scene.bodies):
+        return {f"{scene.name}{SUFFIX}": nodes_only(scene)}
     return {f"{scene.name}{SUFFIX}": trimesh_scene(scene).export(file_type="glb")}
