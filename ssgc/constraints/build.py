@@ -42,13 +42,13 @@ def build_constraints(
     rules: list[Rule],
     root: int | None,
     sound: bool,
-    n_types: int | None = None,
+    n_types: int,
 ) -> tuple[Constraint, ...]:
     """Lower and check every constraint.  `sound`: the grammar itself had no error, so its
     recursion is bounded and the can-never-hold checks may explore it.  `n_types`: how many
     types the compiled grammar has (more than `types` when its observation adds some, which
     no constraint names); the constraints' per-type tables cover them all."""
-    b = _Builder(compiler, types, rules, root if sound else None, n_types or len(types))
+    b = _Builder(compiler, types, rules, root if sound else None, n_types)
     out = []
     for name, spec in compiler.doc.constraints.items():
         c = b.build(name, spec, ("constraints", name))
