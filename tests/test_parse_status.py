@@ -169,18 +169,29 @@ def test_resume_refuses_a_journal_of_the_old_statuses(tmp_path):
 
 
 @pytest.mark.timing
-@pytest.mark.parametrize("limit", [1.0, 2.0, 5.0])
+@pytest.mark.parametrize("limit", [0.25, 0.5])
 def test_time_limit_holds_while_the_model_is_built(limit):
     """The issue's case: 1,000 objects under a grammar of up to 1,000 children ran 52 s
-    under --time-limit 1."""
+    under --time-limit 1.  It now parses in about 0.9 s of CPU; a shorter limit still cuts
+    it short in time (or, on a faster machine, it is done)."""
     grammar = compile_text(WIDE)
     scene = wide_scene(grammar, 1000)
     parser = Parser(grammar)
     start = time.perf_counter()
     result = parser.parse(scene, time_limit=limit)
     elapsed = time.perf_counter() - start
-    assert (result.status, result.phase) == ("no_parse", "time")
+    assert (result.status, result.phase) in {("no_parse", "time"), ("optimal", "")}
     assert elapsed <= 1.1 * limit, elapsed
+
+
+@pytest.mark.timing
+def test_the_wide_scene_of_1000_objects_parses():
+    """Its candidate poses (a thousand sets of a thousand each) are deduplicated by a sorted
+    sweep: comparing every pair of each set took 25 s of CPU (docs/parsing.md)."""
+    grammar = compile_text(WIDE)
+    result = Parser(grammar).parse(wide_scene(grammar, 1000), time_limit=10.0)
+    assert result.status == "optimal", result.message
+    assert len(result.parses[0].tree) == 1001
 
 
 class _TooLarge:

@@ -25,11 +25,13 @@ from test_parse_status import WIDE, run, wide_scene, write_scene
 import ssgc.parse.parser as parser_module
 import ssgc.parse.proposals as proposals
 from ssgc.compile import compile_text, load_grammar
+from ssgc.geometry import quat_angle
 from ssgc.io.journal import journal_path
 from ssgc.io.scene import Scene, load_scenes, scene_from_tree
-from ssgc.laws.base import POS_TOL
+from ssgc.laws.base import POS_TOL, ROT_TOL
 from ssgc.parse.parser import STEPS, Parser
-from ssgc.parse.proposals import Candidates, _near_earlier
+from ssgc.parse.posed import _first_distinct
+from ssgc.parse.proposals import Candidates, near_earlier
 from ssgc.sample.forward import sample_trees
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,10 +69,32 @@ def test_near_pairs_match_every_pair_compared(n_old, n_new, sites, jitter, flat,
     with pytest.MonkeyPatch.context() as m:
         m.setattr(proposals, "NEAR_PAIRS_CHUNK", chunk)
         m.setattr(proposals, "ALL_PAIRS_UP_TO", 0)
-        i, j = _near_earlier(xyz, n_old)
-    small = _near_earlier(xyz, n_old)  # every pair compared (the inputs are small)
+        i, j = near_earlier(xyz, n_old)
+    small = near_earlier(xyz, n_old)  # every pair compared (the inputs are small)
     assert set(zip(*small, strict=True)) == set(zip(i.tolist(), j.tolist(), strict=True))
     assert set(zip(i.tolist(), j.tolist(), strict=True)) == _brute_near(xyz, n_old)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    n=hs.integers(0, 40),
+    sites=hs.integers(1, 4),
+    jitter=hs.sampled_from([0.0, 0.3, 1.0, 3.0]),
+    turns=hs.integers(1, 3),
+    seed=hs.integers(0, 2**31),
+)
+def test_first_distinct_poses_match_every_pair_compared(n, sites, jitter, turns, seed):
+    """The implied poses a set keeps (`candidate_poses`): each unless an earlier one is
+    within both pose tolerances, exactly as comparing every pair says."""
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(size=(sites, 3))[rng.integers(0, sites, n)]
+    xyz = xyz + rng.normal(size=xyz.shape) * POS_TOL * jitter
+    quat = np.eye(4)[rng.integers(0, turns, n)]
+    keep = _first_distinct(xyz, quat, None)
+    close = np.linalg.norm(xyz[:, None] - xyz[None], axis=2) <= POS_TOL
+    same = close & (quat_angle(quat[:, None], quat[None]) <= ROT_TOL)
+    expected = [j for j in range(n) if not same[:j, j].any()]
+    assert keep.tolist() == expected
 
 
 def test_candidates_add_skips_repeats_only():

@@ -180,6 +180,22 @@ def test_tree_with_wrong_rule_index_is_rejected(sink):
         parse_scene_text(json.dumps(doc), "t.json", sink)
 
 
+@pytest.mark.parametrize(
+    "field, value, fragment", [("type", "Objekt", "unknown type"), ("id", 9, "node ids")]
+)
+def test_a_node_with_a_bad_type_or_id_is_the_one_error(sink, field, value, fragment):
+    """Its children's rules are not checked against a type it does not have: one error, at it."""
+    doc = _sampled_doc(sink)
+    nodes = doc["tree"]["nodes"]
+    first = len(sink.types[0].rules)  # what a node wrongly taken as type 0 would allow
+    k = next(n["parent"] for n in nodes if n.get("parent") and n["rule"] >= first)
+    nodes[k][field] = value
+    with pytest.raises(SceneError) as exc:
+        parse_scene_text(json.dumps(doc), "t.json", sink)
+    (d,) = exc.value.diagnostics
+    assert fragment in d.message
+
+
 def test_moved_object_scores_lower_and_impossible_pose_scores_minus_inf(sink):
     trees, _ = sample_trees(sink, 50, seed=1)
     tree = trees.tree(int(np.argmax([len(trees.tree(i)) for i in range(50)])))

@@ -399,9 +399,12 @@ def _check_objects_match_tree(
 def _tree_from_doc(
     doc: TreeDoc, grammar: Grammar, source: _LazySource, errors: list[Diagnostic]
 ) -> Trees | None:
-    """Nodes must be listed parents first, with ids 0..n-1; rules index the parent's list."""
+    """Nodes must be listed parents first, with ids 0..n-1; rules index the parent's list.
+    A node whose id or type is wrong has no type to check its children's rules against:
+    its own error is the one to report."""
     n = len(doc.nodes)
     ntype = np.zeros(n, np.int64)
+    typed = np.zeros(n, bool)
     parent = np.full(n, -1, np.int64)
     rule = np.full(n, -1, np.int64)
     xyz, quat = np.zeros((n, 3)), np.zeros((n, 4))
@@ -415,7 +418,7 @@ def _tree_from_doc(
         if tid is None:
             errors.append(source.diagnostic((*loc, "type"), f"unknown type '{node.type}'"))
             continue
-        ntype[i] = tid
+        ntype[i], typed[i] = tid, True
         if (node.parent is None) != (node.rule is None):
             errors.append(source.diagnostic(loc, "give both `parent` and `rule`, or neither"))
             continue
@@ -424,6 +427,8 @@ def _tree_from_doc(
                 errors.append(
                     source.diagnostic((*loc, "parent"), "a node's parent must be listed before it")
                 )
+                continue
+            if not typed[node.parent]:
                 continue
             rules = grammar.types[ntype[node.parent]].rules
             if node.rule >= len(rules):

@@ -69,7 +69,7 @@ class Candidates:
         all_xyz = np.vstack([self.xyz[e], xyz])
         all_quat = np.vstack([self.quat[e], quat])
         # a new pose is kept unless it matches an old one or an earlier new one
-        i, j = _near_earlier(all_xyz, len(self.xyz[e]))
+        i, j = near_earlier(all_xyz, len(self.xyz[e]))
         same = quat_angle(all_quat[i], quat[j]) <= ROT_TOL
         keep = np.ones(len(xyz), bool)
         keep[j[same]] = False
@@ -84,7 +84,7 @@ NEAR_PAIRS_CHUNK = 1 << 20  # candidate pairs compared at once
 ALL_PAIRS_UP_TO = 4096  # pairs below which every pair is compared (no sort)
 
 
-def _near_earlier(all_xyz: FloatArray, n_old: int) -> tuple[IntArray, IntArray]:
+def near_earlier(all_xyz: FloatArray, n_old: int) -> tuple[IntArray, IntArray]:
     """Pairs (i, j): position i of `all_xyz` lies within POS_TOL of new position j (row
     n_old + j) and comes before it.
 
