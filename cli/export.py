@@ -13,12 +13,12 @@ import typer
 from ssgc.assets import load_shapes
 from ssgc.cli.app import AllowOutside, _command, _progress, app, out
 from ssgc.compile import load_grammar
-from ssgc.export import check_format, scene_bodies
+from ssgc.export import SUFFIXES, check_format, scene_bodies
 from ssgc.export.bodies import load_export_scenes
 from ssgc.export.write import export_scene
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.outputs import check_directory
-from ssgc.io.scene import Scene, dumps_json, dumps_scene
+from ssgc.io.scene import Scene, distinct_stems, dumps_json, dumps_scene
 from ssgc.ir import Grammar
 
 FORMAT_HELP = "dmd (Drake directives) | sdf (SDFormat world) | mjcf (MuJoCo) | glb | usd"
@@ -50,6 +50,7 @@ def export_cmd(
     check_directory(output)
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_export_scenes(scenes, g)
+    distinct_stems([s.name for s in items], SUFFIXES[fmt], str(scenes))
     shapes = load_shapes(g, collision=fmt != "glb")
     written = []
     with _progress(quiet) as progress:

@@ -16,7 +16,7 @@ from ssgc.export import scene_bodies
 from ssgc.export.bodies import load_export_scenes
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.outputs import check_directory, check_output, write_output_text
-from ssgc.io.scene import dumps_json, scene_stem
+from ssgc.io.scene import distinct_stems, dumps_json
 from ssgc.simulate.settle import SettleOptions, settle_scene, settle_summary, settled_scene_json
 
 
@@ -75,16 +75,17 @@ def settle_cmd(
     check_directory(output)
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_export_scenes(scenes, g)
+    stems = distinct_stems([s.name for s in items], ".json", str(scenes))
     shapes = load_shapes(g)
     options = SettleOptions(max_time=max_time)
     reports = []
     with _progress(quiet) as progress:
         task = progress.add_task("settling", total=len(items))
-        for scene in items:
+        for scene, stem in zip(items, stems, strict=True):
             result = settle_scene(scene_bodies(g, scene, shapes), options)
             source = {"source": str(scenes), "source_scene": scene.name}
             doc = settled_scene_json(g, scene, result, source)
-            write_settled(output / f"{scene_stem(scene.name)}.json", doc)
+            write_settled(output / f"{stem}.json", doc)
             reports.append(result.report())
             if not result.settled:  # a reason for exit code 2, quiet or not
                 err.print(_line(reports[-1]), markup=False, highlight=False)

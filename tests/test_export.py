@@ -124,6 +124,50 @@ def test_mjcf_compiles_in_mujoco_with_free_joints(exported: Path) -> None:
         assert model.jnt_type.tolist() == [mujoco.mjtJoint.mjJNT_FREE] * model.njnt
 
 
+# A fixed box, a cylinder resting on it and a sphere 1 cm into it: primitives only.
+PRIMITIVES = """
+grammar: prims
+root: Tray
+types:
+  Tray:
+    observed: true
+    geometry: {box: {size: [1.0, 1.0, 0.02]}}
+    body: {static: true}
+    and:
+      - {child: Can, translation: {offset: [0.2, 0, 0.07]}}
+      - {child: Ball, translation: {offset: [-0.2, 0, 0.03]}}
+  Can: {observed: true, geometry: {cylinder: {radius: 0.03, length: 0.12}}, body: {mass: 0.4}}
+  Ball: {observed: true, geometry: {sphere: {radius: 0.03}}, body: {density: 800}}
+"""
+
+
+def test_mjcf_primitives_are_visible_in_mujocos_viewer_and_still_collide(tmp_path: Path) -> None:
+    """A primitive body had only its collision geom, in group 3, which MuJoCo's viewer hides
+    (it shows groups 0-2): the table and trays were invisible. Each body now also has a visual
+    geom (group 1, no contacts), as mesh bodies have."""
+    import mujoco
+
+    grammar = tmp_path / "prims.yaml"
+    grammar.write_text(PRIMITIVES)
+    out = tmp_path / "s"
+    result = run("sample", grammar, "-n", 1, "--seed", 0, "-o", out, "-q", "--export", "mjcf")
+    assert result.exit_code == 0, result.output
+    model = mujoco.MjModel.from_xml_path(str(out / "mjcf" / "prims_000000.xml"))
+    shown = mujoco.MjvOption().geomgroup
+    collides = (model.geom_contype != 0) | (model.geom_conaffinity != 0)
+    for body in range(1, model.nbody):
+        geoms = np.flatnonzero(model.geom_bodyid == body)
+        visual = [g for g in geoms if shown[model.geom_group[g]] and not collides[g]]
+        colliding = [g for g in geoms if model.geom_group[g] == 3 and collides[g]]
+        name = model.body(body).name
+        assert [model.geom(g).name for g in visual] == [f"{name}_visual"]
+        assert [model.geom(g).name for g in colliding] == [f"{name}_geom"]
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    contacts = data.contact.geom[: data.ncon]
+    assert len(contacts) > 0 and all(collides[g] for g in contacts.ravel())  # the ball's
+
+
 def test_glb_nodes_are_named_by_object_id_with_their_poses(exported: Path) -> None:
     import trimesh
 

@@ -36,7 +36,11 @@ def _primitive(shape: Shape) -> str:
 def _geoms(shape: Shape) -> list[str]:
     if shape.kind != "mesh":  # centred on the geometry's origin (a mesh's OBJ is placed)
         pos = f'pos="{_nums(shape.origin)}" ' if any(shape.origin) else ""
-        return [f'<geom name="{{}}_geom" {_primitive(shape)} {pos}group="3" {CONTACT}/>']
+        geom = f"{_primitive(shape)} {pos}"
+        return [  # group 3 alone is hidden by MuJoCo's viewer, which shows groups 0-2
+            f'<geom name="{{}}_visual" {geom}group="1" contype="0" conaffinity="0"/>',
+            f'<geom name="{{}}_geom" {geom}group="3" {CONTACT}/>',
+        ]
     out = [
         f'<geom name="{{}}_visual" type="mesh" mesh="{shape.type}" group="1" '
         'contype="0" conaffinity="0"/>'

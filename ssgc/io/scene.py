@@ -199,6 +199,23 @@ def scene_stem(name: str) -> str:
     return stem
 
 
+def distinct_stems(names: list[str], suffix: str, source: str | None = None) -> list[str]:
+    """Each scene name's file stem (`scene_stem`), checked before anything is written: two
+    names with one stem ('a b', 'a/b') would write one file, the second scene silently
+    replacing the first, so that is the user's mistake, said about `source`."""
+    seen: dict[str, str] = {}
+    for name in names:
+        stem = scene_stem(name)
+        if stem in seen:
+            first = seen[stem]
+            both = f"scenes '{first}' and '{name}'" if first != name else f"two scenes '{name}'"
+            raise SsgError.single(
+                f"{both} would both be written to {stem}{suffix}; rename one", source
+            )
+        seen[stem] = name
+    return list(seen)
+
+
 def dumps_json(doc: Any) -> str:
     """Indented JSON with number lists (poses) kept on one line, for readable files."""
     text = json.dumps(doc, indent=1)
