@@ -25,6 +25,7 @@ from ssgc.cli.app import (
 from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
 from ssgc.fit.mstep import MAX_MIN_VARIANCE
+from ssgc.io.journal import JournalWriteError
 from ssgc.io.outputs import check_output, lock_outputs, write_output_text
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 
@@ -183,7 +184,13 @@ def fit(
         open_fit(g, items, scenes, options, None if dest.stream else dest.target, resume) as run,
     ):
         journal = run.journal
-        result = _run_with_progress(run, len(items), time_limit, quiet)
+        try:
+            result = _run_with_progress(run, len(items), time_limit, quiet)
+        except JournalWriteError:
+            raise  # its finished work is kept for --resume, as the message says
+        except SsgError:  # the grammar or a scene: a resumed run would stop the same way
+            journal.delete()
+            raise
         fitted: Grammar | None = None
         if mmd or plots is not None:
             fitted = run.fitted(result)

@@ -122,3 +122,26 @@ def test_fit_defaults_are_one_set_for_the_api_the_command_and_the_fitter():
     flags = {p.name: p.default for p in command.params}
     for name, value in options.items():
         assert flags[name] == value, name
+
+
+@pytest.mark.parametrize(
+    "option, value, wanted",
+    [
+        ("top", 0, "top must be at least 1"),
+        ("iterations", 0, "iterations must be at least 1"),
+        ("jobs", 0, "jobs must be at least 1"),
+        ("samples", 0, "samples must be at least 1"),
+        ("tol", -1.0, "tol must be ≥ 0"),
+        ("tol", float("nan"), "tol must be ≥ 0"),
+        ("estep", "bogus", "estep must be 'topn' or 'mcmc'"),
+    ],
+)
+def test_fit_options_out_of_range_are_told_before_any_work(option, value, wanted):
+    """What `ssg fit`'s flags bound, `ssgc.fit` refuses too (it crashed, or said that no
+    scene could be parsed, or ran with the value)."""
+    from ssgc.errors import SsgError
+
+    g = load_grammar(GRAMMARS / "gmm.yaml")
+    options = {"iterations": 1, "estep": "mcmc", "top": 1, option: value}
+    with pytest.raises(SsgError, match=wanted):
+        ssgc.fit(g, g.sample(2, seed=0), **options)

@@ -285,20 +285,23 @@ def test_cli_fit_writes_the_grammar_back_with_its_comments(tmp_path):
     assert validate.exit_code == 0, validate.output
 
 
-def test_cli_fit_refuses_a_scene_the_grammar_cannot_produce(tmp_path):
+@pytest.mark.parametrize("bad", ["s0", "s4"])
+def test_cli_fit_refuses_a_scene_the_grammar_cannot_produce(tmp_path, bad):
+    """Whether the scene comes first or after others were journalled, nothing is left: a
+    resumed run would stop at the same scene."""
     data = write_dataset(tmp_path / "data", GMM, 5, 1)
-    scene = json.loads((data / "s0.json").read_text())
+    scene = json.loads((data / f"{bad}.json").read_text())
     scene["objects"].append(dict(scene["objects"][1]))  # two points: the GMM makes one
     scene.pop("tree", None)
-    (data / "s0.json").write_text(json.dumps(scene))
+    (data / f"{bad}.json").write_text(json.dumps(scene))
     out = tmp_path / "fitted.yaml"
     result = CliRunner().invoke(
         app, ["fit", str(data), "-g", str(GRAMMARS / "gmm.yaml"), "-o", str(out)]
     )
     assert result.exit_code == 2
-    assert result.output.startswith(f"{data}: error: scene 's0' cannot be explained")
+    assert result.output.startswith(f"{data}: error: scene '{bad}' cannot be explained")
     assert "Traceback" not in result.output
-    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
 
 
 ALIASED = """
@@ -377,6 +380,48 @@ def test_a_merged_anchor_that_would_get_two_values_is_a_user_error(tmp_path):
     _, scenes = scenes_of(text, 20, 2)
     with pytest.raises(SsgError, match="cannot give one YAML node two values"):
         run_fit(tmp_path, text, scenes, iterations=1, top=1)
+
+
+def test_cli_fit_of_a_merged_anchor_names_the_file_once_and_leaves_nothing(tmp_path):
+    text = ALIASED.replace(
+        "translation: {world_normal: *law}",
+        "translation: {world_normal: {<<: *law, variance: 2.0}}",
+    )
+    data = write_dataset(tmp_path / "data", text, 20, 2)
+    grammar = tmp_path / "merged.yaml"
+    grammar.write_text(text)
+    out = tmp_path / "fitted.yaml"
+    result = CliRunner().invoke(app, ["fit", str(data), "-g", str(grammar), "-o", str(out), "-q"])
+    assert result.exit_code == 1, result.output
+    assert result.output.startswith(f"{grammar}: error: types.Root.and[1].translation")
+    assert result.output.count(str(grammar)) == 1
+    assert "`<<` merge" in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "merged.yaml"]
+
+
+def test_a_discrete_law_shared_with_a_fixed_type_is_refused(tmp_path):
+    """Fitting B's count through the alias would rewrite A's, which `fixed: true` keeps."""
+    text = """
+grammar: tied_counts
+root: Root
+types:
+  Root:
+    observed: true
+    and: [{child: A}, {child: B}]
+  A:
+    fixed: true
+    repeat: {count: &c {probs: [0.5, 0.5]}, rule: {child: X}}
+  B:
+    repeat: {count: *c, rule: {child: Y}}
+  X: {observed: true}
+  Y: {observed: true}
+"""
+    _, scenes = scenes_of(text, 5, 0)
+    with pytest.raises(SsgError, match="a type marked `fixed: true` uses it"):
+        run_fit(tmp_path, text, scenes, iterations=1, top=1)
+    both_fixed = text.replace("  B:\n", "  B:\n    fixed: true\n")
+    fitted = run_fit(tmp_path, both_fixed, scenes, iterations=1, top=1).text
+    assert "count: &c {probs: [0.5, 0.5]}" in fitted
 
 
 def test_max_concentration_caps_every_fitted_bingham(tmp_path):

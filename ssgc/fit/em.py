@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import tempfile
 import time
 from collections import Counter
@@ -67,6 +68,21 @@ class FitOptions:
     estep: str = "topn"  # "topn": softmax over the top-N parses; "mcmc": posterior samples
     samples: int = 100  # --estep mcmc: rounds kept per scene chain (ssgc.fit.posterior)
     settings: FitSettings = field(default_factory=FitSettings)
+
+    def __post_init__(self) -> None:
+        """Out-of-range options are the caller's mistake, told before any work (`ssg fit`'s
+        flags are bounded the same way by the CLI)."""
+        checks = (
+            ("iterations", self.iterations, self.iterations >= 1, "at least 1"),
+            ("top", self.top, self.top >= 1, "at least 1"),
+            ("jobs", self.jobs, self.jobs >= 1, "at least 1"),
+            ("samples", self.samples, self.samples >= 1, "at least 1"),
+            ("tol", self.tol, 0.0 <= self.tol < math.inf, "≥ 0 and finite"),
+            ("estep", self.estep, self.estep in ("topn", "mcmc"), "'topn' or 'mcmc'"),
+        )
+        for name, value, ok, wanted in checks:
+            if not ok:
+                raise SsgError.single(f"{name} must be {wanted}, got {value!r}")
 
 
 @dataclass
@@ -219,7 +235,8 @@ def fit_grammar(
         except SharedValueConflict as exc:
             raise SsgError.single(
                 f"{exc}; ssg fit cannot give one YAML node two values: write the parameters "
-                "out where they differ, or mark them `fixed: true`"
+                "out where they differ, or mark them `fixed: true`",
+                source.file,
             ) from None
         grammar = compile_text(current, source.file, source.base_dir, source.allow_outside)
         report["seconds"] = round(time.monotonic() - started, 6)
@@ -258,7 +275,8 @@ def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
     """Which rules share a pose law through YAML aliases (fitted once, on all their edges).
 
     A discrete law (an `or` or `independent` rule's `p`, a count law) reached through an
-    alias would get one value per use, which one YAML node cannot hold: that is refused.
+    alias would get one value per use, which one YAML node cannot hold: that is refused, and
+    so is one shared with a `fixed` type's law, which fitting the other use would change.
     """
     owner: dict[tuple[str | int, ...], tuple[str, int]] = {}
     for r in grammar.rules:
@@ -266,26 +284,36 @@ def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
             if part.fits:
                 owner[part.path] = (part.part, r.id)
     for t in grammar.types:
-        if t.fixed:
-            continue
+        kind = "kept" if t.fixed else "discrete"
         if t.kind in (Kind.OR, Kind.INDEPENDENT):
-            owner.update({grammar.rules[r].path: ("discrete", r) for r in t.rules})
+            owner.update({grammar.rules[r].path: (kind, r) for r in t.rules})
         elif t.kind == Kind.REPEAT:
-            owner[(*t.path, "repeat", "count")] = ("discrete", -1)
+            owner[(*t.path, "repeat", "count")] = (kind, -1)
     ties = Ties.none(grammar)
     for group in shared_nodes(text, list(owner), file):
         kinds = {owner[path][0] for path in group}
+        if kinds == {"kept"}:
+            continue  # written by nobody
         if kinds != {"translation"} and kinds != {"rotation"}:
-            where = ", ".join(".".join(str(k) for k in path) for path in group)
-            raise SsgError.single(
-                f"{where} are one YAML node (an anchor and its aliases), so ssg fit cannot give "
-                "them separate values; write them out, or mark the types `fixed: true`",
-                file,
-            )
+            raise SsgError.single(_shared_discrete_message(group, "kept" in kinds), file)
         rules = [owner[path][1] for path in group]
         table = ties.translation if kinds == {"translation"} else ties.rotation
         table[rules] = min(rules)
     return ties
+
+
+def _shared_discrete_message(group: list[tuple[str | int, ...]], with_fixed: bool) -> str:
+    where = ", ".join(".".join(str(k) for k in path) for path in group)
+    if with_fixed:
+        return (
+            f"{where} are one YAML node (an anchor and its aliases) and a type marked "
+            "`fixed: true` uses it, so fitting the others would change the fixed one too; "
+            "write them out, or mark every type that uses it `fixed: true`"
+        )
+    return (
+        f"{where} are one YAML node (an anchor and its aliases), so ssg fit cannot give "
+        "them separate values; write them out, or mark the types `fixed: true`"
+    )
 
 
 def _stop_reason(

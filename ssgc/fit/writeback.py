@@ -193,7 +193,7 @@ def apply_updates(
         for key, value in update.values.items():
             where = f"{file}: {_where(update.path, key)}"
             owner, new = _owner(node, key), _plain(value, digits, where)
-            _claim(written, owner, key, new, where)
+            _claim(written, owner, key, new, _where(update.path, key))
             try:
                 _set(owner, key, new, digits)
             except ValueError as exc:
@@ -210,13 +210,14 @@ def _claim(
     written: dict[Any, tuple[str, Any]], owner: CommentedMap, key: str, new: Any, place: str
 ) -> None:
     """Record what `key` of `owner` gets: a node reached twice (an anchor and its aliases)
-    cannot be written with two different values.  `place` is `file: path` for messages."""
+    cannot be written with two different values.  `place` is the document path, for messages
+    (the caller names the file)."""
     old = owner.get(key)  # a list or mapping edited in place may be aliased on its own
     for slot in [(id(owner), key), *([id(old)] if isinstance(old, (dict, list)) else [])]:
         if slot in written and written[slot][1] != new:
             raise SharedValueConflict(
                 f"{place} is the YAML node of {written[slot][0]} too (an anchor and its "
-                "aliases), which was fitted to a different value"
+                "aliases, or a `<<` merge), which was fitted to a different value"
             )
         written[slot] = (place, new)
 

@@ -85,6 +85,10 @@ def scenes_digest(scenes: Sequence[Scene]) -> str:
     return digest.hexdigest()
 
 
+class JournalWriteError(SsgError):
+    """The journal could not be written: what it already holds is kept for `--resume`."""
+
+
 class Journal:
     """A JSON Lines file whose first line names the run and whose other lines are entries.
 
@@ -159,7 +163,7 @@ class Journal:
             os.fsync(self._fd)
         except OSError as exc:
             kept = "; its finished work is kept, --resume continues it" if self.entries else ""
-            raise SsgError.single(
+            raise JournalWriteError.single(
                 f"cannot write the {self.WHAT}: {exc.strerror}{kept}", str(self.path)
             ) from None
         self.entries += 1
