@@ -11,6 +11,7 @@ from ssgc.assets import check_assets, check_document_meshes
 from ssgc.cli.app import AllowOutside, _command, _print_diagnostics, app, err, out
 from ssgc.compile import load_grammar
 from ssgc.errors import Diagnostic, GrammarError, SsgError
+from ssgc.ir import Grammar
 
 
 @app.command()
@@ -24,21 +25,16 @@ def validate(
     failed = 0
     for path in grammars:
         try:
-            g = load_grammar(path, allow_outside=allow_outside_files)
-            mesh_errors = check_assets(g)  # every mesh opened: missing or unreadable is an error
-            if mesh_errors:
-                raise GrammarError(mesh_errors)
-        except GrammarError as exc:  # with its missing or unreadable meshes, in one round
-            _print_diagnostics(
-                GrammarError(exc.diagnostics + _mesh_errors(path, exc, allow_outside_files))
-            )
-            failed += 1
-            continue
+            g, found = _check(path, allow_outside_files)
         except SsgError as exc:
             _print_diagnostics(exc)
             failed += 1
             continue
-        for w in g.warnings:
+        if g is None or any(d.severity == "error" for d in found):
+            _print_diagnostics(GrammarError(found))
+            failed += 1
+            continue
+        for w in found:
             err.print(str(w), markup=False, highlight=False)
         if not quiet:
             out.print(
@@ -48,6 +44,27 @@ def validate(
             )
     if failed:
         raise typer.Exit(1)
+
+
+def _check(path: Path, allow_outside: bool) -> tuple[Grammar | None, list[Diagnostic]]:
+    """The compiled grammar (None if it has errors) and every message about it: the
+    compiler's and, since validate opens every mesh (missing or unreadable is an error), the
+    meshes' too, in one round."""
+    try:
+        g = load_grammar(path, allow_outside=allow_outside)
+    except GrammarError as exc:
+        return None, _with_meshes(exc.diagnostics, _mesh_errors(path, exc, allow_outside))
+    return g, _with_meshes(list(g.warnings), check_assets(g))
+
+
+def _with_meshes(found: list[Diagnostic], mesh_errors: list[Diagnostic]) -> list[Diagnostic]:
+    """The compiler's messages with the mesh errors, errors before warnings as the compiler
+    gives them.  The compiler's warning that a mesh is missing is left out where the same
+    mesh is reported as an error: one message for one mistake."""
+    places = {(d.line, d.column) for d in mesh_errors}
+    kept = [d for d in found if d.severity == "error" or (d.line, d.column) not in places]
+    errors = [d for d in kept if d.severity == "error"] + mesh_errors
+    return errors + [d for d in kept if d.severity != "error"]
 
 
 def _mesh_errors(path: Path, exc: GrammarError, allow_outside: bool) -> list[Diagnostic]:

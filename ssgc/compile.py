@@ -223,7 +223,8 @@ def _errors_beyond_shape(
         return []
     try:
         renumbered = _Renumbered(source, kept)
-        Compiler(doc, renumbered, base_dir, allow_outside, partial=True).run()  # type: ignore[arg-type]
+        compiler = Compiler(doc, renumbered, base_dir, allow_outside, True, frozenset(kept))  # type: ignore[arg-type]
+        compiler.run()
     except GrammarError as later:
         return [d for d in later.diagnostics if d.severity != "warning"]
     return []
@@ -347,6 +348,7 @@ class Compiler(Report):
         base_dir: Path | None = None,
         allow_outside: bool = False,
         partial: bool = False,
+        shortened: frozenset[Loc] = frozenset(),
     ) -> None:
         super().__init__(source, list(doc.types))
         self.doc = doc
@@ -355,6 +357,8 @@ class Compiler(Report):
         # A document some of whose parts were stubbed (`_errors_beyond_shape`): what a tree of
         # it can hold says nothing of the grammar, so constraints are not checked against it.
         self.partial = partial
+        # The rule lists (`("types", name, "or")`) that lost misshapen rules in such a document.
+        self.shortened = shortened
         self.ids = {name: i for i, name in enumerate(self.names)}
 
     def run(self) -> Grammar:
@@ -417,7 +421,8 @@ class Compiler(Report):
         tid = self.ids[name]
         loc: Loc = ("types", name)
         kind, key, rule_specs = _kind_of(spec)
-        if kind in (Kind.AND, Kind.OR, Kind.INDEPENDENT) and not rule_specs:
+        whole = (*loc, key) not in self.shortened  # the list as written, not cut by `partial`
+        if kind in (Kind.AND, Kind.OR, Kind.INDEPENDENT) and not rule_specs and whole:
             self.error((*loc, key), f"an `{key}` needs at least one rule")
         for field, word in (
             ("and_", "and"),
@@ -441,7 +446,7 @@ class Compiler(Report):
             rule = self.rule(len(rules), tid, index, rspec, rloc)
             if rule is not None:
                 rules.append(rule)
-        probs = rule_probs(kind, key, rule_specs, rule_locs, loc, self)
+        probs = rule_probs(kind, key, rule_specs, rule_locs, loc, self, whole)
         count = (
             RepeatCount.lower(spec.repeat, (*loc, "repeat", "count"), self) if spec.repeat else None
         )
@@ -505,15 +510,27 @@ def _kind_of(spec: dsl.NodeType) -> tuple[Kind, str, list[dsl.Rule]]:
     return Kind.TERMINAL, "", []
 
 
+# Why a rule of these kinds has no probability of its own.
+WHY_NO_P = {"and": "every rule fires", "repeat": "its rule fires as many times as `count` draws"}
+
+
 def rule_probs(
-    kind: Kind, key: str, specs: list[dsl.Rule], locs: list[Loc], loc: Loc, report: Report
+    kind: Kind,
+    key: str,
+    specs: list[dsl.Rule],
+    locs: list[Loc],
+    loc: Loc,
+    report: Report,
+    whole: bool = True,
 ) -> NDArray[np.float64]:
-    """The normalised weights of an `or`, the probabilities of an `independent`."""
+    """The normalised weights of an `or`, the probabilities of an `independent`.  Unless
+    `whole`, some rules were left out (`_errors_beyond_shape`) and the weights that remain may
+    sum to zero where the file's do not, so that is not reported."""
     given = [r.p is not None for r in specs]
     if kind in (Kind.AND, Kind.REPEAT):
         for spec, rloc in zip(specs, locs, strict=True):
             if spec.p is not None:
-                report.error((*rloc, "p"), f"`p` has no meaning in `{key}` (every rule fires)")
+                report.error((*rloc, "p"), f"`p` has no meaning in `{key}` ({WHY_NO_P[key]})")
         return np.ones(len(specs))
     if kind == Kind.INDEPENDENT:
         for spec, rloc in zip(specs, locs, strict=True):
@@ -532,7 +549,8 @@ def rule_probs(
             return np.full(len(specs), 1.0 / len(specs))
         weights = np.array([r.p for r in specs]) if all(given) else np.ones(len(specs))
         if weights.sum() <= 0:
-            report.error((*loc, key), "the weights `p` of an `or` sum to zero")
+            if whole:
+                report.error((*loc, key), "the weights `p` of an `or` sum to zero")
             return np.full(len(specs), 1.0 / len(specs))
         return weights / weights.sum()
     return np.zeros(0)

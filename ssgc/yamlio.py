@@ -114,9 +114,7 @@ def read_text(path: Path, limit: int, what: str) -> str:
     if path.is_dir():
         raise SsgError.single(f"expected a {what} file, got a directory", name)
     if size > limit:
-        raise SsgError.single(
-            f"{what} is {size / 1e6:.1f} MB, over the {limit / 1e6:.1f} MB limit", name
-        )
+        raise SsgError.single(f"{what} is {size:,} bytes, over the limit of {_bytes(limit)}", name)
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -132,6 +130,13 @@ def read_text(path: Path, limit: int, what: str) -> str:
         raise SsgError.single(
             f"{what} is not valid UTF-8 (byte {start}: {exc.reason})", name, line, col
         ) from None
+
+
+def _bytes(n: int) -> str:
+    """`n` bytes exactly, and in MiB when that is round: a size just over a limit rounded
+    to one decimal read as equal to it ("4.2 MB, over the 4.2 MB limit")."""
+    mib = f" ({n // 2**20} MiB)" if n % 2**20 == 0 else ""
+    return f"{n:,} bytes{mib}"
 
 
 def _position(data: str | bytes, index: int) -> tuple[int, int]:

@@ -462,6 +462,12 @@ CASES = [
         "`p` has no meaning in `and`",
         id="p-in-and",
     ),
+    pytest.param(
+        doc("Root:\n  repeat: {count: {probs: [1]}, rule: {child: Leaf, p: 0.5}}\nLeaf: {}\n"),
+        "0.5",
+        "`p` has no meaning in `repeat` (its rule fires as many times as `count` draws)",
+        id="p-in-repeat",
+    ),
     pytest.param(doc("Root: {or: []}\n"), "or", "an `or` needs at least one rule", id="empty-or"),
     pytest.param(
         doc("Root:\n  and:\nLeaf: {}\n"), "and", "`and` is empty: give its rules", id="null-and"
@@ -1141,6 +1147,47 @@ def test_shape_errors_are_reported_together() -> None:
     assert_reported(diagnostics, *position(text, "maybe"), "expected true or false")
     assert_reported(diagnostics, *position(text, "-2}"), "greater than or equal to 0")
     assert_reported(diagnostics, *position(text, "0}"), "greater than or equal to 1")
+
+
+@pytest.mark.parametrize(
+    ("rules", "bad"),
+    [
+        pytest.param('or:\n    - {child: Leaf, p: "0.5"}', ['"0.5"'], id="or-one-rule"),
+        pytest.param(
+            'or:\n    - {child: Leaf, p: "0.5"}\n    - {child: Leaf, p: x}',
+            ['"0.5"', "x}"],
+            id="or-every-rule",
+        ),
+        pytest.param("independent:\n    - {child: 3, p: 0.5}", ["3,"], id="independent"),
+        pytest.param("and:\n    - {child: Leaf, p: -1}", ["-1"], id="and"),
+        pytest.param(
+            "or:\n    - {child: Leaf, p: 0}\n    - {child: [Leaf], p: 1}",
+            ["child: [Leaf]"],
+            id="zero-rest",
+        ),
+    ],
+)
+def test_a_list_whose_rules_are_misshapen_is_not_reported_empty(rules: str, bad: list[str]) -> None:
+    """Misshapen rules are left out of the second pass (`_errors_beyond_shape`); what remains
+    of their list is not the list the file has, so "needs at least one rule" or "the weights
+    sum to zero" would be false follow-on errors."""
+    text = doc(f"Root:\n  {rules}\nLeaf: {{}}\n")
+    diagnostics = errors_of(text)
+    found = [(d.line, d.column) for d in diagnostics]
+    assert found == [position(text, b) for b in bad], diagnostics
+
+
+def test_a_grammar_file_over_the_size_limit_says_both_sizes(tmp_path: Path) -> None:
+    """Rounded to 0.1 MB, a file just over the limit read "4.2 MB, over the 4.2 MB limit"."""
+    from ssgc.yamlio import MAX_GRAMMAR_BYTES
+
+    path = tmp_path / "big.yaml"
+    path.write_text("grammar: g\n#" + "x" * (MAX_GRAMMAR_BYTES + 41 - 13) + "\n")
+    assert path.stat().st_size == 4_194_345
+    with pytest.raises(GrammarError) as info:
+        load_grammar(path)
+    (d,) = info.value.diagnostics
+    assert d.message == "grammar file is 4,194,345 bytes, over the limit of 4,194,304 bytes (4 MiB)"
 
 
 def test_error_text_looks_like_a_compiler_message() -> None:

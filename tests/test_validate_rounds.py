@@ -209,3 +209,37 @@ def test_stand_ins_for_misshapen_parts_raise_nothing_false(tmp_path: Path):
     grammar.write_text(fixed)
     result = runner.invoke(app, ["validate", str(grammar)])
     assert result.exit_code == 0, result.output
+
+
+# A missing mesh (an error to `ssg validate`) and an unreachable type (a warning).
+MESH_AND_ORPHAN = """\
+grammar: orphan
+root: Table
+types:
+  Table:
+    observed: true
+    geometry: {mesh: {file: nothere.obj}}
+  Orphan: {}
+"""
+
+
+def test_the_warnings_are_printed_with_the_mesh_errors(tmp_path: Path):
+    """The mesh errors were raised before the warnings were printed, so they were lost; the
+    compiler's own warning about the same missing mesh is not repeated beside its error."""
+    grammar = tmp_path / "orphan.yaml"
+    grammar.write_text(MESH_AND_ORPHAN)
+    result = runner.invoke(app, ["validate", str(grammar)])
+    assert result.exit_code == 1
+    assert result.stderr.splitlines() == [
+        f"{grammar}:6:29: error: mesh file 'nothere.obj': not found",
+        f"{grammar}:7:3: warning: type 'Orphan' is unreachable from the root",
+    ]
+    broken = MESH_AND_ORPHAN + "constraints: {c: {count: {type: Nope}}}\n"
+    grammar.write_text(broken)  # the compiler fails too: the same two, after its error
+    result = runner.invoke(app, ["validate", str(grammar)])
+    assert result.exit_code == 1
+    assert result.stderr.splitlines()[1:] == [
+        f"{grammar}:6:29: error: mesh file 'nothere.obj': not found",
+        f"{grammar}:7:3: warning: type 'Orphan' is unreachable from the root",
+    ]
+    assert "type 'Nope' is not a type" in result.stderr.splitlines()[0]
