@@ -37,8 +37,9 @@ def parse(
         typer.Option(
             help="auto | ip | micp. Same exact parser for grammars without latent poses. With "
             "latent poses: micp optimises them per assignment of children and certifies the "
-            "result by a convex relaxation (gap reported); ip uses pose proposals and "
-            "refinement (no gap). auto: micp."
+            "result by a convex relaxation; ip uses pose proposals and refinement, certified "
+            "by the assignment bound where the grammar's shape has one. Both report the gap. "
+            "auto: micp."
         ),
     ] = "auto",
     top: Annotated[int, typer.Option("--top", min=1, help="Distinct parse trees per scene.")] = 1,

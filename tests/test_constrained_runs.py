@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from ssgc.cli.app import app
 from ssgc.compile import load_grammar
-from ssgc.sample.constrained import BLOCK, sample_blocks, select
+from ssgc.sample.constrained import BLOCK, Tally, Unmet, sample_blocks, select
 
 RUNNER = CliRunner()
 BIN = str(GRAMMARS / "bin_packing.yaml")
@@ -61,6 +61,23 @@ def test_library_blocks_are_the_same_for_any_jobs() -> None:
     # only the blocks asked for (what --resume draws)
     (last,) = sample_blocks(g, cs, N, 9, blocks=[1])
     assert last.index == 1 and (last.logp == one[1].logp).all()
+
+
+def test_the_scenes_found_are_the_scenes_kept_when_a_limit_stops_the_run() -> None:
+    """A block's last attempt may pass more scenes than the block needs; those are not kept,
+    so they are not 'found' either (the message said 277 of 300 when 256 were written)."""
+    g = load_grammar(GRAMMARS / "bin_packing.yaml")
+    cs = select(g, "all")
+    whole = Tally()
+    list(sample_blocks(g, cs, BLOCK, 9, tally=whole))
+    assert whole.kept == BLOCK
+    written = []
+    with pytest.raises(Unmet) as caught:  # block 1 starts with every try spent
+        for block in sample_blocks(g, cs, BLOCK + 1, 9, max_tries=whole.drawn):
+            written.append(block.trees.n_scenes)
+    assert written == [BLOCK]
+    head = caught.value.diagnostics[0].message
+    assert head.startswith(f"found {BLOCK:,} of the {BLOCK + 1:,} requested scene(s)")
 
 
 def test_resume_finishes_a_constrained_run(tmp_path: Path, reference: dict[str, bytes]) -> None:
@@ -134,8 +151,9 @@ def test_unmet_constraints_exit_2_with_a_report(tmp_path: Path, limit: tuple[str
     assert "constraint 'many' rejected" in err and "constraint 'apart' rejected" in err
     assert "the closest rejected came to -" in err
     assert "Traceback" not in result.output
-    # nothing half-written: no scene file, no temporary file, no manifest of a run with none
-    assert not out.exists() or not list(out.iterdir())
+    # nothing half-written: no scene file, no temporary file, no manifest of a run with none,
+    # and not the directory the run made for them
+    assert not out.exists()
 
 
 def test_unmet_with_jobs_counts_every_process(tmp_path: Path) -> None:

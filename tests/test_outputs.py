@@ -167,6 +167,24 @@ def test_an_existing_directory_is_refused_before_any_work(
     assert not list(target.iterdir())
 
 
+@pytest.mark.parametrize("command", [["export", "-f", "glb"], ["settle"]])
+def test_a_command_stopped_by_a_mistake_leaves_no_directory_it_made(
+    command: list[str], data: Path, tmp_path: Path
+) -> None:
+    """The output directory (and its missing parents) are made when the command starts; a
+    grammar mistake found after that removes them again.  A directory that was there stays."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("grammar: x\nroot: A\ntypes: {A: {observed: maybe}}\n")
+    new = tmp_path / "new" / "deeper"
+    result = run(*command, data, "-g", bad, "-o", new)
+    assert result.exit_code == 1, result.output
+    assert not (tmp_path / "new").exists()
+    old = tmp_path / "old"
+    old.mkdir()
+    assert run(*command, data, "-g", bad, "-o", old).exit_code == 1
+    assert old.is_dir()
+
+
 def test_an_input_is_never_an_output(scene: Path, data: Path, tmp_path: Path) -> None:
     grammar = tmp_path / "g.yaml"
     shutil.copy(GMM, grammar)
@@ -540,7 +558,7 @@ def test_fault_injection_sample(tmp_path: Path, monkeypatch: pytest.MonkeyPatch)
         assert disk.failed and result.exit_code == 1, result.output
         assert "cannot write the" in result.output
         no_bug(result.output)
-        for p in work.iterdir():
+        for p in work.iterdir() if work.exists() else []:  # a first write failed: not made
             if p.name != MANIFEST:
                 damaged += p.read_bytes() != new.get(p.name)
         resumed = run("sample", GMM, "-n", 40, "--seed", 1, "-o", work, "-q", "--resume")

@@ -24,7 +24,7 @@ from ssgc.geometry import profile_area
 
 FloatArray = NDArray[np.float64]
 
-MESH_SECTIONS = 48  # facets around the axis of the triangle mesh (FCL, exports, render)
+MESH_SECTIONS = 48  # facets around the axis of the constraints' mesh (FCL); exports use 32
 SAMPLE_SPACING = 0.008  # m: surface points for penetration depths (the samplers' margins)
 MAX_SAMPLES = 400  # along the profile and around a ring: a huge profile gets sparser points
 

@@ -303,6 +303,9 @@ def _locks(files: list[Output]) -> Iterator[None]:
 # -------------------------------------------------------------- output directories ---
 
 
+_MADE: list[list[Path]] = []  # directories check_directory made, per `unused_removed` block
+
+
 def check_directory(path: str | Path, what: str = "output directory") -> Path:
     """A directory to write files into: made if absent; refused if it is a file, a device or
     standard output, or cannot take a new file."""
@@ -311,12 +314,34 @@ def check_directory(path: str | Path, what: str = "output directory") -> Path:
         raise SsgError.single(f"the {what} must be a directory, not standard output", str(path))
     if path.exists() and not path.is_dir():
         raise SsgError.single(f"the {what} exists and is not a directory", str(path))
+    if _MADE:
+        _MADE[-1] += [p for p in (path, *path.parents) if not p.exists()]  # nearest first
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SsgError.single(f"cannot create the {what}: {exc.strerror}", str(path)) from None
     _check_directory_accepts_files(path, what, str(path))
     return path
+
+
+@contextmanager
+def unused_removed() -> Iterator[None]:
+    """Output directories made during the block are removed again when it fails and leaves
+    them empty: a command stopped by a mistake (a bad grammar, no scene found) leaves no
+    empty directory behind; one that holds files it wrote stays (they are kept work)."""
+    _MADE.append([])
+    try:
+        yield
+    except BaseException as exc:
+        if getattr(exc, "exit_code", 1) != 0:  # typer's Exit(0) is a normal end
+            for made in _MADE[-1]:
+                try:
+                    made.rmdir()
+                except OSError:
+                    pass  # not empty, or not ours any more
+        raise
+    finally:
+        _MADE.pop()
 
 
 def directory_lock(directory: Path, what: str = "output directory") -> Any:

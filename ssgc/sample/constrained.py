@@ -317,6 +317,7 @@ def _draw_block(work: _BlockWork, b: int) -> _Done:
             got.append(o)
         have += o.trees.n_scenes
         k += 1
+    tally.kept = min(have, want)  # the last attempt's scenes beyond the block are not kept
     block = _block(b, got, min(have, want)) if have else None
     return _Done(block, tally, limit if have < want else None)
 
