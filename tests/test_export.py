@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import GRAMMARS
+from test_settle import GRAMMAR as DROP
 from typer.testing import CliRunner
 
 from ssgc.assets import load_shapes
@@ -124,21 +125,8 @@ def test_mjcf_compiles_in_mujoco_with_free_joints(exported: Path) -> None:
         assert model.jnt_type.tolist() == [mujoco.mjtJoint.mjJNT_FREE] * model.njnt
 
 
-# A fixed box, a cylinder resting on it and a sphere 1 cm into it: primitives only.
-PRIMITIVES = """
-grammar: prims
-root: Tray
-types:
-  Tray:
-    observed: true
-    geometry: {box: {size: [1.0, 1.0, 0.02]}}
-    body: {static: true}
-    and:
-      - {child: Can, translation: {offset: [0.2, 0, 0.07]}}
-      - {child: Ball, translation: {offset: [-0.2, 0, 0.03]}}
-  Can: {observed: true, geometry: {cylinder: {radius: 0.03, length: 0.12}}, body: {mass: 0.4}}
-  Ball: {observed: true, geometry: {sphere: {radius: 0.03}}, body: {density: 800}}
-"""
+# test_settle's tray with a ball 2 cm into it, its block made a cylinder: primitives only.
+PRIMITIVES = DROP.replace("box: {size: [0.1, 0.1, 0.08]}", "cylinder: {radius: 0.03, length: 0.08}")
 
 
 def test_mjcf_primitives_are_visible_in_mujocos_viewer_and_still_collide(tmp_path: Path) -> None:
@@ -152,7 +140,7 @@ def test_mjcf_primitives_are_visible_in_mujocos_viewer_and_still_collide(tmp_pat
     out = tmp_path / "s"
     result = run("sample", grammar, "-n", 1, "--seed", 0, "-o", out, "-q", "--export", "mjcf")
     assert result.exit_code == 0, result.output
-    model = mujoco.MjModel.from_xml_path(str(out / "mjcf" / "prims_000000.xml"))
+    model = mujoco.MjModel.from_xml_path(str(out / "mjcf" / "drop_000000.xml"))
     shown = mujoco.MjvOption().geomgroup
     collides = (model.geom_contype != 0) | (model.geom_conaffinity != 0)
     for body in range(1, model.nbody):
