@@ -119,7 +119,7 @@ def _summary(name: str, seed: int, run: SampleRun, plan: Plan, unsettled: int) -
     """The closing line: how many scenes went where, and what a resume kept."""
     if plan.constrained:
         tally = plan.tally
-        rate = tally.kept / tally.drawn if tally.drawn else 0.0
+        rate = tally.passed / tally.drawn if tally.drawn else 0.0
         # HMC gives several draws per chain, so a candidate can give several scenes
         share = f"{rate:.3%} accepted" if rate <= 1 else f"{rate:.2f} scenes per candidate"
         summary = (

@@ -193,7 +193,7 @@ def bench_constrained(
             "cores_busy": round(cpu / seconds, 2) if seconds > 0 else None,
             "candidates": tally.drawn,
             "candidates_per_second": round(tally.drawn / seconds, 1),
-            "acceptance_rate": tally.kept / tally.drawn if tally.drawn else None,
+            "acceptance_rate": tally.passed / tally.drawn if tally.drawn else None,
             "exact": EXACT[method],
             "chain_means": {k: float(np.mean(v)) for k, v in chain.items()},
             "constraints": {

@@ -140,7 +140,8 @@ class Tally:
     """What the constraints did over a whole run (for the failure message and the bench)."""
 
     drawn: int = 0
-    kept: int = 0
+    passed: int = 0  # candidates that met every constraint (the acceptance rate's numerator)
+    kept: int = 0  # of those, the scenes of the run (a block's last attempt may pass more)
     evaluated: dict[str, int] = field(default_factory=dict)
     rejected: dict[str, int] = field(default_factory=dict)
     best: dict[str, float] = field(default_factory=dict)
@@ -148,6 +149,7 @@ class Tally:
     def merge(self, other: Tally) -> None:
         """Add another tally (a block drawn by another process)."""
         self.drawn += other.drawn
+        self.passed += other.passed
         self.kept += other.kept
         for k in other.evaluated:
             self.evaluated[k] = self.evaluated.get(k, 0) + other.evaluated[k]
@@ -156,6 +158,7 @@ class Tally:
 
     def add(self, o: Outcome) -> None:
         self.drawn += o.drawn
+        self.passed += o.trees.n_scenes
         self.kept += o.trees.n_scenes
         for k in o.evaluated:
             self.evaluated[k] = self.evaluated.get(k, 0) + o.evaluated[k]
