@@ -107,8 +107,8 @@ def fit(
         typer.Option(
             "--time-limit",
             min=0.001,
-            help="Seconds for the whole fit; then the last "
-            "finished iteration's grammar is written.",
+            help="Seconds for the EM loop (not loading, --mmd, --plot or writing); then the "
+            "last finished iteration's grammar is written.",
         ),
     ] = None,
     report: Annotated[

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -193,3 +193,16 @@ def build_tables(types: tuple[NodeType, ...], rules: tuple[Rule, ...]) -> Tables
         rotation=PartTable.build([r.rotation for r in rules]),
         **{k: frozen(v, v.dtype) for k, v in arrays.items()},
     )
+
+
+class HoldsGrammar(Protocol):
+    """What `ssgc.load_grammar` returns: the compiled grammar with its text (`ssgc.api`)."""
+
+    @property
+    def ir(self) -> Grammar: ...
+
+
+def as_ir(grammar: Grammar | HoldsGrammar) -> Grammar:
+    """The compiled grammar of either form a user holds, so that the library's functions that
+    draw or show scenes take the `ssgc.load_grammar` result as well as its `.ir`."""
+    return grammar if isinstance(grammar, Grammar) else grammar.ir

@@ -145,3 +145,20 @@ def test_fit_options_out_of_range_are_told_before_any_work(option, value, wanted
     options = {"iterations": 1, "estep": "mcmc", "top": 1, option: value}
     with pytest.raises(SsgError, match=wanted):
         ssgc.fit(g, g.sample(2, seed=0), **options)
+
+
+def test_the_drawing_functions_take_the_grammar_load_grammar_returns(tmp_path):
+    """docs/render.md and docs/view.md: `render_file`, `render_diagram`, `view_page` and
+    `write_view` take `ssgc.load_grammar`'s result (they raised AttributeError) or its `.ir`."""
+    pytest.importorskip("matplotlib")
+    from ssgc.render.diagram import render_diagram
+    from ssgc.render.scene import render_file
+    from ssgc.view.page import view_page, write_view
+
+    g = load_grammar(GRAMMARS / "sink.yaml")
+    scene = g.sample(1, seed=0)[0].save(tmp_path / "s.json")
+    for grammar in (g, g.ir):
+        render_diagram(grammar, tmp_path / "g.svg")
+        assert render_file(scene, tmp_path / "s.png", grammar=grammar) == 1
+        assert view_page(scene, grammar)[1] == 1
+        assert write_view(scene, tmp_path / "v.html", grammar) == 1

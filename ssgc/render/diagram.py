@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ssgc.ir import Grammar, Kind, NodeType, Rule
+from ssgc.ir import Grammar, HoldsGrammar, Kind, NodeType, Rule, as_ir
 from ssgc.render.scene import check_output, plain, require_matplotlib, save_figure
 
 LAYER_GAP = 1.3  # inches between layer centres
@@ -35,7 +35,8 @@ class Layout:
     route: dict[int, list[int]]  # rule id -> the waypoints of an arrow that skips layers
 
 
-def render_diagram(grammar: Grammar, output: str | Path) -> None:
+def render_diagram(grammar: Grammar | HoldsGrammar, output: str | Path) -> None:
+    grammar = as_ir(grammar)
     out, fmt = check_output(Path(output), inputs=(grammar.file,) if grammar.file else ())
     require_matplotlib()
     save_figure(draw_diagram(grammar, layout(grammar)), out, fmt)

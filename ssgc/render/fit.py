@@ -120,7 +120,7 @@ def evidence_figure(iterations: list[dict[str, Any]]) -> Any:
     ax.plot(k, per_scene, "o-", label="log-evidence per scene (top trees)")
     if all("mean_best_score" in r for r in iterations):
         best = [r["mean_best_score"] for r in iterations]
-        ax.plot(k, best, "s--", ms=4, label="mean log p of the best tree")
+        ax.plot(k, best, "s--", ms=4, label="mean score of the best tree (with its Σ log c!)")
     ax.set_xlabel("EM iteration")
     ax.set_ylabel("nats per scene")
     ax.set_xticks(k if len(k) <= 20 else k[:: math.ceil(len(k) / 20)])

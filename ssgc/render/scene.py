@@ -30,7 +30,7 @@ from ssgc.geometry import quat_to_matrix, rpy_to_quat
 from ssgc.io.outputs import Output, write_output_bytes
 from ssgc.io.outputs import check_output as check_output_path
 from ssgc.io.scene import MAX_SCENE_BYTES, SceneDoc, ScenePose, TreeDoc, load_scenes
-from ssgc.ir import Grammar
+from ssgc.ir import Grammar, HoldsGrammar, as_ir
 from ssgc.yamlio import load_located, read_text, validation_diagnostics
 
 FloatArray = NDArray[np.float64]
@@ -84,12 +84,12 @@ def render_file(
     source: str | Path,
     output: str | Path,
     n: int = 1,
-    grammar: Grammar | None = None,
+    grammar: Grammar | HoldsGrammar | None = None,
     scene: str | None = None,
 ) -> int:
     """Draw the first `n` scenes of `source` (or only those named `scene`) into `output`
     (.png or .svg); returns how many were drawn."""
-    output = Path(output)
+    output, grammar = Path(output), None if grammar is None else as_ir(grammar)
     out, fmt = check_output(output, inputs=(source,))
     require_matplotlib()
     if not 1 <= n <= MAX_GRID:

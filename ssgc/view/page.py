@@ -24,7 +24,7 @@ import numpy as np
 from ssgc.errors import SsgError
 from ssgc.geometry import quat_to_matrix
 from ssgc.io.outputs import check_output, write_output_text
-from ssgc.ir import Grammar
+from ssgc.ir import Grammar, HoldsGrammar, as_ir
 from ssgc.render.scene import View, _holds_others, load_views
 
 MAX_SCENES = 1000  # one page; more would make a page too heavy to open
@@ -43,15 +43,18 @@ LATENT = "#555555"
 SCORE_STOPS = np.array([[215, 48, 39], [254, 224, 139], [26, 152, 80]], float)
 
 
-def view_page(source: str | Path, grammar: Grammar | None = None) -> tuple[str, int]:
+def view_page(source: str | Path, grammar: Grammar | HoldsGrammar | None = None) -> tuple[str, int]:
     """The viewer page of `source` (a scene, a directory of scenes, a sink dataset with its
     grammar, or an `ssg parse` result) and the number of scenes on it."""
+    grammar = None if grammar is None else as_ir(grammar)
     views = load_views(Path(source), MAX_SCENES, grammar)
     data = page_data(views, grammar, str(source))
     return page_html(data), len(views)
 
 
-def write_view(source: str | Path, output: str | Path, grammar: Grammar | None = None) -> int:
+def write_view(
+    source: str | Path, output: str | Path, grammar: Grammar | HoldsGrammar | None = None
+) -> int:
     """Write the viewer page of `source` to `output` (checked first, written atomically);
     returns the number of scenes on it."""
     out = check_output(output, "page", inputs=(source,))
