@@ -148,6 +148,18 @@ def test_an_observed_root_with_noise_gets_its_own_node():
         assert best.score >= logp[i] - 1e-6
 
 
+def test_a_grammar_with_clutter_is_fitted_with_its_rates_as_written(tmp_path: Path) -> None:
+    """The clutter's count law belongs to a type the compiler adds (`~clutter`), fixed and
+    with no YAML node: the fit's check of shared nodes looked it up and stopped with an
+    internal error (found by the all-commands fuzz test)."""
+    text = DINNER + CLUTTER
+    g = compile_text(text, "dinner.yaml")
+    parameter_ties(g, text, "dinner.yaml")
+    grammar = ssgc.api.Grammar(g, text, None)
+    result = ssgc.api.fit(grammar, grammar.sample(4, seed=2), iterations=1, top=1)
+    assert "rates: {Sponge: 0.2, Mug: 0.1}" in result.grammar.text
+
+
 def with_sponge(g, scene: Scene, xyz: list[float]) -> Scene:  # type: ignore[no-untyped-def]
     """The scene and one more object, a `Sponge` (a type only clutter makes) at `xyz`."""
     return Scene(

@@ -284,6 +284,8 @@ def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
             if part.fits:
                 owner[part.path] = (part.part, r.id)
     for t in grammar.types:
+        if t.synthetic:  # added by `observation` (clutter): no YAML node of its own
+            continue
         kind = "kept" if t.fixed else "discrete"
         if t.kind in (Kind.OR, Kind.INDEPENDENT):
             owner.update({grammar.rules[r].path: (kind, r) for r in t.rules})
