@@ -9,9 +9,19 @@ from typing import Annotated
 import typer
 
 from ssgc.bench import bench_sample
-from ssgc.cli.app import GrammarArg, _check_method, _command, _in_range, bench_app, out
+from ssgc.cli.app import (
+    AllowOutside,
+    GrammarArg,
+    _check_method,
+    _command,
+    _in_range,
+    bench_app,
+    out,
+)
 from ssgc.compile import load_grammar
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
+
+SEED = "Seed of the sampled scenes: the same seed, the same scenes."
 
 
 @bench_app.command("sample")
@@ -19,7 +29,7 @@ from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 def bench_sample_cmd(
     grammar: GrammarArg,
     n: Annotated[int, typer.Option("-n", "--num", min=1, help="Scenes to sample.")] = 20000,
-    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1, help=SEED)] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     constraints: Annotated[
         str | None,
@@ -32,16 +42,17 @@ def bench_sample_cmd(
         str | None,
         typer.Option(help="With --constraints: the methods to time, M or M,M (default: all)."),
     ] = None,
+    allow_outside_files: AllowOutside = False,
 ) -> None:
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
     if constraints is not None:
         from ssgc.bench import bench_constrained
 
-        g = load_grammar(grammar)
+        g = load_grammar(grammar, allow_outside=allow_outside_files)
         methods = None if method is None else [m.strip() for m in method.split(",")]
         result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed, methods, jobs)
     else:
-        result = bench_sample(load_grammar(grammar), n, seed)
+        result = bench_sample(load_grammar(grammar, allow_outside=allow_outside_files), n, seed)
     if as_json:
         print(json.dumps(result, indent=1))
     else:
@@ -54,17 +65,27 @@ def bench_sample_cmd(
 def bench_parse_cmd(
     grammar: GrammarArg,
     scenes: Annotated[int, typer.Option("--scenes", min=1, help="Scenes to sample.")] = 100,
-    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = 0,
+    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1, help=SEED)] = 0,
     method: Annotated[str, typer.Option(help="auto | ip | micp")] = "auto",
-    top: Annotated[int, typer.Option("--top", min=1)] = 1,
-    time_limit: Annotated[float | None, typer.Option("--time-limit", min=0.001)] = None,
+    top: Annotated[int, typer.Option("--top", min=1, help="Parse trees per scene.")] = 1,
+    time_limit: Annotated[
+        float | None, typer.Option("--time-limit", min=0.001, help="Seconds per scene's parse.")
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    allow_outside_files: AllowOutside = False,
 ) -> None:
     """Sample scenes, parse them, compare with the sampled trees; timings per scene."""
     from ssgc.bench import bench_parse
 
     _check_method(method, "highs")
-    result = bench_parse(load_grammar(grammar), scenes, seed, top, time_limit, method)
+    result = bench_parse(
+        load_grammar(grammar, allow_outside=allow_outside_files),
+        scenes,
+        seed,
+        top,
+        time_limit,
+        method,
+    )
     _print(result, as_json)
 
 
@@ -73,8 +94,8 @@ def bench_parse_cmd(
 def bench_fit_cmd(
     grammar: GrammarArg,
     dataset: Annotated[str, typer.Argument(help="Scenes to fit to (anything ssg fit reads).")],
-    iterations: Annotated[int, typer.Option("--iterations", min=1)] = 2,
-    top: Annotated[int, typer.Option("--top", min=1)] = 1,
+    iterations: Annotated[int, typer.Option("--iterations", min=1, help="EM iterations.")] = 2,
+    top: Annotated[int, typer.Option("--top", min=1, help="Parse trees per scene.")] = 1,
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Processes parsing.")] = 1,
     max_concentration: Annotated[
         float,
@@ -84,11 +105,14 @@ def bench_fit_cmd(
         ),
     ] = 1e4,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    allow_outside_files: AllowOutside = False,
 ) -> None:
     """EM speed: seconds per iteration, split into the E-step (parsing) and the M-step."""
     from ssgc.bench import bench_fit
 
-    result = bench_fit(str(grammar), dataset, iterations, top, jobs, max_concentration)
+    result = bench_fit(
+        str(grammar), dataset, iterations, top, jobs, max_concentration, allow_outside_files
+    )
     _print(result, as_json)
 
 

@@ -74,6 +74,10 @@ class SampleExtras:
         self.formats = [check_format(f) for f in export]
         self.settle = settle
         self.output = output
+        if settle:  # before the run writes its manifest
+            from ssgc.simulate.settle import require_mujoco
+
+            require_mujoco()
         self.shapes = load_shapes(g) if export or settle else {}
         self.unsettled = 0
 

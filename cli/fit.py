@@ -70,7 +70,16 @@ def fit(
     method: Annotated[str, typer.Option(help="Parsing method: auto | ip | micp.")] = DEFAULTS[
         "method"
     ],
-    seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1)] = DEFAULTS["seed"],
+    seed: Annotated[
+        int,
+        typer.Option(
+            "--seed",
+            "-s",
+            min=0,
+            max=2**63 - 1,
+            help="Seed of the E-step's chains and the samples.",
+        ),
+    ] = DEFAULTS["seed"],
     estep: Annotated[
         EStep, typer.Option(help="topn: weigh the top-N parses; mcmc: sample the posterior.")
     ] = DEFAULT_ESTEP,

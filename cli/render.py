@@ -30,6 +30,13 @@ def render(
         str | None, typer.Option("--scene", help="Draw only the scene of this name.")
     ] = None,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No summary line.")] = False,
+    allow_outside_files: Annotated[  # app.AllowOutside, which this module cannot import first
+        bool,
+        typer.Option(
+            "--allow-outside-files",
+            help="Allow mesh and model files outside the grammar's directory.",
+        ),
+    ] = False,
 ) -> None:
     """Draw scenes in 3-D and from above, with their trees; a parse's edges by rule score."""
     from ssgc.cli.app import _warnings_about  # here: app imports this module at its top
@@ -37,7 +44,7 @@ def render(
 
     check_output(output, inputs=(source,))
     require_matplotlib()
-    g = load_grammar(grammar) if grammar is not None else None
+    g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
     with _warnings_about(source):
         count = render_file(source, output, n=num, grammar=g, scene=scene)
     if not quiet:

@@ -61,7 +61,11 @@ def sample(
     ] = None,
     export: Annotated[
         list[str] | None,
-        typer.Option("--export", help="Also write each scene in this format (into OUTPUT/FORMAT)."),
+        typer.Option(
+            "--export",
+            metavar="<format>",
+            help="Also write each scene in this format (into OUTPUT/FORMAT); repeatable.",
+        ),
     ] = None,
     settle: Annotated[
         bool, typer.Option("--settle", help="Settle each scene in MuJoCo before writing it.")

@@ -286,10 +286,10 @@ def check_document_meshes(path: Path, allow_outside: bool = False) -> list[Diagn
     is a plain relative name inside the grammar's directory (other names the compiler already
     reports), with its `scale` when that is well formed.
     """
-    from ssgc.yamlio import load_located
+    from ssgc.yamlio import MAX_GRAMMAR_BYTES, load_located, read_text
 
-    try:
-        text = path.read_text(encoding="utf-8")
+    try:  # within the compiler's size limit: a file over it is that error alone
+        text = read_text(path, MAX_GRAMMAR_BYTES, "grammar file")
         data, source = load_located(text, str(path))
     except Exception:  # unreadable or not YAML: the compiler's messages say so
         return []

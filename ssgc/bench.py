@@ -228,13 +228,14 @@ def bench_fit(
     top: int = 1,
     jobs: int = 1,
     max_concentration: float = 1e4,
+    allow_outside: bool = False,
 ) -> dict[str, Any]:
     """Seconds per EM iteration of `ssgc.fit` on a dataset, split into the E-step (parsing
     every scene) and the M-step (every law's maximum-likelihood update, the write-back and
     the recompile), with the fit's CPU time and the machine's load next to them."""
     from ssgc.api import fit, load_grammar
 
-    grammar = load_grammar(grammar_path)
+    grammar = load_grammar(grammar_path, allow_outside)
     cpu0 = _cpu_seconds()
     t0 = time.perf_counter()
     result = fit(

@@ -125,6 +125,12 @@ def _shape_errors(
         locs += [tuple(e["loc"]) for e in errors if e["type"] != "unknown_key"]
         if not unknown:
             break
+        hidden = _hidden_unknown_keys(current, unknown)
+        for d in validation_diagnostics(ValidationError.from_exception_data("doc", hidden), source):
+            if str(d) not in seen:
+                seen.add(str(d))
+                diagnostics.append(d)
+        unknown += hidden
         dropped = copy.deepcopy(current)
         if not all(_drop_key(dropped, e["loc"], e["ctx"]["key"]) for e in unknown):
             locs += [tuple(e["loc"]) for e in unknown]  # still there: its type is left out
@@ -144,15 +150,35 @@ def _shape_errors(
     return diagnostics, locs, current
 
 
-def _drop_key(data: Any, loc: Any, key: str) -> bool:
-    """Remove `key` from the mapping at `loc` (steps that name no key or index, such as a
-    union's tag, are skipped); false if it is not found."""
+def _hidden_unknown_keys(data: Any, unknown: list[Any]) -> list[Any]:
+    """The unknown keys that the reported ones hide: a mapping's check stops at its first
+    unknown key, so a mapping of forty misspelt keys would take forty passes.  Each is an
+    error of the same form, for the same pass."""
+    hidden = []
+    for e in unknown:
+        node = _node_at(data, e["loc"])
+        allowed, reported = e["ctx"]["allowed"].split(", "), e["ctx"]["key"]
+        for key in node if isinstance(node, dict) else ():
+            if str(key) not in allowed and str(key) != reported:
+                error = dsl.unknown_key_error(str(key), allowed)
+                hidden.append({"type": error, "loc": e["loc"], "input": node, "ctx": error.context})
+    return hidden
+
+
+def _node_at(data: Any, loc: Any) -> Any:
+    """The value at `loc` (steps that name no key or index, such as a union's tag, skipped)."""
     node = data
     for step in loc:
         if isinstance(node, dict) and step in node:
             node = node[step]
         elif isinstance(node, list) and isinstance(step, int) and 0 <= step < len(node):
             node = node[step]
+    return node
+
+
+def _drop_key(data: Any, loc: Any, key: str) -> bool:
+    """Remove `key` from the mapping at `loc`; false if it is not found."""
+    node = _node_at(data, loc)
     if isinstance(node, dict) and key in node:
         del node[key]
         return True

@@ -52,17 +52,23 @@ class Strict(BaseModel):
             allowed = sorted(f.alias or name for name, f in cls.model_fields.items())
             for key in data:
                 if key not in allowed:
-                    close = difflib.get_close_matches(str(key), allowed, n=1)
-                    raise PydanticCustomError(
-                        "unknown_key",
-                        "unknown key '{key}'; expected one of: {allowed}{hint}",
-                        {
-                            "key": str(key),
-                            "allowed": ", ".join(allowed),
-                            "hint": f" (did you mean '{close[0]}'?)" if close else "",
-                        },
-                    )
+                    raise unknown_key_error(str(key), allowed)
         return data
+
+
+def unknown_key_error(key: str, allowed: list[str]) -> PydanticCustomError:
+    """The error of one unknown key (the compiler also makes it for the other unknown keys
+    of a mapping, whose check stops at the first)."""
+    close = difflib.get_close_matches(key, allowed, n=1)
+    return PydanticCustomError(
+        "unknown_key",
+        "unknown key '{key}'; expected one of: {allowed}{hint}",
+        {
+            "key": key,
+            "allowed": ", ".join(allowed),
+            "hint": f" (did you mean '{close[0]}'?)" if close else "",
+        },
+    )
 
 
 # --------------------------------------------------------------------------------- poses ---

@@ -165,7 +165,8 @@ def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
     except YAMLError as exc:
         raise SsgError.single(f"invalid YAML: {str(exc).splitlines()[0]}", file) from None
     except RecursionError:
-        raise SsgError.single("invalid YAML: nested too deeply", file) from None
+        where = _deepest_line(text)
+        raise SsgError.single("invalid YAML: nested too deeply", file, *where) from None
     except (ValueError, KeyError, TypeError, OverflowError):
         # ruamel constructs some values without catching their errors (`2024-13-45`,
         # `!!int abc`, `!!bool maybe`, a key that is a mapping holding a list): find the node
@@ -204,6 +205,19 @@ def _refuse_deep_flow(text: str, file: str) -> None:
     if deepest.size:
         message = f"document is nested more than {MAX_DEPTH} levels deep"
         raise SsgError.single(message, file, *_position(text, int(deepest[0])))
+
+
+def _deepest_line(text: str) -> tuple[int, int] | tuple[()]:
+    """Where block nesting goes deepest (the first most-indented line and its first
+    character): what a RecursionError of the reader points at, which has no mark of its own.
+    Nothing when no line is indented (nesting on one line, `- - - - ...`)."""
+    lines = text.split("\n")
+    indents = [len(line) - len(line.lstrip(" ")) if line.strip() else -1 for line in lines]
+    deepest = max(indents, default=-1)
+    if deepest <= 0:
+        return ()
+    k = indents.index(deepest)
+    return k + 1, deepest + 1
 
 
 def load_quietly(yaml: YAML, text: str) -> Any:

@@ -1298,3 +1298,23 @@ def test_an_anchor_defined_twice_in_a_grammar_that_cannot_be_read(tmp_path, recw
     assert result.stderr.startswith(f"{path}:9:17: error: invalid YAML: cannot read '2024-13-45'")
     assert "ReusedAnchorWarning" not in result.stderr
     assert not [r for r in recwarn if "anchor" in str(r.message)]
+
+
+def test_every_unknown_key_of_a_mapping_is_reported_in_one_run():
+    """A mapping's check stops at its first unknown key; the compiler reports the others it
+    hides at once (40 misspelt keys were 5 messages, and `root` and `types` went unsaid)."""
+    text = "grammar: g\n" + "".join(f"k{i}: {i}\n" for i in range(40))
+    with pytest.raises(GrammarError) as exc:
+        compile_text(text, "case.yaml")
+    messages = [str(d) for d in exc.value.diagnostics]
+    for i in range(40):
+        assert f"case.yaml:{i + 2}:1: error: unknown key 'k{i}'; expected one of:" in "\n".join(
+            messages
+        )
+    assert "case.yaml:1:1: error: root: missing required key" in messages
+    assert "case.yaml:1:1: error: types: missing required key" in messages
+    typo = "grammar: g\nroot: A\ntypes:\n  A: {observed: true, colour: red, obsrved: true}\n"
+    with pytest.raises(GrammarError) as exc:
+        compile_text(typo, "case.yaml")
+    assert [(d.line, d.column) for d in exc.value.diagnostics] == [(4, 23), (4, 36)]
+    assert "(did you mean 'observed'?)" in exc.value.diagnostics[1].message

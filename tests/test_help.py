@@ -42,5 +42,20 @@ def test_help_shows_every_flag_whole(words, cmd, width):
     tokens = set(text.replace(",", " ").split())
     for param in cmd.params:
         if param.param_type_name == "option" and not param.hidden:
+            assert param.help, f"{param.opts[0]} of `{' '.join(words)}` has no help"
             for flag in param.opts + param.secondary_opts:
                 assert flag in tokens, f"{flag} missing from `{' '.join(words)} --help`"
+
+
+def test_every_command_that_reads_a_grammar_takes_allow_outside_files():
+    """A grammar naming a mesh outside its directory is refused with "allow it with
+    --allow-outside-files": every command that can meet that message takes the flag
+    (`ssg render -g` did not)."""
+    missing = []
+    for words, cmd in commands():
+        names = {p.name for p in getattr(cmd, "params", [])}
+        if names & {"grammar", "grammars", "grammar_path"}:
+            flags = {f for p in cmd.params for f in getattr(p, "opts", [])}
+            if "--allow-outside-files" not in flags:
+                missing.append(" ".join(words))
+    assert not missing, missing

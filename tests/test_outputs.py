@@ -284,6 +284,10 @@ def test_sample_refuses_a_directory_of_another_run(tmp_path: Path) -> None:
     (out / "labels.json").write_text("{}")
     kept = run("sample", GMM, "-n", 5, "--seed", 3, "-o", out, "--overwrite")
     assert kept.exit_code == 1 and "labels.json" in kept.output
+    # ... so without --overwrite the message does not suggest it
+    told = run("sample", GMM, "-n", 5, "--seed", 3, "-o", out)
+    assert told.exit_code == 1 and "labels.json" in told.output
+    assert "--overwrite deletes only scene files" in told.output
     both = run("sample", GMM, "-n", 5, "-o", out, "--overwrite", "--resume")
     assert both.exit_code == 1 and "give one" in both.output
 
@@ -961,3 +965,19 @@ def test_ctrl_c_taken_by_another_thread_leaves_no_temporary_file(
         go.set()
         other.join()
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    ("package", "option", "needs"),
+    [("mujoco", ["--settle"], "MuJoCo"), ("pxr", ["--export", "usd"], "usd-core")],
+)
+def test_sample_refuses_a_missing_package_before_writing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, package: str, option: list[str], needs: str
+) -> None:
+    """It said so at the first scene, after the manifest: a directory of no scene was left."""
+    monkeypatch.setitem(sys.modules, package, None)  # `import` then raises ImportError
+    out = tmp_path / "scenes"
+    result = run("sample", GMM, "-n", 2, "-o", out, *option)
+    assert result.exit_code == 1, result.output
+    assert needs in result.output and "Traceback" not in result.output
+    assert not out.exists()

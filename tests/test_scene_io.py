@@ -122,7 +122,7 @@ def test_duplicate_json_key_is_located(sink):
     with pytest.raises(SceneError) as exc:
         parse_scene_text('{"objects": [],\n "objects": []}', "d.json", sink)
     d = exc.value.diagnostics[0]
-    assert "duplicate key" in d.message and (d.line, d.column) == (2, 2)
+    assert d.message == "invalid JSON: duplicate key 'objects'" and (d.line, d.column) == (2, 2)
 
 
 def _sampled_doc(grammar: Any) -> dict[str, Any]:

@@ -243,3 +243,20 @@ def test_the_warnings_are_printed_with_the_mesh_errors(tmp_path: Path):
         f"{grammar}:7:3: warning: type 'Orphan' is unreachable from the root",
     ]
     assert "type 'Nope' is not a type" in result.stderr.splitlines()[0]
+
+
+def test_a_grammar_over_the_size_limit_is_not_read_for_its_meshes(tmp_path, monkeypatch):
+    """`ssg validate` looks for the meshes of a grammar that does not compile by reading the
+    document itself; it did so without the size limit, so a 5 MB file the compiler refused at
+    once then took minutes in the YAML reader."""
+    import ssgc.yamlio
+    from ssgc.assets import check_document_meshes
+    from ssgc.yamlio import MAX_GRAMMAR_BYTES
+
+    big = tmp_path / "big.yaml"
+    big.write_text("grammar: g\n#" + "x" * MAX_GRAMMAR_BYTES + "\n")
+
+    read = []
+    monkeypatch.setattr(ssgc.yamlio, "load_located", lambda *args: read.append(args))
+    assert check_document_meshes(big) == []
+    assert not read  # the YAML reader never saw it

@@ -1,8 +1,9 @@
 """Scenes as files simulators and 3D tools load (docs/export.md).
 
 A scene is reduced once to bodies (`bodies.scene_bodies`); each format is one module with a
-`files(SceneBodies) -> {relative path: text or bytes}` function, registered in `FORMATS`.
-Adding a format is adding a module and a line here.
+`files(SceneBodies) -> {relative path: text or bytes}` function, registered in `FORMATS`
+(and, if it needs an optional package, its check in `REQUIRES`).  Adding a format is adding a
+module and a line here.
 """
 
 from __future__ import annotations
@@ -29,12 +30,15 @@ SUFFIXES = {
     "glb": glb.SUFFIX,
     "usd": usd.SUFFIX,
 }
+REQUIRES: dict[str, Callable[[], None]] = {"usd": usd.require}  # optional packages, checked first
 
 
 def check_format(fmt: str) -> str:
     """`fmt` if it names a format, else the user's mistake."""
     if fmt not in FORMATS:
         raise SsgError.single(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
+    if fmt in REQUIRES:
+        REQUIRES[fmt]()
     return fmt
 
 

@@ -18,6 +18,11 @@ from ssgc.geometry import matrix_to_quat
 SUFFIX = ".usda"
 
 
+def require() -> None:
+    """Refuse the format before any work when usd-core is not installed."""
+    _pxr()
+
+
 def _pxr():  # type: ignore[no-untyped-def]
     try:
         from pxr import Gf, Usd, UsdGeom, UsdPhysics

@@ -183,6 +183,15 @@ def prepare_sample_dir(directory: Path, manifest: dict, resume: bool, overwrite:
     same = found is not None and all(found.get(k) == manifest[k] for k in SAME_RUN)
     if same or (found is None and not jsons):
         return  # a new directory, or this very run again: every file is rewritten the same
+    others = [n for n in jsons if not _SCENE_NAME.fullmatch(n)]
+    if others:  # not ours: --overwrite would not delete them either, so do not suggest it
+        shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
+        raise SsgError.single(
+            f"this directory holds .json files that `ssg sample` did not name ({shown}), "
+            "which a dataset reader would take as scenes; --overwrite deletes only scene "
+            "files: move them, or write to another -o",
+            str(directory),
+        )
     if not overwrite:
         raise SsgError.single(
             f"this directory holds {_describe(found, jsons)}; --overwrite deletes them first, "
@@ -236,15 +245,7 @@ def _check_same_sample_run(found: dict, manifest: dict, directory: Path) -> None
 
 def _clear(directory: Path, jsons: list[str]) -> None:
     """`--overwrite`: delete the scenes (and temporary files) of `ssg sample` runs and the
-    manifest; refuse if other .json files remain, which a dataset reader would take as scenes."""
-    others = [n for n in jsons if not _SCENE_NAME.fullmatch(n)]
-    if others:
-        shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
-        raise SsgError.single(
-            f"this directory holds .json files that `ssg sample` did not name ({shown}); "
-            "--overwrite deletes only scene files: move them, or write to another -o",
-            str(directory),
-        )
+    manifest (the caller has refused a directory with other .json files)."""
     remove_stale_temps(directory, lambda target: _SCENE_NAME.fullmatch(target) is not None)
     for name in jsons:
         (directory / name).unlink(missing_ok=True)

@@ -243,20 +243,17 @@ def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str =
     try:
         data = json.loads(text, object_pairs_hook=_no_duplicate_keys)
     except _DuplicateKey as exc:
-        _located(text, file)  # raises with the duplicate's line and column
-        raise SceneError.single(f"duplicate key '{exc.key}'", file) from None
+        raise _json_error(text, file, f"invalid JSON: duplicate key '{exc.key}'") from None
     except (json.JSONDecodeError, RecursionError) as exc:
         line, col = (
             (exc.lineno, exc.colno) if isinstance(exc, json.JSONDecodeError) else (None, None)
         )
         message = exc.msg if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
         raise SceneError.single(f"invalid JSON: {message}", file, line, col) from None
-    except ValueError as exc:  # an integer of more than 4300 digits (Python's own limit)
-        _located(text, file)  # raises with the number's line and column
-        raise SceneError.single(f"invalid JSON: {exc}", file) from None
-    if _SURROGATE_ESCAPE.search(text) and not _is_unicode(data):
-        _located(text, file)  # a lone surrogate such as "\ud800": raises with its position
-        raise SceneError.single("a string holds a lone UTF-16 surrogate escape", file)
+    except ValueError:  # an integer of more than 4300 digits (Python's own limit)
+        raise _json_error(text, file, "invalid JSON: an integer of more than 4300 digits") from None
+    if _SURROGATE_ESCAPE.search(text) and not _is_unicode(data):  # such as "\ud800"
+        raise _json_error(text, file, "a string holds a lone UTF-16 surrogate escape")
     try:
         doc = SceneDoc.model_validate(data)
     except ValidationError as exc:
@@ -293,6 +290,18 @@ def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
             raise _DuplicateKey(key)
         out[key] = value
     return out
+
+
+def _json_error(text: str, file: str, message: str) -> SceneError:
+    """A JSON mistake that `json` finds without its position (a duplicate key, a huge
+    integer, a lone surrogate), located where the YAML reader, which keeps positions, finds
+    it: JSON is YAML, so the first problem it reports is this one."""
+    try:
+        load_located(text, file)
+    except SsgError as exc:
+        first = exc.diagnostics[0]
+        return SceneError.single(message, file, first.line, first.column)
+    return SceneError.single(message, file)
 
 
 def _located(text: str, file: str) -> tuple[Any, SourceMap]:

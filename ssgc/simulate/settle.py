@@ -63,7 +63,7 @@ class Settled:
         }
 
 
-def _mujoco():  # type: ignore[no-untyped-def]
+def require_mujoco():  # type: ignore[no-untyped-def]
     try:
         import mujoco
     except ImportError:
@@ -73,7 +73,7 @@ def _mujoco():  # type: ignore[no-untyped-def]
 
 def build_model(scene: SceneBodies, timestep: float = 0.001):  # type: ignore[no-untyped-def]
     """The scene's MuJoCo model (with a floor), through the MJCF exporter."""
-    mujoco = _mujoco()
+    mujoco = require_mujoco()
     with tempfile.TemporaryDirectory(prefix="ssgc-settle-") as tmp:
         for rel, text in mesh_files(scene, "meshes").items():
             (Path(tmp) / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -91,7 +91,7 @@ def build_model(scene: SceneBodies, timestep: float = 0.001):  # type: ignore[no
 
 def penetration(model, data) -> float:  # type: ignore[no-untyped-def]
     """The deepest contact of the current state, in meters (0 when nothing touches)."""
-    _mujoco().mj_forward(model, data)
+    require_mujoco().mj_forward(model, data)
     if data.ncon == 0:
         return 0.0
     return float(max(0.0, -np.min(data.contact.dist[: data.ncon])))
@@ -99,7 +99,7 @@ def penetration(model, data) -> float:  # type: ignore[no-untyped-def]
 
 def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Settled:
     options = options or SettleOptions()
-    mujoco = _mujoco()
+    mujoco = require_mujoco()
     start = time.perf_counter()
     model = build_model(scene, options.timestep)
     data = mujoco.MjData(model)
@@ -169,7 +169,7 @@ def _separate(mujoco, model, data, options: SettleOptions) -> None:  # type: ign
 
 def provenance(result: Settled, source: dict[str, Any]) -> dict[str, Any]:
     """What a settled scene file records about how it was made."""
-    mujoco = _mujoco()
+    mujoco = require_mujoco()
     return {
         "engine": "mujoco",
         "engine_version": mujoco.__version__,
