@@ -29,21 +29,22 @@ __version__ = "0.1.0"
 
 _API = ("load_grammar", "load_scenes", "Grammar", "Scene", "Tree", "Parse", "ParseResult")
 _CALLABLE_MODULES = ("parse", "fit", "explain")  # a module of ssgc, and an API function
+_MODULES = ("api", "errors")  # named by docs/api.md as `ssgc.api.X`, `ssgc.errors.X`
 
 
 def __getattr__(name: str) -> Any:
     """The API's names, imported on first use (PEP 562)."""
-    if name in _API or name in _CALLABLE_MODULES:
+    if name in _API or name in _CALLABLE_MODULES or name in _MODULES:
         import importlib
 
-        if name in _CALLABLE_MODULES:
+        if name in _CALLABLE_MODULES or name in _MODULES:
             return importlib.import_module(f"ssgc.{name}")  # bound (and made callable) below
         return getattr(importlib.import_module("ssgc.api"), name)
     raise AttributeError(f"module 'ssgc' has no attribute '{name}'")
 
 
 def __dir__() -> list[str]:
-    return sorted({*globals(), *_API, *_CALLABLE_MODULES})
+    return sorted({*globals(), *_API, *_CALLABLE_MODULES, *_MODULES})
 
 
 class _CallableModule(ModuleType):

@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 
 from ssgc import ir
 from ssgc.compile import compile_text, read_grammar_text
+from ssgc.errors import SceneError
 from ssgc.io import scene as scene_io
 from ssgc.tree import Trees
 
@@ -85,24 +86,30 @@ def parse(
     `no_parse` (none found, not proven)."""
     from ssgc.scene_reports import parse_document
 
+    data = _scene_data(_checked(grammar), scene)
+    if not _whole(top) or top < 1:
+        raise ValueError(f"top must be a whole number >= 1, got {top!r}")
     parser = grammar.parser(method)
-    result = parser.parse(scene.data, top=top, time_limit=time_limit)
-    document = parse_document(parser, scene.data, result, top, time_limit=time_limit)
+    result = parser.parse(data, top=int(top), time_limit=time_limit)
+    document = parse_document(parser, data, result, int(top), time_limit=time_limit)
     return ParseResult(grammar, result, document)
 
 
 def explain(grammar: Grammar, scene: Scene, time_limit: float | None = None) -> Explanation:
     """Why `scene` scores what it scores (as `ssg explain`): its best parse's −log p split over
     objects and rules, most unusual object first.  `.text()` says it in words, `.to_json()`
-    is `ssg explain --json`'s entry.  Raises `ssgc.explain.UnexplainedScene` (with the
-    diagnosis naming the objects to blame) when no tree of the grammar contains the scene."""
+    is `ssg explain --json`'s entry.  Raises `ssgc.explain.UnexplainedScene`, an
+    `ssgc.errors.SsgError`, when the scene has no parse: `status` infeasible (no tree of the
+    grammar contains it; `diagnosis` names the objects to blame) or no_parse (none found,
+    e.g. within `time_limit`)."""
     from ssgc.explain import best_tree, explain_tree, reparse_budget
 
+    data = _scene_data(_checked(grammar), scene)
     parser = grammar.parser("auto")
     t0 = time.perf_counter()
-    tree = best_tree(grammar.ir, scene.data, parser, time_limit=time_limit)
+    tree = best_tree(grammar.ir, data, parser, time_limit=time_limit)
     budget = reparse_budget(time_limit, time.perf_counter() - t0)
-    return explain_tree(grammar.ir, scene.data, tree, parser, budget)
+    return explain_tree(grammar.ir, data, tree, parser, budget)
 
 
 def fit(
@@ -126,6 +133,7 @@ def fit(
     `load_scenes` reads.  The grammar itself is not changed: the result holds the fitted
     grammar, its YAML text (the original with only the fitted numbers changed) and one report
     per iteration."""
+    _checked(grammar)
     if isinstance(dataset, str | Path):
         where, scenes = Path(dataset), load_scenes(dataset, grammar)
     else:
@@ -143,10 +151,33 @@ def fit(
         max_concentration=max_concentration,
         jobs=jobs,
     )
-    with open_fit(grammar, [s.data for s in scenes], where, options) as run:
+    with open_fit(grammar, [_scene_data(grammar, s) for s in scenes], where, options) as run:
         result = run.fit(time_limit)
     fitted = run.fitted(result)
     return FitResult(fitted, result.iterations, result.status, result.message, result.tails)
+
+
+def _whole(value: Any) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def _checked(grammar: Any) -> Grammar:
+    """The grammar, or a TypeError that says what is wanted (not an AttributeError deep in)."""
+    if not isinstance(grammar, Grammar):
+        raise TypeError(f"expected a Grammar (ssgc.load_grammar), got {type(grammar).__name__}")
+    return grammar
+
+
+def _scene_data(grammar: Grammar, scene: Any) -> scene_io.Scene:
+    """The scene as the library reads it, in `grammar`'s type numbers.  A scene of another
+    grammar (sampled from `sink.yaml`, parsed with `sink_detailed.yaml`) is read again by its
+    types' names, checked as a scene file is: its numbers are the other grammar's."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"expected a Scene (of ssgc.api), got {type(scene).__name__}")
+    if scene.grammar.ir is grammar.ir:
+        return scene.data
+    objects = zip(scene.types, scene.xyz.tolist(), scene.quat.tolist(), strict=True)
+    return grammar.scene(objects, scene.name).data
 
 
 def fit_defaults() -> dict[str, Any]:
@@ -299,6 +330,8 @@ class Grammar:
 
         if n < 0:
             raise ValueError(f"number of scenes must be >= 0, got {n}")
+        if not _whole(seed) or not 0 <= seed < 2**63:
+            raise ValueError(f"seed must be a whole number in [0, 2**63) as for ssg, got {seed!r}")
         plan = plan_sampling(self.ir, constraints, method, max_tries, time_limit)
         return [Scene(self, d.scene, d.metadata) for d in draw_scenes(self.ir, n, seed, plan)]
 
@@ -307,7 +340,12 @@ class Grammar:
         checked as a scene file is (types the grammar observes, finite poses, unit
         quaternions); a mistake raises `ssgc.errors.SceneError`."""
         objs = []
-        for o in objects:
+        for k, o in enumerate(objects):
+            if not isinstance(o, Sequence) or isinstance(o, str | bytes) or len(o) not in (2, 3):
+                raise SceneError.single(
+                    f"object {k} must be (type, xyz) or (type, xyz, quat_wxyz), got {o!r}",
+                    "<python>",
+                )
             pose: dict[str, Any] = {"xyz": _numbers(o[1])}
             if len(o) > 2:
                 pose["quat_wxyz"] = _numbers(o[2])
@@ -376,6 +414,9 @@ class Tree:
 
     def scene(self, name: str = "scene") -> Scene:
         """The tree's observed nodes as a scene (which keeps the tree)."""
+        problem = scene_io.name_problem(name) if isinstance(name, str) else "a name is text"
+        if problem:
+            raise ValueError(f"{problem} (got {name!r})" if not isinstance(name, str) else problem)
         data = scene_io.scene_from_tree(self.grammar.ir, self.trees, name, self.log_prob)
         return Scene(self.grammar, data)
 
@@ -534,6 +575,8 @@ class FitResult:
 
 def _numbers(values: Iterable[Any]) -> list[Any]:
     """Numbers as JSON holds them (numpy's as Python's); what they are is checked as in a file."""
+    if isinstance(values, np.ndarray):  # a wrong shape stays one, for the check to name
+        values = values.tolist()
     return [v.item() if isinstance(v, np.generic) else v for v in values]
 
 

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from ssgc.constraints.penetration import NonPenetration
-from ssgc.errors import SsgError
+from ssgc.errors import Diagnostic, SsgError
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
@@ -239,11 +239,13 @@ def reparse_budget(time_limit: float | None, spent: float) -> float:
     return max(time_limit - spent, 0.0)
 
 
-class UnexplainedScene(Exception):
-    """No parse; `diagnosis` (for an infeasible scene) names the objects and rules to blame."""
+class UnexplainedScene(SsgError):
+    """No parse, so nothing to explain: `status` is `infeasible` (proven: `diagnosis` names
+    the objects and rules to blame) or `no_parse` (none found, e.g. within the time limit).
+    An `SsgError`, with `ssg explain`'s exit code for that status."""
 
     def __init__(self, message: str, status: str, diagnosis: Diagnosis | None = None) -> None:
-        super().__init__(message)
+        super().__init__([Diagnostic(message)], 2 if status == "infeasible" else 3)
         self.status = status
         self.diagnosis = diagnosis
 

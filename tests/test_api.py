@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import GRAMMARS, ROOT
 from typer.testing import CliRunner
@@ -162,3 +163,92 @@ def test_the_drawing_functions_take_the_grammar_load_grammar_returns(tmp_path):
         assert render_file(scene, tmp_path / "s.png", grammar=grammar) == 1
         assert view_page(scene, grammar)[1] == 1
         assert write_view(scene, tmp_path / "v.html", grammar) == 1
+
+
+def test_a_scene_of_another_grammar_is_read_by_its_types_names():
+    """Type numbers are a grammar's own: a sink scene given to sink_detailed was read with
+    sink's numbers, and a gmm scene given to sink raised numpy's broadcast error."""
+    from ssgc.errors import SceneError
+
+    sink, detailed = (load_grammar(GRAMMARS / f"{n}.yaml") for n in ("sink", "sink_detailed"))
+    scene = sink.sample(1, seed=4)[0]
+    result = ssgc.parse(detailed, scene)
+    assert result.status == "optimal"
+    assert sorted(result.best.tree.scene().types) == sorted(scene.types)
+    gmm = load_grammar(GRAMMARS / "gmm.yaml")
+    for call in (ssgc.parse, ssgc.explain, lambda g, s: ssgc.fit(g, [s], iterations=1)):
+        with pytest.raises(SceneError, match="which is not a type in grammar 'sink'"):
+            call(sink, gmm.sample(1)[0])
+    with pytest.raises(TypeError, match="expected a Scene"):
+        ssgc.parse(sink, scene.to_json())
+    with pytest.raises(TypeError, match="expected a Grammar"):
+        ssgc.parse("grammars/sink.yaml", scene)
+
+
+@pytest.mark.parametrize(
+    "call, wanted",
+    [
+        (lambda g, s: ssgc.parse(g, s, top=0), "top must be a whole number >= 1"),
+        (lambda g, s: ssgc.parse(g, s, top=1.5), "top must be a whole number >= 1"),
+        (lambda g, s: g.sample(1, seed=-1), r"seed must be a whole number in \[0, 2\*\*63\)"),
+        (lambda g, s: g.sample(1, seed=2**64), r"seed must be a whole number"),
+        (lambda g, s: g.sample(1, seed=1.7), r"seed must be a whole number"),
+        (lambda g, s: s.tree.scene("two\nlines"), "one line of printable text"),
+    ],
+)
+def test_out_of_range_arguments_are_value_errors(call, wanted):
+    g = load_grammar(GRAMMARS / "sink.yaml")
+    with pytest.raises(ValueError, match=wanted):
+        call(g, g.sample(1)[0])
+
+
+@pytest.mark.parametrize(
+    "objects",
+    [
+        [("DishBin",)],
+        "abc",
+        [{"type": "DishBin", "xyz": [0, 0, 0]}],
+        [("DishBin", [0, 0, 0], [1, 0, 0, 0], 5)],
+    ],
+)
+def test_objects_of_the_wrong_shape_are_scene_errors(objects):
+    from ssgc.errors import SceneError
+
+    g = load_grammar(GRAMMARS / "sink.yaml")
+    with pytest.raises(SceneError, match="must be \\(type, xyz\\) or \\(type, xyz, quat_wxyz\\)"):
+        g.scene(objects)
+    with pytest.raises(SceneError, match="xyz"):  # a 1x3 array is not a position
+        g.scene([("DishBin", np.zeros((1, 3)))])
+
+
+def test_a_scene_without_a_parse_is_an_ssg_error_with_its_status():
+    from ssgc.errors import SsgError
+    from ssgc.explain import UnexplainedScene
+
+    g = load_grammar(GRAMMARS / "sink.yaml")
+    with pytest.raises(SsgError) as caught:
+        ssgc.explain(g, g.scene([("DishBin", [0, 0, 0]), ("DishBin", [1, 0, 0])]))
+    assert isinstance(caught.value, UnexplainedScene)
+    assert caught.value.status == "infeasible" and caught.value.exit_code == 2
+
+
+def test_saving_a_loaded_scene_keeps_its_metadata(tmp_path):
+    """docs/scenes.md: `metadata`, the scene's and each object's, is kept as it is."""
+    g = load_grammar(GRAMMARS / "sink.yaml")
+    doc = g.sample(1, seed=0)[0].to_json()
+    doc["metadata"] = {"source": "typed by hand"}
+    doc["objects"][0]["metadata"] = {"note": "the bin"}
+    path = tmp_path / "a.json"
+    path.write_text(json.dumps(doc))
+    (scene,) = ssgc.load_scenes(path, g)
+    again = scene.save(tmp_path / "b.json")
+    saved = json.loads(again.read_text())
+    assert saved["metadata"] == {"source": "typed by hand"}
+    assert saved["objects"][0]["metadata"] == {"note": "the bin"}
+    assert "metadata" not in saved["objects"][1]
+
+
+def test_ssgc_api_and_ssgc_errors_are_there_in_a_fresh_interpreter():
+    code = "import ssgc; print(ssgc.api.fit_defaults()['top'], ssgc.errors.SceneError.__name__)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["10", "SceneError"]

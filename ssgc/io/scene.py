@@ -96,13 +96,13 @@ class SceneDoc(Strict):
     @field_validator("name")
     @classmethod
     def _printable_name(cls, name: str | None) -> str | None:
-        problem = _name_problem(name) if name is not None else None
+        problem = name_problem(name) if name is not None else None
         if problem:
             raise ValueError(problem)
         return name
 
 
-def _name_problem(name: str) -> str | None:
+def name_problem(name: str) -> str | None:
     """Why `name` cannot name a scene: names go into one-line messages and output files."""
     if one_line(name) != name:
         return f"a scene name must be one line of printable text, got '{one_line(name)}'"
@@ -149,14 +149,20 @@ def _pose_json(xyz: NDArray[np.float64], quat: NDArray[np.float64]) -> dict[str,
 
 
 def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, Any]:
-    """The JSON document of a scene (and its tree, when it has one)."""
+    """The JSON document of a scene (and its tree, when it has one).  The `metadata` the
+    scene was read with, its own and its objects', is written back as it was (a `metadata`
+    in `header` adds to the scene's)."""
     out: dict[str, Any] = {"format": FORMAT, "name": scene.name, "grammar": grammar.name}
+    metadata = {**scene.extra, **(header.pop("metadata", None) or {})}
     out.update({k: v for k, v in header.items() if v is not None})
+    if metadata:
+        out["metadata"] = metadata
     if scene.log_prob is not None:
         out["log_prob"] = float(scene.log_prob)
+    kept = scene.metadata or ({},) * len(scene)
     out["objects"] = [
-        {"type": grammar.types[t].name, "pose": _pose_json(x, q)}
-        for t, x, q in zip(scene.types, scene.xyz, scene.quat, strict=True)
+        {"type": grammar.types[t].name, "pose": _pose_json(x, q), **({"metadata": m} if m else {})}
+        for t, x, q, m in zip(scene.types, scene.xyz, scene.quat, kept, strict=True)
     ]
     if scene.tree is not None:
         out["tree"] = tree_to_json(grammar, scene.tree)
@@ -510,7 +516,7 @@ def read_sink_yaml(path: str | Path, grammar: Grammar) -> list[Scene]:
     scenes, errors = [], []
     for name, entry in data.items():
         objects = []
-        if (problem := _name_problem(name)) is not None:
+        if (problem := name_problem(name)) is not None:
             errors.append(source.diagnostic((name,), problem))
             continue
         if not isinstance(entry, dict) or not isinstance(entry.get("objects", []), list):

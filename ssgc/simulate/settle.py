@@ -187,12 +187,9 @@ def settled_scene_json(
     scene's `metadata.settle` records the engine, the source and the report.
     """
     moved = Scene(scene.name, scene.types, result.xyz, result.quat, scene.metadata)
-    doc = scene_to_json(grammar, moved)
-    for obj, meta in zip(doc["objects"], scene.metadata, strict=False):
-        if meta:
-            obj["metadata"] = meta
-    doc["metadata"] = {**scene.extra, "settle": provenance(result, source)}
-    return doc
+    return scene_to_json(
+        grammar, moved, metadata={**scene.extra, "settle": provenance(result, source)}
+    )
 
 
 def settle_summary(reports: list[dict[str, Any]]) -> dict[str, Any]:
