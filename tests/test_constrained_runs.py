@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from ssgc.cli.app import app
 from ssgc.compile import load_grammar
-from ssgc.sample.constrained import BLOCK, Tally, Unmet, sample_blocks, select
+from ssgc.sample.constrained import BLOCK, Tally, Unmet, _judged, _unmet, sample_blocks, select
 
 RUNNER = CliRunner()
 BIN = str(GRAMMARS / "bin_packing.yaml")
@@ -155,6 +155,19 @@ def test_unmet_constraints_exit_2_with_a_report(tmp_path: Path, limit: tuple[str
     # nothing half-written: no scene file, no temporary file, no manifest of a run with none,
     # and not the directory the run made for them
     assert not out.exists()
+
+
+def test_a_chain_method_says_it_judged_chain_draws(tmp_path: Path) -> None:
+    """HMC judges a pose constraint on each of a chain's draws (four per candidate): 'rejected
+    0 of the 512 candidates it judged' after 128 candidates read as a miscount."""
+    g = load_grammar(_impossible(tmp_path))
+    cs = select(g, "all")  # many: a count (structure); apart: a clearance (pose)
+    tally = Tally(128, 0, 0, {"many": 128, "apart": 512}, {"many": 70, "apart": 9}, {})
+    tally.best = {"many": -1.0, "apart": -0.01}
+    for method, apart in [("hmc", "chain draws"), ("rejection", "candidates")]:
+        lines = [d.message for d in _unmet(g, tally, 5, "x", _judged(cs, method)).diagnostics]
+        assert "constraint 'many' rejected 70 of the 128 candidates it judged" in lines[1]
+        assert f"constraint 'apart' rejected 9 of the 512 {apart} it judged" in lines[2]
 
 
 def test_unmet_with_jobs_counts_every_process(tmp_path: Path) -> None:

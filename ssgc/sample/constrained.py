@@ -165,14 +165,17 @@ class Tally:
             self.rejected[k] = self.rejected.get(k, 0) + o.rejected[k]
             self.best[k] = max(self.best.get(k, -np.inf), o.best[k])
 
-    def report(self) -> list[str]:
+    def report(self, judged: dict[str, str] | None = None) -> list[str]:
+        """One line per constraint; `judged` names what each judged (candidates unless said:
+        a chain method judges each of a chain's draws, several per candidate)."""
+        judged = judged or {}
         lines = []
         for k in self.evaluated:
             best = self.best[k]
             closest = f"; the closest rejected came to {best:.4g}" if np.isfinite(best) else ""
             lines.append(
                 f"constraint '{k}' rejected {self.rejected[k]:,} of the "
-                f"{self.evaluated[k]:,} candidates it judged{closest}"
+                f"{self.evaluated[k]:,} {judged.get(k, 'candidates')} it judged{closest}"
             )
         return lines
 
@@ -233,7 +236,7 @@ def sample_blocks(
             for later in results:
                 tally.merge(later.tally)
                 tally.kept -= later.block.trees.n_scenes if later.block is not None else 0
-            raise _unmet(grammar, tally, n, done.limit)
+            raise _unmet(grammar, tally, n, done.limit, _judged(constraints, method))
 
 
 @dataclass
@@ -337,12 +340,24 @@ def _block(index: int, outcomes: list[Outcome], want: int) -> Block:
     return Block(index, trees, logp, margins, chain)
 
 
-def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str) -> Unmet:
+# What a method judges a pose constraint on (structural ones are judged on the candidates).
+POSE_JUDGED = {"rjmcmc": "chain draws", "hmc": "chain draws", "project": "projected candidates"}
+
+
+def _judged(constraints: list[Constraint], method: str) -> dict[str, str]:
+    return {
+        c.name: POSE_JUDGED[method]
+        for c in constraints
+        if c.kind == "pose" and method in POSE_JUDGED
+    }
+
+
+def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str, judged: dict[str, str]) -> Unmet:
     head = (
         f"found {tally.kept:,} of the {n:,} requested scene(s) satisfying the constraints "
         f"after {tally.drawn:,} candidates ({limit})"
     )
-    lines = [head, *tally.report()]
+    lines = [head, *tally.report(judged)]
     return Unmet([Diagnostic(line, grammar.file) for line in lines], exit_code=2)
 
 
