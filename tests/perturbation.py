@@ -4,8 +4,10 @@ the world x axis through its position), or give it another of the dataset's type
 whether the explanation ranks it first.  A scene the change makes unparseable counts as ranked
 first only if the diagnosis (`ssgc.explain.diagnose`) names exactly that object.
 
-    python tests/perturbation.py GRAMMAR [SCENES] [--start I] [--limit N] [--kinds move,flip,retype]
+    python tests/perturbation.py GRAMMAR [SCENES] [--start I] [--limit J] [--kinds move,flip,retype]
         [--no-natural] [--all-objects]
+
+scenes I up to (not including) J.
 
 `--all-objects` changes every object of every scene in turn (one changed scene per object, its
 change seeded by scene and object) instead of one random object per scene: a rate over the
@@ -14,6 +16,7 @@ dataset's 406 objects rather than 80 draws, so it does not depend on which objec
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from dataclasses import replace
@@ -191,26 +194,32 @@ def run(
     return out
 
 
+def _arguments(argv: list[str]) -> argparse.Namespace:
+    """The command line; an unknown kind or option is an error (a misspelt kind ran nothing)."""
+    parser = argparse.ArgumentParser(prog="python tests/perturbation.py")
+    parser.add_argument("grammar")
+    parser.add_argument("scenes", nargs="?", default=SINK)
+    parser.add_argument("--start", type=int, default=0, help="first scene (index)")
+    parser.add_argument("--limit", type=int, default=None, help="scene index to stop before")
+    parser.add_argument("--kinds", default=",".join(KINDS), help="of " + ",".join(KINDS))
+    parser.add_argument("--no-natural", action="store_true")
+    parser.add_argument("--all-objects", action="store_true")
+    args = parser.parse_args(argv)
+    unknown = [k for k in args.kinds.split(",") if k not in KINDS]
+    if unknown:
+        parser.error(f"unknown kind(s) {', '.join(unknown)}; choose from {', '.join(KINDS)}")
+    return args
+
+
 if __name__ == "__main__":
-    args = [a for a in sys.argv[1:] if not a.startswith("--")]
-    lim, chosen, first_scene = None, KINDS, 0
-    if "--start" in sys.argv:
-        first_scene = int(sys.argv[sys.argv.index("--start") + 1])
-        args.remove(str(first_scene))
-    if "--limit" in sys.argv:
-        lim = int(sys.argv[sys.argv.index("--limit") + 1])
-        args.remove(str(lim))
-    if "--kinds" in sys.argv:
-        given = sys.argv[sys.argv.index("--kinds") + 1]
-        args.remove(given)
-        chosen = tuple(given.split(","))
+    a = _arguments(sys.argv[1:])
     out = run(
-        args[0],
-        *(args[1:2] or [SINK]),
-        limit=lim,
-        kinds=chosen,
-        start=first_scene,
-        with_natural="--no-natural" not in sys.argv,
-        all_objects="--all-objects" in sys.argv,
+        a.grammar,
+        a.scenes,
+        limit=a.limit,
+        kinds=tuple(a.kinds.split(",")),
+        start=a.start,
+        with_natural=not a.no_natural,
+        all_objects=a.all_objects,
     )
     print(json.dumps(out, indent=1))
