@@ -28,7 +28,12 @@ SEED = "Seed of the sampled scenes: the same seed, the same scenes."
 @_command
 def bench_sample_cmd(
     grammar: GrammarArg,
-    n: Annotated[int, typer.Option("-n", "--num", min=1, help="Scenes to sample.")] = 20000,
+    n: Annotated[
+        int | None,
+        typer.Option(
+            "-n", "--num", min=1, help="Scenes to sample (20,000; with --constraints 1,000)."
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option("--seed", "-s", min=0, max=2**63 - 1, help=SEED)] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     constraints: Annotated[
@@ -50,9 +55,10 @@ def bench_sample_cmd(
 
         g = load_grammar(grammar, allow_outside=allow_outside_files)
         methods = None if method is None else [m.strip() for m in method.split(",")]
-        result = bench_constrained(g, constraints, n if n != 20000 else 1000, seed, methods, jobs)
+        result = bench_constrained(g, constraints, n or 1000, seed, methods, jobs)
     else:
-        result = bench_sample(load_grammar(grammar, allow_outside=allow_outside_files), n, seed)
+        g = load_grammar(grammar, allow_outside=allow_outside_files)
+        result = bench_sample(g, n or 20000, seed)
     if as_json:
         print(json.dumps(result, indent=1))
     else:

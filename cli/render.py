@@ -42,13 +42,13 @@ def render(
     from ssgc.cli.app import _warnings_about  # here: app imports this module at its top
     from ssgc.render.scene import check_output, render_file, require_matplotlib
 
-    check_output(output, inputs=(source,))
+    dest, _ = check_output(output, inputs=(source,))
     require_matplotlib()
     g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
     with _warnings_about(source):
         count = render_file(source, output, n=num, grammar=g, scene=scene)
-    if not quiet:
-        typer.echo(f"drew {count} scene(s) of {source} to {output}")
+    if not quiet:  # on stderr when the picture went to stdout
+        typer.echo(f"drew {count} scene(s) of {source} to {output}", err=dest.stdout)
 
 
 def diagram(grammar_path: Path, output: Path, allow_outside: bool) -> None:
@@ -57,8 +57,8 @@ def diagram(grammar_path: Path, output: Path, allow_outside: bool) -> None:
     from ssgc.render.diagram import render_diagram
     from ssgc.render.scene import check_output, require_matplotlib
 
-    check_output(output, inputs=(grammar_path,))
+    dest, _ = check_output(output, inputs=(grammar_path,))
     require_matplotlib()
     with _warnings_about(grammar_path):
         render_diagram(load_grammar(grammar_path, allow_outside=allow_outside), output)
-    typer.echo(f"drew the diagram of {grammar_path} to {output}")
+    typer.echo(f"drew the diagram of {grammar_path} to {output}", err=dest.stdout)

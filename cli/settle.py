@@ -78,6 +78,7 @@ def settle_cmd(
     stems = distinct_stems([s.name for s in items], ".json", str(scenes))
     shapes = load_shapes(g)
     options = SettleOptions(max_time=max_time)
+    said = err if report_dest is not None and report_dest.stdout else out  # not into the JSON
     reports = []
     with _progress(quiet) as progress:
         task = progress.add_task("settling", total=len(items))
@@ -90,13 +91,13 @@ def settle_cmd(
             if not result.settled:  # a reason for exit code 2, quiet or not
                 err.print(_line(reports[-1]), markup=False, highlight=False)
             elif not quiet:
-                out.print(_line(reports[-1]), markup=False, highlight=False)
+                said.print(_line(reports[-1]), markup=False, highlight=False)
             progress.advance(task)
     summary = settle_summary(reports)
     if report_dest is not None:
         doc = {"summary": summary, "scenes": reports}
         write_output_text(report_dest, json.dumps(doc, indent=1) + "\n")
-    out.print(
+    said.print(
         f"settled {summary['settled']} of {summary['scenes']} scene(s) -> {output}; median "
         f"displacement {1000 * summary['median_displacement']:.1f} mm, largest "
         f"{1000 * summary['max_displacement']:.1f} mm",

@@ -108,7 +108,7 @@ def parse_to_output(
         with write_output(dest) as f:
             return write_parse_output(f, g.name, results)
     method = parser.method
-    header = run_header(g.name, grammar_file, scenes_file, scenes, top, method, time_limit)
+    header = run_header(g.name, grammar_file, scenes_file, scenes, top, method, time_limit, explain)
     with ParseJournal(journal_path(dest.target), header, resume) as journal:
         if journal.discarded and note is not None:
             note(

@@ -397,3 +397,19 @@ def test_glb_of_a_scene_without_geometry_has_its_posed_nodes(tmp_path: Path, pro
         assert geometry is None
         got[node] = (matrix[:3, 3], matrix[:3, :3])
     assert_same_poses(got, want)
+
+
+@pytest.mark.parametrize("command", [["export", "-f", "glb"], ["settle"]])
+def test_a_parse_output_with_explanations_is_read_as_one(
+    tmp_path: Path, command: list[str]
+) -> None:
+    """`ssg parse --explain` puts "objects" early in the file (the explanation's); the output
+    was then taken for a scene file: "unknown key 'scenes'"."""
+    grammar = GRAMMARS / "gmm.yaml"
+    assert run("sample", grammar, "-n", 1, "-o", tmp_path / "s", "-q").exit_code == 0
+    parsed = tmp_path / "p.json"
+    scene = tmp_path / "s" / "gmm_000000.json"
+    assert run("parse", scene, "-g", grammar, "--explain", "-o", parsed, "-q").exit_code == 0
+    result = run(*command, parsed, "-g", grammar, "-o", tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    assert len(list((tmp_path / "out").iterdir())) == 1

@@ -6,6 +6,7 @@ from typing import Any
 
 import pytest
 import typer
+from conftest import GRAMMARS
 from typer.testing import CliRunner
 
 from ssgc.cli.app import app
@@ -59,3 +60,16 @@ def test_every_command_that_reads_a_grammar_takes_allow_outside_files():
             if "--allow-outside-files" not in flags:
                 missing.append(" ".join(words))
     assert not missing, missing
+
+
+def test_bench_sample_takes_the_n_it_is_given(monkeypatch):
+    """`-n 20000 --constraints ...` ran 1,000 scenes: 20,000 was taken for "no -n given"."""
+    import ssgc.bench
+
+    asked = []
+    monkeypatch.setattr(ssgc.bench, "bench_constrained", lambda g, c, n, *a: asked.append(n) or {})
+    command = ["bench", "sample", str(GRAMMARS / "bin_packing.yaml"), "--constraints", "all"]
+    for extra in (["-n", "20000"], []):
+        result = runner.invoke(app, [*command, *extra])
+        assert result.exit_code == 0, result.output
+    assert asked == [20000, 1000]

@@ -981,3 +981,40 @@ def test_sample_refuses_a_missing_package_before_writing(
     assert result.exit_code == 1, result.output
     assert needs in result.output and "Traceback" not in result.output
     assert not out.exists()
+
+
+def test_a_picture_or_report_on_stdout_gets_no_closing_line_in_it(
+    scene: Path, data: Path, tmp_path: Path
+) -> None:
+    """docs/robustness.md: output on stdout has no closing line.  `ssg inspect --diagram -`
+    and `ssg render -o -` wrote "drew ... to -" after the PNG's last chunk, and `ssg settle
+    --report -` its per-scene lines and summary into the JSON."""
+    pytest.importorskip("matplotlib")
+    for args in (["inspect", GMM, "--diagram", "-"], ["render", scene, "-o", "-"]):
+        done = ssg(*args, capture_output=True)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.endswith(b"IEND\xaeB`\x82") and b"drew" in done.stderr
+    pytest.importorskip("mujoco")
+    args = ["settle", data, "-g", GMM, "-o", tmp_path / "s", "--report", "-"]
+    done = ssg(*args, capture_output=True)
+    assert done.returncode == 0, done.stderr
+    assert set(json.loads(done.stdout)) == {"summary", "scenes"} and b"settled" in done.stderr
+
+
+def test_ctrl_c_while_ssg_starts_is_one_line() -> None:
+    """A Ctrl-C in the second the command line's modules take to import printed a traceback
+    of the import system; it is `ssg: interrupted` and exit 130, as during a command."""
+    code = (
+        "import builtins, sys\n"
+        "real = builtins.__import__\n"
+        "def stop(name, *args, **kwargs):\n"
+        "    if name == 'ssgc.cli.app':\n"
+        "        raise KeyboardInterrupt\n"
+        "    return real(name, *args, **kwargs)\n"
+        "builtins.__import__ = stop\n"
+        "sys.argv = ['ssg', '--version']\n"
+        "from ssgc.cli.launch import main\n"
+        "main()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stderr) == (130, "ssg: interrupted\n")

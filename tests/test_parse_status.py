@@ -237,3 +237,24 @@ def test_fit_skips_a_scene_without_a_parse_but_stops_on_a_proof():
     with pytest.raises(SsgError) as proof:
         _scene_record(1, 0, result("infeasible"), "data")
     assert proof.value.exit_code == 2
+
+
+def test_a_supertree_too_large_to_build_is_a_user_error(tmp_path):
+    """Four nested `repeat`s of up to 100: a million supertree nodes, which ssg validate and
+    ssg inspect accept; ssg parse stopped with an internal error (exit 70)."""
+    grammar_path = tmp_path / "big.yaml"
+    grammar_path.write_text(
+        "grammar: big\nroot: R\ntypes:\n"
+        + "".join(
+            f"  {a}: {{repeat: {{count: {{geometric: {{p: 0.5, max: 100}}}}, "
+            f"rule: {{child: {b}}}}}}}\n"
+            for a, b in (("R", "A"), ("A", "B"), ("B", "C"))
+        )
+        + "  C: {observed: true}\n"
+    )
+    scene = tmp_path / "one.json"
+    scene.write_text(json.dumps({"objects": [{"type": "C", "pose": {"xyz": [0, 0, 0]}}]}))
+    result = run("parse", scene, "-g", grammar_path)
+    assert result.exit_code == 1, result.output
+    assert f"{grammar_path}: error: the grammar's supertree" in result.stderr
+    assert "internal error" not in result.output

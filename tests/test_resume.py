@@ -319,6 +319,9 @@ def test_parse_resume_refuses_a_journal_of_another_run(small_dataset: Path, tmp_
     assert result.exit_code == 1
     assert "this journal is of another run (top: 1, now 2)" in result.output
     assert journal_path(out).exists() and not out.exists()
+    # --explain too: resumed, half the scenes would have explanations and half not
+    result = run("parse", small_dataset, "-g", SINK, "-o", out, "--explain", "--resume")
+    assert result.exit_code == 1 and "(explain: false, now true)" in result.output
     other = tmp_path / "other"
     other.mkdir()
     (other / "a.json").write_bytes((small_dataset / "sink_000000.json").read_bytes())

@@ -114,8 +114,17 @@ def load_export_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
 
 
 def _is_parse_result(text: str) -> bool:
-    head = text.lstrip()[:4096]
-    return head.startswith("{") and '"scenes"' in head and '"objects"' not in head
+    """An `ssg parse` output: a document with `scenes` and no `objects` of its own (as
+    `ssg render` reads it).  Only its top-level keys decide: a diagnosis or an explanation
+    early in the file holds `"objects"` too.  Text that is not JSON is left to the scene
+    reader, which says where it fails."""
+    if not text.lstrip().startswith("{"):
+        return False
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError):
+        return False
+    return isinstance(data, dict) and "scenes" in data and "objects" not in data
 
 
 def _parsed_scenes(text: str, file: str, grammar: Grammar) -> list[Scene]:

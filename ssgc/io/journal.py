@@ -57,8 +57,10 @@ def run_header(
     top: int,
     method: str,
     time_limit: float | None,
+    explain: bool = False,
 ) -> dict[str, Any]:
-    """What makes two runs the same run: their grammar, their scenes and their options.
+    """What makes two runs the same run: their grammar, their scenes and their options
+    (`--explain` too: a resumed run would mix scenes with and without explanations).
 
     The digests catch a grammar or dataset edited in place between the two runs.
     """
@@ -72,6 +74,7 @@ def run_header(
         "top": top,
         "method": method,
         "time_limit": time_limit,
+        "explain": explain,
     }
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ssgc.errors import SsgError
 from ssgc.geometry import quat_multiply, quat_rotate
 from ssgc.ir import Grammar, Kind
 
@@ -75,7 +76,12 @@ def build_supertree(grammar: Grammar) -> Supertree:
                 nest.append(child_nest)
                 children.append([])
         if len(types) > MAX_SUPERTREE_NODES:
-            raise ValueError(f"the supertree has more than {MAX_SUPERTREE_NODES} nodes")
+            raise SsgError.single(
+                f"the grammar's supertree (every node a tree of it can hold) has more than "
+                f"{MAX_SUPERTREE_NODES:,} nodes, more than the parser builds; lower the `max` "
+                "of its count laws or its `max_nesting` (ssg inspect counts the supertree)",
+                grammar.file or None,
+            )
         i += 1
     type_a = np.asarray(types, np.int64)
     parent_a = np.asarray(parents, np.int64)
