@@ -78,6 +78,8 @@ def test_too_short_a_simulation_is_reported_not_settled(dropped, tmp_path: Path)
     assert "drop_000000: not settled: did not come to rest" in result.stderr
     doc = json.loads((tmp_path / "o" / "drop_000000.json").read_text())
     assert doc["metadata"]["settle"]["settled"] is False
+    # --max-time is at most: 0.02 s simulated 0.05 s, one 50 ms chunk of steps
+    assert doc["metadata"]["settle"]["sim_time"] == pytest.approx(0.02)
 
 
 def test_sample_settle_writes_settled_scenes(tmp_path: Path) -> None:

@@ -113,16 +113,19 @@ def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Se
     _separate(mujoco, model, data, options)
     data.time = 0.0
     chunk = max(1, round(0.05 / options.timestep))
-    still = 0.0
-    simulated = 0.0  # counted here: MuJoCo resets data.time when a simulation goes unstable
-    while simulated < options.max_time and still < options.still_time:
-        mujoco.mj_step(model, data, nstep=chunk)
-        simulated += chunk * options.timestep
+    still = 0.0  # simulated time is counted here: MuJoCo resets data.time when unstable
+    steps = max(1, round(options.max_time / options.timestep))  # --max-time is at most
+    done = 0
+    while done < steps and still < options.still_time:
+        n = min(chunk, steps - done)
+        mujoco.mj_step(model, data, nstep=n)
+        done += n
         speed = max(
             float(np.max(np.abs(data.qvel[lin]), initial=0.0)),
             LEVER * float(np.max(np.abs(data.qvel[ang]), initial=0.0)),
         )
-        still = still + chunk * options.timestep if speed < options.still_speed else 0.0
+        still = still + n * options.timestep if speed < options.still_speed else 0.0
+    simulated = done * options.timestep
     after = penetration(model, data)
     xyz = data.xpos[ids].copy()
     quat = quat_canonical(data.xquat[ids].copy())
