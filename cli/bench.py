@@ -19,6 +19,7 @@ from ssgc.cli.app import (
     out,
 )
 from ssgc.compile import load_grammar
+from ssgc.errors import SsgError
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 
 SEED = "Seed of the sampled scenes: the same seed, the same scenes."
@@ -50,6 +51,8 @@ def bench_sample_cmd(
     allow_outside_files: AllowOutside = False,
 ) -> None:
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
+    if constraints is None and (method is not None or jobs != 1):
+        raise SsgError.single("--method and -j time sampling under --constraints, not given")
     if constraints is not None:
         from ssgc.bench import bench_constrained
 

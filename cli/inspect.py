@@ -12,6 +12,7 @@ from rich.table import Table
 from ssgc.cli import render as render_cli
 from ssgc.cli.app import AllowOutside, GrammarArg, _command, app, out
 from ssgc.compile import load_grammar
+from ssgc.errors import SsgError
 from ssgc.inspect import grammar_summary
 
 
@@ -26,6 +27,8 @@ def inspect(
     ] = None,
 ) -> None:
     """Show the node types and rules of a grammar, and its supertree size."""
+    if diagram is not None and as_json:
+        raise SsgError.single("--diagram draws the grammar and --json prints it: give one")
     if diagram is not None:  # docs/render.md
         return render_cli.diagram(grammar, diagram, allow_outside_files)
     g = load_grammar(grammar, allow_outside=allow_outside_files)

@@ -44,8 +44,11 @@ def view(
         typer.Option("--serve", help="Serve the page on 127.0.0.1 until Ctrl-C."),
     ] = False,
     port: Annotated[
-        int, typer.Option("--port", min=0, max=65535, help="--serve: the port (0: any free).")
-    ] = 8000,
+        int | None,
+        typer.Option(
+            "--port", min=0, max=65535, help="--serve: the port (default 8000; 0: any free)."
+        ),
+    ] = None,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No summary line.")] = False,
     allow_outside_files: AllowOutside = False,
 ) -> None:
@@ -57,6 +60,8 @@ def view(
 
     if output is None and not (open_it or serve):
         raise SsgError.single("say where the page goes: -o PAGE.html, or --open or --serve")
+    if port is not None and not serve:
+        raise SsgError.single("--port is the port of --serve, which is not given")
     dest = None if output is None else check_output(output, "page", inputs=(source,))
     with lock_outputs([dest]):
         g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
@@ -69,7 +74,7 @@ def view(
     if open_it:
         _open(html, None if dest is None or dest.stream else dest.target)
     if serve:
-        _serve(html.encode("utf-8"), port)
+        _serve(html.encode("utf-8"), 8000 if port is None else port)
 
 
 def _open(html: str, page: Path | None) -> None:

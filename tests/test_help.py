@@ -73,3 +73,21 @@ def test_bench_sample_takes_the_n_it_is_given(monkeypatch):
         result = runner.invoke(app, [*command, *extra])
         assert result.exit_code == 0, result.output
     assert asked == [20000, 1000]
+
+
+@pytest.mark.parametrize(
+    "words, said",
+    [
+        (["bench", "sample", "{gmm}", "-n", "3", "--method", "hmc"], "--method and -j time"),
+        (["bench", "sample", "{gmm}", "-n", "3", "-j", "2"], "--method and -j time"),
+        (["inspect", "{gmm}", "--json", "--diagram", "{tmp}/g.svg"], "give one"),
+        (["view", "{gmm}", "-o", "{tmp}/p.html", "--port", "9999"], "--port is the port of"),
+    ],
+)
+def test_an_option_that_would_do_nothing_is_refused(tmp_path, words, said):
+    """They were accepted and ignored: no timing of methods without --constraints, no JSON
+    with a diagram, no port without --serve."""
+    args = [w.format(gmm=GRAMMARS / "gmm.yaml", tmp=tmp_path) for w in words]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 1 and said in result.output, result.output
+    assert not list(tmp_path.iterdir())
