@@ -53,14 +53,13 @@ def bench_sample_cmd(
     """Sampling and scoring speed: scenes per second, seconds per tree score."""
     if constraints is None and (method is not None or jobs != 1):
         raise SsgError.single("--method and -j time sampling under --constraints, not given")
+    g = load_grammar(grammar, allow_outside=allow_outside_files)
     if constraints is not None:
         from ssgc.bench import bench_constrained
 
-        g = load_grammar(grammar, allow_outside=allow_outside_files)
         methods = None if method is None else [m.strip() for m in method.split(",")]
         result = bench_constrained(g, constraints, n or 1000, seed, methods, jobs)
     else:
-        g = load_grammar(grammar, allow_outside=allow_outside_files)
         result = bench_sample(g, n or 20000, seed)
     if as_json:
         print(json.dumps(result, indent=1))

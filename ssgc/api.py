@@ -414,9 +414,10 @@ class Tree:
 
     def scene(self, name: str = "scene") -> Scene:
         """The tree's observed nodes as a scene (which keeps the tree)."""
-        problem = scene_io.name_problem(name) if isinstance(name, str) else "a name is text"
-        if problem:
-            raise ValueError(f"{problem} (got {name!r})" if not isinstance(name, str) else problem)
+        if not isinstance(name, str):
+            raise ValueError(f"a name is text (got {name!r})")
+        if problem := scene_io.name_problem(name):
+            raise ValueError(problem)
         data = scene_io.scene_from_tree(self.grammar.ir, self.trees, name, self.log_prob)
         return Scene(self.grammar, data)
 

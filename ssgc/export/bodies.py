@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -108,31 +109,31 @@ def load_export_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
     path = Path(path)
     if path.is_file() and path.suffix.lower() == ".json":
         text = read_text(path, MAX_SCENE_BYTES, "scene file")
-        if _is_parse_result(text):
-            return _parsed_scenes(text, str(path), grammar)
+        if (document := _parse_result(text)) is not None:
+            return _parsed_scenes(document, text, str(path), grammar)
     return load_scenes(path, grammar)
 
 
-def _is_parse_result(text: str) -> bool:
-    """An `ssg parse` output: a document with `scenes` and no `objects` of its own (as
-    `ssg render` reads it).  Only its top-level keys decide: a diagnosis or an explanation
+def _parse_result(text: str) -> dict[str, Any] | None:
+    """An `ssg parse` output, decoded: a document with `scenes` and no `objects` of its own
+    (as `ssg render` reads it).  Only its top-level keys decide: a diagnosis or an explanation
     early in the file holds `"objects"` too.  Text that is not JSON is left to the scene
     reader, which says where it fails."""
     if not text.lstrip().startswith("{"):
-        return False
+        return None
     try:
         data = json.loads(text)
     except (ValueError, RecursionError):
-        return False
-    return isinstance(data, dict) and "scenes" in data and "objects" not in data
+        return None
+    is_result = isinstance(data, dict) and "scenes" in data and "objects" not in data
+    return data if is_result else None
 
 
-def _parsed_scenes(text: str, file: str, grammar: Grammar) -> list[Scene]:
-    try:
-        data = json.loads(text)
-        results = data["scenes"]
-    except (ValueError, KeyError, TypeError):
-        raise SceneError.single("not a scene file or an `ssg parse` output", file) from None
+def _parsed_scenes(document: dict[str, Any], text: str, file: str, grammar: Grammar) -> list[Scene]:
+    """Each parsed scene's best tree as a scene (`text` locates its mistakes)."""
+    results = document["scenes"]
+    if not isinstance(results, list):
+        raise SceneError.single("not a scene file or an `ssg parse` output", file)
     scenes = []
     for k, result in enumerate(results):
         parses = result.get("parses") if isinstance(result, dict) else None

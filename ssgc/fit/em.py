@@ -38,7 +38,7 @@ import numpy as np
 from ssgc.compile import compile_text
 from ssgc.errors import SsgError
 from ssgc.fit.estep import parse_scenes
-from ssgc.fit.mstep import FitSettings, Ties, m_step
+from ssgc.fit.mstep import FitSettings, Ties, m_step, refuse_out_of_range
 from ssgc.fit.posterior import McmcSettings, log_orders, posterior_e_step
 from ssgc.fit.tails import measure_tails, tail_updates
 from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
@@ -80,9 +80,7 @@ class FitOptions:
             ("tol", self.tol, 0.0 <= self.tol < math.inf, "≥ 0 and finite"),
             ("estep", self.estep, self.estep in ("topn", "mcmc"), "'topn' or 'mcmc'"),
         )
-        for name, value, ok, wanted in checks:
-            if not ok:
-                raise SsgError.single(f"{name} must be {wanted}, got {value!r}")
+        refuse_out_of_range(checks)
 
 
 @dataclass

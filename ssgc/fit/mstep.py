@@ -23,7 +23,9 @@ The output is a list of `Update`s: document paths and the numbers to put there, 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,9 +72,15 @@ class FitSettings:
                 f"above 0 and at most {MAX_CONCENTRATION:g}",
             ),
         )
-        for name, value, ok, wanted in checks:
-            if not ok:
-                raise SsgError.single(f"{name} must be {wanted}, got {value!r}")
+        refuse_out_of_range(checks)
+
+
+def refuse_out_of_range(checks: Iterable[tuple[str, Any, bool, str]]) -> None:
+    """(name, value, in range, what is wanted) per option: the first out of range is the
+    caller's mistake, told before any work."""
+    for name, value, ok, wanted in checks:
+        if not ok:
+            raise SsgError.single(f"{name} must be {wanted}, got {value!r}")
 
 
 @dataclass(frozen=True)
