@@ -166,6 +166,13 @@ def test_bound_never_below_a_sampled_tree(seed):
     _check_random(seed, 2)
 
 
+def test_a_latent_block_that_owns_no_edge_is_polished():
+    """Random grammar 14388 (found by a CI run's random examples): the Newton polish of a
+    set's bound took blocks that own no edge, only the child end of others', and indexed past
+    its renumbering table (IndexError)."""
+    _check_random(14388, 2)
+
+
 @pytest.mark.slow
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=hs.integers(0, 10**6))

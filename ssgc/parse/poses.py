@@ -359,8 +359,13 @@ def _owned_values(
 
 
 def _sub_edges(edges: PoseEdges, owner: IntArray, blocks: IntArray) -> tuple[PoseEdges, IntArray]:
-    """The edges of the given blocks, with the blocks renumbered 0..len(blocks)-1."""
-    new = np.full(int(owner.max()) + 1, -1, np.int64)
+    """The edges of the given blocks, with the blocks renumbered 0..len(blocks)-1.  A block
+    may own no edge (it is only the child or parent of others' edges): every block number
+    that appears is given a place."""
+    top = max(
+        int(owner.max()), int(blocks.max()), int(edges.p_block.max()), int(edges.c_block.max())
+    )
+    new = np.full(top + 1, -1, np.int64)
     new[blocks] = np.arange(len(blocks))
     keep = new[owner] >= 0
 
