@@ -173,7 +173,9 @@ def load_located(text: str, file: str) -> tuple[Any, SourceMap]:
         # that fails, for its position.
         raise SsgError([_unreadable_value(text, file)]) from None
     source = SourceMap(file, tree, _reused_anchors(text, file) if "&" in text else ())
-    return _Plain(source).convert(tree, ()), source
+    plain = _Plain(source)
+    plain.refuse_bomb(tree)
+    return plain.convert(tree, ()), source
 
 
 # What hides a bracket from the flow-depth count: quoted scalars and comments.
@@ -359,6 +361,31 @@ class _Plain:
             line, col = self.source.locate_key(loc, key)
             raise SsgError.single(message, self.source.file, line, col) from None
 
+    def refuse_bomb(self, tree: Any) -> None:
+        """Refuse a document whose aliases expand past `MAX_VALUES` before expanding any.
+
+        An alias is the same Python object as its anchor, so the expanded size of every
+        collection is counted once and reused: a bomb of a hundred anchors is measured in a
+        hundred steps, where `convert` would copy two million values (15 s) to find it.  The
+        error is placed where `convert` would place it: the value at which the count passes
+        the limit, found by stepping over whole collections that fit.
+        """
+        sizes: dict[int, int] = {}
+        if _expanded_size(tree, sizes, set(), 0) <= MAX_VALUES:
+            return
+        node, loc, left = tree, (), MAX_VALUES
+        while True:  # into the first child that does not fit in what is left
+            left -= 1
+            if left < 0 or not isinstance(node, (CommentedMap, CommentedSeq)):
+                raise self.fail(loc, f"document has more than {MAX_VALUES} values (alias bomb?)")
+            pairs = node.items() if isinstance(node, CommentedMap) else enumerate(node)
+            for key, child in pairs:
+                size = sizes.get(id(child), 1)
+                if size > left:
+                    node, loc = child, (*loc, key)
+                    break
+                left -= size
+
     def convert(self, node: Any, loc: Loc) -> Any:
         self.budget -= 1
         if self.budget < 0:
@@ -399,6 +426,25 @@ class _Plain:
         what = {"bytes": "binary data (!!binary)", "CommentedSet": "a set (!!set)"}
         name = type(node).__name__
         raise self.fail(loc, f"unsupported YAML value: {what.get(name, name)}")
+
+
+def _expanded_size(node: Any, sizes: dict[int, int], open_: set[int], depth: int) -> int:
+    """How many values `node` holds once its aliases are expanded, memoised in `sizes` by
+    object.  A collection that holds itself counts once (`convert` reports its depth), and the
+    walk stops below `MAX_DEPTH`, where `convert` stops too."""
+    if not isinstance(node, (CommentedMap, CommentedSeq)):
+        return 1
+    key = id(node)
+    if key in sizes:
+        return sizes[key]
+    if key in open_ or depth > MAX_DEPTH:
+        return 1
+    open_.add(key)
+    children = [v for _, v in node.items()] if isinstance(node, CommentedMap) else node
+    size = 1 + sum(_expanded_size(c, sizes, open_, depth + 1) for c in children)
+    open_.discard(key)
+    sizes[key] = size
+    return size
 
 
 def validation_diagnostics(exc: ValidationError, source: SourceMap) -> list[Diagnostic]:

@@ -13,9 +13,11 @@ from pathlib import Path
 from textwrap import dedent, indent
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from ssgc.compile import compile_text, load_grammar
-from ssgc.errors import Diagnostic, GrammarError
+from ssgc.errors import Diagnostic, GrammarError, SsgError
 
 SINK = Path(__file__).resolve().parent.parent / "grammars" / "sink.yaml"
 FILE = "case.yaml"
@@ -1318,3 +1320,64 @@ def test_every_unknown_key_of_a_mapping_is_reported_in_one_run():
         compile_text(typo, "case.yaml")
     assert [(d.line, d.column) for d in exc.value.diagnostics] == [(4, 23), (4, 36)]
     assert "(did you mean 'observed'?)" in exc.value.diagnostics[1].message
+
+
+def _bomb(widths: list[int], extra: int) -> str:
+    """Anchors that each repeat the one before (`widths[i]` times), then `extra` plain keys."""
+    lines = [f"a0: &a0 [{', '.join(['x'] * widths[0])}]"]
+    for i, width in enumerate(widths[1:], start=1):
+        lines.append(f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * width)}]")
+    lines += [f"k{i}: {{v: [1, 2]}}" for i in range(extra)]
+    return "\n".join(lines) + "\n"
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    widths=st.lists(st.integers(1, 6), min_size=1, max_size=6),
+    extra=st.integers(0, 3),
+    limit=st.integers(1, 400),
+)
+def test_an_alias_bomb_is_refused_before_expanding_and_where_expanding_would(
+    widths: list[int], extra: int, limit: int
+) -> None:
+    """The size of the expanded document is measured on the anchors, before any value is
+    copied (a bomb under the real limit took 15 s to refuse), and the error is where the
+    copying itself stops."""
+    import ssgc.yamlio as yamlio
+
+    text = _bomb(widths, extra)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(yamlio, "MAX_VALUES", limit)
+        mp.setattr(yamlio._Plain, "refuse_bomb", lambda self, tree: None, raising=False)
+        mp.setattr(yamlio._Plain, "__init__", _budget(limit))
+        expected = _located(lambda: yamlio.load_located(text, "g.yaml"))
+    copied = []
+    original = yamlio._Plain.convert
+
+    def counted(self, node, loc):
+        copied.append(loc)
+        return original(self, node, loc)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(yamlio, "MAX_VALUES", limit)
+        mp.setattr(yamlio._Plain, "__init__", _budget(limit))
+        mp.setattr(yamlio._Plain, "convert", counted)
+        found = _located(lambda: yamlio.load_located(text, "g.yaml"))
+    assert found == expected
+    if expected is not None:
+        assert copied == [], "values were copied before the bomb was refused"
+
+
+def _budget(limit: int):
+    def init(self, source):
+        self.source, self.budget = source, limit
+
+    return init
+
+
+def _located(load) -> str | None:
+    try:
+        load()
+    except SsgError as exc:
+        return str(exc)
+    return None
