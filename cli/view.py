@@ -10,7 +10,7 @@ import typer
 
 from ssgc.errors import SsgError
 
-from .app import AllowOutside, _command, app, err
+from .app import AllowOutside, _command, _warnings_about, app, err
 
 SERVE_HOST = "127.0.0.1"  # this machine only: the page is for the user who runs ssg
 
@@ -65,7 +65,8 @@ def view(
     dest = None if output is None else check_output(output, "page", inputs=(source,))
     with lock_outputs([dest]):
         g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
-        html, count = view_page(source, g)
+        with _warnings_about(source):
+            html, count = view_page(source, g)
         if dest is not None:
             write_output_text(dest, html)
     if not quiet:

@@ -147,6 +147,20 @@ def test_mistakes_are_one_message_and_no_page(scenes, tmp_path):
     assert result.exit_code == 1 and "Traceback" not in result.output
 
 
+def test_a_page_that_cannot_hold_every_scene_says_so(scenes, tmp_path, monkeypatch):
+    """At most MAX_SCENES go on a page: the rest were dropped without a word."""
+    import ssgc.view.page
+
+    monkeypatch.setattr(ssgc.view.page, "MAX_SCENES", 2)
+    result = run("view", scenes, "-o", tmp_path / "page.html")
+    assert result.exit_code == 0, result.output
+    assert f"{scenes}: warning: the page shows the first 2 scenes" in result.stderr
+    assert len(page_data((tmp_path / "page.html").read_text())["scenes"]) == 2
+    monkeypatch.setattr(ssgc.view.page, "MAX_SCENES", 3)  # all three fit: nothing to say
+    result = run("view", scenes, "-o", tmp_path / "page.html", "--quiet")
+    assert result.exit_code == 0 and result.stderr == "", result.output
+
+
 def test_serve_gives_the_page_on_this_machine_only(scenes, tmp_path):
     """`--serve --port 0`: the page written with -o, served on 127.0.0.1 until stopped."""
     import subprocess

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ssgc.errors import SsgError
+from ssgc.errors import SsgError, SsgWarning
 from ssgc.geometry import quat_to_matrix
 from ssgc.io.outputs import check_output, write_output_text
 from ssgc.ir import Grammar, HoldsGrammar, as_ir
@@ -47,7 +48,11 @@ def view_page(source: str | Path, grammar: Grammar | HoldsGrammar | None = None)
     """The viewer page of `source` (a scene, a directory of scenes, a sink dataset with its
     grammar, or an `ssg parse` result) and the number of scenes on it."""
     grammar = None if grammar is None else as_ir(grammar)
-    views = load_views(Path(source), MAX_SCENES, grammar)
+    views = load_views(Path(source), MAX_SCENES + 1, grammar)
+    if len(views) > MAX_SCENES:  # one more was read only to know that there are more
+        views = views[:MAX_SCENES]
+        message = f"the page shows the first {MAX_SCENES} scenes; a page holds no more"
+        warnings.warn(SsgWarning(message), stacklevel=2)
     data = page_data(views, grammar, str(source))
     return page_html(data), len(views)
 
