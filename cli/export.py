@@ -15,7 +15,7 @@ from ssgc.cli.app import AllowOutside, _command, _progress, app, out
 from ssgc.compile import load_grammar
 from ssgc.export import SUFFIXES, check_format, scene_bodies
 from ssgc.export.bodies import load_export_scenes
-from ssgc.export.write import export_scene
+from ssgc.export.write import export_scene, refuse_changed_shared_files
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.outputs import check_directory
 from ssgc.io.scene import Scene, distinct_stems, dumps_json, dumps_scene
@@ -52,6 +52,7 @@ def export_cmd(
     items = load_export_scenes(scenes, g)
     distinct_stems([s.name for s in items], SUFFIXES[fmt], str(scenes))
     shapes = load_shapes(g, collision=fmt != "glb")
+    refuse_changed_shared_files(g, items, shapes, fmt, output)
     written = []
     with _progress(quiet) as progress:
         task = progress.add_task(f"exporting ({fmt})", total=len(items))

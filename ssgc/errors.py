@@ -16,8 +16,9 @@ Severity = Literal["error", "warning"]
 
 
 def one_line(text: str) -> str:
-    """`text` with control characters, line breaks and lone surrogates written as escapes
-    (``\\n``, ``\\x1b``, ``\\ud800``).
+    """`text` with control characters, line breaks, lone surrogates, the bidirectional
+    overrides and the non-characters U+FFFE, U+FFFF written as escapes (``\\n``, ``\\x1b``,
+    ``\\ud800``, ``\\u202e``).
 
     Messages quote what users wrote (keys, names, values); a newline or a terminal escape in
     one must not split a diagnostic over several lines or recolour the user's terminal, and a
@@ -25,9 +26,21 @@ def one_line(text: str) -> str:
     """
     if text.isprintable():
         return text
-    return "".join(
-        repr(c)[1:-1] if unicodedata.category(c) in ("Cc", "Cs", "Zl", "Zp") else c for c in text
-    )
+    return "".join(repr(c)[1:-1] if _escaped(c) else c for c in text)
+
+
+# The bidirectional embeddings, overrides and isolates reorder the text after them on a
+# terminal (a name can show as another name); U+FFFE and U+FFFF are not characters, and no XML
+# or YAML file may hold them.
+_REORDERING_OR_NOT_TEXT = frozenset(
+    "\u202a\u202b\u202c\u202d\u202e"  # embeddings and overrides
+    "\u2066\u2067\u2068\u2069"  # isolates
+    "\ufffe\uffff"
+)
+
+
+def _escaped(c: str) -> bool:
+    return c in _REORDERING_OR_NOT_TEXT or unicodedata.category(c) in ("Cc", "Cs", "Zl", "Zp")
 
 
 @dataclass(frozen=True)
@@ -42,7 +55,7 @@ class Diagnostic:
 
     def __str__(self) -> str:
         # a message about no file (a missing package, an option) is the program's own
-        where = self.file or ("<input>" if self.line is not None else "ssg")
+        where = one_line(self.file) if self.file else "<input>" if self.line is not None else "ssg"
         if self.line is not None:
             where += f":{self.line}"
             if self.column is not None:

@@ -413,3 +413,113 @@ def test_a_parse_output_with_explanations_is_read_as_one(
     result = run(*command, parsed, "-g", grammar, "-o", tmp_path / "out")
     assert result.exit_code == 0, result.output
     assert len(list((tmp_path / "out").iterdir())) == 1
+
+
+CLASH = """grammar: clash
+root: {type: Table, pose: {xyz: [0, 0, 0.4]}}
+types:
+  Table:
+    observed: true
+    geometry: {box: {size: [1, 1, 0.8]}}
+    body: {static: true}
+    and:
+      - {child: Cup, translation: {offset: [0, 0, 0.5]}}
+      - {child: Cup_collision_0, translation: {offset: [0.3, 0, 0.6]}}
+      - {child: world, translation: {offset: [-0.3, 0, 0.6]}}
+      - {child: _empty, translation: {offset: [-0.3, 0.2, 0.6]}}
+      - {child: __model__, translation: {offset: [0.3, 0.2, 0.6]}}
+      - {child: Mark, translation: {offset: [-0.3, -0.2, 0.6]}}
+  Cup: {observed: true, geometry: {mesh: {file: cube.obj}}}
+  Cup_collision_0: {observed: true, geometry: {mesh: {file: ball.obj}}}
+  world: {observed: true, geometry: {sphere: {radius: 0.05}}}
+  _empty: {observed: true, geometry: {box: {size: [0.2, 0.2, 0.2]}}}
+  __model__: {observed: true, geometry: {box: {size: [0.1, 0.1, 0.1]}}}
+  Mark: {observed: true}
+"""
+
+
+def clash_scenes(tmp_path: Path, text: str = CLASH) -> tuple[Path, Path]:
+    import trimesh
+
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box([0.05] * 3).export(tmp_path / "cube.obj")
+    trimesh.creation.icosphere(radius=0.1).export(tmp_path / "ball.obj")
+    grammar = tmp_path / "g.yaml"
+    grammar.write_text(text)
+    scenes = tmp_path / "scenes"
+    assert run("sample", grammar, "-n", 1, "-o", scenes, "-q").exit_code == 0
+    return grammar, scenes
+
+
+def test_type_names_that_look_like_export_file_names_keep_their_own_shapes(tmp_path: Path):
+    """A type `Cup_collision_0` shared a file with Cup's first convex piece (MuJoCo refused the
+    repeated mesh name; Drake took the ball for the cube), a type `_empty` had its model
+    replaced by the one of objects without geometry, and types `world` and `__model__` wrote
+    model names SDFormat reserves (Drake refused them)."""
+    import mujoco
+    from pydrake.multibody.parsing import LoadModelDirectives, Parser, ProcessModelDirectives
+    from pydrake.multibody.plant import MultibodyPlant
+
+    grammar, scenes = clash_scenes(tmp_path)
+    for fmt in ("dmd", "sdf", "mjcf"):
+        result = run("export", scenes, "-g", grammar, "-f", fmt, "-o", tmp_path / fmt, "-q")
+        assert result.exit_code == 0, result.output
+    mujoco.MjModel.from_xml_path(str(next((tmp_path / "mjcf").glob("*.xml"))))
+    masses = {  # of density 1000: a 5 cm cube, a 10 cm ball (icosphere), a 20 cm box
+        "Cup_1": 0.125,
+        "Cup_collision_0_2": 4.15,
+        "_empty_4": 8.0,
+    }
+    plant = MultibodyPlant(0.0)
+    parser = Parser(plant)
+    parser.package_map().AddPackageXml(str(tmp_path / "dmd" / "package.xml"))
+    directives = LoadModelDirectives(str(next((tmp_path / "dmd").glob("*.dmd.yaml"))))
+    ProcessModelDirectives(directives, plant, parser)
+    sdf_plant = MultibodyPlant(0.0)
+    Parser(sdf_plant).AddModels(str(next((tmp_path / "sdf").glob("*.sdf"))))
+    for p in (plant, sdf_plant):
+        for name, mass in masses.items():
+            body = p.GetBodyByName("body", p.GetModelInstanceByName(name))
+            assert body.default_mass() == pytest.approx(mass, rel=0.01), name
+    import trimesh
+
+    cube_piece = trimesh.load(tmp_path / "sdf" / "meshes" / "Cup.collision.0.obj")
+    np.testing.assert_allclose(cube_piece.extents, [0.05] * 3, rtol=1e-6)
+
+
+def test_a_scene_named_as_sdformat_reserves_loads_in_drake(tmp_path: Path) -> None:
+    """`<world name="world">` (a scene called `world`, or `__x__`) was refused by Drake."""
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    grammar, _ = clash_scenes(tmp_path)
+    for name in ("world", "__model__"):
+        scene = tmp_path / f"{name}.json"
+        objects = [{"type": "Table", "pose": {"xyz": [0, 0, 0.4]}}]
+        scene.write_text(json.dumps({"name": name, "objects": objects}))
+        out = tmp_path / f"sdf_{name}"
+        assert run("export", scene, "-g", grammar, "-f", "sdf", "-o", out, "-q").exit_code == 0
+        plant = MultibodyPlant(0.0)
+        Parser(plant).AddModels(str(next(out.glob("*.sdf"))))
+        assert plant.HasModelInstanceNamed("Table_0")
+
+
+def test_an_export_does_not_change_the_shared_files_of_scenes_already_there(tmp_path: Path):
+    """Scenes of another grammar exported into the same directory replaced the first ones'
+    meshes (their Cup became a ball) without a word.  Now nothing is written; the same
+    grammar's scenes can still be exported there again."""
+    first = tmp_path / "first"
+    grammar, scenes = clash_scenes(first)
+    other_grammar, other_scenes = clash_scenes(
+        tmp_path / "other", CLASH.replace("clash", "other").replace("cube.obj", "ball.obj")
+    )
+    out = tmp_path / "out"
+    for fmt in ("sdf", "dmd", "mjcf"):
+        assert run("export", scenes, "-g", grammar, "-f", fmt, "-o", out / fmt).exit_code == 0
+        before = {p: p.read_bytes() for p in (out / fmt).rglob("*") if p.is_file()}
+        result = run("export", other_scenes, "-g", other_grammar, "-f", fmt, "-o", out / fmt)
+        assert result.exit_code == 1, result.output
+        assert "Cup.obj: error: already holds a different version" in result.output
+        after = {p: p.read_bytes() for p in (out / fmt).rglob("*") if p.is_file()}
+        assert after == before
+        assert run("export", scenes, "-g", grammar, "-f", fmt, "-o", out / fmt).exit_code == 0

@@ -70,3 +70,64 @@ def test_names_with_distinct_file_names_all_export(tmp_path: Path) -> None:
         "a_c.glb",
         "hidden.glb",
     ]
+
+
+def test_names_that_reorder_or_are_not_text_are_escaped() -> None:
+    """A right-to-left override showed `report\u202efdp.exe` as `reportexe.pdf`; U+FFFF is no
+    character (XML and YAML files cannot hold it)."""
+    from ssgc.errors import Diagnostic, one_line
+
+    assert one_line("report\u202efdp.exe") == "report\\u202efdp.exe"
+    assert one_line("n\uffff\u2066") == "n\\uffff\\u2066"
+    assert one_line("café 日本 👩\u200d🔬") == "café 日本 👩\u200d🔬"  # a joiner is text
+    forged = str(Diagnostic("real", "d/x\x1b[2J\nt.yaml", 1, 1))
+    assert forged == "d/x\\x1b[2J\\nt.yaml:1:1: error: real"
+
+
+@pytest.mark.parametrize("name", ["n\uffff", "x\u202egnp.exe"])
+def test_a_scene_name_that_is_not_plain_text_is_refused(tmp_path: Path, name: str) -> None:
+    scenes = named_scenes(tmp_path, name)
+    result = run("render", scenes, "-o", tmp_path / "r.svg", "-g", DIMSUM)
+    assert result.exit_code == 1 and "one line of printable text" in result.output
+    assert not (tmp_path / "r.svg").exists()
+
+
+def test_a_scene_named_by_an_odd_file_name_gets_it_escaped(tmp_path: Path) -> None:
+    """A scene without "name" is named by its file, whose name was not checked: escapes
+    reached the terminal, and `ssg settle` wrote scenes its own reader refused."""
+    scenes = named_scenes(tmp_path, "x")
+    odd = scenes / "evil\x1b[2J\nfake: error: x.json"
+    doc = json.loads((scenes / "s0.json").read_text())
+    del doc["name"]
+    odd.write_text(json.dumps(doc))
+    (scenes / "s0.json").unlink()
+    shown = "evil\\x1b[2J\\nfake: error: x"
+    result = run("explain", scenes, "-g", DIMSUM)
+    assert result.exit_code == 0, result.output
+    assert "\x1b" not in result.output and shown in result.output
+    settled = tmp_path / "settled"
+    result = run("settle", scenes, "-g", DIMSUM, "-o", settled, "-q", "--max-time", "0.05")
+    assert result.exit_code in (0, 2), result.output
+    from ssgc.compile import load_grammar
+    from ssgc.io.scene import load_scenes
+
+    assert [s.name for s in load_scenes(settled, load_grammar(DIMSUM))] == [shown]
+    parsed = tmp_path / "p.json"
+    assert run("parse", scenes, "-g", DIMSUM, "-o", parsed, "-q").exit_code == 0
+    assert run("export", parsed, "-g", DIMSUM, "-f", "glb", "-o", tmp_path / "e").exit_code == 0
+    result = run("render", scenes, "-o", tmp_path / "r.svg", "-g", DIMSUM)
+    assert result.exit_code == 0, result.output
+    import xml.etree.ElementTree as ET
+
+    ET.parse(tmp_path / "r.svg")
+
+
+def test_a_parse_result_with_a_name_that_is_not_text_is_refused(tmp_path: Path) -> None:
+    scenes = named_scenes(tmp_path, "x")
+    parsed = tmp_path / "p.json"
+    assert run("parse", scenes, "-g", DIMSUM, "-o", parsed, "-q").exit_code == 0
+    doc = json.loads(parsed.read_text())
+    doc["scenes"][0]["name"] = "a\x1b[31mb"
+    parsed.write_text(json.dumps(doc))
+    result = run("render", parsed, "-o", tmp_path / "r.svg")
+    assert result.exit_code == 1 and "one line of printable text" in result.output, result.output

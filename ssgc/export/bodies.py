@@ -79,16 +79,23 @@ def obj_text(mesh: object) -> str:
     )
 
 
+def collision_piece(type_name: str, k: int) -> str:
+    """The name of convex piece `k` of a type's mesh (its OBJ file without `.obj`, and its
+    MJCF mesh asset).  The dots keep it apart from every type's own name, which has none: a
+    type called `Cup_collision_0` would otherwise share a file with Cup's first piece."""
+    return f"{type_name}.collision.{k}"
+
+
 def mesh_files(scene: SceneBodies, folder: str = "meshes") -> dict[str, str]:
     """The OBJ files the formats that reference meshes need: `TYPE.obj` for the visual
-    surface of a mesh type and `TYPE_collision_K.obj` for its convex pieces."""
+    surface of a mesh type and `TYPE.collision.K.obj` for its convex pieces."""
     files = {}
     for shape in used_shapes(scene):
         if shape.kind != "mesh":
             continue
         files[f"{folder}/{shape.type}.obj"] = obj_text(shape.mesh)
         for k, piece in enumerate(shape.collision):
-            files[f"{folder}/{shape.type}_collision_{k}.obj"] = obj_text(piece)
+            files[f"{folder}/{collision_piece(shape.type, k)}.obj"] = obj_text(piece)
     return files
 
 

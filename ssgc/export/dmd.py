@@ -21,6 +21,8 @@ from ssgc.geometry import quat_to_rpy
 
 SUFFIX = ".dmd.yaml"
 PACKAGE = "ssgc_export"
+# The model of an object without geometry: a name no type can have (type names have no "-").
+EMPTY = "no-geometry"
 PACKAGE_XML = f"""<?xml version="1.0"?>
 <package format="2">
   <name>{PACKAGE}</name>
@@ -44,7 +46,7 @@ def _transform(xyz: np.ndarray, quat: np.ndarray) -> str:
 def _directives(body: Body) -> list[str]:
     model = f"package://{PACKAGE}/models/{body.type}.sdf"
     if body.shape is None:
-        model = f"package://{PACKAGE}/models/_empty.sdf"
+        model = f"package://{PACKAGE}/models/{EMPTY}.sdf"
     out = [f"- add_model:\n    name: {body.name}\n    file: {model}"]
     if body.fixed:
         out.append(
@@ -60,6 +62,9 @@ def _directives(body: Body) -> list[str]:
 
 
 def _model_file(name: str, link: str) -> str:
+    """A type's model.  `add_model` names each instance, so the name inside only has to be a
+    name SDFormat accepts: `world` and `__x__` are reserved, and a type may be called that."""
+    name = f"{name}_model"
     return (
         f'<?xml version="1.0"?>\n<sdf version="1.9" xmlns:drake="{DRAKE_NS}">\n'
         f'  <model name="{name}">\n{link}\n  </model>\n</sdf>\n'
@@ -79,6 +84,6 @@ def files(scene: SceneBodies) -> dict[str, str | bytes]:
     for shape in used_shapes(scene):
         out[f"models/{shape.type}.sdf"] = _model_file(shape.type, link_xml(shape, "meshes", "    "))
     if any(b.shape is None for b in scene.bodies):
-        out["models/_empty.sdf"] = _model_file("empty", link_xml(None, "meshes", "    "))
+        out[f"models/{EMPTY}.sdf"] = _model_file("empty", link_xml(None, "meshes", "    "))
     out.update(mesh_files(scene, "models/meshes"))
     return out

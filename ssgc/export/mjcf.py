@@ -13,7 +13,14 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from ssgc.assets import Shape
-from ssgc.export.bodies import Body, SceneBodies, mesh_files, principal_axes, used_shapes
+from ssgc.export.bodies import (
+    Body,
+    SceneBodies,
+    collision_piece,
+    mesh_files,
+    principal_axes,
+    used_shapes,
+)
 from ssgc.geometry import matrix_to_quat
 
 SUFFIX = ".xml"
@@ -46,7 +53,7 @@ def _geoms(shape: Shape) -> list[str]:
         'contype="0" conaffinity="0"/>'
     ]
     out += [
-        f'<geom name="{{}}_collision_{k}" type="mesh" mesh="{shape.type}_collision_{k}" '
+        f'<geom name="{{}}_collision_{k}" type="mesh" mesh="{collision_piece(shape.type, k)}" '
         f'group="3" {CONTACT}/>'
         for k in range(len(shape.collision))
     ]
@@ -80,7 +87,7 @@ def mjcf_text(
     for shape in used_shapes(scene):
         if shape.kind == "mesh":
             assets.append(f'    <mesh name="{shape.type}" file="{shape.type}.obj"/>')
-            pieces = [f"{shape.type}_collision_{k}" for k in range(len(shape.collision))]
+            pieces = [collision_piece(shape.type, k) for k in range(len(shape.collision))]
             assets += [f'    <mesh name="{p}" file="{p}.obj"/>' for p in pieces]
     ground = [f'    <geom name="floor" type="plane" size="0 0 1" {CONTACT}/>'] if floor else []
     return "\n".join(

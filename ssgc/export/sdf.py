@@ -12,7 +12,7 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 
 from ssgc.assets import Shape
-from ssgc.export.bodies import Body, SceneBodies, mesh_files
+from ssgc.export.bodies import Body, SceneBodies, collision_piece, mesh_files
 from ssgc.geometry import quat_to_rpy
 
 SUFFIX = ".sdf"
@@ -67,7 +67,7 @@ def link_xml(shape: Shape | None, meshes: str, indent: str = "      ") -> str:
             f"{geometry_xml(shape, '')}</geometry></collision>"
         )
     for k in range(len(shape.collision)):
-        uri = f"{meshes}/{shape.type}_collision_{k}.obj"
+        uri = f"{meshes}/{collision_piece(shape.type, k)}.obj"
         lines.append(
             f'{indent}  <collision name="collision_{k}"><geometry>{geometry_xml(shape, uri)}'
             f"</geometry><drake:declare_convex/></collision>"
@@ -88,6 +88,13 @@ def model_xml(body: Body, meshes: str) -> str:
     )
 
 
+def world_name(name: str) -> str:
+    """The scene's name, unless SDFormat reserves it (`world`, and any `__x__`), as a scene
+    name may be: then `NAME_scene`, which it does not."""
+    reserved = name == "world" or (name.startswith("__") and name.endswith("__"))
+    return f"{name}_scene" if reserved else name
+
+
 def files(scene: SceneBodies) -> dict[str, str | bytes]:
     """`NAME.sdf` and the OBJ files it names, relative to the output directory."""
     meshes = "meshes"  # shared by every scene exported to the same directory
@@ -95,7 +102,7 @@ def files(scene: SceneBodies) -> dict[str, str | bytes]:
         [
             '<?xml version="1.0"?>',
             f'<sdf version="1.9" xmlns:drake="{DRAKE_NS}">',
-            f"  <world name={quoteattr(scene.name)}>",
+            f"  <world name={quoteattr(world_name(scene.name))}>",
             *(model_xml(b, meshes) for b in scene.bodies),
             "  </world>",
             "</sdf>",

@@ -6,7 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from ssgc.errors import Diagnostic, SsgError
 from ssgc.export import export_files, main_file, scene_bodies
+from ssgc.export.bodies import SceneBodies
 from ssgc.io.atomic import write_bytes_atomic, write_text_atomic
 from ssgc.io.outputs import check_directory
 from ssgc.io.scene import Scene, scene_stem
@@ -35,3 +37,36 @@ def export_scene(g: Grammar, scene: Scene, shapes: dict[int, Any], fmt: str, out
     main = main_file(out_dir, bodies, fmt)
     write_files(out_dir, files, main.name)
     return main
+
+
+def refuse_changed_shared_files(
+    g: Grammar, scenes: list[Scene], shapes: dict[int, Any], fmt: str, out_dir: Path
+) -> None:
+    """Refuse, before anything is written, to change a mesh or model file already in `out_dir`.
+
+    Those files are per type and shared by every scene of the directory: scenes of another
+    grammar with a type of the same name, exported there earlier, would silently take this
+    grammar's shapes.  One stand-in scene with a body of every type the scenes use (and one
+    without geometry, if any has none) gives every shared file this export would write.
+    """
+    if not out_dir.is_dir():
+        return
+    bodies = {}
+    for scene in scenes:
+        for body in scene_bodies(g, scene, shapes).bodies:
+            bodies.setdefault(body.type if body.shape is not None else None, body)
+    stand_in = SceneBodies("stand-in", g.name, tuple(bodies.values()))
+    main = main_file(out_dir, stand_in, fmt).name
+    changed = []
+    for rel, data in export_files(stand_in, fmt).items():
+        path = out_dir / rel
+        new = data if isinstance(data, bytes) else data.encode("utf-8")
+        if rel != main and path.is_file() and path.read_bytes() != new:
+            changed.append(rel)
+    if changed:
+        why = (
+            "already holds a different version of this file, which the scenes exported here "
+            "before may use (another grammar's, or this grammar's before it changed); export "
+            "into another directory, or remove it first"
+        )
+        raise SsgError([Diagnostic(why, str(out_dir / rel)) for rel in sorted(changed)])

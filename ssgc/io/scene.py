@@ -242,7 +242,8 @@ def read_scene_file(path: str | Path, grammar: Grammar) -> Scene:
     """Read one JSON scene; every mistake becomes a located `SceneError`."""
     path = Path(path)
     text = read_text(path, MAX_SCENE_BYTES, "scene file")
-    return parse_scene_text(text, str(path), grammar, default_name=path.stem)
+    # a file's name is not checked as a scene's "name" is: it gets its odd characters escaped
+    return parse_scene_text(text, str(path), grammar, default_name=one_line(path.stem))
 
 
 def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str = "scene") -> Scene:

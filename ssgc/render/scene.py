@@ -23,13 +23,20 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
-from ssgc.errors import SceneError, SsgError, SsgWarning
+from ssgc.errors import SceneError, SsgError, SsgWarning, one_line
 from ssgc.geometry import quat_to_matrix, rpy_to_quat
 from ssgc.io.outputs import Output, write_output_bytes
 from ssgc.io.outputs import check_output as check_output_path
-from ssgc.io.scene import MAX_SCENE_BYTES, SceneDoc, ScenePose, TreeDoc, load_scenes
+from ssgc.io.scene import (
+    MAX_SCENE_BYTES,
+    SceneDoc,
+    ScenePose,
+    TreeDoc,
+    load_scenes,
+    name_problem,
+)
 from ssgc.ir import Grammar, HoldsGrammar, as_ir
 from ssgc.yamlio import load_located, read_text, validation_diagnostics
 
@@ -169,9 +176,8 @@ def document_views(
         views = _parse_views(_validated(_ParseDoc, data, text, path), grammar, path)
         return [_drawable(v, path) for v in views]
     if isinstance(data, dict) and "objects" in data:
-        return [
-            _drawable(_doc_view(_validated(SceneDoc, data, text, path), grammar, path.stem), path)
-        ]
+        doc = _validated(SceneDoc, data, text, path)
+        return [_drawable(_doc_view(doc, grammar, one_line(path.stem)), path)]
     raise SceneError.single(
         "not a scene (a JSON object with `objects`) or an `ssg parse` result (with `scenes`)",
         str(path),
@@ -206,6 +212,14 @@ class _ParsedScene(_Loose):
     name: str = "scene"
     status: str = ""
     parses: list[_Parse] = []
+
+    @field_validator("name")
+    @classmethod
+    def _printable_name(cls, name: str) -> str:
+        problem = name_problem(name)
+        if problem:
+            raise ValueError(problem)
+        return name
 
 
 class _ParseDoc(_Loose):
