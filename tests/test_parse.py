@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import replace
 
@@ -277,3 +278,30 @@ def test_the_highs_banner_never_reaches_standard_output(
     print("after", flush=True)
     assert result.best is not None
     assert capfd.readouterr().out == "before\nafter\n"
+
+
+def test_objects_at_one_pose_are_parsed_as_two():
+    """Two mugs (or discs) at exactly one pose were one candidate: the scene was proven
+    infeasible, and with a bowl beside them a worse tree was certified optimal."""
+    from ssgc.compile import load_grammar
+    from ssgc.io.scene import parse_scene_text
+    from ssgc.parse.parser import Parser
+
+    g = load_grammar(GRAMMARS / "sink.yaml")
+    mug = "MugColeHardwareClassicBlue"
+    bowl = next(t.name for t in g.types if t.observed and "Bowl" in t.name)
+
+    def scene(mugs, with_bowl):
+        objects = [{"type": "DishBin", "pose": {"xyz": [0.5, 0, 0]}}]
+        objects += [{"type": mug, "pose": {"xyz": [0.5, 0, z]}} for z in mugs]
+        if with_bowl:
+            objects.append({"type": bowl, "pose": {"xyz": [0.5, 0.2, 0.1]}})
+        return parse_scene_text(json.dumps({"objects": objects}), "s.json", g)
+
+    for method in ("ip", "micp"):
+        parser = Parser(g, method=method)
+        for with_bowl in (False, True):
+            same = parser.parse(scene([0.1, 0.1], with_bowl))
+            near = parser.parse(scene([0.1, 0.1 + 2e-6], with_bowl))
+            assert same.status == near.status == "optimal", (method, with_bowl, same.status)
+            assert same.parses[0].score == pytest.approx(near.parses[0].score, abs=1e-4)

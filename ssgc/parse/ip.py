@@ -214,23 +214,36 @@ class _Reduction:
         self.cand_xyz[self.root_set] = self.g.root_xyz.reshape(1, 3).copy()
         self.cand_quat[self.root_set] = self.g.root_quat.reshape(1, 4).copy()
         self.latent_sets = np.flatnonzero(latent)
+        self.cand_nodes: list[list[set[int]]] = [[] for _ in range(n_sets)]
+        self.cand_nodes[self.root_set] = [set()]
         for n, objs, t, q in implied_set_poses(self.g, st, scene):
             e = int(st.set_of[n])
             for o, ti, qi in zip(objs, t, q, strict=True):
-                k = self._candidate_index(e, ti, qi, add=(e != self.root_set))
+                k = self._candidate_index(e, n, ti, qi, add=(e != self.root_set))
                 if k >= 0:
                     self.pairs.append((n, int(o), k))
 
-    def _candidate_index(self, e: int, t: FloatArray, q: FloatArray, add: bool) -> int:
+    def _candidate_index(self, e: int, n: int, t: FloatArray, q: FloatArray, add: bool) -> int:
+        """The candidate pose of set `e` that puts node `n` on an object at (t, q).
+
+        Objects of different nodes at one set pose share the candidate (one instance of the
+        set explains them all), but two objects that put the same node at the same pose need a
+        candidate each: two mugs at one pose are two copies, not one (the scene was called
+        infeasible)."""
         xyz, quat = self.cand_xyz[e], self.cand_quat[e]
         if len(xyz):
             same = (np.linalg.norm(xyz - t, axis=1) <= POS_TOL) & (quat_angle(quat, q) <= ROT_TOL)
-            if np.any(same):
+            free = [k for k in np.flatnonzero(same).tolist() if n not in self.cand_nodes[e][k]]
+            if free:
+                self.cand_nodes[e][free[0]].add(n)
+                return free[0]
+            if np.any(same) and not add:
                 return int(np.argmax(same))
         if not add:
             return -1
         self.cand_xyz[e] = np.vstack([xyz, t])
         self.cand_quat[e] = np.vstack([quat, q])
+        self.cand_nodes[e].append({n})
         return len(xyz)
 
     def prune(self) -> None:

@@ -149,11 +149,11 @@ def candidate_poses(
     e = st.set_of[node]
     order = np.argsort(e, kind="stable")  # per set, in node then object order
     check_deadline(deadline)
-    e, xyz, quat = e[order], xyz[order], quat[order]
+    e, node, xyz, quat = e[order], node[order], xyz[order], quat[order]
     sets, starts = np.unique(e, return_index=True)
     ends = np.r_[starts[1:], len(e)][: len(starts)]
     for s, lo, hi in zip(sets.tolist(), starts.tolist(), ends.tolist(), strict=True):
-        keep = _first_distinct(xyz[lo:hi], quat[lo:hi], deadline)
+        keep = _first_distinct(xyz[lo:hi], quat[lo:hi], node[lo:hi], deadline)
         cand.xyz[s], cand.quat[s] = xyz[lo:hi][keep], quat[lo:hi][keep]
     root_set = int(st.set_of[0])  # the root's set has exactly one pose
     cand.xyz[root_set] = grammar.root_xyz.reshape(1, 3).copy()
@@ -192,16 +192,29 @@ def _implied_poses(
     return node, xyz, quat
 
 
-def _first_distinct(xyz: FloatArray, quat: FloatArray, deadline: float | None) -> IntArray:
-    """Indices of the poses not within the pose tolerances of an earlier one.  The near
-    pairs come from the sorted sweep of `Candidates.add`: a wide `repeat` of a 1,000-object
-    scene has a thousand sets of a thousand poses each, and comparing every pair of each set
-    took 25 s of CPU."""
+def _first_distinct(
+    xyz: FloatArray, quat: FloatArray, node: IntArray, deadline: float | None
+) -> IntArray:
+    """Indices of the poses a set keeps as its candidates: as many at one pose as the node
+    with the most objects there needs.
+
+    Objects of two nodes at one set pose share a candidate (one instance of the set explains
+    both), but two objects that put one node at one pose need two instances: two mugs at the
+    same pose were one candidate, and the scene was proven infeasible.  So a pose is the
+    r-th of its node there (its rank: how many earlier poses of its node are within the
+    tolerances), and is dropped when an earlier pose of another node has the same rank.  The
+    near pairs come from the sorted sweep of `Candidates.add`: a wide `repeat` of a
+    1,000-object scene has a thousand sets of a thousand poses each, and comparing every
+    pair of each set took 25 s of CPU."""
     check_deadline(deadline)
     i, j = near_earlier(xyz, 0)
     same = quat_angle(quat[i], quat[j]) <= ROT_TOL
+    i, j = i[same], j[same]
+    one_node = node[i] == node[j]
+    rank = np.bincount(j[one_node], minlength=len(xyz))
+    taken = ~one_node & (rank[i] == rank[j])
     drop = np.zeros(len(xyz), bool)
-    drop[j[same]] = True
+    drop[j[taken]] = True
     return np.flatnonzero(~drop)
 
 
