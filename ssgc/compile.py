@@ -578,6 +578,7 @@ def rule_probs(
             if whole:
                 report.error((*loc, key), "the weights `p` of an `or` sum to zero")
             return np.full(len(specs), 1.0 / len(specs))
+        weights = weights / weights.max()  # two weights of 1e308 sum to inf
         return weights / weights.sum()
     return np.zeros(0)
 

@@ -144,10 +144,10 @@ def _noise_of_types(spec: dsl.ObservationSpec, g: Observed, report: Report) -> d
 def _noise(n: dsl.NoiseSpec, loc: Loc, report: Report) -> Noise:
     rotation = np.deg2rad(n.rotation_deg)
     if rotation > 0 and 2.0 / rotation**2 > MAX_CONCENTRATION:
-        least = np.rad2deg(np.sqrt(2.0 / MAX_CONCENTRATION))
+        least = np.ceil(np.rad2deg(np.sqrt(2.0 / MAX_CONCENTRATION)) * 1e4) / 1e4  # 0.8103
         report.error(
             (*loc, "rotation_deg"),
-            f"rotation noise must be 0 or at least {least:.2f}° (a Bingham concentration "
+            f"rotation noise must be 0 or at least {least:.4f}° (a Bingham concentration "
             f"of at most {MAX_CONCENTRATION:g}), got {n.rotation_deg:g}°",
         )
         rotation = 0.0

@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 from textwrap import dedent, indent
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -1381,3 +1382,19 @@ def _located(load) -> str | None:
     except SsgError as exc:
         return str(exc)
     return None
+
+
+def test_or_weights_whose_sum_overflows_are_normalised():
+    """Two weights of 1e308 summed to inf: every probability became 0, sampled scenes had a
+    NaN log-probability, and parse divided by zero."""
+    from ssgc.sample.forward import sample_trees
+
+    g = compile_text(
+        "grammar: big\nroot: {type: R}\ntypes:\n"
+        "  R: {or: [{child: A, p: 1e308}, {child: B, p: 1e308}]}\n"
+        "  A: {observed: true}\n  B: {observed: true}\n",
+        "big.yaml",
+    )
+    assert g.types[g.type_ids["R"]].probs.tolist() == [0.5, 0.5]
+    _, log_p = sample_trees(g, 4, 0)
+    assert np.allclose(log_p, np.log(0.5))

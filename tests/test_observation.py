@@ -4,6 +4,7 @@ on observed poses and clutter objects (issue 16, item 4)."""
 from __future__ import annotations
 
 import json
+import re
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -198,7 +199,7 @@ def test_without_clutter_the_extra_object_is_named():
     [
         ("observation:\n  noise:\n    Fork: {position: 0.01}\n", "not a type of this grammar"),
         ("observation:\n  noise:\n    Table: {position: 0.01}\n", "not an observed type"),
-        ("observation:\n  noise:\n    Mug: {rotation_deg: 0.1}\n", "at least 0.81°"),
+        ("observation:\n  noise:\n    Mug: {rotation_deg: 0.1}\n", "at least 0.8103°"),
         ("observation:\n  noise:\n    Mug: {position: -1}\n", "greater than or equal to 0"),
         ("observation:\n  noise:\n    Mug: {sigma: 1}\n", "unknown key 'sigma'"),
         (
@@ -217,6 +218,14 @@ def test_observation_mistakes_are_located(section, words):
     errors = errors_of(section)
     assert any(words in e for e in errors), errors
     assert all(e.startswith("dinner.yaml:") and e.split(":")[1].isdigit() for e in errors)
+
+
+def test_the_least_rotation_noise_the_message_names_is_accepted():
+    """The message said "at least 0.81°" and refused 0.81 (the limit is 0.81028°)."""
+    errors = errors_of("observation:\n  noise:\n    Mug: {rotation_deg: 0.81}\n")
+    least = re.search(r"at least ([0-9.]+)°", " ".join(errors)).group(1)
+    assert least == "0.8103"
+    with_section(f"observation:\n  noise:\n    Mug: {{rotation_deg: {least}}}\n")
 
 
 def test_validate_cli_names_the_place(tmp_path: Path):

@@ -143,10 +143,17 @@ def _problem(terms, rot: Rotating) -> _Problem:  # type: ignore[no-untyped-def]
 
 
 def _solve(S: FloatArray, b: FloatArray) -> FloatArray:
-    """S⁻¹ b, with S = 0 (no Normal term at all) read as the identity (any s is best)."""
+    """S⁻¹ b, with S = 0 (no Normal term at all) read as the identity (any s is best).
+
+    Precisions of very different scales (variances of 1e-12 and 1e6 in one law) can make S
+    singular in floating point; b = Σ Pᵢ μᵢ lies in the range of S, so the pseudo-inverse
+    gives the maximiser there (the solve raised LinAlgError: an internal error)."""
     empty = np.trace(S, axis1=1, axis2=2) <= 0.0
     S = S + empty[:, None, None] * np.eye(3)
-    return np.linalg.solve(S, b[..., None])[..., 0]
+    try:
+        return np.linalg.solve(S, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return (np.linalg.pinv(S, hermitian=True) @ b[..., None])[..., 0]
 
 
 BOX_SWEEPS = 40  # coordinate-ascent sweeps for the best position in a box
