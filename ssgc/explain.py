@@ -39,7 +39,7 @@ from ssgc.errors import Diagnostic, SsgError
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
-from ssgc.laws.base import Context, Deviation, Frame, percent
+from ssgc.laws.base import POS_TOL, ROT_TOL, Context, Deviation, Frame, percent
 from ssgc.observation import clutter_nodes
 from ssgc.overlaps import overlaps
 from ssgc.rules import (
@@ -62,6 +62,10 @@ MC_DRAWS = 4000  # draws per rule for expected log-densities and rotation percen
 # (docs/explain.md "Cost"): enough for every object of the real sink scenes.
 EXPLAIN_BUDGET_S = 30.0
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+# nats: a type gain below this is no evidence that the object is of another type.  The text
+# shows gains to 0.1 nats, so a smaller one would read "+0.0 nats"; and swapping between
+# equally likely models leaves rounding noise (1e-14) that must not count as a gain.
+TYPE_GAIN_MIN = 0.05
 
 
 @dataclass
@@ -108,6 +112,14 @@ class ObjectExplanation:
     @property
     def label(self) -> str:
         return f"{self.type} #{self.index}"
+
+    @property
+    def type_evidence(self) -> float:
+        """The type gain as evidence for `unusual` and the text: 0 unless another type fits
+        better by at least TYPE_GAIN_MIN (rounding noise and ties are no reason)."""
+        if self.type_gain is None or self.type_gain < TYPE_GAIN_MIN:
+            return 0.0
+        return self.type_gain
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -175,9 +187,12 @@ class Explanation:
     reparse: Reparses | None = None  # the per-object re-parses (None: explained without)
 
     @property
-    def nats_per_object(self) -> float:
-        """−log p per observed object: comparable between scenes of different sizes."""
-        return -self.log_prob / max(1, len(self.objects))
+    def nats_per_object(self) -> float | None:
+        """−log p per observed object: comparable between scenes of different sizes.  None
+        for a scene without objects, which has nothing to divide its −log p among."""
+        if not self.objects:
+            return None
+        return -self.log_prob / len(self.objects)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -191,14 +206,15 @@ class Explanation:
         } | ({} if self.reparse is None else {"reparse": self.reparse.to_json()})
 
     def text(self, limit: int | None = None) -> str:
+        per = self.nats_per_object
+        per_text = "no objects" if per is None else f"{per:.3f} per object"
         lines = [
-            f"scene '{self.scene}': −log p = {-self.log_prob:.3f} "
-            f"({self.nats_per_object:.3f} per object); most unusual first:"
+            f"scene '{self.scene}': −log p = {-self.log_prob:.3f} ({per_text}); most unusual first:"
         ]
         for o in self.objects[:limit]:
             clutter = " UNEXPLAINED (clutter)," if o.unexplained else ""
             lines.append(f"  {o.label}:{clutter} unusual {o.unusual:.2f}, share {o.share:.3f}")
-            if o.type_gain is not None and o.type_gain > 0:
+            if o.type_evidence > 0:
                 lines.append(
                     f"    would fit its place better as a {o.better_type} (+{o.type_gain:.1f} nats)"
                 )
@@ -324,7 +340,7 @@ def explain_tree(
         objects[o].type_gain = fix.gain
         objects[o].better_type = grammar.types[fix.type].name
     for o in objects:  # the evidence that the object is not what or where the grammar expects
-        o.unusual = max(o.unusual, o.slot_surprise, o.type_gain or 0.0)
+        o.unusual = max(o.unusual, o.slot_surprise, o.type_evidence)
     for o, (nats, reasons) in overlap_reasons(grammar, scene, tree, obj_of).items():
         objects[o].overlap = nats
         objects[o].unusual += nats  # evidence from contact, apart from the grammar's densities
@@ -631,21 +647,24 @@ def pose_gains(grammar: Grammar, tree: Trees, obj_of: IntArray) -> dict[int, Rep
 def _block_gain(
     grammar: Grammar, tree: Trees, members: IntArray, top: int
 ) -> list[tuple[FloatArray, FloatArray, float]]:
-    """Rigid moves (shift, turn, gain) of a block that raise the score, best first."""
+    """Rigid moves (shift, turn, gain) of a block that raise the score, best first.  None for
+    the block of the tree's root: the grammar fixes the root's pose (docs/grammar.md, `root`),
+    so moving it would make the tree impossible, however much its children's edges gain.  (An
+    observed root with `observation: noise` is a noisy child of its own `~node`: it has a
+    parent, and its pose gain is its noise edge's.)"""
+    if tree.parent[top] < 0:
+        return []
     inside = np.zeros(len(tree), bool)
     inside[members] = True
     kids = np.flatnonzero((tree.parent >= 0) & ~inside & inside[np.maximum(tree.parent, 0)])
-    edges = np.r_[[top] if tree.parent[top] >= 0 else [], kids].astype(np.int64)
-    if len(edges) == 0:
-        return []
+    edges = np.r_[[top], kids].astype(np.int64)
     shifts, turns = [np.zeros(3)], [IDENTITY]
     x0, q0 = tree.xyz[top], tree.quat[top]
-    if tree.parent[top] >= 0:
-        p, r = tree.parent[top], int(tree.rule[top])
-        shifts.append(_mode_position(grammar, r, tree.xyz[p], tree.quat[p]) - x0)
-        mode = _mode_rotation(grammar, r, tree.quat[p])
-        if mode is not None:
-            turns.append(quat_multiply(mode, quat_conjugate(q0)))
+    p, r = tree.parent[top], int(tree.rule[top])
+    shifts.append(_mode_position(grammar, r, tree.xyz[p], tree.quat[p]) - x0)
+    mode = _mode_rotation(grammar, r, tree.quat[p])
+    if mode is not None:
+        turns.append(quat_multiply(mode, quat_conjugate(q0)))
     for c in kids:
         p, r = tree.parent[c], int(tree.rule[c])
         frame = grammar.rules[r].translation.frame
@@ -801,8 +820,10 @@ def _is_root_object(grammar: Grammar, scene: Scene, o: int) -> bool:
 
 
 def _swap_scores(grammar: Grammar, tree: Trees, obj_of: IntArray) -> dict[int, dict[int, float]]:
-    """Score of the tree with one object's leaf swapped for another leaf its parent `or`
-    could have chosen instead (all swaps scored as one batch)."""
+    """Score of the tree with one object's leaf swapped for a leaf of another type that its
+    parent `or` could have chosen instead (all swaps scored as one batch).  Rules of the `or`
+    that produce the object's own type (a mixture's components, as in `gmm`) are no other
+    type: the parse already chose the best of them."""
     tb = grammar.tables
     n = len(tree)
     has_kids = np.zeros(n, bool)
@@ -816,6 +837,8 @@ def _swap_scores(grammar: Grammar, tree: Trees, obj_of: IntArray) -> dict[int, d
             if r < 0 or r == tree.rule[m]:
                 continue
             c = tb.rule_child[r]
+            if c == tree.type[m]:  # the same type by another rule: not another type
+                continue
             if tb.type_observed[c] and np.all(tb.type_rules[c] < 0):  # another observed leaf
                 swaps.append((int(m), int(r), int(c)))
     if not swaps:
@@ -1112,11 +1135,18 @@ def diagnose(
         )
         if never:
             message += "; never produced by the grammar: " + ", ".join(names[o] for o in never)
+        off = _off_root(grammar, scene)
+        if off:
+            message += "; off the pose the grammar fixes: " + ", ".join(
+                f"{names[o]} ({why})" for o, why in off.items()
+            )
         try:  # too many objects (of types it makes): any of them may go, so none is named
             parser.check_capacity(_without(scene, never))
         except SsgError as exc:
             message += "; " + "; ".join(d.message for d in exc.diagnostics)
-        return Diagnosis(scene.name, never, {}, [], message)
+        message += _hint(grammar, list(off.values()))
+        reasons = {o: [why] for o, why in off.items()}
+        return Diagnosis(scene.name, never, reasons, [], message)
     found.sort(key=lambda f: -f[0])
     _, drop, tree = found[0]
     kept = np.setdiff1d(np.arange(len(scene)), drop)
@@ -1172,7 +1202,7 @@ def _hint(grammar: Grammar, reasons: list[str]) -> str:
     hints = []
     small = False
     for r in reasons:
-        m = re.search(r"(pinned axis \w|fixed offset) off by ([-+0-9.e]+) m", r)
+        m = re.search(r"(pinned axis \w|fixed offset|fixed position) off by ([-+0-9.e]+) m", r)
         d = re.search(r"fixed rotation off by ([0-9.e+-]+)°", r)
         small |= bool(m and abs(float(m.group(2))) <= SMALL_M)
         small |= bool(d and float(d.group(1)) <= SMALL_DEG)
@@ -1248,7 +1278,55 @@ def _why_not(
                 what = _failure(grammar, int(r), u[k], lt[k], lr[k], pq[k], q, tree, int(p))
                 out.append((float(dist[k]), f"{rule} from {kept_names[int(p)]}: {what}"))
     out.sort(key=lambda x: x[0])
+    fixed = _root_offset(grammar, scene, o)
+    if fixed is not None:  # no rule can place it: the grammar fixes its pose at the root's
+        return [fixed, *[s for _, s in out]]
     return [s for _, s in out] or [f"no rule produces a {grammar.types[t].name}"]
+
+
+def _off_root(grammar: Grammar, scene: Scene) -> dict[int, str]:
+    """The objects off the pose the grammar fixes for them (`_root_offset`), and by how much:
+    when no removal lets the scene parse (the root is not implied when the grammar's root is
+    `observation: clutter`'s `~scene`), they are still the likely cause."""
+    out = {}
+    for o in range(len(scene)):
+        fixed = _fixed_pose(grammar, int(scene.types[o]), scene.xyz[o], scene.quat[o])
+        if fixed is not None and (fixed[1] > POS_TOL or np.radians(fixed[2]) > ROT_TOL):
+            out[o] = _root_offset(grammar, scene, o) or ""
+    return out
+
+
+def _fixed_pose(
+    grammar: Grammar, t: int, xyz: FloatArray, quat: FloatArray
+) -> tuple[FloatArray, float, float] | None:
+    """Where the grammar fixes an object of type t at (xyz, quat) when it is the root or tied
+    to the root by fixed rules (the bin under `observation: clutter`'s `~scene`): that
+    position, and how far (m) and how much turned (°) the object is from that pose.  None
+    when no chain of fixed rules leads from the root to it."""
+    for vt, x, q in _fixed_ancestors(grammar, t, xyz, quat):
+        if vt == grammar.root:  # (x, q): the root's pose, were the object where it is
+            turn = quat_multiply(grammar.root_quat, quat_conjugate(q))
+            want_x = grammar.root_xyz + quat_rotate(turn, xyz - x)
+            angle = quat_angle(quat, quat_multiply(turn, quat))
+            return want_x, float(np.linalg.norm(xyz - want_x)), float(np.degrees(angle))
+    return None
+
+
+def _root_offset(grammar: Grammar, scene: Scene, o: int) -> str | None:
+    """Why object o cannot be where it is when the grammar fixes its pose (`_fixed_pose`):
+    no rule places it, so how far it lies from that pose, worded as the fixed laws word
+    theirs ("fixed rotation off by 3°"), so that `_hint` offers noise for a small offset."""
+    fixed = _fixed_pose(grammar, int(scene.types[o]), scene.xyz[o], scene.quat[o])
+    if fixed is None:
+        return None
+    (x, y, z), off, angle = fixed
+    what = "the grammar's root"
+    if int(scene.types[o]) != grammar.root:
+        what = "tied to the grammar's root by fixed rules"
+    where = f"{what}, fixed at ({x:.2f}, {y:.2f}, {z:.2f})"
+    parts = [f"fixed position off by {off:.3g} m"] if off > POS_TOL else []
+    parts += [f"fixed rotation off by {angle:.3g}°"] if np.radians(angle) > ROT_TOL else []
+    return f"{where}: " + (", ".join(parts) if parts else "it lies there")
 
 
 def _rigid(grammar: Grammar, r: int) -> bool:

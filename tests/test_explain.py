@@ -349,6 +349,40 @@ def test_a_model_swap_gains_the_ratio_of_the_model_probabilities(white):
     assert (by_index[2].better_type, by_index[3].better_type) == ("MugBlue", "MugWhite")
 
 
+def test_a_tie_between_equally_likely_models_is_no_type_gain():
+    """Under sensor noise, swapping a dish for another model of its category (each 1/3)
+    scores the same tree up to rounding (a gain of 1e-14): that is no reason, in the text or
+    in the ranking."""
+    noisy = compile_text((GRAMMARS / "sink.yaml").read_text() + NOISE)
+    tree = sample_trees(noisy, 1, 0)[0].tree(0)
+    scene = scene_from_tree(noisy, tree, "noisy")
+    e = explain_tree(noisy, scene, tree)
+    gains = [o.type_gain for o in e.objects if o.type_gain is not None]
+    assert any(0 < gain < 1e-9 for gain in gains)  # the rounding noise is there
+    assert "would fit its place better" not in e.text()
+    assert all(o.type_evidence == 0.0 for o in e.objects)
+
+
+def test_a_mixture_component_is_not_another_type(grammars):
+    """gmm's point is placed by one of three rules, all making a Point: another component
+    is no other type, so the point has no type gain (and no other type exists to try)."""
+    g = grammars["gmm.yaml"]
+    types = np.array([g.type_ids["Root"], g.type_ids["Point"]])
+    xyz = np.array([[0.0, 0.0, 0.0], [3.0, 3.0, 3.0]])
+    scene = Scene("far", types, xyz, np.tile([1.0, 0, 0, 0], (2, 1)))
+    point = next(o for o in explain(g, scene).objects if o.index == 1)
+    assert point.type_gain is None and point.better_type is None
+
+
+def test_an_empty_scene_has_no_per_object_figure(dinner):
+    """A scene without objects keeps its −log p in `unattributed`; nothing to divide by."""
+    empty = Scene("empty", np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)))
+    e = explain(dinner, empty)
+    assert e.unattributed == pytest.approx(-np.log(0.1))
+    assert e.nats_per_object is None and e.to_json()["nats_per_object"] is None
+    assert "per object" not in e.text() and "(no objects)" in e.text()
+
+
 # ------------------------------------------------------- no parse: the diagnosis ---
 
 
@@ -429,6 +463,73 @@ def test_a_missing_required_root_with_nothing_at_its_pose_names_no_object():
     scene = replace(scene, types=scene.types[1:], xyz=scene.xyz[1:], quat=scene.quat[1:])
     d = diagnose(g, scene)
     assert d.objects == [] and "no object lies where the Bin is" in d.message
+
+
+def test_the_fixed_root_has_no_pose_gain():
+    """The bin is the root, fixed at its pose: moving it toward a mug 1.5 m off would make
+    every tree impossible, so it gains nothing, and the far mug alone is to blame."""
+    g = compile_text(BIN)
+    e = explain(g, moved(bin_scene(g), 2, [0.0, 1.5, 0.0]))
+    by_index = {o.index: o for o in e.objects}
+    assert by_index[0].pose_gain == 0.0
+    assert by_index[0].unusual < 1.0
+    assert e.objects[0].index == 2 and by_index[2].pose_gain > 50
+
+
+def test_a_noisy_root_keeps_its_pose_gain():
+    """With `observation: noise` the observed bin is a noisy child of its own node at the
+    root's pose (docs/grammar.md, section 9): 1 cm off, 2σ of 5 mm, it gains about 2 nats."""
+    g = compile_text(BIN + NOISE)
+    e = explain(g, moved(bin_scene(g), 0, [0.01, 0.0, 0.0]))
+    bin_ = next(o for o in e.objects if o.index == 0)
+    assert bin_.pose_gain == pytest.approx(2.0, abs=0.01)
+
+
+NOISE = """
+observation:
+  noise:
+    default: {position: 0.005, rotation_deg: 2}
+"""
+
+
+@pytest.mark.parametrize(
+    ("by", "words"),
+    [
+        ([0.01, 0.0, 0.0], "fixed position off by 0.01 m"),
+        ([0.0, 0.0, 0.03], "fixed position off by 0.03 m"),
+    ],
+)
+def test_a_root_off_its_fixed_pose_is_named_with_the_offset(by, words):
+    """The bin 1 cm off the root's pose: no rule could place it, and the cause is the offset
+    (with the noise hint, since `observation: noise` lets the scene parse)."""
+    g = compile_text(BIN)
+    scene = moved(bin_scene(g), 0, by)
+    d = diagnose(g, scene)
+    assert d.objects == [0]
+    assert f"Bin #0 (the grammar's root, fixed at (0.50, 0.00, 0.00): {words})" in d.message
+    assert "no rule produces" not in d.message
+    assert "Hint: poses from a sensor are never exact" in d.message
+    assert Parser(compile_text(BIN + NOISE)).parse(scene).parses
+
+
+def test_a_turned_root_is_named_with_its_angle():
+    g = compile_text(BIN)
+    scene = bin_scene(g)
+    scene = replace(scene, quat=np.r_[rpy_to_quat(np.radians([[0, 0, 5]])), scene.quat[1:]])
+    d = diagnose(g, scene)
+    assert d.objects == [0] and "fixed rotation off by 5°" in d.reasons[0][0]
+    assert "Hint: poses from a sensor" in d.message
+
+
+def test_a_root_off_its_pose_is_named_when_no_removal_helps():
+    """Under `observation: clutter` the root is `~scene`, holding the bin by a fixed rule:
+    without the bin no tree parses (no root is implied), yet the bin's offset is the cause."""
+    clutter = "\nobservation:\n  clutter: {region: {min: [0, -1, -1], max: [1, 1, 1]}, "
+    g = compile_text(BIN + clutter + "rates: {Mug: 0.1}}\n")
+    d = diagnose(g, moved(bin_scene(g), 0, [0.01, 0.0, 0.0]))
+    assert "tied to the grammar's root by fixed rules, fixed at (0.50, 0.00, 0.00)" in d.message
+    assert "fixed position off by 0.01 m" in d.reasons[0][0]
+    assert "Hint: poses from a sensor" in d.message
 
 
 def test_parse_cli_names_the_object(dinner, tmp_path):
