@@ -17,17 +17,24 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from ruamel.yaml import YAML
+from ruamel.yaml.comments import merge_attrib
+from typer.testing import CliRunner
 
+from ssgc.cli.app import app
 from ssgc.compile import compile_text
+from ssgc.fit import writeback
 from ssgc.fit.writeback import (
     Loc,
     Orientation,
+    SharedValueConflict,
     Update,
     apply_updates,
     format_number,
     shared_nodes,
 )
 from ssgc.geometry import quat_canonical, rpy_to_quat
+from ssgc.io.scene import dumps_scene, scene_from_tree
+from ssgc.sample.forward import sample_trees
 
 ROOT = Path(__file__).resolve().parent.parent
 GRAMMARS = sorted((ROOT / "grammars").glob("*.yaml"))
@@ -290,6 +297,9 @@ def read_back(text: str) -> Any:
 def test_number_text_reads_back_as_the_rounded_float(x: float, digits: int) -> None:
     text = format_number(x, digits)
     expected = float(f"{x:.{digits}g}")
+    while 0 < x < 1 and not 0 < expected < 1:  # a probability keeps its outcomes possible
+        digits += 1
+        expected = float(f"{x:.{digits}g}")
     value = read_back(text)
     assert isinstance(value, float)
     if math.isinf(expected):  # rounding 1.8e308 up overflows: it is rounded down instead
@@ -378,8 +388,305 @@ def test_alias_written_once_and_conflict_refused() -> None:
         apply_updates(ALIASED, [Update(PATHS[0], {"p": 0.1}), Update(PATHS[1], {"p": 0.2})])
 
 
-def test_merged_key_is_written_at_its_anchor() -> None:
-    out = apply_updates(ALIASED, [Update(PATHS[2], {"mean": [0.5, 0.5, 0.5], "variance": 3.0})])
-    assert "&n {mean: [0.5, 0.5, 0.5], variance: 1.0}" in out
-    assert "{world_normal: {<<: *n, variance: 3.0}}" in out
+MERGED = """\
+grammar: g
+root: {type: R}
+types:
+  R:
+    and:
+      - child: A
+        translation: {world_normal: &n {mean: [0.0, 0.0, 0.0], variance: 1.0, pin: [z]}}
+      - child: A
+        translation: {world_normal: {<<: *n, mean: [2.0, 0.0, 0.0]}}
+  A: {}
+"""
+
+
+TWO = "{mean: [0.0, 0.0, 0.0], variance: 1.0}"
+THREE = "{mean: [0.0, 0.0, 0.0], variance: 1.0, pin: [z]}"
+
+
+@pytest.mark.parametrize(
+    ("anchored", "merging", "update", "after"),
+    [  # a number and a list, inherited from a block of 2 and of 3 keys
+        (TWO, "mean: [2.0, 0.0, 0.0]", {"variance": 3.0}, TWO.replace("1.0}", "3.0}")),
+        (THREE, "mean: [2.0, 0.0, 0.0]", {"variance": 3.0}, THREE.replace("1.0,", "3.0,")),
+        (
+            TWO,
+            "variance: 2.0",
+            {"mean": [0.5, 0.5, 0.5]},
+            TWO.replace("0.0, 0.0, 0.0", "0.5, 0.5, 0.5"),
+        ),
+        (
+            THREE,
+            "variance: 2.0",
+            {"mean": [0.5, 0.5, 0.0]},
+            THREE.replace("0.0, 0.0, 0.0", "0.5, 0.5, 0.0"),
+        ),
+    ],
+    ids=["number of 2 keys", "number of 3 keys", "list of 2 keys", "list of 3 keys"],
+)
+def test_merged_key_is_written_at_its_anchor(
+    anchored: str, merging: str, update: dict[str, Any], after: str
+) -> None:
+    """The merging block is fitted, the anchored one is not: the value it inherits is written
+    where it is written, at the anchor, and the merging block keeps its own keys only."""
+    text = MERGED.replace(THREE, anchored).replace("mean: [2.0, 0.0, 0.0]}", f"{merging}}}")
+    out = apply_updates(text, [Update(PATHS[1], update)])
+    assert out == text.replace(anchored, after)
+    tree = load(out)
+    for key, value in update.items():
+        assert at(tree, (*PATHS[0], key)) == at(tree, (*PATHS[1], key)) == value
     compile_text(out)
+
+
+def test_merged_key_is_found_in_both_ruamel_layouts() -> None:
+    """ruamel.yaml 0.19 keeps a mapping's `<<` sources as a list of mappings, older versions
+    as (position, mapping) pairs; a merged key is found at its source in either."""
+    tree = load("a: &a {x: 1.0, y: 2.0, z: 3.0}\nb: &b {w: 1.0}\nc: {<<: [*b, *a], x: 0.0}\n")
+    a, b, c = tree["a"], tree["b"], tree["c"]
+    for layout in ([b, a], [(0, b), (1, a)]):
+        setattr(c, merge_attrib, layout)
+        owners = [writeback._owner(c, key) for key in ("x", "y", "z", "w")]
+        assert all(o is m for o, m in zip(owners, (c, a, a, b), strict=True))
+    assert writeback._owner(a, "x") is a and not hasattr(a, merge_attrib)
+
+
+def test_merged_number_fitted_in_both_blocks_is_refused() -> None:
+    """The anchored block and the merging block both fitted: the inherited number (in a
+    block of 2 keys: it once crashed on the key names) would need two values."""
+    text = MERGED.replace(", pin: [z]", "")
+    same = [Update(PATHS[0], {"variance": 0.5}), Update(PATHS[1], {"variance": 0.5})]
+    assert "&n {mean: [0.0, 0.0, 0.0], variance: 0.5}" in apply_updates(text, same)
+    with pytest.raises(SharedValueConflict, match=r"and\[1\]\.translation\.world_normal\.variance"):
+        apply_updates(
+            text, [Update(PATHS[0], {"variance": 0.5}), Update(PATHS[1], {"variance": 0.7})]
+        )
+
+
+def test_aliased_number_is_written_once_at_its_anchor() -> None:
+    """A number shared as `&v 1.0` / `*v` is tied like a shared list: one value is written at
+    the anchor and the alias stays an alias; two values are refused, as for a list."""
+    text = "a: {v: &v 1.0}  # anchor\nb: {v: *v}\nc: [&w 1.0, *w]\n"
+    both = [Update(("b",), {"v": 0.5}), Update(("a",), {"v": 0.5})]
+    assert apply_updates(text, both) == "a: {v: &v 0.5}  # anchor\nb: {v: *v}\nc: [&w 1.0, *w]\n"
+    one = apply_updates(text, [Update(("b",), {"v": 0.2}), Update((), {"c": [2.0, 2.0]})])
+    assert one == "a: {v: &v 0.2}  # anchor\nb: {v: *v}\nc: [&w 2.0, *w]\n"
+    with pytest.raises(SharedValueConflict, match=r"a\.v is the YAML node of b\.v"):
+        apply_updates(text, [Update(("b",), {"v": 0.5}), Update(("a",), {"v": 0.7})])
+    with pytest.raises(SharedValueConflict, match=r"c\[1\] is the YAML node of c\[0\]"):
+        apply_updates(text, [Update((), {"c": [2.0, 3.0]})])
+
+
+CRLF = "# top\r\n---\r\n# about a\r\na: 1.0  # one\r\nb:\r\n  - 2.0\r\n\r\n# end\r\n"
+
+
+def test_crlf_is_kept_exactly_and_a_second_write_changes_nothing_else() -> None:
+    """ruamel keeps a `\\r` it reads in the comments: the line ends are taken off first."""
+    first = apply_updates(CRLF, [Update((), {"a": 0.5})])
+    assert first == CRLF.replace("a: 1.0", "a: 0.5")
+    assert apply_updates(first, [Update((), {"a": 0.5})]) == first
+    assert apply_updates(CRLF.replace("---\r\n", ""), [Update((), {"b": [3.0]})]) == (
+        CRLF.replace("---\r\n", "").replace("- 2.0", "- 3.0")
+    )
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "\ufeffa: 1.0  # a byte-order mark\n",
+        "\ufeff# c\r\n---\r\na: 1.0\r\n",
+        '--- {"a": 1.0, "b": [1, 2]}\n',
+        "# c\n--- {a: 1.0}  # flow\n",
+        "--- [{a: 1.0}]\n",
+    ],
+)
+def test_byte_order_mark_and_content_on_the_document_start_line_are_kept(text: str) -> None:
+    assert apply_updates(text, []) == text
+    path: Loc = (0,) if text.startswith("--- [") else ()
+    out = apply_updates(text, [Update(path, {"a": 0.5})])
+    assert out == text.replace("1.0", "0.5", 1)
+
+
+@pytest.mark.parametrize("x", [1 - 1e-9, 0.999999999999, 1 - 2**-53, 0.99999999949])
+def test_a_number_inside_0_1_is_not_written_as_1(x: float) -> None:
+    """A fitted probability just below 1 written as `1.0` would make the other outcomes
+    impossible (docs/fitting.md 4.2): it gets the digits it needs."""
+    value = read_back(format_number(x))
+    assert 0 < value < 1 and abs(value - x) <= 1e-8
+    out = apply_updates("g: {p: 0.5}\n", [Update(("g",), {"p": x})])
+    assert 0 < load(out)["g"]["p"] < 1
+    assert format_number(0.5) == "0.5" and format_number(1 - 1e-8) == "0.99999999"
+
+
+# ---------------------------------------------------------------- through `ssg fit` ---
+
+TINY = """\
+grammar: tiny
+root: Root
+types:
+  Root:
+    observed: true
+    or:
+      - child: A
+        p: 0.5
+        translation: {world_normal: {mean: [0, 0, 0], variance: 1.0}}
+      - child: A
+        p: 0.5
+        translation: {world_normal: {mean: [2, 0, 0], variance: 1.0}}
+  A: {observed: true}
+"""
+COUNTS = """\
+grammar: counts
+root: Root
+types:
+  Root:
+    observed: true
+    and: [{child: A}, {child: B}]
+  A:
+    fixed: true
+    repeat:
+      count: {probs: &pr [0.25, 0.25, 0.25, 0.25]}
+      rule: {child: X, translation: {world_normal: {mean: [0, 0, 0], variance: 1.0}}}
+  B:
+    repeat:
+      count: {probs: *pr}
+      rule: {child: Y, translation: {world_normal: {mean: [2, 0, 0], variance: 1.0}}}
+  X: {observed: true}
+  Y: {observed: true}
+"""
+FIRST = "types.Root.or[0].translation.world_normal"
+SECOND = "types.Root.or[1].translation.world_normal"
+
+
+def fit_cli(tmp_path: Path, text: str, *flags: str, scenes: int = 5) -> tuple[Any, Path]:
+    """`ssg fit` of `text` on scenes sampled from it; the result and the output's path."""
+    grammar = compile_text(text)
+    trees, logp = sample_trees(grammar, scenes, 1)
+    data = tmp_path / "data"
+    data.mkdir()
+    for i in range(scenes):
+        scene = scene_from_tree(grammar, trees.tree(i), f"s{i}", float(logp[i]))
+        (data / f"s{i}.json").write_text(dumps_scene(grammar, scene))
+    (tmp_path / "g.yaml").write_text(text)
+    out = tmp_path / "out.yaml"
+    args = ["fit", str(data), "-g", str(tmp_path / "g.yaml"), "-o", str(out), "-q", *flags]
+    return CliRunner().invoke(app, args), out
+
+
+@pytest.mark.parametrize(
+    ("text", "where", "fitted", "kept"),
+    [
+        (  # the root's pose
+            TINY.replace("root: Root", "root: {type: Root, pose: {xyz: &o [0, 0, 0]}}").replace(
+                "mean: [0, 0, 0]", "mean: *o"
+            ),
+            "9:38",
+            f"{FIRST}.mean",
+            "root.pose.xyz",
+        ),
+        (  # a `fixed` law's list
+            TINY.replace(
+                "{mean: [0, 0, 0], variance: 1.0}",
+                "{fixed: true, mean: [0, 0, 0], variance: &v [1, 1, 1]}",
+            ).replace("variance: 1.0", "variance: *v"),
+            "12:55",
+            f"{SECOND}.variance",
+            f"{FIRST}.variance",
+        ),
+        (  # a `fixed` law's number
+            TINY.replace(
+                "{mean: [0, 0, 0], variance: 1.0}",
+                "{fixed: true, mean: [0, 0, 0], variance: &v 1.0}",
+            ).replace("variance: 1.0", "variance: *v"),
+            "12:55",
+            f"{SECOND}.variance",
+            f"{FIRST}.variance",
+        ),
+        (  # a number merged from a `fixed` law
+            TINY.replace(
+                "{mean: [0, 0, 0], variance: 1.0}",
+                "&n {fixed: true, mean: [0, 0, 0], variance: 1.0}",
+            ).replace(
+                "{mean: [2, 0, 0], variance: 1.0}", "{<<: *n, fixed: false, mean: [2, 0, 0]}"
+            ),
+            "12:37",
+            f"{SECOND}.variance",
+            f"{FIRST}.variance",
+        ),
+        (COUNTS, "14:15", "types.B.repeat.count.probs", "types.A.repeat.count.probs"),
+    ],
+    ids=["root pose", "fixed list", "fixed number", "merged from fixed", "fixed type's count"],
+)
+def test_a_value_shared_with_one_the_fit_keeps_is_refused_before_fitting(
+    tmp_path: Path, text: str, where: str, fitted: str, kept: str
+) -> None:
+    """Writing the fitted value would change the root's pose or a fixed law through the alias
+    (the fitted grammar could then not parse its own data): refused, located, nothing written."""
+    result, _ = fit_cli(tmp_path, text)
+    assert result.exit_code == 1, result.output
+    grammar = tmp_path / "g.yaml"
+    assert result.output.startswith(
+        f"{grammar}:{where}: error: {fitted} is one YAML node with {kept} (an anchor"
+    )
+    assert "ssg fit must keep as written" in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "g.yaml"]
+
+
+def test_a_list_shared_by_fitted_places_is_still_fitted(tmp_path: Path) -> None:
+    """Shared only between fitted places, and tied (one law through an alias): allowed."""
+    text = TINY.replace(
+        "{mean: [0, 0, 0], variance: 1.0}}", "&law {mean: [0, 0, 0], variance: 1.0}}"
+    )
+    text = text.replace("{world_normal: {mean: [2, 0, 0], variance: 1.0}}", "{world_normal: *law}")
+    result, out = fit_cli(tmp_path, text, "--iterations", "1")
+    assert result.exit_code == 0, result.output
+    assert "{world_normal: &law {mean: [" in out.read_text()
+    assert "{world_normal: *law}" in out.read_text()
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (  # a number aliased between two rules, fitted apart: it was silently untied
+            TINY.replace(
+                "variance: 1.0}}\n      - child", "variance: &v 1.0}}\n      - child"
+            ).replace("variance: 1.0}}\n  A:", "variance: *v}}\n  A:"),
+            f"{SECOND}.variance is the YAML node of {FIRST}.variance too",
+        ),
+        (  # a rule merged into the other: its `p` (this crashed, exit 70)
+            TINY.replace(
+                "      - child: A\n        p: 0.5\n        translation: {world_normal: {mean: [0",
+                "      - &r {child: A, p: 0.5, translation: {world_normal: {mean: [0",
+                1,
+            )
+            .replace(
+                "1.0}}\n      - child: A\n        p: 0.5\n        translation:",
+                "1.0}}}\n      - {<<: *r, translation:",
+            )
+            .replace("variance: 1.0}}\n  A:", "variance: 1.0}}}\n  A:"),
+            "types.Root.or[1].p is the YAML node of types.Root.or[0].p too",
+        ),
+    ],
+    ids=["aliased number", "merged rule"],
+)
+def test_one_node_fitted_to_two_values_is_a_user_error(
+    tmp_path: Path, text: str, message: str
+) -> None:
+    compile_text(text)
+    result, out = fit_cli(tmp_path, text, "--iterations", "1", scenes=8)
+    assert result.exit_code == 1, result.output
+    assert message in result.output
+    assert "cannot give one YAML node two values" in result.output
+    assert not out.exists()
+
+
+def test_a_probability_near_1_stays_below_1(tmp_path: Path) -> None:
+    """(hits + α) / (seen + 2α) = 1 - 3e-9 with α = 1e-7 on 30 scenes: `p: 1.0` would make
+    every scene without an A impossible."""
+    text = TINY.replace("or:", "independent:").replace("p: 0.5", "p: 0.999", 1)
+    text = text.replace("child: A\n        p: 0.5", "child: B\n        p: 0.5") + "  B: {}\n"
+    result, out = fit_cli(tmp_path, text, "--iterations", "1", "--pseudocount", "1e-7", scenes=30)
+    assert result.exit_code == 0, result.output
+    p = load(out.read_text())["types"]["Root"]["independent"][0]["p"]
+    assert 0.9999 < p < 1

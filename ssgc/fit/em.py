@@ -41,10 +41,17 @@ from ssgc.fit.estep import parse_scenes
 from ssgc.fit.mstep import FitSettings, Ties, m_step, refuse_out_of_range
 from ssgc.fit.posterior import McmcSettings, log_orders, posterior_e_step
 from ssgc.fit.tails import measure_tails, tail_updates
-from ssgc.fit.writeback import SharedValueConflict, apply_updates, shared_nodes
+from ssgc.fit.writeback import (
+    Loc,
+    SharedValueConflict,
+    apply_updates,
+    shared_nodes,
+    shared_with_kept,
+)
 from ssgc.io.journal import Journal, journal_path, scenes_digest
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar, Kind
+from ssgc.laws.counts import GeometricCount
 from ssgc.parse.parser import PROPOSAL_SHARE, Parser, SceneParses
 from ssgc.tree import Trees
 
@@ -52,6 +59,8 @@ from ssgc.tree import Trees
 # infeasible only when proven, no_parse with its phase); a /1 journal is refused on --resume.
 FIT_JOURNAL_FORMAT = "ssgc.fit-journal/2"
 DEADLINE_SHARE = 0.95  # of a time limit: the last parse and the output still take a moment
+# The keys a pose law's fit may write (`fit` of ssgc/laws/position_normal.py, rotation_bingham.py)
+POSE_KEYS = ("mean", "variance", "covariance", "mode", "concentration", "M", "Z")
 
 
 @dataclass(frozen=True)
@@ -274,7 +283,9 @@ def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
 
     A discrete law (an `or` or `independent` rule's `p`, a count law) reached through an
     alias would get one value per use, which one YAML node cannot hold: that is refused, and
-    so is one shared with a `fixed` type's law, which fitting the other use would change.
+    so is one shared with a `fixed` type's law, which fitting the other use would change.  So
+    is any fitted value (a list, a number) that is one YAML node with a value the fit keeps as
+    written, such as the root's pose or a `fixed` law: the write would show there too.
     """
     owner: dict[tuple[str | int, ...], tuple[str, int]] = {}
     for r in grammar.rules:
@@ -299,7 +310,48 @@ def parameter_ties(grammar: Grammar, text: str, file: str) -> Ties:
         rules = [owner[path][1] for path in group]
         table = ties.translation if kinds == {"translation"} else ties.rotation
         table[rules] = min(rules)
+    kept = shared_with_kept(text, fitted_places(grammar))
+    if kept is not None:
+        raise SsgError.single(
+            _shared_kept_message(kept.fitted, kept.kept), file, kept.line, kept.column
+        )
     return ties
+
+
+def fitted_places(grammar: Grammar) -> list[tuple[Loc, str]]:
+    """Every (mapping path, key) at which the fit may write a number, by the M-step's rules
+    (`ssgc.fit.mstep`): the pose laws that fit, and the discrete laws of types not `fixed`
+    (an `independent` rule only where 0 < p < 1)."""
+    places: list[tuple[Loc, str]] = []
+    for r in grammar.rules:
+        for part in (r.translation, r.rotation):
+            if part.fits:
+                places += [(part.path, key) for key in POSE_KEYS]
+    for t in grammar.types:
+        if t.fixed or t.synthetic:
+            continue
+        if t.kind == Kind.OR:
+            places += [(grammar.rules[r].path, "p") for r in t.rules]
+        elif t.kind == Kind.INDEPENDENT:
+            places += [
+                (grammar.rules[r].path, "p")
+                for r, p in zip(t.rules, t.probs, strict=True)
+                if 0 < p < 1
+            ]
+        elif t.kind == Kind.REPEAT and isinstance(t.count, GeometricCount):
+            places.append(((*t.count.path, "geometric"), "p"))
+        elif t.kind == Kind.REPEAT and t.count is not None:
+            places.append((t.count.path, "probs"))
+    return places
+
+
+def _shared_kept_message(fitted: str, kept: str) -> str:
+    return (
+        f"{fitted} is one YAML node with {kept} (an anchor and its aliases, or a `<<` merge), "
+        "which ssg fit must keep as written (the root's pose, a `fixed` law, or a value it "
+        "never fits), so fitting the one would change the other; write the value out at each "
+        "place"
+    )
 
 
 def _shared_discrete_message(group: list[tuple[str | int, ...]], with_fixed: bool) -> str:

@@ -5,7 +5,10 @@ indentation must survive and a diff should show only new numbers: the text is lo
 ruamel.yaml's round-trip loader, numbers are set in that tree (lists element by element, so a
 flow list stays one) and it is dumped with the file's own indentation.  A mapping reached
 through an anchor and its aliases is one object, so its parameters are tied: `shared_nodes`
-lets the fitter pool them, and two different values for one of them are an error.
+lets the fitter pool them, and two different values for one of them are an error.  A list or
+number reached that way is one object too, so a write shows through every alias:
+`shared_with_kept` finds the ones that a fit would change where it must not (the root pose, a
+`fixed` law) before the fit starts.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import io
 import math
 import re
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from decimal import ROUND_DOWN, Context
 from numbers import Integral, Real
@@ -22,7 +26,8 @@ from typing import Any
 
 import numpy as np
 from ruamel.yaml import YAML
-from ruamel.yaml.comments import CommentedMap, CommentedSeq
+from ruamel.yaml.anchor import Anchor
+from ruamel.yaml.comments import CommentedMap, CommentedSeq, merge_attrib
 from ruamel.yaml.representer import RoundTripRepresenter
 
 from ssgc.geometry import quat_to_rpy
@@ -33,7 +38,8 @@ Loc = tuple[str | int, ...]
 
 _FORMS = ("rpy", "rpy_deg", "quat_wxyz")  # how an orientation can be written (docs/grammar.md)
 _NOISE = 1e-12  # angle / quaternion parts below this are rounding noise: written as 0.0
-_DOC_START = re.compile(r"(?:[ \t]*(?:[#%].*)?\n)*---[ \t]*(?:#.*)?\n")
+# a `---` line (or `--- ` before a flow mapping or list on its line) and what comes before it
+_DOC_START = re.compile(r"(?:[ \t]*(?:[#%].*)?\n)*---(?:[ \t]*(?:#.*)?\n|[ \t]+(?=[{\[]))")
 _DOC_END = re.compile(r"\n\.\.\.[ \t]*(?:#.*)?(?:\n[ \t]*(?:#.*)?)*\Z")
 
 
@@ -52,7 +58,14 @@ class Update:
 
 
 class _Rounded(float):
-    """A float already rounded to the requested digits: dumped in its shortest exact form."""
+    """A float already rounded to the requested digits: dumped in its shortest exact form.
+    `anchor` is that of the number it replaced where that one was written `&name 1.0`, so the
+    aliases of it stay aliases (`_relink`).  It is kept where ruamel's own numbers keep theirs,
+    and read where its representer looks."""
+
+    @property
+    def anchor(self) -> Anchor | None:
+        return getattr(self, Anchor.attrib, None)
 
 
 class _Representer(RoundTripRepresenter):
@@ -67,9 +80,12 @@ def _shortest(x: float) -> str:
     return positional if len(positional) <= len(scientific) else scientific
 
 
-_Representer.add_representer(
-    _Rounded, lambda r, x: r.represent_scalar("tag:yaml.org,2002:float", _shortest(float(x)))
-)
+def _represent_rounded(representer: RoundTripRepresenter, x: _Rounded) -> Any:
+    text = _shortest(float(x))
+    return representer.represent_scalar("tag:yaml.org,2002:float", text, anchor=x.anchor)
+
+
+_Representer.add_representer(_Rounded, _represent_rounded)
 
 
 def format_number(value: float, digits: int = 8) -> str:
@@ -78,7 +94,10 @@ def format_number(value: float, digits: int = 8) -> str:
 
 
 def _number(value: Any, digits: int, where: str) -> int | _Rounded:
-    """An int stays an int (a count, a max); a float is rounded; anything else is a bug."""
+    """An int stays an int (a count, a max); a float is rounded; anything else is a bug.
+    A number strictly between 0 and 1 gets more digits where it would round to 1 (0.9999999996)
+    or 0: a probability written as exactly 1 or 0 makes the other outcomes or this one
+    impossible, which fitting must not do (docs/fitting.md 4.2)."""
     if isinstance(value, bool) or not isinstance(value, Real):
         raise ValueError(f"{where}: expected a number, got {value!r}")
     if isinstance(value, Integral):
@@ -89,6 +108,9 @@ def _number(value: Any, digits: int, where: str) -> int | _Rounded:
     rounded = float(f"{x:.{digits}g}")
     if math.isinf(rounded):  # 1.8e308 rounds up to inf: round down instead
         rounded = float(Context(prec=digits, rounding=ROUND_DOWN).create_decimal(x))
+    while 0 < x < 1 and not 0 < rounded < 1:  # 17 digits always read back as x itself
+        digits += 1
+        rounded = float(f"{x:.{digits}g}")
     return _Rounded(rounded)
 
 
@@ -170,12 +192,21 @@ def _resolve(tree: Any, path: Loc, file: str) -> CommentedMap:
 
 
 def _owner(node: CommentedMap, key: str) -> CommentedMap:
-    """The mapping that really holds `key`: for a key merged in with `<<`, its source."""
+    """The mapping that really holds `key`: for a key merged in with `<<`, its source (the
+    first that has it, as YAML says), so a merged number is written once, at the anchor."""
     if key in node and key not in dict(node.non_merged_items()):
-        for _, source in node.merge:
+        for source in _merge_sources(node):
             if key in source:
                 return _owner(source, key)
     return node
+
+
+def _merge_sources(node: CommentedMap) -> list[CommentedMap]:
+    """The mappings merged into `node` with `<<`, in order.  ruamel.yaml 0.19 keeps a list of
+    the mappings, older versions a list of (position, mapping) pairs; `node.merge` would add
+    an empty list to a mapping without merges."""
+    merged = getattr(node, merge_attrib, [])
+    return [m[1] if isinstance(m, tuple) else m for m in merged]
 
 
 def apply_updates(
@@ -183,7 +214,18 @@ def apply_updates(
 ) -> str:
     """The grammar text with the updates applied; everything else byte-for-byte as it was
     where possible.  A path not in the document, a non-finite number or two different values
-    for one anchored node raise ValueError (the caller's bug, or a tie the fit broke)."""
+    for one anchored node raise ValueError (the caller's bug, or a tie the fit broke).
+
+    A byte-order mark and CRLF line ends are taken off before ruamel reads the text and put
+    back after: a `\r` it reads stays in the comments, and would be doubled."""
+    bom = "\ufeff" if text.startswith("\ufeff") else ""
+    crlf = "\r\n" in text
+    result = _apply(text[len(bom) :].replace("\r\n", "\n"), updates, file, digits)
+    return bom + (result.replace("\n", "\r\n") if crlf else result)
+
+
+def _apply(text: str, updates: list[Update], file: str, digits: int) -> str:
+    """`apply_updates` on a text with `\n` line ends and no byte-order mark."""
     head, body, tail = _split_document(text)
     yaml = _loader(body)
     tree = load_quietly(yaml, body)
@@ -200,26 +242,71 @@ def apply_updates(
                 raise ValueError(f"{where}: {exc}") from None
     if not isinstance(tree, (CommentedMap, CommentedSeq)):  # ruamel would add `...`
         return text
+    _relink(tree)
     out = io.StringIO()
     yaml.dump(tree, out)
-    result = head + out.getvalue()[: None if body.endswith("\n") else -1] + tail
-    return result.replace("\n", "\r\n") if "\r\n" in text else result
+    return head + out.getvalue()[: None if body.endswith("\n") else -1] + tail
 
 
 def _claim(
-    written: dict[Any, tuple[str, Any]], owner: CommentedMap, key: str, new: Any, place: str
+    written: dict[Any, tuple[str, Any]],
+    owner: CommentedMap | CommentedSeq,
+    key: Any,
+    new: Any,
+    place: str,
 ) -> None:
     """Record what `key` of `owner` gets: a node reached twice (an anchor and its aliases)
-    cannot be written with two different values.  `place` is the document path, for messages
-    (the caller names the file)."""
-    old = owner.get(key)  # a list or mapping edited in place may be aliased on its own
-    for slot in [(id(owner), key), *([id(old)] if isinstance(old, (dict, list)) else [])]:
+    cannot be written with two different values.  The items of a list are claimed one by one,
+    as they are written: two items may be one node too (`[&w 1.0, *w]`, rows `[*r, *r]`).
+    `place` is the document path, for messages (the caller names the file)."""
+    old = owner.get(key) if isinstance(owner, CommentedMap) else owner[key]
+    shared = isinstance(old, (dict, list)) or _anchor(old) is not None
+    for slot in [(id(owner), key), *([id(old)] if shared else [])]:
         if slot in written and written[slot][1] != new:
             raise SharedValueConflict(
                 f"{place} is the YAML node of {written[slot][0]} too (an anchor and its "
                 "aliases, or a `<<` merge), which was fitted to a different value"
             )
         written[slot] = (place, new)
+    if isinstance(new, list) and isinstance(old, CommentedSeq) and len(old) == len(new):
+        for i, item in enumerate(new):
+            if item is not None:  # None: kept as written
+                _claim(written, old, i, item, f"{place}[{i}]")
+
+
+def _anchor(value: Any) -> Anchor | None:
+    """The anchor written on a number (`&v 1.0`), if any.  (Its `anchor` property would add
+    an empty one.)"""
+    anchor = getattr(value, Anchor.attrib, None)
+    return anchor if anchor is not None and anchor.value is not None else None
+
+
+def _relink(tree: Any) -> None:
+    """Put a number written at an anchor (`&v 1.0`) in place of the old one at each of its
+    aliases (`*v`), so they stay aliases of the new value: a tie kept, as for a list, which is
+    edited in place.  `_claim` has made sure that no alias was written with another value."""
+    new: dict[int, _Rounded] = {}  # id of the anchor -> the number written there
+    for _, _, value in _entries(tree):
+        anchor = _anchor(value)
+        if anchor is not None and isinstance(value, _Rounded):
+            new.setdefault(id(anchor), value)
+    for container, key, value in _entries(tree):
+        anchor = _anchor(value)
+        if anchor is not None and id(anchor) in new and value is not new[id(anchor)]:
+            container[key] = new[id(anchor)]
+
+
+def _entries(node: Any, seen: set[int] | None = None) -> Iterator[tuple[Any, Any, Any]]:
+    """(container, key, value) for every value written in the document (merged keys are
+    written at their anchor), each container once."""
+    seen = set() if seen is None else seen
+    if id(node) in seen or not isinstance(node, (CommentedMap, CommentedSeq)):
+        return
+    seen.add(id(node))
+    pairs = node.non_merged_items() if isinstance(node, CommentedMap) else enumerate(node)
+    for key, value in list(pairs):
+        yield node, key, value
+        yield from _entries(value, seen)
 
 
 def _split_document(text: str) -> tuple[str, str, str]:
@@ -240,6 +327,74 @@ def shared_nodes(text: str, paths: list[Loc], file: str = "<grammar>") -> list[l
     for path in paths:
         groups.setdefault(id(_resolve(tree, path, file)), []).append(path)
     return [group for group in groups.values() if len(group) > 1]
+
+
+@dataclass(frozen=True)
+class KeptShare:
+    """A value the fit writes (at document path `fitted`) that is one YAML node with a value it
+    must keep as written (at `kept`); `line` and `column` (from 1) locate the fitted key."""
+
+    fitted: str
+    kept: str
+    line: int | None
+    column: int | None
+
+
+def shared_with_kept(text: str, fitted: list[tuple[Loc, str]]) -> KeptShare | None:
+    """The first value written at a fitted place (key `k` of the mapping at path `p`, for each
+    `(p, k)` in `fitted`, and everything under it) that is also reached from a place the fit
+    does not write, through an anchor and its aliases or a `<<` merge.  Writing it would change
+    that place too: a list is edited in place, a number is written at its anchor (`_relink`),
+    and a merged key at the mapping it comes from.  None if there is none."""
+    tree = load_quietly(YAML(typ="rt", pure=True), text)
+    first: dict[Any, dict[bool, tuple[Loc, CommentedMap | CommentedSeq, Any]]] = {}
+    for path, is_fitted, container, key in _occurrences(tree, (), False, set(fitted)):
+        for identity in _identities(container, key):
+            seen = first.setdefault(identity, {})
+            seen.setdefault(is_fitted, (path, container, key))
+            if len(seen) == 2:
+                (fitted_path, holder, name), (kept_path, _, _) = seen[True], seen[False]
+                return KeptShare(_where(fitted_path), _where(kept_path), *_position(holder, name))
+    return None
+
+
+def _occurrences(
+    node: Any, path: Loc, inside: bool, fitted: set[tuple[Loc, str]]
+) -> Iterator[tuple[Loc, bool, CommentedMap | CommentedSeq, Any]]:
+    """(path, whether the fit writes there, container, key) for every value in the document,
+    at every path it is reached by (through aliases, and merged keys where they are merged)."""
+    if isinstance(node, CommentedMap):
+        for key, value in node.items():
+            here = inside or (path, key) in fitted
+            yield (*path, key), here, node, key
+            yield from _occurrences(value, (*path, key), here, fitted)
+    elif isinstance(node, CommentedSeq):
+        for i, value in enumerate(node):
+            yield (*path, i), inside, node, i
+            yield from _occurrences(value, (*path, i), inside, fitted)
+
+
+def _identities(container: CommentedMap | CommentedSeq, key: Any) -> list[Any]:
+    """What a write at `container[key]` changes: that entry (of the mapping a merged key comes
+    from), and the list, mapping or `&name` number there, which its aliases show too."""
+    if isinstance(container, CommentedMap):
+        container = _owner(container, key)
+    value = container[key]
+    shared = isinstance(value, (CommentedMap, CommentedSeq)) or _anchor(value) is not None
+    return [(id(container), key), *([id(value)] if shared else [])]
+
+
+def _position(container: CommentedMap | CommentedSeq, key: Any) -> tuple[int | None, int | None]:
+    """Line and column (from 1) of `key` in `container`: a mapping's key, a list's item; the
+    container's own for a merged key, which is not written there."""
+    lc = container.lc
+    if isinstance(container, CommentedMap) and key in lc.data:
+        line, column = lc.key(key)
+    elif isinstance(container, CommentedSeq) and key in lc.data:
+        line, column = lc.item(key)
+    else:
+        line, column = lc.line, lc.col
+    return (None, None) if line is None else (line + 1, column + 1)
 
 
 def _set(mapping: CommentedMap, key: str, value: Any, digits: int) -> None:
@@ -276,7 +431,17 @@ def _assign(container: Any, key: Any, value: Any) -> None:
             else:
                 _insert(old, k, _node(item))
     else:
-        container[key] = _node(value)
+        container[key] = _keep_anchor(_node(value), old)
+
+
+def _keep_anchor(new: Any, old: Any) -> Any:
+    """`new`, with the anchor of `old` where that was a number written `&v 1.0`: the number
+    is then written there and its aliases become aliases of the new value (`_relink`)."""
+    if not isinstance(new, _Rounded) or _anchor(old) is None:
+        return new
+    anchored = _Rounded(new)
+    setattr(anchored, Anchor.attrib, _anchor(old))
+    return anchored
 
 
 def _node(value: Any) -> Any:
