@@ -690,3 +690,22 @@ def test_a_probability_near_1_stays_below_1(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     p = load(out.read_text())["types"]["Root"]["independent"][0]["p"]
     assert 0.9999 < p < 1
+
+
+def test_a_covariance_keeps_the_digits_it_needs_to_stay_positive_definite():
+    """Spreads of 1.8 km along a line and 1 mm across it: rounded to 8 digits, the smallest
+    eigenvalue became negative and the fitted grammar was refused as not positive definite."""
+    turn = np.array([[1, -1, 0], [1, 1, 0], [0, 0, np.sqrt(2)]]) / np.sqrt(2)
+    cov = turn @ np.diag([3.16e6, 1e-6, 0.414]) @ turn.T
+    eight = np.array([[float(f"{x:.8g}") for x in row] for row in cov])
+    assert np.linalg.eigvalsh(eight).min() <= 0  # what 8 digits did
+    text = (
+        "grammar: g\nroot: {type: R}\ntypes:\n  R:\n    observed: true\n    and:\n"
+        "      - child: A\n"
+        "        translation: {world_normal: {mean: [0, 0, 0], covariance: "
+        "[[1, 0, 0], [0, 1, 0], [0, 0, 1]]}}\n"
+        "  A: {observed: true}\n"
+    )
+    path = ("types", "R", "and", 0, "translation", "world_normal")
+    fitted = apply_updates(text, [Update(path, {"covariance": cov.tolist()})])
+    compile_text(fitted, "fitted.yaml")  # refused if not positive definite as written

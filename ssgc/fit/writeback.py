@@ -132,6 +132,19 @@ def _plain(value: Any, digits: int, where: str) -> Any:
     return _number(value, digits, where)
 
 
+def _covariance_digits(value: Any, digits: int) -> int:
+    """The digits a covariance needs to stay positive definite once rounded (17 read back
+    exactly): a fitted covariance of spreads of metres along a line and a millimetre across
+    it lost its smallest eigenvalue to 8-digit rounding, and the fitted grammar was refused.
+    Pinned axes (None) are kept as written and left out of the check."""
+    free = [i for i, row in enumerate(value) if row is not None and row[i] is not None]
+    for places in range(digits, 18):
+        rounded = [[float(f"{value[i][j]:.{places}g}") for j in free] for i in free]
+        if not free or np.all(np.linalg.eigvalsh(np.asarray(rounded)) > 0):
+            return places
+    return 17
+
+
 def _where(path: Loc, key: str | None = None) -> str:
     """`types.A.or[0].p`, to name a place in an error message."""
     parts = (*path, key) if key is not None else path
@@ -234,7 +247,8 @@ def _apply(text: str, updates: list[Update], file: str, digits: int) -> str:
         node = _resolve(tree, update.path, file)
         for key, value in update.values.items():
             where = f"{file}: {_where(update.path, key)}"
-            owner, new = _owner(node, key), _plain(value, digits, where)
+            places = _covariance_digits(value, digits) if key == "covariance" else digits
+            owner, new = _owner(node, key), _plain(value, places, where)
             _claim(written, owner, key, new, _where(update.path, key))
             try:
                 _set(owner, key, new, digits)
