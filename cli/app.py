@@ -147,6 +147,14 @@ def _main(
     """Spatial scene grammar compiler."""
 
 
+def finite(value: float | None) -> float | None:
+    """The check of a number option: `inf` passes the `min` bounds typer checks (`nan` does
+    not), and a time limit of inf wrote `Infinity` into JSON, which is not JSON."""
+    if value is not None and not math.isfinite(value):
+        raise typer.BadParameter("must be a finite number")
+    return value
+
+
 GrammarArg = Annotated[Path, typer.Argument(help="Grammar YAML file.", show_default=False)]
 # Mesh and model files a grammar names must be in its directory unless the user allows others
 # (docs/robustness.md): a grammar from elsewhere cannot point ssg at arbitrary files.

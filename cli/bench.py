@@ -16,6 +16,7 @@ from ssgc.cli.app import (
     _command,
     _in_range,
     bench_app,
+    finite,
     out,
 )
 from ssgc.compile import load_grammar
@@ -77,7 +78,8 @@ def bench_parse_cmd(
     method: Annotated[str, typer.Option(help="auto | ip | micp")] = "auto",
     top: Annotated[int, typer.Option("--top", min=1, help="Parse trees per scene.")] = 1,
     time_limit: Annotated[
-        float | None, typer.Option("--time-limit", min=0.001, help="Seconds per scene's parse.")
+        float | None,
+        typer.Option("--time-limit", min=0.001, callback=finite, help="Seconds per scene's parse."),
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     allow_outside_files: AllowOutside = False,

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .app import AllowOutside, _command, app, err, out
+from .app import AllowOutside, _command, app, err, finite, out
 
 
 @app.command()
@@ -31,6 +31,7 @@ def explain(
         typer.Option(
             "--time-limit",
             min=0.001,
+            callback=finite,
             help="Seconds per scene: the parse, then the per-object re-parses in what is "
             "left (without it the re-parses share 30 s).",
         ),

@@ -21,6 +21,7 @@ from ssgc.cli.app import (
     _warnings_about,
     app,
     err,
+    finite,
 )
 from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
@@ -89,7 +90,9 @@ def fit(
     pseudocount: Annotated[
         float,
         typer.Option(
-            min=0.0, help="Added to every possible outcome of a discrete law (0: plain MLE)."
+            min=0.0,
+            callback=finite,
+            help="Added to every possible outcome of a discrete law (0: plain MLE).",
         ),
     ] = DEFAULTS["pseudocount"],
     min_variance: Annotated[
@@ -109,13 +112,18 @@ def fit(
     ] = DEFAULTS["max_concentration"],
     tol: Annotated[
         float,
-        typer.Option(min=0.0, help="Stop when the log-evidence changes less (nats per scene)."),
+        typer.Option(
+            min=0.0,
+            callback=finite,
+            help="Stop when the log-evidence changes less (nats per scene).",
+        ),
     ] = DEFAULTS["tol"],
     time_limit: Annotated[
         float | None,
         typer.Option(
             "--time-limit",
             min=0.001,
+            callback=finite,
             help="Seconds for the EM loop (not loading, --mmd, --plot or writing); then the "
             "last finished iteration's grammar is written.",
         ),

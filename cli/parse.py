@@ -15,6 +15,7 @@ from ssgc.cli.app import (
     _summary,
     app,
     err,
+    finite,
 )
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
@@ -44,7 +45,8 @@ def parse(
     ] = "auto",
     top: Annotated[int, typer.Option("--top", min=1, help="Distinct parse trees per scene.")] = 1,
     time_limit: Annotated[
-        float | None, typer.Option("--time-limit", min=0.001, help="Seconds per scene.")
+        float | None,
+        typer.Option("--time-limit", min=0.001, callback=finite, help="Seconds per scene."),
     ] = None,
     solver: Annotated[str, typer.Option(help="highs: the MILP solver of this build.")] = "highs",
     output: Annotated[

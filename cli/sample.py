@@ -11,7 +11,16 @@ from typing import Annotated
 
 import typer
 
-from ssgc.cli.app import AllowOutside, GrammarArg, _command, _progress, app, err, out
+from ssgc.cli.app import (
+    AllowOutside,
+    GrammarArg,
+    _command,
+    _progress,
+    app,
+    err,
+    finite,
+    out,
+)
 from ssgc.compile import load_grammar
 from ssgc.sample.constrained import METHODS
 from ssgc.sample.run import Plan, SampleRun, plan_sampling, sample_to_directory
@@ -53,11 +62,16 @@ def sample(
         int | None, typer.Option(min=1, help="With --constraints: stop after this many candidates.")
     ] = None,
     time_limit: Annotated[
-        float | None, typer.Option(min=0.001, help="With --constraints: stop after these seconds.")
+        float | None,
+        typer.Option(
+            min=0.001, callback=finite, help="With --constraints: stop after these seconds."
+        ),
     ] = None,
     penalty_eps: Annotated[
         float | None,
-        typer.Option(min=1e-9, help="hmc, rjmcmc: the penalty's ε in m (default 1e-3)."),
+        typer.Option(
+            min=1e-9, callback=finite, help="hmc, rjmcmc: the penalty's ε in m (default 1e-3)."
+        ),
     ] = None,
     export: Annotated[
         list[str] | None,

@@ -51,7 +51,13 @@ def settle_cmd(
     ),
     engine: Annotated[str, typer.Option(help="Physics engine: mujoco.")] = "mujoco",
     max_time: Annotated[
-        float, typer.Option("--max-time", min=0.01, help="Simulated seconds per scene, at most.")
+        float,
+        typer.Option(
+            "--max-time",
+            min=0.01,
+            max=3600.0,
+            help="Simulated seconds per scene, at most (up to an hour).",
+        ),
     ] = 5.0,
     report: Annotated[
         Path | None, typer.Option("--report", help="Also write the per-scene report as JSON.")

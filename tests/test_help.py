@@ -91,3 +91,27 @@ def test_an_option_that_would_do_nothing_is_refused(tmp_path, words, said):
     result = runner.invoke(app, args)
     assert result.exit_code == 1 and said in result.output, result.output
     assert not list(tmp_path.iterdir())
+
+
+def test_every_number_option_refuses_infinity():
+    """`inf` passed every `min` bound: `--time-limit inf` wrote `Infinity` into JSON, which no
+    JSON reader takes, and `settle --max-time inf` was an internal error."""
+    tried = []
+    for words, cmd in commands():
+        for param in getattr(cmd, "params", []):
+            if param.param_type_name == "option" and _takes_a_float(param):
+                flag = param.opts[0]
+                result = runner.invoke(app, [*words, flag, "inf"])
+                assert result.exit_code == 2, (words, flag, result.output)
+                assert "Invalid value" in result.output, result.output
+                tried.append(f"{' '.join(words)} {flag}")
+    assert len(tried) >= 8, tried  # the time limits, settle's --max-time, fit's numbers
+
+
+def _takes_a_float(param: Any) -> bool:
+    """Whether an option reads a float: by its annotation (typer 0.29 keeps its own copy of
+    click) or by click's parameter type (older typer)."""
+    descriptor = getattr(param, "type_descriptor", None)
+    if descriptor is not None:
+        return descriptor.annotation is float
+    return type(param.type).__name__ in ("FloatParamType", "FloatRange")
