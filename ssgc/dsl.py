@@ -16,6 +16,7 @@ import difflib
 from typing import Annotated, Any, Literal, Union
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Discriminator,
@@ -34,6 +35,23 @@ Probability = Annotated[float, Field(allow_inf_nan=False, ge=0, le=1)]
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 Vec4 = Annotated[list[Finite], Field(min_length=4, max_length=4)]
 Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
+# m: the farthest a pose may lie from the origin on an axis.  Poses are resolved to POS_TOL
+# (1e-6 m); at 1e10 m one float64 step is 2e-6 m, and sampled scenes were called infeasible.
+MAX_COORDINATE = 1e6
+
+
+def _near_origin(xyz: list[float]) -> list[float]:
+    far = max(abs(v) for v in xyz)
+    if far > MAX_COORDINATE:
+        raise ValueError(
+            f"a position must lie within {MAX_COORDINATE / 1000:,.0f} km of the origin on each "
+            f"axis, got "
+            f"{far:g} m (poses are resolved to 1e-6 m, which floating point cannot hold there)"
+        )
+    return xyz
+
+
+Position = Annotated[Vec3, AfterValidator(_near_origin)]
 Mat4 = Annotated[list[Vec4], Field(min_length=4, max_length=4)]
 Axis = Literal["x", "y", "z"]
 TypeName = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$", max_length=200)]
@@ -90,7 +108,9 @@ class Orientation(Strict):
 
 
 class Pose(Orientation):
-    xyz: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0], description="Position in meters.")
+    xyz: Position = Field(
+        default_factory=lambda: [0.0, 0.0, 0.0], description="Position in meters."
+    )
 
 
 # ----------------------------------------------------------------------- discriminators ---

@@ -108,6 +108,11 @@ def test_rpy_input_and_default_name(sink, tmp_path):
         ),
         ('{"objects": [\n  {"type": "DishBin",', 2, "invalid JSON"),
         ('{"objects": [{"type": "DishBin",\n "pose": {"xyz": [0, 0, NaN]}}]}', 2, "finite"),
+        (  # a float64 step is 2e-6 m there: sampled scenes were proven infeasible
+            '{"objects": [{"type": "DishBin",\n "pose": {"xyz": [1e10, 0, 0]}}]}',
+            2,
+            "within 1,000 km of the origin",
+        ),
     ],
 )
 def test_bad_scenes_give_located_errors(sink, text, line, fragment):
@@ -230,3 +235,15 @@ def test_a_scene_with_no_object_and_its_tree_reads():
     text = dumps_scene(g, scene_from_tree(g, trees.tree(0), "t", float(logp[0])))
     scene = parse_scene_text(text, "t.json", g)
     assert len(scene) == 0 and scene.tree is not None
+
+
+def test_a_root_far_from_the_origin_is_refused_and_one_at_the_limit_is_not():
+    from ssgc.compile import compile_text
+    from ssgc.errors import GrammarError
+
+    text = "grammar: far\nroot: {type: R, pose: {xyz: [%s, 0, 0]}}\ntypes:\n  R: {observed: true}\n"
+    compile_text(text % "1e6", "far.yaml")
+    with pytest.raises(GrammarError) as info:
+        compile_text(text % "-1.5e6", "far.yaml")
+    assert "within 1,000 km of the origin" in str(info.value)
+    assert info.value.diagnostics[0].line == 2

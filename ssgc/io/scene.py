@@ -33,7 +33,7 @@ from pydantic import (
     model_validator,
 )
 
-from ssgc.dsl import Finite, Strict, Vec3, Vec4
+from ssgc.dsl import Finite, Position, Strict, Vec3, Vec4
 from ssgc.errors import Diagnostic, SceneError, SsgError, one_line
 from ssgc.geometry import QUAT_NORM_TOL, quat_canonical, rpy_to_quat
 from ssgc.ir import Grammar
@@ -48,7 +48,7 @@ FORMAT = "ssgc.scene/1"
 
 
 class ScenePose(Strict):
-    xyz: Vec3
+    xyz: Position
     quat_wxyz: Vec4 | None = None
     rpy: Vec3 | None = Field(None, description="Roll-pitch-yaw (rad), R = Rz(y) Ry(p) Rx(r).")
 
@@ -485,7 +485,7 @@ def _tree_from_doc(
 
 
 class _SinkPose(Strict):
-    xyz: Vec3
+    xyz: Position
     rpy: Vec3
 
 
