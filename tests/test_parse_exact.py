@@ -173,6 +173,12 @@ def test_a_latent_block_that_owns_no_edge_is_polished():
     _check_random(14388, 2)
 
 
+def test_a_latent_set_without_edges_is_polished():
+    """Random grammar 56 (a local run's random examples): the fix above took the largest block
+    number of an empty edge list (ValueError: zero-size array)."""
+    _check_random(56, 2)
+
+
 @pytest.mark.slow
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=hs.integers(0, 10**6))

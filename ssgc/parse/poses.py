@@ -362,9 +362,8 @@ def _sub_edges(edges: PoseEdges, owner: IntArray, blocks: IntArray) -> tuple[Pos
     """The edges of the given blocks, with the blocks renumbered 0..len(blocks)-1.  A block
     may own no edge (it is only the child or parent of others' edges): every block number
     that appears is given a place."""
-    top = max(
-        int(owner.max()), int(blocks.max()), int(edges.p_block.max()), int(edges.c_block.max())
-    )
+    arrays = (owner, blocks, edges.p_block, edges.c_block)
+    top = max(int(a.max(initial=-1)) for a in arrays)  # a set may have no edge at all
     new = np.full(top + 1, -1, np.int64)
     new[blocks] = np.arange(len(blocks))
     keep = new[owner] >= 0
