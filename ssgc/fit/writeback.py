@@ -137,6 +137,8 @@ def _covariance_digits(value: Any, digits: int) -> int:
     exactly): a fitted covariance of spreads of metres along a line and a millimetre across
     it lost its smallest eigenvalue to 8-digit rounding, and the fitted grammar was refused.
     Pinned axes (None) are kept as written and left out of the check."""
+    if not isinstance(value, list):  # None: kept as written
+        return digits
     free = [i for i, row in enumerate(value) if row is not None and row[i] is not None]
     for places in range(digits, 18):
         rounded = [[float(f"{value[i][j]:.{places}g}") for j in free] for i in free]
