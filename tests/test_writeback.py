@@ -709,3 +709,17 @@ def test_a_covariance_keeps_the_digits_it_needs_to_stay_positive_definite():
     path = ("types", "R", "and", 0, "translation", "world_normal")
     fitted = apply_updates(text, [Update(path, {"covariance": cov.tolist()})])
     compile_text(fitted, "fitted.yaml")  # refused if not positive definite as written
+
+
+def test_a_json_grammar_stays_json() -> None:
+    """A key the fit adds (`p`) was written unquoted among quoted ones: `"child": "A", p: 0.25`
+    is YAML, but no longer JSON."""
+    import json
+
+    text = '{\n  "grammar": "g",\n  "types": {"R": {"or": [{"child": "A"}, {"child": "B"}]}}\n}\n'
+    rules = ("types", "R", "or")
+    out = apply_updates(text, [Update((*rules, 0), {"p": 0.25}), Update((*rules, 1), {"p": 0.75})])
+    assert json.loads(out)["types"]["R"]["or"] == [
+        {"child": "A", "p": 0.25},
+        {"child": "B", "p": 0.75},
+    ]

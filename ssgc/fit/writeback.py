@@ -29,6 +29,7 @@ from ruamel.yaml import YAML
 from ruamel.yaml.anchor import Anchor
 from ruamel.yaml.comments import CommentedMap, CommentedSeq, merge_attrib
 from ruamel.yaml.representer import RoundTripRepresenter
+from ruamel.yaml.scalarstring import DoubleQuotedScalarString
 
 from ssgc.geometry import quat_to_rpy
 from ssgc.laws.base import Orientation
@@ -496,6 +497,8 @@ def _insert(mapping: CommentedMap, key: str, value: Any) -> None:
     pos = keys.index("child") + 1 if key == "p" and "child" in keys else len(keys)
     pos = 0 if key == "mode" else pos
     moved = None if pos == 0 or mapping.fa.flow_style() else _split_tail(mapping, keys[pos - 1])
+    if keys and all(isinstance(k, DoubleQuotedScalarString) for k in keys):
+        key = DoubleQuotedScalarString(key)  # quoted like its neighbours: JSON stays JSON
     mapping.insert(pos, key, value)
     if moved is not None:
         mapping.ca.items[key] = [None, None, moved, None]
