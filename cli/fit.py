@@ -215,7 +215,7 @@ def fit(
             result.mmd = compare_by_mmd({"input": g.ir, "fitted": fitted.ir}, items, mmd, seed)
             _print_mmd(result.mmd, quiet)
         kept = None if dest.stream else journal.path
-        write_output_text(dest, result.text, kept)
+        write_output_text(dest, _with_bom_of(grammar, result.text), kept)
         if report_dest is not None:
             write_output_text(report_dest, report_json(result), kept)
         if plots is not None and fitted is not None:
@@ -227,6 +227,13 @@ def fit(
             journal.delete()
     if not quiet:
         _summary(dest, f"{result.message}; wrote {dest.name}")
+
+
+def _with_bom_of(grammar: Path, text: str) -> str:
+    """`text` with the byte-order mark the grammar file starts with, if any: the grammar is
+    read without it, and the fitted file is the same file with new numbers."""
+    with open(grammar, "rb") as f:
+        return "\ufeff" + text if f.read(3) == b"\xef\xbb\xbf" else text
 
 
 def _run_with_progress(

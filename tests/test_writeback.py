@@ -723,3 +723,14 @@ def test_a_json_grammar_stays_json() -> None:
         {"child": "A", "p": 0.25},
         {"child": "B", "p": 0.75},
     ]
+
+
+def test_the_fitted_file_keeps_the_grammars_byte_order_mark(tmp_path: Path) -> None:
+    result, out = fit_cli(tmp_path, "\ufeff" + TINY, "--iterations", "1")
+    assert result.exit_code == 0, result.output
+    data = out.read_bytes()
+    assert data.startswith(b"\xef\xbb\xbf") and not data.startswith(b"\xef\xbb\xbf" * 2)
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    result, out = fit_cli(plain, TINY, "--iterations", "1")
+    assert result.exit_code == 0 and not out.read_bytes().startswith(b"\xef\xbb\xbf")
