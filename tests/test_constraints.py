@@ -578,3 +578,44 @@ def test_generated_grammars_sample_under_their_constraints(spec):  # type: ignor
         except SsgError:
             continue
         assert len(scenes) == 2, method
+
+
+CUT_SHORT = """grammar: cut_short
+root: Table
+types:
+  Table:
+    or:
+      - {child: Lone, p: 0.3}
+      - {child: Tray, p: 0.7, translation: {offset: [1, 0, 0]}}
+  Lone: {observed: true}
+  Tray:
+    observed: true
+    and:
+      - {child: Cup, translation: {offset: [0, 0, 0.05]}}
+  Cup: {observed: true}
+constraints:
+  near: {inside_box: {types: [Tray, Lone], min: [-0.5, null, null], max: [0.5, null, null]}}
+"""
+
+
+def test_a_judgement_that_leaves_no_node_to_pose_ends_the_stage(tmp_path: Path) -> None:
+    """Every candidate with a Cup left to pose was rejected (its Tray lies outside the box):
+    the compacted store had no nodes, and the next stage indexed into it (IndexError, an
+    internal error) though 30% of the candidates pass."""
+    grammar = tmp_path / "g.yaml"
+    grammar.write_text(CUT_SHORT)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app, ["sample", str(grammar), "-n", "5", "--constraints", "near", "-o", str(out), "-q"]
+    )
+    assert result.exit_code == 0, result.output
+    scenes = sorted(out.glob("*.json"))
+    assert len(scenes) == 5
+    assert all(
+        [o["type"] for o in json.loads(s.read_text())["objects"]] == ["Lone"] for s in scenes
+    )
+    never = tmp_path / "never.yaml"
+    never.write_text(CUT_SHORT.replace("{child: Lone, p: 0.3}", "{child: Lone, p: 0.0}"))
+    args = ["sample", str(never), "-n", "1", "--constraints", "near", "-o", str(tmp_path / "n")]
+    result = CliRunner().invoke(app, [*args, "--max-tries", "100"])
+    assert result.exit_code == 2 and "found 0 of the 1" in result.output, result.output

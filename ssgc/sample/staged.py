@@ -370,7 +370,10 @@ def _judge_partial(
 
 def _runs(nodes: Nodes, order: IntArray, n_rules: int) -> tuple[IntArray, IntArray]:
     """Where the nodes `order` (sorted by depth, then rule) change depth or rule: the runs
-    whose poses one call of the rule's sampler draws, and each run's depth."""
+    whose poses one call of the rule's sampler draws, and each run's depth.  No nodes, no
+    runs: every candidate that had nodes left to pose was rejected."""
+    if len(order) == 0:
+        return np.zeros(1, np.int64), np.zeros(0, np.int64)
     key = nodes.depth[order] * n_rules + nodes.rule[order]
     cuts = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
     return cuts, nodes.depth[order[cuts[:-1]]]
