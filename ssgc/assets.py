@@ -72,7 +72,24 @@ def _load_mesh(path: Path, scale: float | list[float]) -> object:
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError("it holds no triangles")
     mesh.apply_scale(np.broadcast_to(np.asarray(scale, dtype=float), 3))
+    if not _encloses_a_volume(mesh):
+        raise ValueError(
+            "it encloses no volume (its points lie in a plane or on a line): an object needs "
+            "a solid, for its mass and its collisions"
+        )
     return mesh
+
+
+def _encloses_a_volume(mesh: object) -> bool:
+    """Whether the mesh's convex hull has a volume (a flat mesh, one triangle or points on a
+    line gave NaN masses or an internal error in every export).  Relative to the mesh's size:
+    a hull a billionth of its bounding cube is flat for any simulator."""
+    size = float(np.max(mesh.extents))  # type: ignore[attr-defined]
+    try:
+        volume = float(mesh.convex_hull.volume)  # type: ignore[attr-defined]
+    except Exception:  # qhull refuses points in a plane or on a line
+        return False
+    return size > 0 and np.isfinite(volume) and volume > 1e-9 * size**3
 
 
 def check_assets(grammar: Grammar, text: str | None = None) -> list[Diagnostic]:
@@ -136,6 +153,13 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
         volume, unit_inertia = _primitive_mass_properties(kind, size)
         com, pieces, source = origin.copy(), (), ""
     mass = body.mass if body.mass is not None else (body.density or DEFAULT_DENSITY) * volume
+    inertia = mass * unit_inertia
+    if not (np.isfinite(mass) and np.all(np.isfinite(inertia))):
+        raise SsgError.single(
+            f"type '{t.name}': its mass ({mass:g} kg) or inertia is not a finite number; "
+            "give it a smaller density or mass",
+            grammar.file,
+        )
     return Shape(
         t.name,
         kind,
@@ -144,7 +168,7 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
         pieces,
         float(mass),
         com,
-        mass * unit_inertia,
+        inertia,
         body.static,
         source,
         (float(origin[0]), float(origin[1]), float(origin[2])),
@@ -197,10 +221,11 @@ def _primitive_mass_properties(
 def _mesh_mass_properties(mesh: object) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
     """Volume, centre of mass and inertia per unit mass (about the centre of mass).
 
-    A mesh that does not enclose a volume (open, or inside out) falls back to its convex hull,
-    which always does: a simulator needs a positive mass and a valid inertia.
+    A mesh that does not enclose a volume (open, inside out, or with faces wound both ways,
+    which halved a cube's mass) falls back to its convex hull, which does (`_load_mesh`
+    refuses a flat one): a simulator needs a positive mass and a valid inertia.
     """
-    solid = mesh if mesh.is_watertight and mesh.volume > 0 else mesh.convex_hull  # type: ignore[attr-defined]
+    solid = mesh if mesh.is_volume else mesh.convex_hull  # type: ignore[attr-defined]
     volume = float(solid.volume)
     com = np.asarray(solid.center_mass, dtype=float)
     unit = np.asarray(solid.moment_inertia, dtype=float) / (solid.density * volume)

@@ -523,3 +523,73 @@ def test_an_export_does_not_change_the_shared_files_of_scenes_already_there(tmp_
         after = {p: p.read_bytes() for p in (out / fmt).rglob("*") if p.is_file()}
         assert after == before
         assert run("export", scenes, "-g", grammar, "-f", fmt, "-o", out / fmt).exit_code == 0
+
+
+WRAP = """grammar: m
+root: Tray
+types:
+  Tray:
+    observed: true
+    geometry: {box: {size: [1.0, 1.0, 0.02]}}
+    body: {static: true}
+    and:
+      - {child: Thing, translation: {offset: [0, 0, 0.06]}}
+  Thing: {observed: true, geometry: GEOMETRY, body: BODY}
+"""
+
+
+def wrapped(tmp_path: Path, geometry: str, body: str = "{}") -> Path:
+    grammar = tmp_path / "g.yaml"
+    grammar.write_text(WRAP.replace("GEOMETRY", geometry).replace("BODY", body))
+    return grammar
+
+
+@pytest.mark.parametrize(
+    "obj",
+    [
+        "v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n",  # a flat square
+        "v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n",  # one triangle
+        "v 0 0 0\nv 0.1 0 0\nv 0.2 0 0\nf 1 2 3\n",  # points on a line
+    ],
+)
+def test_a_mesh_that_encloses_no_volume_is_a_located_error(tmp_path: Path, obj: str) -> None:
+    """NaN masses in SDF and DMD, and internal errors (LinAlgError, QhullError) elsewhere."""
+    (tmp_path / "flat.obj").write_text(obj)
+    grammar = wrapped(tmp_path, "{mesh: {file: flat.obj}}")
+    result = run("validate", grammar)
+    assert result.exit_code == 1 and "encloses no volume" in result.output, result.output
+    assert f"{grammar}:10:" in result.output
+
+
+def test_a_cube_wound_both_ways_has_a_cubes_mass(tmp_path: Path) -> None:
+    """Two faces turned the other way: mass 0.5 instead of 1, and an inertia MuJoCo refused."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    faces = box.faces.copy()
+    faces[:2] = faces[:2, ::-1]
+    trimesh.Trimesh(box.vertices, faces, process=False).export(tmp_path / "mixed.obj")
+    g = load_grammar(wrapped(tmp_path, "{mesh: {file: mixed.obj}}"))
+    shape = load_shapes(g, collision=False)[g.type_ids["Thing"]]
+    assert shape.mass == pytest.approx(1.0)
+    np.testing.assert_allclose(shape.com, 0, atol=1e-9)
+
+
+def test_a_mass_that_overflows_is_a_message(tmp_path: Path) -> None:
+    grammar = wrapped(tmp_path, "{box: {size: [10, 10, 10]}}", "{density: 1.0e306}")
+    scenes = tmp_path / "s"
+    assert run("sample", grammar, "-n", 1, "-o", scenes, "-q").exit_code == 0
+    result = run("export", scenes, "-g", grammar, "-f", "sdf", "-o", tmp_path / "e")
+    assert result.exit_code == 1 and "not a finite number" in result.output, result.output
+    assert not (tmp_path / "e").exists()
+
+
+def test_an_empty_scene_loads_as_drake_model_directives(tmp_path: Path) -> None:
+    """`directives:` alone is null, which LoadModelDirectives refuses."""
+    from pydrake.multibody.parsing import LoadModelDirectives
+
+    grammar = wrapped(tmp_path, "{sphere: {radius: 0.1}}")
+    scene = tmp_path / "empty.json"
+    scene.write_text(json.dumps({"name": "empty", "objects": []}))
+    assert run("export", scene, "-g", grammar, "-f", "dmd", "-o", tmp_path / "e").exit_code == 0
+    LoadModelDirectives(str(tmp_path / "e" / "empty.dmd.yaml"))

@@ -74,7 +74,7 @@ def _model_file(name: str, link: str) -> str:
 def files(scene: SceneBodies) -> dict[str, str | bytes]:
     """`NAME.dmd.yaml`, `package.xml`, `models/TYPE.sdf` and the meshes they name."""
     lines = [f"# Drake model directives of scene '{scene.name}' (grammar '{scene.grammar}')"]
-    lines += ["directives:"]
+    lines += ["directives:" if scene.bodies else "directives: []"]  # a bare key is null
     for body in scene.bodies:
         lines += _directives(body)
     out: dict[str, str | bytes] = {
