@@ -26,6 +26,8 @@ def write_settled(path: Path, doc: dict[str, Any]) -> None:
 
 def _line(r: dict[str, Any]) -> str:
     state = "settled" if r["settled"] else "not settled: did not come to rest"
+    if r.get("unstable"):
+        state = "not settled: the simulation went unstable (MuJoCo reset it), poses kept"
     return (
         f"{r['name']}: {state}; largest displacement {1000 * r['max_displacement']:.1f} mm; "
         "penetration "

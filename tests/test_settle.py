@@ -120,3 +120,48 @@ def test_dimsum_scene_settles(tmp_path: Path) -> None:
     (r,) = json.loads(report.read_text())["scenes"]
     assert r["settled"] and r["penetration_after"] <= 1e-3
     assert r["max_displacement"] < 0.05
+
+
+UNSTABLE = """grammar: unstable
+root: Tray
+types:
+  Tray:
+    observed: true
+    geometry: {box: {size: [1.0, 1.0, 0.02]}}
+    body: {static: true}
+    and:
+      - child: Hair
+        translation: {world_box_offset: {min: [-0.1, -0.1, 0.0], max: [0.1, 0.1, 0.02]}}
+        rotation: uniform
+      - child: Hair
+        translation: {world_box_offset: {min: [-0.1, -0.1, 0.0], max: [0.1, 0.1, 0.02]}}
+        rotation: uniform
+      - child: Slab
+        translation: {world_box_offset: {min: [-0.05, -0.05, 0.02], max: [0.05, 0.05, 0.03]}}
+  Hair:
+    observed: true
+    geometry: {cylinder: {radius: 0.00003, length: 0.5}}
+    body: {density: 1.0e5}
+  Slab: {observed: true, geometry: {box: {size: [0.4, 0.4, 0.02]}}, body: {density: 20000}}
+"""
+
+
+def test_an_unstable_simulation_is_said_in_our_words(tmp_path: Path, monkeypatch, capfd) -> None:
+    """MuJoCo printed its own warning (also with -q) and left MUJOCO_LOG.TXT in the current
+    directory; the scene's line said only that it did not come to rest."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "g.yaml").write_text(UNSTABLE)
+    assert CliRunner().invoke(app, ["sample", "g.yaml", "-n", "3", "-o", "s", "-q"]).exit_code == 0
+    capfd.readouterr()
+    result = CliRunner().invoke(
+        app, ["settle", "s", "-g", "g.yaml", "-o", "st", "--report", "r.json"]
+    )
+    assert result.exit_code == 2, result.output
+    printed = capfd.readouterr()
+    assert "WARNING" not in printed.err + printed.out
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    report = json.loads((tmp_path / "r.json").read_text())
+    unstable = [s["name"] for s in report["scenes"] if s["unstable"]]
+    assert unstable and all(
+        f"{n}: not settled: the simulation went unstable" in result.output for n in unstable
+    )

@@ -50,6 +50,7 @@ class Settled:
     penetration_after: float
     sim_time: float  # s simulated
     wall_time: float  # s
+    unstable: bool = False  # MuJoCo found the simulation unstable and reset it
 
     def report(self) -> dict[str, Any]:
         return {
@@ -60,6 +61,7 @@ class Settled:
             "penetration_after": self.penetration_after,
             "sim_time": round(self.sim_time, 6),
             "wall_time": round(self.wall_time, 6),
+            "unstable": self.unstable,
         }
 
 
@@ -98,8 +100,20 @@ def penetration(model, data) -> float:  # type: ignore[no-untyped-def]
 
 
 def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Settled:
-    options = options or SettleOptions()
+    """Simulate until still, with MuJoCo's warnings kept out of the user's terminal (and out
+    of the MUJOCO_LOG.TXT it would write in the current directory): an unstable simulation
+    is what `Settled.unstable` says."""
     mujoco = require_mujoco()
+    previous = mujoco.get_mju_user_warning()
+    said: list[str] = []
+    mujoco.set_mju_user_warning(said.append)
+    try:
+        return _settle(mujoco, scene, options or SettleOptions())
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
+def _settle(mujoco, scene: SceneBodies, options: SettleOptions) -> Settled:  # type: ignore[no-untyped-def]
     start = time.perf_counter()
     model = build_model(scene, options.timestep)
     data = mujoco.MjData(model)
@@ -130,7 +144,8 @@ def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Se
     xyz = data.xpos[ids].copy()
     quat = quat_canonical(data.xquat[ids].copy())
     bad = int(data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number) > 0
-    if bad or not (np.isfinite(xyz).all() and np.isfinite(quat).all()):
+    bad |= not (np.isfinite(xyz).all() and np.isfinite(quat).all())
+    if bad:
         # MuJoCo reset an unstable simulation (objects far apart in scale, absurd poses):
         # keep the scene as it was and say it did not settle.
         xyz, after, still = xyz0, before, 0.0
@@ -145,6 +160,7 @@ def settle_scene(scene: SceneBodies, options: SettleOptions | None = None) -> Se
         after,
         simulated,
         time.perf_counter() - start,
+        unstable=bad,
     )
 
 
