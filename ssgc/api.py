@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 import inspect
 import json
+import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
@@ -87,10 +88,9 @@ def parse(
     from ssgc.scene_reports import parse_document
 
     data = _scene_data(_checked(grammar), scene)
-    if not _whole(top) or top < 1:
-        raise ValueError(f"top must be a whole number >= 1, got {top!r}")
+    top, time_limit = _count("top", top, 1), _time_limit(time_limit)
     parser = grammar.parser(method)
-    result = parser.parse(data, top=int(top), time_limit=time_limit)
+    result = parser.parse(data, top=top, time_limit=time_limit)
     document = parse_document(parser, data, result, int(top), time_limit=time_limit)
     return ParseResult(grammar, result, document)
 
@@ -102,14 +102,16 @@ def explain(grammar: Grammar, scene: Scene, time_limit: float | None = None) -> 
     `ssgc.errors.SsgError`, when the scene has no parse: `status` infeasible (no tree of the
     grammar contains it; `diagnosis` names the objects to blame) or no_parse (none found,
     e.g. within `time_limit`)."""
-    from ssgc.explain import best_tree, explain_tree, reparse_budget
+    from ssgc.explain import best_parse, explain_tree, reparse_budget
 
     data = _scene_data(_checked(grammar), scene)
     parser = grammar.parser("auto")
     t0 = time.perf_counter()
-    tree = best_tree(grammar.ir, data, parser, time_limit=time_limit)
+    tree, status = best_parse(grammar.ir, data, parser, time_limit=_time_limit(time_limit))
     budget = reparse_budget(time_limit, time.perf_counter() - t0)
-    return explain_tree(grammar.ir, data, tree, parser, budget)
+    explanation = explain_tree(grammar.ir, data, tree, parser, budget)
+    explanation.status = status
+    return explanation
 
 
 def fit(
@@ -139,18 +141,19 @@ def fit(
     else:
         where, scenes = Path("<scenes>"), list(dataset)
     options = fit_options(
-        iterations=iterations,
-        top=top,
+        iterations=_integral("iterations", iterations),
+        top=_integral("top", top),
         method=method,
-        seed=seed,
-        tol=tol,
+        seed=_seed(seed),
+        tol=float(tol),
         estep=estep,
-        samples=samples,
-        pseudocount=pseudocount,
-        min_variance=min_variance,
-        max_concentration=max_concentration,
-        jobs=jobs,
+        samples=_integral("samples", samples),
+        pseudocount=float(pseudocount),
+        min_variance=float(min_variance),
+        max_concentration=float(max_concentration),
+        jobs=_integral("jobs", jobs),
     )
+    time_limit = _time_limit(time_limit)
     with open_fit(grammar, [_scene_data(grammar, s) for s in scenes], where, options) as run:
         result = run.fit(time_limit)
     fitted = run.fitted(result)
@@ -159,6 +162,44 @@ def fit(
 
 def _whole(value: Any) -> bool:
     return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def _read_only(array: NDArray[Any]) -> NDArray[Any]:
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
+def _count(name: str, value: Any, least: int) -> int:
+    """A whole-number argument (numpy's too) as an int; 2.5 iterations ran 3, and a numpy
+    integer reached the journal's JSON."""
+    if not _whole(value) or value < least:
+        raise ValueError(f"{name} must be a whole number >= {least}, got {value!r}")
+    return int(value)
+
+
+def _integral(name: str, value: Any) -> int:
+    """A whole number as an int, its range left to `FitOptions` (which says it as `ssg fit`)."""
+    if not _whole(value):
+        raise ValueError(f"{name} must be a whole number, got {value!r}")
+    return int(value)
+
+
+def _seed(value: Any) -> int:
+    if not _whole(value) or not 0 <= value < 2**63:
+        raise ValueError(f"seed must be a whole number in [0, 2**63) as for ssg, got {value!r}")
+    return int(value)
+
+
+def _time_limit(value: Any) -> float | None:
+    """Seconds, > 0 and finite, or None for no limit (nan ran without one; 0 gave no parse)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise TypeError(f"time_limit must be a number of seconds or None, got {value!r}")
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"time_limit must be a finite number of seconds > 0, got {value!r}")
+    return float(value)
 
 
 def _checked(grammar: Any) -> Grammar:
@@ -328,10 +369,11 @@ class Grammar:
         run out first `ssgc.sample.constrained.Unmet` is raised."""
         from ssgc.sample.run import draw_scenes, plan_sampling
 
-        if n < 0:
-            raise ValueError(f"number of scenes must be >= 0, got {n}")
-        if not _whole(seed) or not 0 <= seed < 2**63:
-            raise ValueError(f"seed must be a whole number in [0, 2**63) as for ssg, got {seed!r}")
+        n, seed, time_limit = _count("n", n, 0), _seed(seed), _time_limit(time_limit)
+        if constraints is not None and not isinstance(constraints, str):
+            raise TypeError(
+                f"constraints must be a string (`all`, `NAME,NAME`), got {constraints!r}"
+            )
         plan = plan_sampling(self.ir, constraints, method, max_tries, time_limit)
         return [Scene(self, d.scene, d.metadata) for d in draw_scenes(self.ir, n, seed, plan)]
 
@@ -403,7 +445,8 @@ class Tree:
 
     @property
     def parent(self) -> NDArray[np.int64]:
-        return self.trees.parent
+        """Each node's parent (-1 for the root), read-only: the tree's own array."""
+        return _read_only(self.trees.parent)
 
     @property
     def log_prob(self) -> float:
@@ -462,12 +505,14 @@ class Scene:
 
     @property
     def xyz(self) -> NDArray[np.float64]:
-        return self.data.xyz
+        """Positions (m), one row per object; read-only (the scene's own array: an edit in
+        place moved the scene past every check).  `.copy()` it to change it."""
+        return _read_only(self.data.xyz)
 
     @property
     def quat(self) -> NDArray[np.float64]:
-        """Rotations as unit quaternions, w first (docs/conventions.md)."""
-        return self.data.quat
+        """Rotations as unit quaternions, w first (docs/conventions.md); read-only."""
+        return _read_only(self.data.quat)
 
     @property
     def log_prob(self) -> float | None:

@@ -113,6 +113,11 @@ class ObjectExplanation:
     def label(self) -> str:
         return f"{self.type} #{self.index}"
 
+    def __repr__(self) -> str:  # the dataclass's lists every reason and rule share
+        return (
+            f"ObjectExplanation({self.label}, unusual={self.unusual:.3g}, share={self.share:.3g})"
+        )
+
     @property
     def type_evidence(self) -> float:
         """The type gain as evidence for `unusual` and the text: 0 unless another type fits
@@ -185,6 +190,14 @@ class Explanation:
     rules: list[dict[str, Any]]  # each rule's (or node type's) share, largest first
     unattributed: float = 0.0  # −log p of a scene without objects (nothing to attribute it to)
     reparse: Reparses | None = None  # the per-object re-parses (None: explained without)
+    status: str = ""  # the best parse's: optimal or feasible ("" when explained without one)
+
+    def __repr__(self) -> str:  # the dataclass's would print every object and rule
+        first = f", most unusual {self.objects[0].label}" if self.objects else ""
+        return (
+            f"Explanation(scene={self.scene!r}, log_prob={self.log_prob:.4g}, "
+            f"{len(self.objects)} objects{first})"
+        )
 
     @property
     def nats_per_object(self) -> float | None:
@@ -195,15 +208,19 @@ class Explanation:
         return -self.log_prob / len(self.objects)
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "scene": self.scene,
-            "log_prob": self.log_prob,
-            "neg_log_prob": -self.log_prob,
-            "nats_per_object": self.nats_per_object,
-            "unattributed": self.unattributed,
-            "objects": [o.to_json() for o in self.objects],
-            "rules": self.rules,
-        } | ({} if self.reparse is None else {"reparse": self.reparse.to_json()})
+        return (
+            ({"status": self.status} if self.status else {})
+            | {
+                "scene": self.scene,
+                "log_prob": self.log_prob,
+                "neg_log_prob": -self.log_prob,
+                "nats_per_object": self.nats_per_object,
+                "unattributed": self.unattributed,
+                "objects": [o.to_json() for o in self.objects],
+                "rules": self.rules,
+            }
+            | ({} if self.reparse is None else {"reparse": self.reparse.to_json()})
+        )
 
     def text(self, limit: int | None = None) -> str:
         per = self.nats_per_object
@@ -267,12 +284,20 @@ class UnexplainedScene(SsgError):
 
 
 def best_tree(grammar: Grammar, scene: Scene, parser: Any = None, **parse: Any) -> Trees:
+    return best_parse(grammar, scene, parser, **parse)[0]
+
+
+def best_parse(
+    grammar: Grammar, scene: Scene, parser: Any = None, **parse: Any
+) -> tuple[Trees, str]:
+    """The scene's best tree and the parse's status (optimal or feasible); `UnexplainedScene`
+    when there is none."""
     from ssgc.parse.parser import Parser
 
     parser = parser or Parser(grammar)
     result = parser.parse(scene, top=1, **parse)
     if result.parses:
-        return result.parses[0].tree
+        return result.parses[0].tree, result.status
     if result.status != "infeasible":
         raise UnexplainedScene(result.message, result.status)
     d = diagnose(grammar, scene, parser, time_limit=parse.get("time_limit") or 30.0)

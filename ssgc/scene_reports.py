@@ -69,7 +69,8 @@ def explain_document(
     if result.parses:
         budget = reparse_budget(time_limit, result.timing["total_s"])
         e = explain_tree(grammar, scene, result.parses[0].tree, parser, budget)
-        return {"status": result.status, **e.to_json()}, e.text(10)
+        e.status = result.status
+        return e.to_json(), e.text(10)
     if result.status == "infeasible":
         d = diagnose(grammar, scene, parser, time_limit=time_limit or DIAGNOSE_S)
         return {"scene": scene.name, "status": "infeasible", "diagnosis": d.to_json()}, d.message

@@ -112,7 +112,7 @@ def read_text(path: Path, limit: int, what: str) -> str:
     except OSError as exc:
         raise SsgError.single(f"cannot read {what}: {exc.strerror}", name) from None
     if path.is_dir():
-        raise SsgError.single(f"expected a {what} file, got a directory", name)
+        raise SsgError.single(f"expected a {what}, got a directory", name)
     if size > limit:
         raise SsgError.single(f"{what} is {size:,} bytes, over the limit of {_bytes(limit)}", name)
     try:

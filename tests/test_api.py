@@ -194,6 +194,14 @@ def test_a_scene_of_another_grammar_is_read_by_its_types_names():
         (lambda g, s: g.sample(1, seed=2**64), r"seed must be a whole number"),
         (lambda g, s: g.sample(1, seed=1.7), r"seed must be a whole number"),
         (lambda g, s: s.tree.scene("two\nlines"), "one line of printable text"),
+        (lambda g, s: g.sample(2.5), "n must be a whole number >= 0"),
+        (lambda g, s: g.sample(True), "n must be a whole number >= 0"),
+        (lambda g, s: ssgc.parse(g, s, time_limit=float("nan")), "time_limit must be a finite"),
+        (lambda g, s: ssgc.parse(g, s, time_limit=0), "time_limit must be a finite"),
+        (lambda g, s: ssgc.explain(g, s, time_limit=-1), "time_limit must be a finite"),
+        (lambda g, s: ssgc.fit(g, [s], iterations=2.5), "iterations must be a whole number"),
+        (lambda g, s: ssgc.fit(g, [s], top=2.5), "top must be a whole number"),
+        (lambda g, s: ssgc.fit(g, [s], seed=-1), r"seed must be a whole number"),
     ],
 )
 def test_out_of_range_arguments_are_value_errors(call, wanted):
@@ -252,3 +260,33 @@ def test_ssgc_api_and_ssgc_errors_are_there_in_a_fresh_interpreter():
     code = "import ssgc; print(ssgc.api.fit_defaults()['top'], ssgc.errors.SceneError.__name__)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["10", "SceneError"]
+
+
+def test_numpy_numbers_are_arguments_like_any_other(gmm: Grammar) -> None:
+    """A numpy integer reached the fit journal's JSON: TypeError, not serializable."""
+    scenes = gmm.sample(np.int64(4), seed=np.int64(1))
+    result = ssgc.fit(gmm, scenes, iterations=np.int64(1), top=np.int64(2), seed=np.uint8(3))
+    assert len(result.iterations) == 1
+
+
+def test_a_scenes_arrays_cannot_be_changed_in_place(gmm: Grammar) -> None:
+    """Centring `s.xyz` in place moved the scene past every check (a NaN reached the file)."""
+    scene = gmm.sample(1, seed=0)[0]
+    for array in (scene.xyz, scene.quat, scene.tree.parent):
+        with pytest.raises(ValueError, match="read-only"):
+            array[0] = 0
+    moved = scene.xyz.copy()
+    moved -= 1.0
+    assert not np.allclose(moved, scene.xyz)
+
+
+def test_an_explanation_is_the_entry_ssg_explain_prints_and_short_to_show(gmm, tmp_path):
+    scene = gmm.sample(1, seed=0)[0]
+    path = scene.save(tmp_path / "s.json")
+    result = CliRunner().invoke(
+        app, ["explain", str(path), "-g", str(GRAMMARS / "gmm.yaml"), "--json"]
+    )
+    entry = json.loads(result.stdout)["scenes"][0]
+    explained = ssgc.explain(gmm, ssgc.load_scenes(path, gmm)[0])
+    assert set(explained.to_json()) == set(entry) and entry["status"] == explained.status
+    assert len(repr(explained)) < 200 and len(repr(explained.objects[0])) < 200
