@@ -69,6 +69,15 @@ def load_grammar(path: str | Path, allow_outside: bool = False) -> Grammar:
     return Grammar(compiled, text, path, allow_outside)
 
 
+def _compiled_again(text: str, path: str | None, allow_outside: bool) -> Grammar:
+    """A pickled `Grammar` (`Grammar.__reduce__`)."""
+    if path is None:
+        return Grammar(compile_text(text), text, None, allow_outside)
+    file = Path(path)
+    compiled = compile_text(text, path, base_dir=file.parent, allow_outside=allow_outside)
+    return Grammar(compiled, text, file, allow_outside)
+
+
 def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
     """Scenes from a JSON scene file, a directory of them, or a sink-format YAML dataset."""
     return [Scene(grammar, s) for s in scene_io.load_scenes(path, grammar.ir)]
@@ -352,6 +361,13 @@ class Grammar:
 
     def __repr__(self) -> str:
         return f"<Grammar '{self.name}': {len(self.ir.types)} types, {len(self.ir.rules)} rules>"
+
+    def __reduce__(self) -> tuple[Any, tuple[str, str | None, bool]]:
+        """Pickled (and deep-copied) as its text, compiled again where it is read: the compiled
+        grammar holds collision shapes of python-fcl, which cannot be pickled (scenes, trees
+        and parses of such grammars could not go to another process)."""
+        where = None if self.path is None else str(self.path)
+        return _compiled_again, (self.text, where, self.allow_outside)
 
     def sample(
         self,

@@ -290,3 +290,18 @@ def test_an_explanation_is_the_entry_ssg_explain_prints_and_short_to_show(gmm, t
     explained = ssgc.explain(gmm, ssgc.load_scenes(path, gmm)[0])
     assert set(explained.to_json()) == set(entry) and entry["status"] == explained.status
     assert len(repr(explained)) < 200 and len(repr(explained.objects[0])) < 200
+
+
+def test_scenes_and_parses_of_a_grammar_with_collision_shapes_pickle():
+    """python-fcl's shapes cannot be pickled: nothing of sink.yaml could go to another process
+    (ProcessPoolExecutor, joblib) or be deep-copied."""
+    import copy
+    import pickle
+
+    g = load_grammar(GRAMMARS / "sink.yaml")
+    scene = g.sample(1, seed=0)[0]
+    again = pickle.loads(pickle.dumps(scene))
+    assert again.to_json() == scene.to_json() and again.grammar.path == g.path
+    result = ssgc.parse(g, scene)
+    assert pickle.loads(pickle.dumps(result)).best.score == result.best.score
+    assert copy.deepcopy(g).text == g.text
