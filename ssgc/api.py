@@ -409,7 +409,8 @@ class Grammar:
                 pose["quat_wxyz"] = _numbers(o[2])
             objs.append({"type": o[0], "pose": pose})
         doc = {"format": scene_io.FORMAT, "name": name, "objects": objs}
-        return Scene(self, scene_io.parse_scene_text(json.dumps(doc), "<python>", self.ir, name))
+        text = json.dumps(doc, default=repr)  # a Decimal or a complex: the check refuses it
+        return Scene(self, scene_io.parse_scene_text(text, "<python>", self.ir, name))
 
     def parse(
         self, scene: Scene, top: int = 1, method: str = "auto", time_limit: float | None = None
@@ -639,6 +640,11 @@ def _numbers(values: Iterable[Any]) -> list[Any]:
     """Numbers as JSON holds them (numpy's as Python's); what they are is checked as in a file."""
     if isinstance(values, np.ndarray):  # a wrong shape stays one, for the check to name
         values = values.tolist()
+    if not isinstance(values, list | tuple):
+        try:
+            values = list(values)  # a generator, a zip
+        except TypeError:
+            return values  # a number or None where a list belongs: the check says so
     return [v.item() if isinstance(v, np.generic) else v for v in values]
 
 

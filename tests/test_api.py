@@ -7,6 +7,7 @@ import doctest
 import json
 import subprocess
 import sys
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -227,6 +228,26 @@ def test_objects_of_the_wrong_shape_are_scene_errors(objects):
         g.scene(objects)
     with pytest.raises(SceneError, match="xyz"):  # a 1x3 array is not a position
         g.scene([("DishBin", np.zeros((1, 3)))])
+
+
+@pytest.mark.parametrize(
+    "xyz, said",
+    [
+        (0.5, "expected a list, got 0.5"),
+        (None, "expected a list"),
+        ([Decimal("0.5"), 0, 0], "expected a number"),
+        ([1j, 0, 0], "expected a number"),
+    ],
+)
+def test_a_position_that_is_not_three_numbers_is_a_scene_error(xyz, said):
+    """A number or None where the list belongs, or numbers JSON cannot hold, raised Python's
+    own TypeError."""
+    from ssgc.errors import SceneError
+
+    g = load_grammar(GRAMMARS / "sink.yaml")
+    with pytest.raises(SceneError, match=said):
+        g.scene([("DishBin", xyz)])
+    assert len(g.scene([("DishBin", (v for v in (0.5, 0, 0)))])) == 1
 
 
 def test_a_scene_without_a_parse_is_an_ssg_error_with_its_status():
