@@ -51,9 +51,19 @@ class _CallableModule(ModuleType):
     """A module of ssgc that is also the API function of its name (`ssgc.api.NAME`)."""
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return self._function()(*args, **kwargs)
+
+    @property
+    def __signature__(self) -> Any:
+        """The API function's, for `help()`, `inspect.signature` and a notebook's `?`."""
+        import inspect
+
+        return inspect.signature(self._function())
+
+    def _function(self) -> Any:
         from ssgc import api
 
-        return getattr(api, self.__name__.rpartition(".")[2])(*args, **kwargs)
+        return getattr(api, self.__name__.rpartition(".")[2])
 
 
 class _Package(ModuleType):

@@ -326,3 +326,13 @@ def test_scenes_and_parses_of_a_grammar_with_collision_shapes_pickle():
     result = ssgc.parse(g, scene)
     assert pickle.loads(pickle.dumps(result)).best.score == result.best.score
     assert copy.deepcopy(g).text == g.text
+
+
+def test_the_callable_modules_show_their_functions_signatures():
+    """`help(ssgc.parse)` and a notebook's `ssgc.parse?` showed `(*args, **kwargs)`."""
+    import inspect
+
+    assert list(inspect.signature(ssgc.parse).parameters)[:3] == ["grammar", "scene", "top"]
+    assert "iterations" in inspect.signature(ssgc.fit).parameters
+    assert "time_limit" in inspect.signature(ssgc.explain).parameters
+    assert "ssgc.parse(grammar, scene" in ssgc.parse.__doc__
