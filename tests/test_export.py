@@ -593,3 +593,17 @@ def test_an_empty_scene_loads_as_drake_model_directives(tmp_path: Path) -> None:
     scene.write_text(json.dumps({"name": "empty", "objects": []}))
     assert run("export", scene, "-g", grammar, "-f", "dmd", "-o", tmp_path / "e").exit_code == 0
     LoadModelDirectives(str(tmp_path / "e" / "empty.dmd.yaml"))
+
+
+def test_a_grain_of_a_tenth_of_a_millimetre_loads_in_mujoco(tmp_path: Path) -> None:
+    """Its inertia (2e-18) is below MuJoCo's least: the MJCF did not load, and `ssg settle`
+    stopped part way through a run."""
+    import mujoco
+
+    grammar = wrapped(tmp_path, "{box: {size: [0.0001, 0.0001, 0.0001]}}")
+    scenes = tmp_path / "s"
+    assert run("sample", grammar, "-n", 1, "-o", scenes, "-q").exit_code == 0
+    assert run("export", scenes, "-g", grammar, "-f", "mjcf", "-o", tmp_path / "e").exit_code == 0
+    model = mujoco.MjModel.from_xml_path(str(next((tmp_path / "e").glob("*.xml"))))
+    assert model.body_mass[-1] == pytest.approx(1e-9)  # its own mass, above the floor
+    assert run("settle", scenes, "-g", grammar, "-o", tmp_path / "st", "-q").exit_code == 0

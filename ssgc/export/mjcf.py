@@ -93,7 +93,10 @@ def mjcf_text(
     return "\n".join(
         [
             f"<mujoco model={quoteattr(scene.name)}>",
-            f'  <compiler angle="radian" meshdir={quoteattr(meshdir)} inertiafromgeom="false"/>',
+            # MuJoCo refuses a moving body's mass or inertia below 1e-15 (a 0.1 mm grain, a
+            # density of 1e-300): such bodies are raised to these floors instead
+            f'  <compiler angle="radian" meshdir={quoteattr(meshdir)} inertiafromgeom="false" '
+            'boundmass="1e-12" boundinertia="1e-14"/>',
             # multiccd: several contact points between flat faces (a tray on a tray), not one
             f'  <option timestep="{timestep!r}"><flag multiccd="enable"/></option>',
             *(["  <asset>", *assets, "  </asset>"] if assets else []),
