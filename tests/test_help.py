@@ -82,6 +82,8 @@ def test_bench_sample_takes_the_n_it_is_given(monkeypatch):
         (["bench", "sample", "{gmm}", "-n", "3", "-j", "2"], "--method and -j time"),
         (["inspect", "{gmm}", "--json", "--diagram", "{tmp}/g.svg"], "give one"),
         (["view", "{gmm}", "-o", "{tmp}/p.html", "--port", "9999"], "--port is the port of"),
+        (["sample", "{gmm}", "-o", "{tmp}/s", "--method", "hmc"], "--method and --penalty-eps"),
+        (["sample", "{gmm}", "-o", "{tmp}/s", "--penalty-eps", "0.01"], "--method and --penalty"),
     ],
 )
 def test_an_option_that_would_do_nothing_is_refused(tmp_path, words, said):

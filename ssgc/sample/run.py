@@ -91,6 +91,8 @@ def plan_sampling(
     if constraints is None:
         if (max_tries, time_limit) != (None, None):
             raise SsgError.single("--max-tries and --time-limit need --constraints (all, or names)")
+        if method != "auto" or penalty_eps is not None:  # they were ignored
+            raise SsgError.single("--method and --penalty-eps need --constraints (all, or names)")
         return Plan()
     chosen = select(grammar, constraints)
     chosen_method = choose_method(method, chosen)
