@@ -143,7 +143,7 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
         else:
             mesh, source = _revolve_mesh(trimesh, g), ""
         mesh.apply_translation(origin)  # type: ignore[attr-defined]
-        volume, com, unit_inertia = _mesh_mass_properties(mesh)
+        volume, com, unit_inertia = _mesh_mass_properties(mesh, isinstance(g, dsl.RevolveG))
         pieces = _collision_pieces(mesh, body.collision, t.name) if collision else ()
         kind, size = "mesh", ()
     else:
@@ -218,14 +218,22 @@ def _primitive_mass_properties(
     return 4.0 / 3.0 * np.pi * r**3, np.eye(3) * (2.0 / 5.0 * r * r)
 
 
-def _mesh_mass_properties(mesh: object) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+def _mesh_mass_properties(
+    mesh: object, closed: bool = False
+) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
     """Volume, centre of mass and inertia per unit mass (about the centre of mass).
+
+    `closed`: the mesh is a closed, consistently oriented surface by construction (a
+    revolve), whose integrals are exact also where it touches itself (a profile pinched to a
+    point, or doubling back on itself), which trimesh does not call a volume: its hull was
+    32% and 72% too heavy.
 
     A mesh that does not enclose a volume (open, inside out, or with faces wound both ways,
     which halved a cube's mass) falls back to its convex hull, which does (`_load_mesh`
     refuses a flat one): a simulator needs a positive mass and a valid inertia.
     """
-    solid = mesh if mesh.is_volume else mesh.convex_hull  # type: ignore[attr-defined]
+    own = mesh.is_volume or (closed and mesh.volume > 0)  # type: ignore[attr-defined]
+    solid = mesh if own else mesh.convex_hull  # type: ignore[attr-defined]
     volume = float(solid.volume)
     com = np.asarray(solid.center_mass, dtype=float)
     unit = np.asarray(solid.moment_inertia, dtype=float) / (solid.density * volume)
