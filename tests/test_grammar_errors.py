@@ -1018,11 +1018,11 @@ def test_latent_model_duplicate_label_and_missing_mesh_warn(tmp_path: Path) -> N
 
 def grammar_naming(tmp_path: Path, mesh: str, model: str = "models/cup.sdf") -> Path:
     """`tmp_path/g/g.yaml`, naming `mesh` and `model`; `tmp_path/outside.obj` exists (one
-    triangle: `ssg validate` opens every mesh)."""
-    triangle = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+    tetrahedron: `ssg validate` opens every mesh, and a mesh must enclose a volume)."""
+    tetra = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
     (tmp_path / "g" / "meshes").mkdir(parents=True)
-    (tmp_path / "g" / "meshes" / "cup.obj").write_text(triangle)
-    (tmp_path / "outside.obj").write_text(triangle)
+    (tmp_path / "g" / "meshes" / "cup.obj").write_text(tetra)
+    (tmp_path / "outside.obj").write_text(tetra)
     path = tmp_path / "g" / "g.yaml"
     path.write_text(
         doc(f"""
