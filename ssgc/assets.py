@@ -86,7 +86,8 @@ def _encloses_a_volume(mesh: object) -> bool:
     a hull a billionth of its bounding cube is flat for any simulator."""
     size = float(np.max(mesh.extents))  # type: ignore[attr-defined]
     try:
-        volume = float(mesh.convex_hull.volume)  # type: ignore[attr-defined]
+        with np.errstate(all="ignore"):  # a flat hull's centre of mass divides by 0
+            volume = float(mesh.convex_hull.volume)  # type: ignore[attr-defined]
     except Exception:  # qhull refuses points in a plane or on a line
         return False
     return size > 0 and np.isfinite(volume) and volume > 1e-9 * size**3
@@ -153,7 +154,8 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
         volume, unit_inertia = _primitive_mass_properties(kind, size)
         com, pieces, source = origin.copy(), (), ""
     mass = body.mass if body.mass is not None else (body.density or DEFAULT_DENSITY) * volume
-    inertia = mass * unit_inertia
+    with np.errstate(over="ignore", invalid="ignore"):  # told below, in our words
+        inertia = mass * unit_inertia
     if not (np.isfinite(mass) and np.all(np.isfinite(inertia))):
         raise SsgError.single(
             f"type '{t.name}': its mass ({mass:g} kg) or inertia is not a finite number; "

@@ -574,7 +574,7 @@ def rule_probs(
             report.error(missing, "give `p` for every rule of an `or`, or for none (equal weights)")
             return np.full(len(specs), 1.0 / len(specs))
         weights = np.array([r.p for r in specs]) if all(given) else np.ones(len(specs))
-        if weights.sum() <= 0:
+        if not np.any(weights > 0):  # (their sum may overflow: 2 × 1e308)
             if whole:
                 report.error((*loc, key), "the weights `p` of an `or` sum to zero")
             return np.full(len(specs), 1.0 / len(specs))
