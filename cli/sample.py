@@ -70,7 +70,9 @@ def sample(
     penalty_eps: Annotated[
         float | None,
         typer.Option(
-            min=1e-9, callback=finite, help="hmc, rjmcmc: the penalty's ε in m (default 1e-3)."
+            min=1e-9,
+            callback=finite,
+            help="With --constraints, hmc, rjmcmc: the penalty's ε in m (default 1e-3).",
         ),
     ] = None,
     export: Annotated[

@@ -100,7 +100,7 @@ def parse(
     top, time_limit = _count("top", top, 1), _time_limit(time_limit)
     parser = grammar.parser(method)
     result = parser.parse(data, top=top, time_limit=time_limit)
-    document = parse_document(parser, data, result, int(top), time_limit=time_limit)
+    document = parse_document(parser, data, result, top, time_limit=time_limit)
     return ParseResult(grammar, result, document)
 
 
@@ -150,17 +150,17 @@ def fit(
     else:
         where, scenes = Path("<scenes>"), list(dataset)
     options = fit_options(
-        iterations=_integral("iterations", iterations),
-        top=_integral("top", top),
+        iterations=_count("iterations", iterations),
+        top=_count("top", top),
         method=method,
         seed=_seed(seed),
         tol=float(tol),
         estep=estep,
-        samples=_integral("samples", samples),
+        samples=_count("samples", samples),
         pseudocount=float(pseudocount),
         min_variance=float(min_variance),
         max_concentration=float(max_concentration),
-        jobs=_integral("jobs", jobs),
+        jobs=_count("jobs", jobs),
     )
     time_limit = _time_limit(time_limit)
     with open_fit(grammar, [_scene_data(grammar, s) for s in scenes], where, options) as run:
@@ -179,18 +179,13 @@ def _read_only(array: NDArray[Any]) -> NDArray[Any]:
     return view
 
 
-def _count(name: str, value: Any, least: int) -> int:
+def _count(name: str, value: Any, least: int | None = None) -> int:
     """A whole-number argument (numpy's too) as an int; 2.5 iterations ran 3, and a numpy
-    integer reached the journal's JSON."""
-    if not _whole(value) or value < least:
-        raise ValueError(f"{name} must be a whole number >= {least}, got {value!r}")
-    return int(value)
-
-
-def _integral(name: str, value: Any) -> int:
-    """A whole number as an int, its range left to `FitOptions` (which says it as `ssg fit`)."""
-    if not _whole(value):
-        raise ValueError(f"{name} must be a whole number, got {value!r}")
+    integer reached the journal's JSON.  Without `least`, the range is left to the caller
+    (`FitOptions` says it as `ssg fit` does)."""
+    if not _whole(value) or (least is not None and value < least):
+        wanted = "a whole number" + ("" if least is None else f" >= {least}")
+        raise ValueError(f"{name} must be {wanted}, got {value!r}")
     return int(value)
 
 

@@ -45,8 +45,8 @@ def _near_origin(xyz: list[float]) -> list[float]:
     if far > MAX_COORDINATE:
         raise ValueError(
             f"a position must lie within {MAX_COORDINATE / 1000:,.0f} km of the origin on each "
-            f"axis, got "
-            f"{far:g} m (poses are resolved to 1e-6 m, which floating point cannot hold there)"
+            f"axis, got {far:g} m (poses are resolved to 1e-6 m, which floating point cannot "
+            "hold there)"
         )
     return xyz
 

@@ -25,11 +25,11 @@ from typing import Annotated, Any
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
     ValidationError,
-    field_validator,
     model_validator,
 )
 
@@ -80,11 +80,28 @@ class TreeDoc(Strict):
     nodes: list[TreeNode]
 
 
+def name_problem(name: str) -> str | None:
+    """Why `name` cannot name a scene: names go into one-line messages and output files."""
+    if one_line(name) != name:
+        return f"a scene name must be one line of printable text, got '{one_line(name)}'"
+    return None
+
+
+def _printable(name: str) -> str:
+    problem = name_problem(name)
+    if problem:
+        raise ValueError(problem)
+    return name
+
+
+SceneName = Annotated[str, AfterValidator(_printable)]  # in scene files and parse results
+
+
 class SceneDoc(Strict):
     """One scene: observed objects, optionally the tree that produced them."""
 
     format: str | None = Field(None, description=f"'{FORMAT}'")
-    name: str | None = None
+    name: SceneName | None = None
     grammar: str | None = None
     seed: int | None = None
     index: int | None = None
@@ -92,21 +109,6 @@ class SceneDoc(Strict):
     objects: list[SceneObject]
     metadata: dict[str, Any] = Field(default_factory=dict)
     tree: TreeDoc | None = None
-
-    @field_validator("name")
-    @classmethod
-    def _printable_name(cls, name: str | None) -> str | None:
-        problem = name_problem(name) if name is not None else None
-        if problem:
-            raise ValueError(problem)
-        return name
-
-
-def name_problem(name: str) -> str | None:
-    """Why `name` cannot name a scene: names go into one-line messages and output files."""
-    if one_line(name) != name:
-        return f"a scene name must be one line of printable text, got '{one_line(name)}'"
-    return None
 
 
 # ---------------------------------------------------------------- in memory ---

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from ssgc.errors import SceneError, SsgError, SsgWarning, one_line
 from ssgc.geometry import quat_to_matrix, rpy_to_quat
@@ -32,10 +32,10 @@ from ssgc.io.outputs import check_output as check_output_path
 from ssgc.io.scene import (
     MAX_SCENE_BYTES,
     SceneDoc,
+    SceneName,
     ScenePose,
     TreeDoc,
     load_scenes,
-    name_problem,
 )
 from ssgc.ir import Grammar, HoldsGrammar, as_ir
 from ssgc.yamlio import load_located, read_text, validation_diagnostics
@@ -209,17 +209,9 @@ class _Parse(_Loose):
 
 
 class _ParsedScene(_Loose):
-    name: str = "scene"
+    name: SceneName = "scene"
     status: str = ""
     parses: list[_Parse] = []
-
-    @field_validator("name")
-    @classmethod
-    def _printable_name(cls, name: str) -> str:
-        problem = name_problem(name)
-        if problem:
-            raise ValueError(problem)
-        return name
 
 
 class _ParseDoc(_Loose):
