@@ -179,3 +179,15 @@ def test_unmet_with_jobs_counts_every_process(tmp_path: Path) -> None:
     drawn = int(head.split(" after ")[1].split(" candidates")[0].replace(",", ""))
     assert drawn >= 2 * 1024  # both first blocks' first attempts (1,024 each) are counted
     assert not out.exists() or not list(out.iterdir())
+
+
+def test_a_limit_reached_before_any_candidate_says_so() -> None:
+    """Not "after 0 candidates" with "rejected 0 of the 0 candidates it judged" per constraint."""
+    g = load_grammar(GRAMMARS / "bin_packing.yaml")
+    with pytest.raises(Unmet) as caught:
+        list(sample_blocks(g, select(g, "all"), 3, 0, time_limit=1e-12))
+    lines = [d.message for d in caught.value.diagnostics]
+    assert lines == [
+        "found 0 of the 3 requested scene(s) satisfying the constraints before the first "
+        "candidate (--time-limit 1e-12 s)"
+    ]

@@ -171,6 +171,8 @@ class Tally:
         judged = judged or {}
         lines = []
         for k in self.evaluated:
+            if not self.evaluated[k]:
+                continue  # "rejected 0 of the 0 chain draws": the run stopped before any
             best = self.best[k]
             closest = f"; the closest rejected came to {best:.4g}" if np.isfinite(best) else ""
             lines.append(
@@ -353,9 +355,10 @@ def _judged(constraints: list[Constraint], method: str) -> dict[str, str]:
 
 
 def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str, judged: dict[str, str]) -> Unmet:
+    after = f"after {tally.drawn:,} candidates" if tally.drawn else "before the first candidate"
     head = (
         f"found {tally.kept:,} of the {n:,} requested scene(s) satisfying the constraints "
-        f"after {tally.drawn:,} candidates ({limit})"
+        f"{after} ({limit})"
     )
     lines = [head, *tally.report(judged)]
     return Unmet([Diagnostic(line, grammar.file) for line in lines], exit_code=2)
