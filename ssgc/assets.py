@@ -94,27 +94,35 @@ def _encloses_a_volume(mesh: object) -> bool:
 
 
 def check_assets(grammar: Grammar, text: str | None = None) -> list[Diagnostic]:
-    """Located errors for every mesh that is missing or unreadable (for `ssg validate`).
+    """Located errors for every mesh that is missing or unreadable (for `ssg validate`)."""
+    return _meshes(grammar, text)[1]
+
+
+def _meshes(
+    grammar: Grammar, text: str | None = None
+) -> tuple[dict[int, object], list[Diagnostic]]:
+    """Every mesh geometry loaded once, by type id, and located errors for those that cannot
+    be used (reading a mesh and its hull is the slow part of a large file).
 
     The compiled grammar keeps document paths, not positions: the grammar text is read again
     for line and column only when there is something to report.
     """
-    problems = []
+    meshes, problems = {}, []
     for t in grammar.types:
         if isinstance(t.geometry, dsl.MeshG):
             try:
-                _load_mesh(mesh_path(grammar, t), t.geometry.mesh.scale)
+                meshes[t.id] = _load_mesh(mesh_path(grammar, t), t.geometry.mesh.scale)
             except ValueError as exc:
                 loc = (*t.path, "geometry", "mesh", "file")
                 problems.append((loc, f"mesh file '{t.geometry.mesh.file}': {exc}"))
     if not problems:
-        return []
+        return meshes, []
     from ssgc.yamlio import load_located
 
     if text is None:
         text = Path(grammar.file).read_text(encoding="utf-8")
     _, source = load_located(text, grammar.file)
-    return [source.diagnostic(loc, message) for loc, message in problems]
+    return meshes, [source.diagnostic(loc, message) for loc, message in problems]
 
 
 def load_shapes(grammar: Grammar, collision: bool = True) -> dict[int, Shape]:
@@ -123,24 +131,25 @@ def load_shapes(grammar: Grammar, collision: bool = True) -> dict[int, Shape]:
     `collision=False` skips the convex decomposition (slow) for exports that carry no
     collision geometry.  A bad mesh is a located `GrammarError`.
     """
-    errors = check_assets(grammar)
+    meshes, errors = _meshes(grammar)
     if errors:
         raise GrammarError(errors)
     return {
-        t.id: _shape(grammar, t, collision)
+        t.id: _shape(grammar, t, collision, meshes.get(t.id))
         for t in grammar.types
         if t.observed and t.geometry is not None
     }
 
 
-def _shape(grammar: Grammar, t: NodeType, collision: bool) -> Shape:
+def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None) -> Shape:
+    """`loaded`: the type's mesh geometry as `_meshes` read it (None for other kinds)."""
     trimesh = _trimesh()
     body = t.body if t.body is not None else dsl.Body()
     g = t.geometry
     origin = np.asarray(g.origin, float)
     if isinstance(g, dsl.MeshG | dsl.RevolveG):  # a revolve's surface is a mesh to exporters
         if isinstance(g, dsl.MeshG):
-            mesh, source = _load_mesh(mesh_path(grammar, t), g.mesh.scale), g.mesh.file
+            mesh, source = loaded, g.mesh.file
         else:
             mesh, source = _revolve_mesh(trimesh, g), ""
         mesh.apply_translation(origin)  # type: ignore[attr-defined]

@@ -298,6 +298,22 @@ def test_mass_and_inertia_from_primitives_and_meshes(tmp_path: Path) -> None:
     assert len(cup.collision) == 1 and cup.collision[0].is_convex
 
 
+def test_each_mesh_file_is_read_once_for_the_shapes(tmp_path: Path, monkeypatch) -> None:
+    """The check of every mesh and the shapes read each file once: a large mesh and its hull
+    were read and computed twice per command."""
+    import ssgc.assets
+
+    read = []
+    load = ssgc.assets._load_mesh
+    monkeypatch.setattr(
+        ssgc.assets, "_load_mesh", lambda path, scale: read.append(path) or load(path, scale)
+    )
+    g = load_grammar(shapes_grammar(tmp_path))
+    shape = load_shapes(g, collision=False)[g.type_ids["Cup"]]
+    assert [p.name for p in read] == ["cup.obj"]
+    assert shape.mass == pytest.approx(500 * 0.2 * 0.4 * 0.1)
+
+
 @pytest.mark.parametrize(
     ("content", "fragment"),
     [
