@@ -36,7 +36,12 @@ def score_trees(grammar: Grammar, trees: Trees) -> FloatArray:
     terms = node_terms(grammar, trees)
     total = np.bincount(trees.scene, terms.choice + terms.edge, minlength=trees.n_scenes)
     invalid = np.bincount(trees.scene, ~terms.valid, minlength=trees.n_scenes) > 0
+    invalid |= _roots(trees) != 1  # a tree of no nodes summed to 0: probability 1
     return np.where(invalid, -np.inf, total)
+
+
+def _roots(trees: Trees) -> NDArray[np.int64]:
+    return np.bincount(trees.scene[trees.parent < 0], minlength=trees.n_scenes)
 
 
 def node_terms(grammar: Grammar, trees: Trees) -> NodeTerms:
@@ -180,7 +185,10 @@ def _choice_terms(
 def explain(grammar: Grammar, trees: Trees) -> list[str]:
     """Human-readable reasons why a single tree scores -inf (empty if it is possible)."""
     terms = node_terms(grammar, trees)
+    roots = int(_roots(trees).sum())
     reasons = []
+    if roots != 1:
+        reasons.append(f"the tree has {roots} roots; a scene's tree has one, the grammar's root")
     for i in np.flatnonzero(~terms.valid):
         name = grammar.types[trees.type[i]].name
         if trees.parent[i] < 0:

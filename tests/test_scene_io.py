@@ -221,6 +221,19 @@ def test_moved_object_scores_lower_and_impossible_pose_scores_minus_inf(sink):
     assert score_trees(sink, broken)[0] == -np.inf
 
 
+def test_a_tree_of_no_nodes_is_impossible_and_says_why(sink):
+    """Every scene has the grammar's root: a tree with no nodes summed to log p = 0
+    (probability 1) and had no reason to give."""
+    from ssgc.score import explain
+
+    scene = parse_scene_text('{"objects": [], "tree": {"nodes": []}}', "t.json", sink)
+    assert score_trees(sink, scene.tree)[0] == -np.inf
+    assert explain(sink, scene.tree) == [
+        "the tree has 0 roots; a scene's tree has one, the grammar's root"
+    ]
+    assert explain(sink, sample_trees(sink, 1, seed=0)[0]) == []
+
+
 def test_a_scene_with_no_object_and_its_tree_reads():
     """A grammar can make a scene without objects (a latent root, no child): its file, with
     the tree, reads back (the check that objects match the tree broadcast (0, 3) against
