@@ -404,7 +404,10 @@ class Grammar:
                 pose["quat_wxyz"] = _numbers(o[2])
             objs.append({"type": o[0], "pose": pose})
         doc = {"format": scene_io.FORMAT, "name": name, "objects": objs}
-        text = json.dumps(doc, default=repr)  # a Decimal or a complex: the check refuses it
+        try:
+            text = json.dumps(doc, default=repr)  # a Decimal or a complex: the check refuses it
+        except ValueError:  # an int of more than 4,300 digits (Python's own limit)
+            raise SceneError.single("a number has too many digits for a pose", "<python>") from None
         return Scene(self, scene_io.parse_scene_text(text, "<python>", self.ir, name))
 
     def parse(

@@ -237,6 +237,7 @@ def test_objects_of_the_wrong_shape_are_scene_errors(objects):
         (None, "expected a list"),
         ([Decimal("0.5"), 0, 0], "expected a number"),
         ([1j, 0, 0], "expected a number"),
+        ([10**5000, 0, 0], "too many digits"),
     ],
 )
 def test_a_position_that_is_not_three_numbers_is_a_scene_error(xyz, said):
