@@ -33,6 +33,7 @@ from ssgc.sample.forward import sample_trees
 
 FILES = ("log_evidence.png", "counts.png", "positions.png")
 MIN_SAMPLES = 200  # scenes sampled from each grammar (at least as many as the data has)
+MIN_WIDTH = 6.4  # inches: room for the titles and the legend above a single panel
 DATA_COLOUR, FITTED_COLOUR, INITIAL_COLOUR = "0.15", "tab:orange", "tab:blue"
 
 
@@ -135,7 +136,8 @@ def _grid(n: int, width: float, height: float) -> tuple[Any, list[Any]]:
 
     cols = min(4, max(n, 1))
     rows = math.ceil(max(n, 1) / cols)
-    fig = Figure(figsize=(width * cols, height * rows + 0.6), layout="constrained")
+    # One panel (gmm's single type) was 3.2 in wide: the title and the legend were cut off.
+    fig = Figure(figsize=(max(width * cols, MIN_WIDTH), height * rows + 0.6), layout="constrained")
     axes = [fig.add_subplot(rows, cols, i + 1) for i in range(n)]
     return fig, axes
 
@@ -161,6 +163,8 @@ def counts_figure(pops: list[Population], types: list[int], names: list[str]) ->
         ax.set_ylabel("share of scenes", fontsize=7)
         ax.tick_params(labelsize=6)
         ax.xaxis.get_major_locator().set_params(integer=True)
+        if top == 0:  # no object of it in any scene: one bar at 0, not ticks at -0.4 .. 0.4
+            ax.set_xticks([0])
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside upper center", ncols=3, fontsize=8)
     return fig
@@ -190,5 +194,8 @@ def positions_figure(pops: list[Population], types: list[int], names: list[str])
         ax.set_xlabel("x (m)", fontsize=7)
         ax.set_ylabel("y (m)", fontsize=7)
         ax.legend(fontsize=5, loc="best", markerscale=1.5)
+    if not types:  # only the root is observed, and its pose is the same in every scene
+        axes[0].text(0.5, 0.5, "no observed type besides the root", ha="center", fontsize=8)
+        axes[0].set_axis_off()
     fig.suptitle("Object positions seen from above: data (×) and sampled scenes", fontsize=9)
     return fig
