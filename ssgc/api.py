@@ -386,7 +386,8 @@ class Grammar:
                 f"constraints must be a string (`all`, `NAME,NAME`), got {constraints!r}"
             )
         plan = plan_sampling(self.ir, constraints, method, max_tries, time_limit)
-        return [Scene(self, d.scene, d.metadata) for d in draw_scenes(self.ir, n, seed, plan)]
+        drawn = draw_scenes(self.ir, n, seed, plan)
+        return [Scene(self, d.scene, d.metadata, (seed, d.index)) for d in drawn]
 
     def scene(self, objects: Iterable[Sequence[Any]], name: str = "scene") -> Scene:
         """A scene from Python data: `(type, xyz)` or `(type, xyz, quat_wxyz)` per object,
@@ -502,6 +503,7 @@ class Scene:
     grammar: Grammar
     data: scene_io.Scene
     metadata: dict[str, Any] | None = None  # constrained sampling: its method and margins
+    run: tuple[int, int] | None = None  # a sampled scene's seed and index, as its file has
 
     def __len__(self) -> int:
         return len(self.data)
@@ -538,8 +540,12 @@ class Scene:
         return None if self.data.tree is None else Tree(self.grammar, self.data.tree)
 
     def to_json(self) -> dict[str, Any]:
-        """The scene file `ssg sample` writes (without its seed and index)."""
-        return scene_io.scene_to_json(self.grammar.ir, self.data, metadata=self.metadata)
+        """The scene file's document: for a sampled scene, what `ssg sample` writes, its seed
+        and index included (a file saved without them was refused by `--resume`)."""
+        seed, index = self.run if self.run is not None else (None, None)
+        return scene_io.scene_to_json(
+            self.grammar.ir, self.data, seed=seed, index=index, metadata=self.metadata
+        )
 
     def save(self, path: str | Path) -> Path:
         """Write the scene as a JSON file every `ssg` command reads (atomically)."""
