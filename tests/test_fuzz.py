@@ -6,6 +6,7 @@ Generated inputs go through the real command line, in process (typer's `CliRunne
 - grammar files for `ssg validate`, `ssg inspect` and `ssg sample -n 2`;
 - JSON scenes and sink-format YAML datasets for `ssg parse SCENES -g GRAMMAR`, with the
   `sink` and `singles_pairs_dependency` grammars;
+- JSON scenes and `ssg parse` outputs for `ssg render`, `view`, `export` and `settle`;
 - and, through the Python API, objects given as Python data (`ssgc.api.Grammar.scene`);
 - valid grammars of the whole language (tests/grammar_gen.py) through every command.
 
@@ -752,6 +753,27 @@ def small_sink_scenes(most: int = 4) -> list[str]:
 SINK_GRAMMAR = load_grammar(GRAMMARS / "sink.yaml")
 SCENE_TEXTS = small_scenes("sink.yaml", 0) + small_scenes("singles_pairs_dependency.yaml", 1)
 SINK_TEXTS = small_sink_scenes()
+
+
+def parse_outputs(texts: list[str]) -> list[str]:
+    """`ssg parse` outputs whose best parse of each scene is its sampled tree (a valid
+    output of the grammar), one or two scenes to a file: `export` and `settle` read them."""
+    docs = [json.loads(t) for t in texts]
+    scenes = [
+        {
+            "name": d["name"],
+            "status": "optimal",
+            "parses": [{"score": d["log_prob"], "tree": d["tree"]}],
+        }
+        for d in docs
+        if "tree" in d
+    ]
+    out = [{"grammar": "g", "scenes": [s]} for s in scenes]
+    out += [{"grammar": "g", "scenes": [a, b]} for a, b in itertools.pairwise(scenes[:4])]
+    return [json.dumps(d, indent=1) for d in out]
+
+
+PARSE_TEXTS = parse_outputs(SCENE_TEXTS)
 OBJECT_TYPES = sorted(
     {t.name for name in PARSE_GRAMMARS for t in load_grammar(GRAMMARS / name).types}
 )
@@ -862,6 +884,46 @@ def scene_json_inputs() -> st.SearchStrategy[bytes]:
         json_oddities().map(encode),
         yaml_oddities().map(encode),
         raw_bytes(SCENE_TEXTS),
+    )
+
+
+parse_result_doc = mapping(
+    {
+        "scenes": st.one_of(
+            st.lists(
+                mapping(
+                    {"name": names, "status": names},
+                    {
+                        "parses": st.lists(
+                            mapping(
+                                {"tree": mapping({"nodes": st.lists(tree_node, max_size=5)})},
+                                {
+                                    "score": numbers,
+                                    "rules": st.lists(
+                                        mapping({"node": numbers}, {"log_prob": numbers}),
+                                        max_size=5,
+                                    ),
+                                },
+                            ),
+                            max_size=2,
+                        )
+                    },
+                ),
+                max_size=2,
+            ),
+            junk,
+        )
+    }
+)
+
+
+def render_inputs() -> st.SearchStrategy[bytes]:
+    """Scenes and `ssg parse` outputs: what `render`, `view`, `export` and `settle` read."""
+    return st.one_of(
+        scene_json_inputs(),
+        sometimes_junk(parse_result_doc).map(to_json).map(encode),
+        edited_json(PARSE_TEXTS).map(encode),
+        edited_json(PARSE_TEXTS).map(encode),
     )
 
 
@@ -991,7 +1053,7 @@ def test_fuzz_sample_constrained(work: Path, data: bytes, names: str, more: list
 
 @fuzz(quick=30)
 @given(
-    data=scene_json_inputs(),
+    data=render_inputs(),
     grammar=st.sampled_from(PARSE_GRAMMARS),
     fmt=st.sampled_from(["dmd", "sdf", "mjcf", "glb", "usd"]),
 )
@@ -1005,7 +1067,7 @@ def test_fuzz_export_json(work: Path, data: bytes, grammar: str, fmt: str) -> No
 
 
 @fuzz(quick=20)
-@given(data=scene_json_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
+@given(data=render_inputs(), grammar=st.sampled_from(PARSE_GRAMMARS))
 def test_fuzz_settle_json(work: Path, data: bytes, grammar: str) -> None:
     path = write(work / "scene.json", data)
     grammar_path = GRAMMARS / grammar
@@ -1063,40 +1125,6 @@ def test_fuzz_explain_json(work: Path, data: bytes, grammar: str) -> None:
     check(result, seconds, PARSE_CODES, [path, grammar_path], data)
     if result.exit_code in (0, 2, 3, 4):
         assert json.loads(result.stdout)["scenes"], result.stdout
-
-
-parse_result_doc = mapping(
-    {
-        "scenes": st.one_of(
-            st.lists(
-                mapping(
-                    {"name": names, "status": names},
-                    {
-                        "parses": st.lists(
-                            mapping(
-                                {"tree": mapping({"nodes": st.lists(tree_node, max_size=5)})},
-                                {
-                                    "score": numbers,
-                                    "rules": st.lists(
-                                        mapping({"node": numbers}, {"log_prob": numbers}),
-                                        max_size=5,
-                                    ),
-                                },
-                            ),
-                            max_size=2,
-                        )
-                    },
-                ),
-                max_size=2,
-            ),
-            junk,
-        )
-    }
-)
-
-
-def render_inputs() -> st.SearchStrategy[bytes]:
-    return st.one_of(scene_json_inputs(), sometimes_junk(parse_result_doc).map(to_json).map(encode))
 
 
 @fuzz(quick=25)

@@ -8,27 +8,24 @@ reaches back into the grammar or the scene tree.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.assets import Shape
-from ssgc.errors import SceneError
 from ssgc.geometry import quat_canonical
+from ssgc.io.parsed import parsed_scenes, read_parse_doc
 from ssgc.io.scene import (
-    MAX_SCENE_BYTES,
     Scene,
-    SceneDoc,
-    _LazySource,
-    _scene_from_doc,
+    is_parse_result,
+    lazy_source,
     load_scenes,
+    loads_json,
+    read_scene_text,
 )
 from ssgc.ir import Grammar
-from ssgc.yamlio import read_text
 
 
 @dataclass(frozen=True)
@@ -112,57 +109,13 @@ def principal_axes(inertia: NDArray[np.float64]) -> tuple[NDArray[np.float64], N
 
 def load_export_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
     """Scenes to export: a JSON scene, a directory of them, a sink-format dataset, or the
-    output of `ssg parse` (each scene's best parse, as the scene of its observed nodes)."""
+    output of `ssg parse` (each scene's best parse, as the scene of its observed nodes, read
+    by the checked reader `ssg render` uses too)."""
     path = Path(path)
     if path.is_file() and path.suffix.lower() == ".json":
-        text = read_text(path, MAX_SCENE_BYTES, "scene file")
-        if (document := _parse_result(text)) is not None:
-            return _parsed_scenes(document, text, str(path), grammar)
+        text = read_scene_text(path)
+        data = loads_json(text, str(path))
+        if is_parse_result(data):
+            doc = read_parse_doc(data, text, str(path))
+            return parsed_scenes(doc, grammar, lazy_source(text, str(path)), str(path))
     return load_scenes(path, grammar)
-
-
-def _parse_result(text: str) -> dict[str, Any] | None:
-    """An `ssg parse` output, decoded: a document with `scenes` and no `objects` of its own
-    (as `ssg render` reads it).  Only its top-level keys decide: a diagnosis or an explanation
-    early in the file holds `"objects"` too.  Text that is not JSON is left to the scene
-    reader, which says where it fails."""
-    if not text.lstrip().startswith("{"):
-        return None
-    try:
-        data = json.loads(text)
-    except (ValueError, RecursionError):
-        return None
-    is_result = isinstance(data, dict) and "scenes" in data and "objects" not in data
-    return data if is_result else None
-
-
-def _parsed_scenes(document: dict[str, Any], text: str, file: str, grammar: Grammar) -> list[Scene]:
-    """Each parsed scene's best tree as a scene (`text` locates its mistakes)."""
-    results = document["scenes"]
-    if not isinstance(results, list):
-        raise SceneError.single("not a scene file or an `ssg parse` output", file)
-    scenes = []
-    for k, result in enumerate(results):
-        parses = result.get("parses") if isinstance(result, dict) else None
-        if not parses:
-            continue  # an infeasible or failed scene has no parse to export
-        nodes = parses[0]["tree"]["nodes"]
-        doc = {
-            "name": result.get("name") or f"scene_{k}",
-            "objects": [
-                {"type": n["type"], "pose": n["pose"]}
-                for n in nodes
-                if grammar.type_ids.get(n["type"]) is not None
-                and grammar.types[grammar.type_ids[n["type"]]].observed
-            ],
-        }
-        try:
-            scene_doc = SceneDoc.model_validate(doc)
-        except ValueError:
-            raise SceneError.single(
-                f"scene {k}: its best parse is not a valid tree", file
-            ) from None
-        scenes.append(_scene_from_doc(scene_doc, grammar, _LazySource(text, file), doc["name"]))
-    if not scenes:
-        raise SceneError.single("the parse output holds no parsed scene", file)
-    return scenes

@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -83,7 +84,7 @@ class TreeDoc(Strict):
 def name_problem(name: str) -> str | None:
     """Why `name` cannot name a scene: names go into one-line messages and output files."""
     if one_line(name) != name:
-        return f"a scene name must be one line of printable text, got '{one_line(name)}'"
+        return f"a scene name must be one line of printable text, got '{shown(one_line(name))}'"
     return None
 
 
@@ -240,37 +241,97 @@ def dumps_scene(grammar: Grammar, scene: Scene, **header: Any) -> str:
 # ------------------------------------------------------------------ reading ---
 
 
+def shown(name: str, limit: int = 60) -> str:
+    """A user's name as a message quotes it: a long one cut, so that a 100,000-character
+    type name cannot flood the terminal (the file and position say which it is)."""
+    return name if len(name) <= limit else name[:limit] + "…"
+
+
+def read_scene_text(path: Path, what: str = "scene file") -> str:
+    """A scene file's text (`read_text`), and a file saved as UTF-16 said to be that: its
+    NUL bytes would otherwise make it "not a text file"."""
+    if _looks_utf16(path):
+        raise SceneError.single(
+            f"{what} looks like UTF-16 text (a UTF-16 byte-order mark or every other byte "
+            "NUL); ssgc reads UTF-8: save it as UTF-8",
+            str(path),
+        )
+    return read_text(path, MAX_SCENE_BYTES, what)
+
+
+def _looks_utf16(path: Path) -> bool:
+    """A UTF-16 byte-order mark, or ASCII text stored as UTF-16 (every other byte NUL).
+    Only regular files are looked at: a pipe's bytes, once read, would be gone."""
+    try:
+        if not path.is_file():
+            return False
+        with path.open("rb") as f:
+            head = f.read(512)
+    except OSError:
+        return False  # read_text says why
+    if head.startswith((b"\xff\xfe", b"\xfe\xff")):
+        return True
+    even, odd = head[0::2].strip(b"\0"), head[1::2].strip(b"\0")
+    return len(head) >= 2 and bool(even) != bool(odd)  # all NUL bytes is not text at all
+
+
 def read_scene_file(path: str | Path, grammar: Grammar) -> Scene:
     """Read one JSON scene; every mistake becomes a located `SceneError`."""
     path = Path(path)
-    text = read_text(path, MAX_SCENE_BYTES, "scene file")
+    text = read_scene_text(path)
     # a file's name is not checked as a scene's "name" is: it gets its odd characters escaped
     return parse_scene_text(text, str(path), grammar, default_name=one_line(path.stem))
 
 
 def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str = "scene") -> Scene:
+    data = loads_json(text, file)
+    if is_parse_result(data):
+        raise _json_error(text, file, PARSE_RESULT_IS_NO_SCENE, ("scenes",))
+    doc = validated(SceneDoc, data, text, file)
+    return _scene_from_doc(doc, grammar, _LazySource(text, file), default_name)
+
+
+PARSE_RESULT_IS_NO_SCENE = (
+    "this is an `ssg parse` output, not a scene: `ssg parse`, `explain` and `fit` read "
+    "scenes; `ssg render`, `view`, `export` and `settle` read parse outputs"
+)
+
+
+def is_parse_result(data: Any) -> bool:
+    """An `ssg parse` output: `scenes` and no `objects` of its own.  Only the top-level keys
+    decide: a diagnosis or an explanation in it holds `objects` too."""
+    return isinstance(data, dict) and "scenes" in data and "objects" not in data
+
+
+def loads_json(text: str, file: str, invalid: str = "invalid JSON") -> Any:
+    """Decode a JSON input strictly: a duplicate key (which `json` resolves by keeping the
+    last) and a lone surrogate escape are mistakes, located; `invalid` starts the message
+    of text that is not JSON at all."""
     try:
         data = json.loads(text, object_pairs_hook=_no_duplicate_keys)
     except _DuplicateKey as exc:
-        raise _json_error(text, file, f"invalid JSON: duplicate key '{exc.key}'") from None
+        raise _json_error(text, file, f"invalid JSON: duplicate key '{shown(exc.key)}'") from None
     except (json.JSONDecodeError, RecursionError) as exc:
         line, col = (
             (exc.lineno, exc.colno) if isinstance(exc, json.JSONDecodeError) else (None, None)
         )
         message = exc.msg if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
-        raise SceneError.single(f"invalid JSON: {message}", file, line, col) from None
+        raise SceneError.single(f"{invalid}: {message}", file, line, col) from None
     except ValueError:  # an integer of more than 4300 digits (Python's own limit)
         raise _json_error(text, file, "invalid JSON: an integer of more than 4300 digits") from None
     if _SURROGATE_ESCAPE.search(text) and not _is_unicode(data):  # such as "\ud800"
         raise _json_error(text, file, "a string holds a lone UTF-16 surrogate escape")
+    return data
+
+
+def validated(model: Any, data: Any, text: str, file: str) -> Any:
+    """`data` as `model`, or the located mistakes.  Positions are computed only now: the
+    fast path keeps large datasets fast."""
     try:
-        doc = SceneDoc.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as exc:
-        # Re-read with positions only now: the fast path above keeps large datasets fast.
         _, source = _located(text, file)
         raise SceneError(validation_diagnostics(exc, source)) from None
-    source = _LazySource(text, file)
-    return _scene_from_doc(doc, grammar, source, default_name)
 
 
 _SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")
@@ -301,15 +362,18 @@ def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def _json_error(text: str, file: str, message: str) -> SceneError:
-    """A JSON mistake that `json` finds without its position (a duplicate key, a huge
-    integer, a lone surrogate), located where the YAML reader, which keeps positions, finds
-    it: JSON is YAML, so the first problem it reports is this one."""
+def _json_error(text: str, file: str, message: str, key: tuple[str, ...] = ()) -> SceneError:
+    """A mistake that `json` finds without its position (a duplicate key, a huge integer, a
+    lone surrogate), located where the YAML reader, which keeps positions, finds it: JSON is
+    YAML, so the first problem it reports is this one.  With `key`, a top-level key of a
+    document that reads: the mistake is located at it."""
     try:
-        load_located(text, file)
+        _, source = load_located(text, file)
     except SsgError as exc:
         first = exc.diagnostics[0]
         return SceneError.single(message, file, first.line, first.column)
+    if key:
+        return SceneError.single(message, file, *source.locate_key((), key[0]))
     return SceneError.single(message, file)
 
 
@@ -318,6 +382,10 @@ def _located(text: str, file: str) -> tuple[Any, SourceMap]:
         return load_located(text, file)
     except SsgError as exc:
         raise SceneError(exc.diagnostics) from None
+
+
+class Locator(Protocol):
+    def diagnostic(self, loc: tuple[Any, ...], message: str) -> Diagnostic: ...
 
 
 class _LazySource:
@@ -333,8 +401,13 @@ class _LazySource:
         return self._map.diagnostic(loc, message)
 
 
+def lazy_source(text: str, file: str) -> Locator:
+    """Where the mistakes in `text` are, found only when there is one to report."""
+    return _LazySource(text, file)
+
+
 def _pose_arrays(
-    pose: ScenePose, loc: tuple[Any, ...], source: _LazySource, errors: list[Diagnostic]
+    pose: ScenePose, loc: tuple[Any, ...], source: Locator, errors: list[Diagnostic]
 ) -> tuple[list[float], NDArray[np.float64]]:
     if pose.rpy is not None:
         return pose.xyz, rpy_to_quat(np.asarray(pose.rpy, float))
@@ -352,135 +425,226 @@ def _pose_arrays(
     return pose.xyz, q / norm
 
 
+def _finite_metadata(
+    metadata: dict[str, Any], loc: tuple[Any, ...], source: Locator, errors: list[Diagnostic]
+) -> None:
+    """Metadata is kept and written back as JSON, which has no NaN or infinity (`json`
+    reads them, and would write them as bare `NaN`, which no JSON reader takes).  The walk
+    is a loop: metadata as deep as the decoder allows must not overflow the stack."""
+    stack: list[tuple[tuple[Any, ...], Any]] = [(loc, metadata)]
+    while stack:
+        at, value = stack.pop()
+        if isinstance(value, float) and not math.isfinite(value):
+            message = (
+                "metadata must hold finite numbers (JSON has no NaN or Infinity), "
+                f"got {json.dumps(value)}"
+            )
+            errors.append(source.diagnostic(at, message))
+            return
+        if isinstance(value, dict):
+            stack += [((*at, k), v) for k, v in reversed(value.items())]
+        elif isinstance(value, list):
+            stack += [((*at, i), v) for i, v in reversed(list(enumerate(value)))]
+
+
+@dataclass(frozen=True)
+class NodeTable:
+    """A tree as its file lists it, checked: ids 0..n-1 in order, parents listed before
+    their children, `parent` and `rule` given together, unit quaternions; with a grammar,
+    also each type and each rule index.  Rendering needs no grammar; parsing does
+    (`trees_of`)."""
+
+    types: tuple[str, ...]
+    parent: NDArray[np.int64]  # -1 at a root
+    rule: NDArray[np.int64]  # index in the parent type's rule list, -1 at a root
+    xyz: NDArray[np.float64]
+    quat: NDArray[np.float64]
+    observed: tuple[bool | None, ...]  # as the file says (None: it does not say)
+
+    def observed_mask(self, grammar: Grammar | None) -> NDArray[np.bool_] | None:
+        """Which nodes are objects: the grammar's word, else the file's (None if unsaid)."""
+        if grammar is not None:
+            return np.array([grammar.types[grammar.type_ids[t]].observed for t in self.types])
+        if any(o is None for o in self.observed):
+            return None
+        return np.array(self.observed, bool).reshape(-1)
+
+
+def read_tree(
+    doc: TreeDoc,
+    grammar: Grammar | None,
+    source: Locator,
+    errors: list[Diagnostic],
+    at: tuple[Any, ...] = ("tree",),
+) -> NodeTable | None:
+    """The checked tree (`NodeTable`) at `at` in the file, or None with its mistakes added
+    to `errors`."""
+    n = len(doc.nodes)
+    xyz, quat = np.zeros((n, 3)), np.zeros((n, 4))
+    typed = np.zeros(n, bool)
+    start = len(errors)
+    for i, node in enumerate(doc.nodes):
+        loc = (*at, "nodes", i)
+        problem = _node_problem(doc, i, grammar, typed)
+        if problem is not None:
+            if problem[1]:
+                errors.append(source.diagnostic((*loc, *problem[0]), problem[1]))
+            continue
+        xyz[i], quat[i] = _pose_arrays(node.pose, (*loc, "pose"), source, errors)
+    if len(errors) > start:
+        return None
+    return NodeTable(
+        types=tuple(nd.type for nd in doc.nodes),
+        parent=np.array([-1 if nd.parent is None else nd.parent for nd in doc.nodes], np.int64),
+        rule=np.array([-1 if nd.rule is None else nd.rule for nd in doc.nodes], np.int64),
+        xyz=xyz,
+        quat=quat,
+        observed=tuple(nd.observed for nd in doc.nodes),
+    )
+
+
+def _node_problem(
+    doc: TreeDoc, i: int, grammar: Grammar | None, typed: NDArray[np.bool_]
+) -> tuple[tuple[str, ...], str] | None:
+    """What is wrong with node `i` (where in it, and the message), or None.  A node whose id
+    or type is wrong has no type to check its children's rules against: its own error is the
+    one to report, and a child's is an empty message (skipped, not reported)."""
+    node, n = doc.nodes[i], len(doc.nodes)
+    if node.id != i:
+        return ("id",), f"node ids must be 0..{n - 1} in order"
+    if grammar is not None and node.type not in grammar.type_ids:
+        name = shown(node.type)
+        return (
+            "type",
+        ), f"node {i} has unknown type '{name}', not a type in grammar '{grammar.name}'"
+    typed[i] = True
+    if (node.parent is None) != (node.rule is None):
+        return (), "give both `parent` and `rule`, or neither"
+    if node.parent is None or node.rule is None:
+        return None
+    if node.parent >= i:
+        return ("parent",), "a node's parent must be listed before it"
+    if not typed[node.parent]:
+        return (), ""
+    if grammar is None:
+        return None
+    up = grammar.types[grammar.type_ids[doc.nodes[node.parent].type]]
+    if node.rule >= len(up.rules):
+        return ("rule",), f"type '{up.name}' has {len(up.rules)} rule(s), no rule {node.rule}"
+    return None
+
+
+def trees_of(table: NodeTable, grammar: Grammar) -> Trees:
+    """The `Trees` of a tree read with `grammar` (`read_tree` checked its types and rules)."""
+    ntype = np.array([grammar.type_ids[t] for t in table.types], np.int64).reshape(-1)
+    rule = np.full(len(ntype), -1, np.int64)
+    for i in np.flatnonzero(table.parent >= 0):
+        rule[i] = grammar.types[ntype[table.parent[i]]].rules[table.rule[i]]
+    return Trees(
+        np.zeros(len(ntype), np.int64), ntype, table.parent, rule, table.xyz, table.quat, 1
+    )
+
+
+@dataclass(frozen=True)
+class SceneRead:
+    """A scene file's objects (type names, poses) and its tree, checked (`read_scene_doc`)."""
+
+    types: tuple[str, ...]
+    xyz: NDArray[np.float64]
+    quat: NDArray[np.float64]
+    tree: NodeTable | None
+
+
+def read_scene_doc(doc: SceneDoc, grammar: Grammar | None, source: Locator) -> SceneRead:
+    """Check a scene beyond its schema: unit quaternions, finite metadata, a well-formed tree
+    whose observed nodes are the objects; with a grammar, also that each object is of an
+    observed type and the tree's types and rules are the grammar's."""
+    errors: list[Diagnostic] = []
+    types, xyz, quat = _read_objects(doc, grammar, source, errors)
+    _finite_metadata(doc.metadata, ("metadata",), source, errors)
+    table = read_tree(doc.tree, grammar, source, errors) if doc.tree is not None else None
+    if table is not None and not errors:
+        _check_objects_match_tree(table, grammar, types, xyz, quat, source, errors)
+    if errors:
+        raise SceneError(errors)
+    return SceneRead(types, xyz, quat, table)
+
+
+def _read_objects(
+    doc: SceneDoc, grammar: Grammar | None, source: Locator, errors: list[Diagnostic]
+) -> tuple[tuple[str, ...], NDArray[np.float64], NDArray[np.float64]]:
+    xyz, quat = np.zeros((len(doc.objects), 3)), np.tile([1.0, 0, 0, 0], (len(doc.objects), 1))
+    for i, obj in enumerate(doc.objects):
+        _finite_metadata(obj.metadata, ("objects", i, "metadata"), source, errors)
+        if grammar is not None and _observed_type(grammar, obj.type) is None:
+            what = "is not observed" if obj.type in grammar.type_ids else "is not a type"
+            errors.append(
+                source.diagnostic(
+                    ("objects", i, "type"),
+                    f"object {i} has type '{shown(obj.type)}', which {what} in grammar "
+                    f"'{grammar.name}'",
+                )
+            )
+            continue
+        xyz[i], quat[i] = _pose_arrays(obj.pose, ("objects", i, "pose"), source, errors)
+    return tuple(o.type for o in doc.objects), xyz, quat
+
+
 def _observed_type(grammar: Grammar, name: str) -> int | None:
     tid = grammar.type_ids.get(name)
     return tid if tid is not None and grammar.types[tid].observed else None
 
 
-def _scene_from_doc(
-    doc: SceneDoc, grammar: Grammar, source: _LazySource, default_name: str
-) -> Scene:
-    errors: list[Diagnostic] = []
-    types, xyz, quat = [], [], []
-    for i, obj in enumerate(doc.objects):
-        tid = _observed_type(grammar, obj.type)
-        if tid is None:
-            what = "is not observed" if obj.type in grammar.type_ids else "is not a type"
-            errors.append(
-                source.diagnostic(
-                    ("objects", i, "type"),
-                    f"object {i} has type '{obj.type}', which {what} in grammar '{grammar.name}'",
-                )
-            )
-            continue
-        p, q = _pose_arrays(obj.pose, ("objects", i, "pose"), source, errors)
-        types.append(tid)
-        xyz.append(p)
-        quat.append(q)
-    tree = _tree_from_doc(doc.tree, grammar, source, errors) if doc.tree else None
-    if tree is not None and not errors:
-        _check_objects_match_tree(grammar, tree, types, xyz, quat, source, errors)
-    if errors:
-        raise SceneError(errors)
+def _scene_from_doc(doc: SceneDoc, grammar: Grammar, source: Locator, default_name: str) -> Scene:
+    read = read_scene_doc(doc, grammar, source)
     return Scene(
         name=doc.name or default_name,
-        types=np.asarray(types, np.int64).reshape(-1),
-        xyz=np.asarray(xyz, float).reshape(-1, 3),
-        quat=np.asarray(quat, float).reshape(-1, 4),
+        types=np.array([grammar.type_ids[t] for t in read.types], np.int64).reshape(-1),
+        xyz=read.xyz,
+        quat=read.quat,
         metadata=tuple(o.metadata for o in doc.objects),
-        tree=tree,
+        tree=None if read.tree is None else trees_of(read.tree, grammar),
         log_prob=doc.log_prob,
         extra=dict(doc.metadata),
     )
 
 
 def _check_objects_match_tree(
-    grammar: Grammar,
-    tree: Trees,
-    types: list[int],
-    xyz: list[Any],
-    quat: list[Any],
-    source: _LazySource,
+    tree: NodeTable,
+    grammar: Grammar | None,
+    types: tuple[str, ...],
+    xyz: NDArray[np.float64],
+    quat: NDArray[np.float64],
+    source: Locator,
     errors: list[Diagnostic],
 ) -> None:
     """A scene's objects are its tree's observed nodes, in node order: a file must agree.
     The message names the first object that does not, and the way out for a user who edited
-    the objects of a sampled scene (to parse or explain it, the tree is not needed)."""
-    obs = np.flatnonzero(grammar.tables.type_observed[tree.type])
+    the objects of a sampled scene (to parse or explain it, the tree is not needed).  Without
+    a grammar, the nodes' own `observed` say which are objects (unsaid: nothing to check)."""
+    mask = tree.observed_mask(grammar)
+    if mask is None:
+        return
+    obs = np.flatnonzero(mask)
     head = "`objects` must be the observed nodes of `tree`, in node order, with the same poses"
     way_out = "to change the objects, delete `tree` (parse and explain need only the objects)"
     if len(obs) != len(types):
         where: tuple[Any, ...] = ("objects",)
         why = f"the tree has {len(obs)} observed node(s), `objects` lists {len(types)}"
     else:
-        t = np.asarray(types, np.int64).reshape(-1)
-        xyz_, quat_ = np.asarray(xyz, float).reshape(-1, 3), np.asarray(quat, float).reshape(-1, 4)
-        moved = ~np.all(np.isclose(tree.xyz[obs], xyz_, rtol=0, atol=1e-9), axis=1)
-        turned = np.abs(np.sum(tree.quat[obs] * quat_, axis=1)) < 1 - 1e-9
-        bad = np.flatnonzero((tree.type[obs] != t) | moved | turned)
+        named = np.array([tree.types[k] != t for k, t in zip(obs, types, strict=True)], bool)
+        moved = ~np.all(np.isclose(tree.xyz[obs], xyz, rtol=0, atol=1e-9), axis=1)
+        turned = np.abs(np.sum(tree.quat[obs] * quat, axis=1)) < 1 - 1e-9
+        bad = np.flatnonzero(named.reshape(-1) | moved | turned)
         if not len(bad):
             return
         i = int(bad[0])
-        where = ("objects", i)
-        name, node = grammar.types[t[i]].name, int(obs[i])
-        if tree.type[node] != t[i]:
-            other = grammar.types[tree.type[node]].name
-            why = f"object {i} is a {name}, its node ({node}) a {other}"
+        where, name, node = ("objects", i), shown(types[i]), int(obs[i])
+        if tree.types[node] != types[i]:
+            why = f"object {i} is a {name}, its node ({node}) a {shown(tree.types[node])}"
         else:
             why = f"object {i} ({name}) is not at the pose of its node ({node})"
     errors.append(source.diagnostic(where, f"{head}: {why}; {way_out}"))
-
-
-def _tree_from_doc(
-    doc: TreeDoc, grammar: Grammar, source: _LazySource, errors: list[Diagnostic]
-) -> Trees | None:
-    """Nodes must be listed parents first, with ids 0..n-1; rules index the parent's list.
-    A node whose id or type is wrong has no type to check its children's rules against:
-    its own error is the one to report."""
-    n = len(doc.nodes)
-    ntype = np.zeros(n, np.int64)
-    typed = np.zeros(n, bool)
-    parent = np.full(n, -1, np.int64)
-    rule = np.full(n, -1, np.int64)
-    xyz, quat = np.zeros((n, 3)), np.zeros((n, 4))
-    start = len(errors)
-    for i, node in enumerate(doc.nodes):
-        loc = ("tree", "nodes", i)
-        if node.id != i:
-            errors.append(source.diagnostic((*loc, "id"), f"node ids must be 0..{n - 1} in order"))
-            continue
-        tid = grammar.type_ids.get(node.type)
-        if tid is None:
-            errors.append(source.diagnostic((*loc, "type"), f"unknown type '{node.type}'"))
-            continue
-        ntype[i], typed[i] = tid, True
-        if (node.parent is None) != (node.rule is None):
-            errors.append(source.diagnostic(loc, "give both `parent` and `rule`, or neither"))
-            continue
-        if node.parent is not None and node.rule is not None:
-            if node.parent >= i:
-                errors.append(
-                    source.diagnostic((*loc, "parent"), "a node's parent must be listed before it")
-                )
-                continue
-            if not typed[node.parent]:
-                continue
-            rules = grammar.types[ntype[node.parent]].rules
-            if node.rule >= len(rules):
-                errors.append(
-                    source.diagnostic(
-                        (*loc, "rule"),
-                        f"type '{grammar.types[ntype[node.parent]].name}' has "
-                        f"{len(rules)} rule(s), no rule {node.rule}",
-                    )
-                )
-                continue
-            parent[i], rule[i] = node.parent, rules[node.rule]
-        p, q = _pose_arrays(node.pose, (*loc, "pose"), source, errors)
-        xyz[i], quat[i] = p, q
-    if len(errors) > start:
-        return None
-    return Trees(np.zeros(n, np.int64), ntype, parent, rule, xyz, quat, 1)
 
 
 # ------------------------------------------------------------ sink dataset ---
@@ -508,7 +672,7 @@ def read_sink_yaml(path: str | Path, grammar: Grammar) -> list[Scene]:
     objects too when the grammar has a type for them.
     """
     path = Path(path)
-    text = read_text(path, MAX_SCENE_BYTES, "dataset file")
+    text = read_scene_text(path, "dataset file")
     data, source = _located(text, str(path))
     if not isinstance(data, dict):
         raise SceneError([source.diagnostic((), "expected a mapping of scene name -> scene")])
@@ -563,6 +727,7 @@ def _sink_scene(
                 line, col = source.locate(full)
                 errors.append(Diagnostic(d.message, source.file, line, col))
             continue
+        _finite_metadata(obj.metadata, (*full, "metadata"), source, errors)
         label = obj.metadata.get("class")
         tid = by_model.get(obj.model_file or "")
         if tid is None:
@@ -571,8 +736,8 @@ def _sink_scene(
             errors.append(
                 source.diagnostic(
                     full,
-                    f"scene '{name}': no observed type has model '{obj.model_file}' "
-                    f"or label '{label}'",
+                    f"scene '{shown(name)}': no observed type has model "
+                    f"'{shown(str(obj.model_file))}' or label '{shown(str(label))}'",
                 )
             )
             continue

@@ -17,28 +17,33 @@ import math
 import re
 import sys
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, ValidationError
 
 from ssgc.errors import SceneError, SsgError, SsgWarning, one_line
-from ssgc.geometry import quat_to_matrix, rpy_to_quat
+from ssgc.geometry import quat_to_matrix
 from ssgc.io.outputs import Output, write_output_bytes
 from ssgc.io.outputs import check_output as check_output_path
+from ssgc.io.parsed import ParseDoc, best_tree, read_parse_doc
 from ssgc.io.scene import (
-    MAX_SCENE_BYTES,
+    Locator,
+    NodeTable,
     SceneDoc,
-    SceneName,
-    ScenePose,
-    TreeDoc,
+    SceneRead,
+    is_parse_result,
+    lazy_source,
     load_scenes,
+    loads_json,
+    read_scene_doc,
+    read_scene_text,
+    shown,
+    validated,
 )
 from ssgc.ir import Grammar, HoldsGrammar, as_ir
-from ssgc.yamlio import load_located, read_text, validation_diagnostics
 
 FloatArray = NDArray[np.float64]
 MAX_COORD = 1000.0  # meters
@@ -153,16 +158,9 @@ def load_views(path: Path, n: int, grammar: Grammar | None) -> list[View]:
 
 
 def _file_views(path: Path, grammar: Grammar | None) -> list[View]:
-    text = read_text(path, MAX_SCENE_BYTES, "input file")
-    try:
-        data = json.loads(text)
-    except (json.JSONDecodeError, RecursionError, ValueError) as exc:
-        line, col = (
-            (exc.lineno, exc.colno) if isinstance(exc, json.JSONDecodeError) else (None, None)
-        )
-        raise SceneError.single(
-            "not JSON: expected a scene or an `ssg parse` result", str(path), line, col
-        ) from None
+    """A file read as `ssg parse` reads a scene: strict JSON, every mistake located."""
+    text = read_scene_text(path, "input file")
+    data = loads_json(text, str(path), "not JSON (expected a scene or an `ssg parse` result)")
     return document_views(data, grammar, path, text)
 
 
@@ -170,60 +168,22 @@ def document_views(
     data: Any, grammar: Grammar | None, path: Path, text: str | None = None
 ) -> list[View]:
     """The views of one JSON document: a scene (with its tree, when it has one) or an
-    `ssg parse` result (the best parse of each scene).  `text` locates mistakes in a file."""
+    `ssg parse` result (the best parse of each scene), checked as `ssg parse` and
+    `ssg export` check them (`ssgc.io.scene.read_scene_doc`, `ssgc.io.parsed`); a grammar
+    adds the checks that need one (types, rules).  `text` locates mistakes in a file."""
     text = json.dumps(data) if text is None else text
-    if isinstance(data, dict) and "scenes" in data:
-        views = _parse_views(_validated(_ParseDoc, data, text, path), grammar, path)
+    file, source = str(path), lazy_source(text, str(path))
+    if is_parse_result(data):
+        views = _parse_views(read_parse_doc(data, text, file), grammar, source, file)
         return [_drawable(v, path) for v in views]
     if isinstance(data, dict) and "objects" in data:
-        doc = _validated(SceneDoc, data, text, path)
-        return [_drawable(_doc_view(doc, grammar, one_line(path.stem)), path)]
+        doc = validated(SceneDoc, data, text, file)
+        view = _doc_view(doc, read_scene_doc(doc, grammar, source), grammar, one_line(path.stem))
+        return [_drawable(view, path)]
     raise SceneError.single(
         "not a scene (a JSON object with `objects`) or an `ssg parse` result (with `scenes`)",
-        str(path),
+        file,
     )
-
-
-def _validated(model: Any, data: Any, text: str, path: Path) -> Any:
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        _, source = load_located(text, str(path))
-        raise SceneError(validation_diagnostics(exc, source)) from None
-
-
-class _Loose(BaseModel):
-    model_config = ConfigDict(extra="ignore")
-
-
-class _RuleScore(_Loose):
-    node: int
-    rule: str | None = None
-    log_prob: float | None = None
-
-
-class _Parse(_Loose):
-    score: float | None = None
-    tree: TreeDoc
-    rules: list[_RuleScore] = []
-
-
-class _ParsedScene(_Loose):
-    name: SceneName = "scene"
-    status: str = ""
-    parses: list[_Parse] = []
-
-
-class _ParseDoc(_Loose):
-    scenes: list[_ParsedScene]
-
-
-def _quat(pose: ScenePose) -> FloatArray:
-    if pose.rpy is not None:
-        return rpy_to_quat(np.asarray(pose.rpy, float))
-    q = np.asarray(pose.quat_wxyz if pose.quat_wxyz is not None else [1.0, 0, 0, 0], float)
-    norm = float(np.linalg.norm(q))
-    return q / norm if norm > 1e-9 else np.array([1.0, 0, 0, 0])
 
 
 def _observed(grammar: Grammar | None, name: str, given: bool | None) -> bool:
@@ -232,36 +192,28 @@ def _observed(grammar: Grammar | None, name: str, given: bool | None) -> bool:
     return True if given is None else given
 
 
-def _tree_view(title: str, tree: TreeDoc, grammar: Grammar | None, path: Path) -> View:
-    nodes = tree.nodes
-    parent = np.array([-1 if nd.parent is None else nd.parent for nd in nodes], np.int64)
-    if np.any(parent >= np.arange(len(nodes))):
-        raise SceneError.single(f"'{title}': a node's parent must be listed before it", str(path))
+def _tree_view(title: str, tree: NodeTable, grammar: Grammar | None) -> View:
     return View(
         name=title,
         title=title,
-        types=tuple(nd.type for nd in nodes),
-        xyz=np.array([nd.pose.xyz for nd in nodes], float).reshape(-1, 3),
-        quat=np.array([_quat(nd.pose) for nd in nodes], float).reshape(-1, 4),
-        observed=np.array([_observed(grammar, nd.type, nd.observed) for nd in nodes], bool),
-        parent=parent,
+        types=tree.types,
+        xyz=tree.xyz,
+        quat=tree.quat,
+        observed=np.array(
+            [_observed(grammar, t, o) for t, o in zip(tree.types, tree.observed, strict=True)],
+            bool,
+        ).reshape(-1),
+        parent=tree.parent,
     )
 
 
-def _doc_view(doc: SceneDoc, grammar: Grammar | None, stem: str) -> View:
+def _doc_view(doc: SceneDoc, read: SceneRead, grammar: Grammar | None, stem: str) -> View:
+    """A scene's tree (its latent nodes too) when it has a non-empty one, else its objects."""
     name = doc.name or stem
-    if doc.tree is not None and doc.tree.nodes:
-        return _tree_view(name, doc.tree, grammar, Path(stem))
-    objs = doc.objects
-    return View(
-        name=name,
-        title=name,
-        types=tuple(o.type for o in objs),
-        xyz=np.array([o.pose.xyz for o in objs], float).reshape(-1, 3),
-        quat=np.array([_quat(o.pose) for o in objs], float).reshape(-1, 4),
-        observed=np.ones(len(objs), bool),
-        parent=np.full(len(objs), -1, np.int64),
-    )
+    if read.tree is not None and len(read.tree.types):
+        return _tree_view(name, read.tree, grammar)
+    n = len(read.types)
+    return View(name, name, read.types, read.xyz, read.quat, np.ones(n, bool), np.full(n, -1))
 
 
 def _scene_view(name: str, grammar: Grammar, types: Any, xyz: Any, quat: Any) -> View:
@@ -280,45 +232,33 @@ def _drawable(view: View, path: Path) -> View:
     """Coordinates a picture can hold: finite, within a kilometre of the origin."""
     if view.xyz.size and not np.all(np.abs(view.xyz) <= MAX_COORD):
         raise SceneError.single(
-            f"'{view.name}': a position is beyond {MAX_COORD:g} m, too far to draw", str(path)
+            f"'{shown(view.name)}': a position is beyond {MAX_COORD:g} m, too far to draw",
+            str(path),
         )
     return view
 
 
-def _parse_views(doc: _ParseDoc, grammar: Grammar | None, path: Path) -> list[View]:
+def _parse_views(doc: ParseDoc, grammar: Grammar | None, source: Locator, file: str) -> list[View]:
     """The best parse of each scene that has one; its rule scores colour the edges."""
     views = []
-    for s in doc.scenes:
-        if not s.parses:
+    for k, s in enumerate(doc.scenes):
+        tree = best_tree(doc, k, grammar, source)
+        if tree is None:
             continue
-        best = s.parses[0]
-        view = _tree_view(s.name, best.tree, grammar, path)
-        score = np.full(len(view.types), np.nan)
+        name, best = s.name or "scene", s.parses[0]
+        score = np.full(len(tree.types), np.nan)
         rules: list[str | None] = [None] * len(score)
         for r in best.rules:
             if 0 <= r.node < len(score):
                 rules[r.node] = r.rule
                 if r.log_prob is not None:
                     score[r.node] = r.log_prob
-        title = s.name if best.score is None else f"{s.name}  (log p = {best.score:.2f})"
-        views.append(
-            View(
-                s.name,
-                title,
-                view.types,
-                view.xyz,
-                view.quat,
-                view.observed,
-                view.parent,
-                score,
-                tuple(rules),
-            )
-        )
+        title = name if best.score is None else f"{name}  (log p = {best.score:.2f})"
+        view = _tree_view(name, tree, grammar)
+        views.append(replace(view, title=title, score=score, rules=tuple(rules)))
     if not views:
         statuses = ", ".join(sorted({s.status or "?" for s in doc.scenes})) or "no scenes"
-        raise SceneError.single(
-            f"no scene of this parse result has a parse ({statuses})", str(path)
-        )
+        raise SceneError.single(f"no scene of this parse result has a parse ({statuses})", file)
     return views
 
 
@@ -410,7 +350,9 @@ def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[i
         ax2 = fig.add_subplot(rows, 2 * cols, 2 * i + 2)
         _draw_view(ax3, ax2, view, geoms, colours, norm, cmap)
         axes += [ax3, ax2]
-    handles: list[Any] = [Patch(facecolor=c, alpha=0.6, label=plain(t)) for t, c in colours.items()]
+    handles: list[Any] = [
+        Patch(facecolor=c, alpha=0.6, label=plain(shown(t))) for t, c in colours.items()
+    ]
     if any(not np.all(v.observed) for v in views):
         handles.append(Line2D([], [], ls="", marker="s", ms=4, color="0.35", label="latent node"))
     if any(np.any(unexplained(v)) for v in views):
