@@ -15,7 +15,7 @@ from ssgc.cli.app import AllowOutside, _command, _progress, app, out
 from ssgc.compile import load_grammar
 from ssgc.export import SUFFIXES, check_format, scene_bodies
 from ssgc.export.bodies import load_export_scenes
-from ssgc.export.write import export_scene, refuse_changed_shared_files
+from ssgc.export.write import every_type_scene, export_scene, refuse_changed_shared_files
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.outputs import check_directory
 from ssgc.io.scene import Scene, distinct_stems, dumps_json, dumps_scene
@@ -67,8 +67,8 @@ def export_cmd(
 
 class SampleExtras:
     """What `ssg sample --settle / --export FORMAT` does with each scene it draws: settle it
-    (the settled scene is what gets written), then write the scene file and its exports
-    (into OUTPUT/FORMAT/)."""
+    (the settled scene is what gets written), then write its exports (into OUTPUT/FORMAT/) and
+    last its scene file, which `--resume` takes as the sign that the scene is finished."""
 
     def __init__(self, g: Grammar, export: list[str], settle: bool, output: Path) -> None:
         self.g = g
@@ -81,13 +81,15 @@ class SampleExtras:
             require_mujoco()
         self.shapes = load_shapes(g) if export or settle else {}
         self.unsettled = 0
+        for fmt in self.formats:  # as `ssg export` does, before anything is written
+            refuse_changed_shared_files(g, [every_type_scene(g)], self.shapes, fmt, output / fmt)
 
     def write(
         self, scene: Scene, path: Path, seed: int, index: int, metadata: dict | None = None
     ) -> None:
         """A `ssgc.sample.run.SceneWriter`.  `metadata` (constrained sampling's method and
         margins) goes into the scene file; a settled scene keeps it under `metadata.settle`
-        (it describes the poses before settling)."""
+        (it describes the poses before settling), with the run's seed and index."""
         if self.settle:
             from ssgc.simulate.settle import settle_scene, settled_scene_json
 
@@ -95,10 +97,10 @@ class SampleExtras:
             self.unsettled += not result.settled
             source = {"seed": seed, "index": index, "source_log_prob": scene.log_prob}
             doc = settled_scene_json(self.g, scene, result, {**source, **(metadata or {})})
-            write_text_atomic(path, dumps_json(doc))
+            text = dumps_json(doc)
             scene = Scene(scene.name, scene.types, result.xyz, result.quat)
         else:
             text = dumps_scene(self.g, scene, seed=seed, index=index, metadata=metadata)
-            write_text_atomic(path, text)
         for fmt in self.formats:
             export_scene(self.g, scene, self.shapes, fmt, self.output / fmt)
+        write_text_atomic(path, text)

@@ -214,15 +214,17 @@ def fit(
         if mmd and fitted is not None:
             result.mmd = compare_by_mmd({"input": g.ir, "fitted": fitted.ir}, items, mmd, seed)
             _print_mmd(result.mmd, quiet)
-        kept = None if dest.stream else journal.path
-        write_output_text(dest, _with_bom_of(grammar, result.text), kept)
-        if report_dest is not None:
-            write_output_text(report_dest, report_json(result), kept)
         if plots is not None and fitted is not None:
             from ssgc.render.fit import plot_fit
 
             with _warnings_about(grammar):  # the pictures' names are the grammar's types
                 plot_fit(plots, result.iterations, items, fitted.ir, g.ir, seed)
+        # -o last: when it is the grammar itself, a run stopped before (in the plots) leaves
+        # the grammar and its journal as they were, so --resume finishes it
+        kept = None if dest.stream else journal.path
+        if report_dest is not None:
+            write_output_text(report_dest, report_json(result), kept)
+        write_output_text(dest, _with_bom_of(grammar, result.text), kept)
         if result.status != "time_limit":
             journal.delete()
     if not quiet:

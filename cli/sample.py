@@ -84,7 +84,11 @@ def sample(
         ),
     ] = None,
     settle: Annotated[
-        bool, typer.Option("--settle", help="Settle each scene in MuJoCo before writing it.")
+        bool,
+        typer.Option(
+            "--settle",
+            help="Settle each scene in MuJoCo before writing it (exit 2 if one does not).",
+        ),
     ] = False,
     jobs: Annotated[
         int,
@@ -129,10 +133,15 @@ def sample(
             overwrite,
             write=None if extras is None else extras.write,
             progress=lambda k: progress.advance(task, k),
+            subdirs=[] if extras is None else extras.formats,
         )
+    unsettled = 0 if extras is None else extras.unsettled
     if not quiet:
-        unsettled = 0 if extras is None else extras.unsettled
         out.print(_summary(g.name, seed, run, plan, unsettled), markup=False, highlight=False)
+    if unsettled:  # as `ssg settle`: exit 2, the scenes are written all the same
+        if quiet:
+            err.print(f"{unsettled} scene(s) did not settle", markup=False, highlight=False)
+        raise typer.Exit(2)
 
 
 def _summary(name: str, seed: int, run: SampleRun, plan: Plan, unsettled: int) -> str:

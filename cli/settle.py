@@ -15,13 +15,23 @@ from ssgc.errors import SsgError
 from ssgc.export import scene_bodies
 from ssgc.export.bodies import load_export_scenes
 from ssgc.io.atomic import write_text_atomic
-from ssgc.io.outputs import check_directory, check_output, write_output_text
+from ssgc.io.outputs import Output, check_directory, check_output, write_output_text
 from ssgc.io.scene import distinct_stems, dumps_json
 from ssgc.simulate.settle import SettleOptions, settle_scene, settle_summary, settled_scene_json
 
 
 def write_settled(path: Path, doc: dict[str, Any]) -> None:
     write_text_atomic(path, dumps_json(doc))
+
+
+def _check_scene_outputs(
+    output: Path, stems: list[str], inputs: list[Path], report: Output | None
+) -> None:
+    """Each settled scene's file, checked before any scene is simulated: never an input (a
+    scene file settled into its own directory would replace itself) and never the report."""
+    others = [] if report is None else [report]
+    for stem in stems:
+        check_output(output / f"{stem}.json", "settled scene", inputs, others=others)
 
 
 def _line(r: dict[str, Any]) -> str:
@@ -79,11 +89,12 @@ def settle_cmd(
             "the scenes they come from; write to another -o",
             str(output),
         )
-    report_dest = None if report is None else check_output(report, "report", [grammar, scenes])
     check_directory(output)
+    report_dest = None if report is None else check_output(report, "report", [grammar, scenes])
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_export_scenes(scenes, g)
     stems = distinct_stems([s.name for s in items], ".json", str(scenes))
+    _check_scene_outputs(output, stems, [grammar, scenes], report_dest)
     shapes = load_shapes(g)
     options = SettleOptions(max_time=max_time)
     said = err if report_dest is not None and report_dest.stdout else out  # not into the JSON

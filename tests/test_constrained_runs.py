@@ -191,3 +191,16 @@ def test_a_limit_reached_before_any_candidate_says_so() -> None:
         "found 0 of the 3 requested scene(s) satisfying the constraints before the first "
         "candidate (--time-limit 1e-12 s)"
     ]
+
+
+def test_an_overwrite_that_finds_no_scene_leaves_the_old_run(tmp_path: Path) -> None:
+    """--overwrite deletes the other run only when a scene of this one is ready: a run whose
+    constraints never hold (exit 2, no scene) once left the directory empty."""
+    out = tmp_path / "bp"
+    code, text = run("sample", BIN, "-n", 3, "-o", out, "-q")
+    assert code == 0, text
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    args = ["sample", _impossible(tmp_path), "-n", 5, "--constraints", "all", "--max-tries", 3000]
+    code, text = run(*args, "-o", out, "--overwrite", "-q")
+    assert code == 2, text
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

@@ -1018,3 +1018,35 @@ def test_ctrl_c_while_ssg_starts_is_one_line() -> None:
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert (done.returncode, done.stderr) == (130, "ssg: interrupted\n")
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ("parse", "{scene}", "-g", GMM, "-q", "-o"),
+        ("explain", "{scene}", "-g", GMM, "-o"),
+        ("fit", "{data}", "-g", GMM, *FIT, "-o"),
+        ("fit", "{data}", "-g", GMM, *FIT, "-o", "{tmp}/fitted.yaml", "--report"),
+        ("render", "{scene}", "-o"),
+        ("view", "{scene}", "-o"),
+        ("inspect", GMM, "--diagram"),
+    ],
+)
+def test_a_trailing_slash_on_a_file_output_is_refused(
+    command: tuple[Any, ...], scene: Path, data: Path, tmp_path: Path
+) -> None:
+    """`-o notes.txt/` asks for a directory (as `cp` reads it); pathlib drops the slash, which
+    once wrote the output into the file `notes.txt`.  Real processes: the check reads argv."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("precious\n")
+    *words, option = [str(w).format(scene=scene, data=data, tmp=tmp_path) for w in command]
+    long = {"-o": "--output"}.get(option, option)
+    for name, args in [
+        (f"{notes}/", [option, f"{notes}/"]),
+        (f"{tmp_path}/new.txt//", [f"{long}={tmp_path}/new.txt//"]),
+    ]:
+        done = ssg(*words, *args, capture_output=True)
+        assert done.returncode == 1, done.stderr
+        assert done.stderr.decode().strip().endswith(f"{name}: error: not a directory")
+    assert notes.read_text() == "precious\n"
+    assert not (tmp_path / "new.txt").exists()

@@ -497,3 +497,68 @@ def test_fit_with_jobs_killed_leaves_no_workers_and_resumes(
     result = run(*args, "--resume", "-q")
     assert result.exit_code == 0, result.output
     assert out.read_bytes() == ref.read_bytes()
+
+
+def _sdf_run(out: Path, *more: Any) -> tuple[Any, ...]:
+    return ("sample", SINK, "-n", 3, "-o", out, "--export", "sdf", "-q", *more)
+
+
+def test_a_scene_is_exported_before_its_file_is_written(tmp_path: Path, monkeypatch) -> None:
+    """The scene file is what --resume takes for a finished scene: a run stopped while
+    exporting scene 1 must not have written it (once it had, and the resumed run never
+    exported sink_000001.sdf)."""
+    import ssgc.cli.export as export_cli
+
+    real = export_cli.export_scene
+
+    def stopped_at_scene_1(g: Any, scene: Any, *args: Any) -> Path:
+        if scene.name.endswith("_000001"):
+            raise KeyboardInterrupt
+        return real(g, scene, *args)
+
+    monkeypatch.setattr(export_cli, "export_scene", stopped_at_scene_1)
+    out = tmp_path / "ex"
+    assert run(*_sdf_run(out)).exit_code == 130
+    assert sorted(p.name for p in out.glob("*.json")) == ["sink_000000.json"]
+    monkeypatch.setattr(export_cli, "export_scene", real)
+    assert run(*_sdf_run(out, "--resume")).exit_code == 0
+    names = sorted(p.stem for p in out.glob("*.json"))
+    assert names == [f"sink_00000{i}" for i in range(3)]
+    assert sorted(p.stem for p in (out / "sdf").glob("*.sdf")) == names
+
+
+def test_resume_removes_the_temporary_files_of_exports(tmp_path: Path) -> None:
+    """A run killed while writing an export leaves its temporary file in OUTPUT/FORMAT/ or
+    OUTPUT/FORMAT/meshes/: --resume removes them as it does the scene files'."""
+    out = tmp_path / "ek"
+    assert run(*_sdf_run(out)).exit_code == 0
+    temps = [out / "sdf" / ".sink_000002.sdf.abcd1234.tmp", out / "sdf/meshes/.X.obj.k2j4_x9q.tmp"]
+    for temp in temps:
+        temp.write_text("half a file")
+    (out / "sink_000002.json").unlink()
+    result = run("sample", SINK, "-n", 3, "-o", out, "--export", "sdf", "--resume")
+    assert result.exit_code == 0, result.output
+    assert "removed 2 temporary file(s)" in result.output
+    assert not [t for t in temps if t.exists()]
+    assert (out / "sink_000002.json").is_file()
+
+
+def _files(directory: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(directory)): p.read_bytes() for p in directory.rglob("*") if p.is_file()
+    }
+
+
+def test_sample_export_never_changes_the_meshes_of_an_earlier_export(tmp_path: Path) -> None:
+    """Mesh files are shared by every scene exported into OUTPUT/FORMAT/: a run of another
+    version of the grammar is refused before anything is written or deleted, as `ssg export`
+    refuses (it once replaced them under the old run's scenes), even with --overwrite."""
+    out = tmp_path / "exo"
+    assert run(*_sdf_run(out)).exit_code == 0
+    mesh = sorted((out / "sdf" / "meshes").glob("*.obj"))[0]
+    mesh.write_text(mesh.read_text() + "# another version of the grammar\n")
+    before = _files(out)
+    result = run("sample", SINK, "-n", 2, "--seed", 7, "-o", out, "--export", "sdf", "--overwrite")
+    assert result.exit_code == 1, result.output
+    assert f"{mesh}: error: already holds a different version of this file" in result.output
+    assert _files(out) == before

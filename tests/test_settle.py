@@ -12,7 +12,9 @@ from typer.testing import CliRunner
 
 from ssgc.cli.app import app
 from ssgc.compile import load_grammar
+from ssgc.io.resume import MANIFEST
 from ssgc.io.scene import read_scene_file
+from ssgc.simulate.settle import SettleOptions
 
 runner = CliRunner()
 
@@ -165,3 +167,62 @@ def test_an_unstable_simulation_is_said_in_our_words(tmp_path: Path, monkeypatch
     assert unstable and all(
         f"{n}: not settled: the simulation went unstable" in result.output for n in unstable
     )
+
+
+def test_settle_never_writes_over_its_input_scene(dropped, tmp_path: Path) -> None:
+    """`ssg settle d/s.json -o d` would replace the scene it reads: refused before any work."""
+    grammar, scenes = dropped
+    scene = next(scenes.glob("*.json"))
+    before = scene.read_bytes()
+    result = run("settle", scene, "-g", grammar, "-o", scenes, "--max-time", 0.05)
+    assert result.exit_code == 1, result.output
+    assert "is the input file" in result.output and "Traceback" not in result.output
+    assert scene.read_bytes() == before
+    assert sorted(p.name for p in scenes.iterdir()) == sorted([MANIFEST, scene.name])
+
+
+def test_the_report_cannot_be_a_settled_scene(dropped, tmp_path: Path) -> None:
+    grammar, scenes = dropped
+    out = tmp_path / "settled"
+    out.mkdir()
+    report = out / next(scenes.glob("*.json")).name
+    result = run("settle", scenes, "-g", grammar, "-o", out, "--report", report, "-q")
+    assert result.exit_code == 1, result.output
+    assert "the settled scene and the report are the same file" in result.output
+    assert list(out.iterdir()) == []
+
+
+def test_a_settled_sample_run_resumes(tmp_path: Path) -> None:
+    """Settled files keep the run's seed and index in `metadata.settle` only; `--resume` reads
+    them there (it once refused every file: 'this scene file has seed null, index null')."""
+    grammar = tmp_path / "drop.yaml"
+    grammar.write_text(GRAMMAR)
+    out = tmp_path / "s"
+    args = ("sample", grammar, "-n", 3, "--seed", 1, "-o", out, "--settle")
+    assert run(*args, "-q").exit_code == 0
+    files = {p.name: p.read_bytes() for p in sorted(out.glob("*.json"))}
+    result = run(*args, "--resume")
+    assert result.exit_code == 0, result.output
+    assert "wrote 0 scene(s)" in result.output and "kept 3 complete" in result.output
+    assert {p.name: p.read_bytes() for p in sorted(out.glob("*.json"))} == files
+    (out / "drop_000001.json").unlink()
+    result = run(*args, "--resume")
+    assert result.exit_code == 0, result.output
+    assert "wrote 1 scene(s)" in result.output and "kept 2 complete" in result.output
+    doc = json.loads((out / "drop_000001.json").read_text())
+    assert doc["metadata"]["settle"]["index"] == 1
+
+
+def test_sample_settle_exits_2_when_a_scene_does_not_settle(tmp_path: Path, monkeypatch) -> None:
+    """As `ssg settle` does; the scenes are written all the same."""
+    import ssgc.simulate.settle as settle
+
+    real = settle.settle_scene
+    monkeypatch.setattr(settle, "settle_scene", lambda b, o=None: real(b, SettleOptions(0.01)))
+    grammar = tmp_path / "drop.yaml"
+    grammar.write_text(GRAMMAR)
+    out = tmp_path / "s"
+    result = run("sample", grammar, "-n", 2, "-o", out, "--settle", "-q")
+    assert result.exit_code == 2, result.output
+    assert "2 scene(s) did not settle" in result.output
+    assert len(list(out.glob("*.json"))) == 2

@@ -284,3 +284,23 @@ def test_views_a_dataset_with_its_grammar(tmp_path):
     assert count == 80
     data = page_data(html)
     assert all(t["geometry"] for t in data["types"] if t["observed"])
+
+
+def test_the_page_never_replaces_the_grammar(scenes, tmp_path):
+    grammar = tmp_path / "g.yaml"
+    shutil.copy(GRAMMARS / "sink.yaml", grammar)
+    before = grammar.read_bytes()
+    result = run("view", next(scenes.glob("*.json")), "-g", grammar, "-o", grammar)
+    assert result.exit_code == 1, result.output
+    assert "the page is the input file" in result.output
+    assert grammar.read_bytes() == before
+
+
+@pytest.mark.parametrize("name", ["page.json", "page.png", "page"])
+def test_the_page_must_be_an_html_file(scenes, tmp_path, name):
+    """An HTML page as `page.json` among scenes would be read as a broken scene."""
+    result = run("view", next(scenes.glob("*.json")), "-o", tmp_path / name)
+    assert result.exit_code == 1, result.output
+    assert "the page must end in .html or .htm" in result.output
+    assert list(tmp_path.iterdir()) == []
+    assert run("view", next(scenes.glob("*.json")), "-o", tmp_path / "page.HTM").exit_code == 0

@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.export import export_files, main_file, scene_bodies
 from ssgc.export.bodies import SceneBodies
@@ -37,6 +39,14 @@ def export_scene(g: Grammar, scene: Scene, shapes: dict[int, Any], fmt: str, out
     main = main_file(out_dir, bodies, fmt)
     write_files(out_dir, files, main.name)
     return main
+
+
+def every_type_scene(g: Grammar) -> Scene:
+    """A stand-in scene with one object of each of the grammar's types: the scenes
+    `ssg sample --export` will draw are not known before its shared files are checked."""
+    k = len(g.types)
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (k, 1))
+    return Scene("stand-in", np.arange(k, dtype=np.int64), np.zeros((k, 3)), quat)
 
 
 def refuse_changed_shared_files(

@@ -144,3 +144,12 @@ def remove_stale_temps(directory: Path, is_ours: Callable[[str], bool]) -> int:
             Path(entry.path).unlink(missing_ok=True)
             removed += 1
     return removed
+
+
+def remove_stale_temps_below(directory: Path) -> int:
+    """`remove_stale_temps` for a tree only ssgc writes into (`ssg sample --export`'s
+    OUTPUT/FORMAT/ and its meshes/): every temporary file of `atomic_writer` in it, at any
+    depth (symbolic links are not followed).  Returns how many were removed."""
+    if not directory.is_dir():
+        return 0
+    return sum(remove_stale_temps(Path(d), lambda target: True) for d, _, _ in os.walk(directory))

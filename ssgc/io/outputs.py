@@ -5,7 +5,8 @@ The rules (docs/robustness.md, "Outputs"), for every output of every command (`-
 
 - An output is checked before any work: it is not a directory (unless a directory is asked
   for), its directory exists and accepts a new file, it is not one of the command's inputs
-  (unless the command documents an in-place update), and no two outputs are one file.
+  (unless the command documents an in-place update), and no two outputs are one file.  A name
+  ending in `/` (`-o notes.txt/`) asks for a directory: refused unless it is one.
 - A regular file (or a name not yet there) is replaced atomically: written to a temporary file
   beside it and renamed over it (`ssgc.io.atomic`).  A symbolic link is followed: the file it
   points to is replaced and the link stays a link.
@@ -81,6 +82,7 @@ def check_output(
     except those in `in_place`, which the command updates on purpose.  `others` are the
     command's outputs checked before this one: two outputs must be two files.
     """
+    _refuse_slash_on_file(path)
     path = _usable_name(path, what)
     if str(path) in STDOUT_NAMES:
         out = Output(path, path, what, stream=True, stdout=True)
@@ -117,6 +119,28 @@ def _usable_name(path: str | Path, what: str) -> Path:
     if "\0" in str(path):
         raise SsgError.single(f"the {what}'s name holds a NUL character", one_line(str(path)))
     return Path(path)
+
+
+def _refuse_slash_on_file(path: str | Path) -> None:
+    """A name ending in `/` asks for a directory, as `cp` reads it; refuse it unless it is one.
+
+    `pathlib` drops the slash (typer hands us `Path("notes.txt")` for `-o notes.txt/`), which
+    would write the file `notes.txt`, so the command line's own words are checked too."""
+    name = str(path)
+    if isinstance(path, Path):
+        name = next((a for a in _argv_values() if a.endswith("/") and Path(a) == path), name)
+    if name.endswith("/") and name.rstrip("/") and not os.path.isdir(name):
+        raise SsgError.single("not a directory", one_line(name))
+
+
+def _argv_values() -> Iterator[str]:
+    """Each word of the command line, and the value of each `--name=VALUE` or `-oVALUE`."""
+    for arg in sys.argv[1:]:
+        yield arg
+        if arg.startswith("--") and "=" in arg:
+            yield arg.split("=", 1)[1]
+        elif arg.startswith("-") and not arg.startswith("--") and len(arg) > 2:
+            yield arg[2:]
 
 
 def _check_directory_accepts_files(directory: Path, what: str, name: str) -> None:

@@ -88,7 +88,7 @@ def scan_sampled(
             "index": index,
         }
         try:
-            doc = json.loads(Path(entry.path).read_bytes())
+            doc = _as_sampled(json.loads(Path(entry.path).read_bytes()))
         except (ValueError, RecursionError):  # invalid JSON or UTF-8: not a finished scene
             redone += 1
             continue
@@ -104,6 +104,19 @@ def scan_sampled(
         errors.sort(key=lambda d: d.file or "")
         raise SsgError(errors)
     return SampledScenes(directory, done, log_prob, redone, removed)
+
+
+def _as_sampled(doc: Any) -> Any:
+    """A scene file of `ssg sample --settle` keeps its run's seed, index and log-probability in
+    `metadata.settle` (its tree and log_prob, which describe the poses before settling, are
+    dropped): read them from there, so that a settled run resumes as a plain one does."""
+    meta = doc.get("metadata") if isinstance(doc, dict) else None
+    settle = meta.get("settle") if isinstance(meta, dict) else None
+    if not isinstance(settle, dict) or "seed" in doc or "log_prob" in doc:
+        return doc
+    fields = {"seed": "seed", "index": "index", "log_prob": "source_log_prob"}
+    read = {k: settle.get(v) for k, v in fields.items()}
+    return {**doc, **read, "tree": {}}  # no tree to check: settling dropped it
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -163,10 +176,15 @@ def run_manifest(grammar: str, grammar_file: Path, seed: int, count: int, width:
     }
 
 
-def prepare_sample_dir(directory: Path, manifest: dict, resume: bool, overwrite: bool) -> None:
+def prepare_sample_dir(
+    directory: Path, manifest: dict, resume: bool, overwrite: bool
+) -> list[str] | None:
     """Before a run of `ssg sample` writes into `directory` (under its lock): refuse a
-    directory holding another run's scenes (or clear them with `overwrite`); with `resume`,
-    refuse a run that is not the same one (grammar, its file's digest, seed, count)."""
+    directory holding another run's scenes; with `resume`, refuse a run that is not the same
+    one (grammar, its file's digest, seed, count).
+
+    With `overwrite`, returns the other run's scene files, which `clear_old_run` deletes only
+    once this run has a scene to write: a run that finds none must leave them (else None)."""
     found = _read_manifest(directory, overwrite)
     jsons = sorted(e.name for e in os.scandir(directory) if e.name.endswith(".json"))
     if resume:
@@ -179,10 +197,10 @@ def prepare_sample_dir(directory: Path, manifest: dict, resume: bool, overwrite:
             )
         if found is not None:
             _check_same_sample_run(found, manifest, directory)
-        return
+        return None
     same = found is not None and all(found.get(k) == manifest[k] for k in SAME_RUN)
     if same or (found is None and not jsons):
-        return  # a new directory, or this very run again: every file is rewritten the same
+        return None  # a new directory, or this very run again: every file is rewritten alike
     others = [n for n in jsons if not _SCENE_NAME.fullmatch(n)]
     if others:  # not ours: --overwrite would not delete them either, so do not suggest it
         shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
@@ -198,7 +216,7 @@ def prepare_sample_dir(directory: Path, manifest: dict, resume: bool, overwrite:
             "--resume continues the same run, or write to another -o",
             str(directory),
         )
-    _clear(directory, jsons)
+    return jsons
 
 
 def _read_manifest(directory: Path, overwrite: bool) -> dict | None:
@@ -243,9 +261,9 @@ def _check_same_sample_run(found: dict, manifest: dict, directory: Path) -> None
         )
 
 
-def _clear(directory: Path, jsons: list[str]) -> None:
+def clear_old_run(directory: Path, jsons: list[str]) -> None:
     """`--overwrite`: delete the scenes (and temporary files) of `ssg sample` runs and the
-    manifest (the caller has refused a directory with other .json files)."""
+    manifest (`prepare_sample_dir` has refused a directory with other .json files)."""
     remove_stale_temps(directory, lambda target: _SCENE_NAME.fullmatch(target) is not None)
     for name in jsons:
         (directory / name).unlink(missing_ok=True)

@@ -11,15 +11,17 @@ The `ssg sample` command and the Python API (`ssgc.api.Grammar.sample`) both cal
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ssgc.errors import Diagnostic, SsgError
+from ssgc.io.atomic import remove_stale_temps_below
 from ssgc.io.outputs import Output, check_directory, directory_lock, write_output_text
 from ssgc.io.resume import (
     SampledScenes,
+    clear_old_run,
     prepare_sample_dir,
     run_manifest,
     scan_sampled,
@@ -217,14 +219,17 @@ def sample_to_directory(
     overwrite: bool = False,
     write: SceneWriter | None = None,
     progress: Progress | None = None,
+    subdirs: Sequence[str] = (),
 ) -> SampleRun:
     """Write scenes 0..n-1 into `output`, one JSON file each, under the directory's lock.
 
     The directory's manifest records the run; a directory holding another run's scenes is
     refused unless `overwrite`, and `resume` keeps the complete files of this same run.
-    `write` replaces the plain scene file (`ssg sample --settle`,
-    `--export`).  Constrained sampling writes the manifest before its first scene, so a run
-    that finds none leaves the directory as it was, and on `Unmet` keeps the scenes found.
+    `write` replaces the plain scene file (`ssg sample --settle`, `--export`), writing the
+    scene file last; `subdirs` are the directories it also writes into, cleaned of a killed
+    run's temporary files on `resume`.  The manifest is written (and an overwritten run
+    deleted) when the first scene is ready, so a run that finds none (or is stopped before)
+    leaves the directory as it was; on `Unmet` the scenes found are kept.
     """
     if resume and overwrite:
         raise SsgError.single(
@@ -236,23 +241,13 @@ def sample_to_directory(
     with directory_lock(output):
         manifest = run_manifest(grammar.name, grammar_file, seed, n, index_width(n))
         manifest.update(constraints=plan.asked[0], method=plan.asked[1])
-        prepare_sample_dir(output, manifest, resume, overwrite)
-        have = None
-        if resume:
-            stem, width = scene_stem(grammar.name), index_width(n)
-            have = scan_sampled(
-                output, stem, lambda i: f"{stem}_{i:0{width}d}", n, grammar.name, seed
-            )
+        old = prepare_sample_dir(output, manifest, resume, overwrite)
         run = SampleRun(output)
-        if have is not None:
-            run.resumed, run.kept = True, int(have.done.sum())
-            run.removed_temps = have.removed_temps
-        if not plan.constrained:
-            _write_manifest(output, manifest)
+        have = _resumed(grammar, output, n, seed, subdirs, run) if resume else None
         try:
             for drawn in draw_scenes(grammar, n, seed, plan, have, progress):
-                if plan.constrained and not run.written:
-                    _write_manifest(output, manifest)
+                if not run.written:  # a scene is ready: only now is the old run deleted
+                    _begin(output, manifest, old)
                 path = output / f"{drawn.scene.name}.json"
                 write(drawn.scene, path, seed, drawn.index, drawn.metadata)
                 run.first, run.last = run.first or path, path
@@ -262,8 +257,31 @@ def sample_to_directory(
                 note = f"kept the {run.written} complete scene file(s) found"
                 exc.diagnostics.append(Diagnostic(note, str(output)))
             raise
+        if not run.written:
+            _begin(output, manifest, old)
         _write_manifest(output, {**manifest, "complete": True})
     return run
+
+
+def _resumed(
+    grammar: Grammar, output: Path, n: int, seed: int, subdirs: Sequence[str], run: SampleRun
+) -> SampledScenes:
+    """The complete scene files of the interrupted run, noted in `run`; the temporary files it
+    left are deleted, in its scene writer's subdirectories (`--export`'s OUTPUT/FORMAT/) too."""
+    stem, width = scene_stem(grammar.name), index_width(n)
+    have = scan_sampled(output, stem, lambda i: f"{stem}_{i:0{width}d}", n, grammar.name, seed)
+    below = sum(remove_stale_temps_below(output / d) for d in subdirs)
+    run.resumed, run.kept = True, int(have.done.sum())
+    run.removed_temps = have.removed_temps + below
+    return have
+
+
+def _begin(output: Path, manifest: dict[str, Any], old: list[str] | None) -> None:
+    """Before the run's first scene file: delete the run `--overwrite` replaces, then record
+    this run (with no scene written, a stopped run changes nothing in the directory)."""
+    if old is not None:
+        clear_old_run(output, old)
+    _write_manifest(output, manifest)
 
 
 def _scene_file_writer(grammar: Grammar) -> SceneWriter:
