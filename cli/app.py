@@ -269,7 +269,9 @@ def _progress(quiet: bool) -> Iterator[Progress]:
 
 # Each command lives in a module of its own and registers itself on `app` when imported; the
 # order of the imports is the order of `ssg --help`.
-app.command("render")(_command(render_cli.render))  # docs/render.md
+app.command("render", short_help="Draw scenes, trees and parses (PNG, SVG).")(
+    _command(render_cli.render)
+)  # docs/render.md
 # isort: off
 from ssgc.cli import validate as _validate  # noqa: E402, F401
 from ssgc.cli import sample as _sample  # noqa: E402, F401

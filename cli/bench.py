@@ -26,7 +26,7 @@ from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 SEED = "Seed of the sampled scenes: the same seed, the same scenes."
 
 
-@bench_app.command("sample")
+@bench_app.command("sample", short_help="Sampling and scoring speed.")
 @_command
 def bench_sample_cmd(
     grammar: GrammarArg,
@@ -69,7 +69,7 @@ def bench_sample_cmd(
             out.print(f"{key:>28}: {value}", markup=False, highlight=False)
 
 
-@bench_app.command("parse")
+@bench_app.command("parse", short_help="Parse sampled scenes: speed and quality.")
 @_command
 def bench_parse_cmd(
     grammar: GrammarArg,
@@ -99,7 +99,7 @@ def bench_parse_cmd(
     _print(result, as_json)
 
 
-@bench_app.command("fit")
+@bench_app.command("fit", short_help="Seconds per EM iteration.")
 @_command
 def bench_fit_cmd(
     grammar: GrammarArg,

@@ -11,7 +11,7 @@ import typer
 from .app import AllowOutside, _command, app, err, finite, out
 
 
-@app.command()
+@app.command(short_help="Which objects make a scene unusual, and why.")
 @_command
 def explain(
     scenes: Annotated[

@@ -24,7 +24,7 @@ from ssgc.ir import Grammar
 FORMAT_HELP = "dmd (Drake directives) | sdf (SDFormat world) | mjcf (MuJoCo) | glb | usd"
 
 
-@app.command("export")
+@app.command("export", short_help="Scenes as Drake, MuJoCo, glTF or USD files.")
 @_command
 def export_cmd(
     scenes: Annotated[

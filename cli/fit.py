@@ -47,7 +47,7 @@ class EStep(StrEnum):
 DEFAULT_ESTEP = EStep(DEFAULTS["estep"])
 
 
-@app.command()
+@app.command(short_help="Fit a grammar's numbers to scenes (EM).")
 @_command
 def fit(
     scenes: Annotated[
@@ -78,15 +78,22 @@ def fit(
             "-s",
             min=0,
             max=2**63 - 1,
-            help="Seed of the E-step's chains and the samples.",
+            help="Seed of everything random: pose proposals, mcmc chains, --mmd and --plot "
+            "samples.",
         ),
     ] = DEFAULTS["seed"],
     estep: Annotated[
         EStep, typer.Option(help="topn: weigh the top-N parses; mcmc: sample the posterior.")
     ] = DEFAULT_ESTEP,
     samples: Annotated[
-        int, typer.Option(min=1, help="--estep mcmc: rounds kept per scene (after S/2 of burn-in).")
-    ] = DEFAULTS["samples"],
+        int | None,
+        typer.Option(
+            min=1,
+            show_default=False,
+            help=f"--estep mcmc: rounds kept per scene, {DEFAULTS['samples']} unless given "
+            "(after S/2 of burn-in).",
+        ),
+    ] = None,
     pseudocount: Annotated[
         float,
         typer.Option(
@@ -168,6 +175,8 @@ def fit(
     from ssgc.io.scene import load_scenes
 
     _check_method(method, "highs")
+    if samples is not None and estep is not EStep.mcmc:  # it was accepted and ignored
+        raise SsgError.single("--samples needs --estep mcmc (the top-N E-step draws none)")
     # `-o` may be the grammar itself (an in-place update), never the dataset.
     dest = check_output(output, inputs=[grammar, scenes], in_place=[grammar])
     report_dest = None
@@ -190,7 +199,7 @@ def fit(
         seed=seed,
         tol=tol,
         estep=estep.value,
-        samples=samples,
+        samples=DEFAULTS["samples"] if samples is None else samples,
         pseudocount=pseudocount,
         min_variance=min_variance,
         max_concentration=max_concentration,

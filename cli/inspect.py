@@ -16,7 +16,7 @@ from ssgc.errors import SsgError
 from ssgc.inspect import grammar_summary
 
 
-@app.command()
+@app.command(short_help="A grammar's types, rules and supertree size.")
 @_command
 def inspect(
     grammar: GrammarArg,

@@ -22,7 +22,7 @@ from ssgc.errors import SsgError
 from ssgc.io.outputs import Output, check_output, lock_outputs
 
 
-@app.command()
+@app.command(short_help="Most probable parse trees of scenes.")
 @_command
 def parse(
     scenes: Annotated[

@@ -26,7 +26,7 @@ from ssgc.sample.constrained import METHODS
 from ssgc.sample.run import Plan, SampleRun, plan_sampling, sample_to_directory
 
 
-@app.command()
+@app.command(short_help="Draw scenes, one JSON file each.")
 @_command
 def sample(
     grammar: GrammarArg,
@@ -59,7 +59,12 @@ def sample(
         str, typer.Option(help=f"With --constraints: auto | {' | '.join(METHODS)}.")
     ] = "auto",
     max_tries: Annotated[
-        int | None, typer.Option(min=1, help="With --constraints: stop after this many candidates.")
+        int | None,
+        typer.Option(
+            min=1,
+            help="With --constraints: stop once this many candidates are drawn (checked "
+            "between attempts, which draw many at once).",
+        ),
     ] = None,
     time_limit: Annotated[
         float | None,
@@ -134,6 +139,7 @@ def sample(
             write=None if extras is None else extras.write,
             progress=lambda k: progress.advance(task, k),
             subdirs=[] if extras is None else extras.formats,
+            settled=settle,
         )
     unsettled = 0 if extras is None else extras.unsettled
     if not quiet:

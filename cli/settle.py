@@ -46,7 +46,7 @@ def _line(r: dict[str, Any]) -> str:
     )
 
 
-@app.command("settle")
+@app.command("settle", short_help="Simulate scenes until nothing moves.")
 @_command
 def settle_cmd(
     scenes: Annotated[

@@ -14,7 +14,7 @@ from ssgc.errors import Diagnostic, GrammarError, SsgError
 from ssgc.ir import Grammar
 
 
-@app.command()
+@app.command(short_help="Check grammars: FILE:LINE:COL messages.")
 @_command
 def validate(
     grammars: Annotated[list[Path], typer.Argument(help="Grammar YAML files.", show_default=False)],

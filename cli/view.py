@@ -19,7 +19,7 @@ PAGE_SUFFIXES = (".html", ".htm")
 SERVE_HOST = "127.0.0.1"  # this machine only: the page is for the user who runs ssg
 
 
-@app.command()
+@app.command(short_help="An interactive 3-D page in the browser.")
 @_command
 def view(
     source: Annotated[

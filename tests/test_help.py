@@ -39,6 +39,8 @@ def test_help_shows_every_flag_whole(words, cmd, width):
     text = result.output
     assert "<bool>" not in text
     assert "…" not in text  # nothing cut short
+    listed = text.split("Commands:")[1].splitlines() if "Commands:" in text else []
+    assert not [line for line in listed if line.endswith("...")]  # click cuts long summaries
     assert all(len(line) <= width for line in text.splitlines())
     tokens = set(text.replace(",", " ").split())
     for param in cmd.params:
@@ -82,8 +84,10 @@ def test_bench_sample_takes_the_n_it_is_given(monkeypatch):
         (["bench", "sample", "{gmm}", "-n", "3", "-j", "2"], "--method and -j time"),
         (["inspect", "{gmm}", "--json", "--diagram", "{tmp}/g.svg"], "give one"),
         (["view", "{gmm}", "-o", "{tmp}/p.html", "--port", "9999"], "--port is the port of"),
-        (["sample", "{gmm}", "-o", "{tmp}/s", "--method", "hmc"], "--method and --penalty-eps"),
-        (["sample", "{gmm}", "-o", "{tmp}/s", "--penalty-eps", "0.01"], "--method and --penalty"),
+        (["sample", "{gmm}", "-o", "{tmp}/s", "--method", "hmc"], "--method, --penalty-eps"),
+        (["sample", "{gmm}", "-o", "{tmp}/s", "--penalty-eps", "0.01"], "--method, --penalty"),
+        (["sample", "{gmm}", "-o", "{tmp}/s", "-j", "2"], "and --jobs need --constraints"),
+        (["fit", "{tmp}", "-g", "{gmm}", "-o", "{tmp}/f.yaml", "--samples", "9"], "--estep mcmc"),
     ],
 )
 def test_an_option_that_would_do_nothing_is_refused(tmp_path, words, said):

@@ -213,6 +213,24 @@ def test_a_settled_sample_run_resumes(tmp_path: Path) -> None:
     assert doc["metadata"]["settle"]["index"] == 1
 
 
+def test_a_settled_and_a_plain_run_are_two_runs(tmp_path: Path) -> None:
+    """--settle is part of a run: resuming a plain run with it (or a settled one without it)
+    filled the directory with a mixture of settled and unsettled scenes, exit 0."""
+    grammar = tmp_path / "drop.yaml"
+    grammar.write_text(GRAMMAR)
+    out = tmp_path / "s"
+    args = ("sample", grammar, "-n", 3, "--seed", 1, "-o", out)
+    assert run(*args, "-q").exit_code == 0
+    (out / "drop_000001.json").unlink()
+    files = {p.name: p.read_bytes() for p in sorted(out.glob("*.json"))}
+    result = run(*args, "--settle", "--resume", "-q")
+    assert result.exit_code == 1
+    assert "another run (settle: false, now true)" in result.output
+    assert {p.name: p.read_bytes() for p in sorted(out.glob("*.json"))} == files
+    result = run(*args, "--export", "sdf", "--resume", "-q")
+    assert result.exit_code == 1 and '(export: [], now ["sdf"])' in result.output
+
+
 def test_sample_settle_exits_2_when_a_scene_does_not_settle(tmp_path: Path, monkeypatch) -> None:
     """As `ssg settle` does; the scenes are written all the same."""
     import ssgc.simulate.settle as settle

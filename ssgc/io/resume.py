@@ -158,8 +158,16 @@ SAME_RUN = (
     "width",
     "constraints",
     "method",
+    "settle",
+    "export",
 )  # what --resume compares
+# What a manifest written before a key existed meant by its absence.
+_ABSENT = {"settle": False, "export": []}
 _SCENE_NAME = re.compile(r"[A-Za-z0-9_.-]*_[0-9]+\.json")  # the names `ssg sample` gives
+
+
+def _recorded(manifest: dict, key: str) -> Any:
+    return manifest.get(key, _ABSENT.get(key))
 
 
 def run_manifest(grammar: str, grammar_file: Path, seed: int, count: int, width: int) -> dict:
@@ -198,7 +206,7 @@ def prepare_sample_dir(
         if found is not None:
             _check_same_sample_run(found, manifest, directory)
         return None
-    same = found is not None and all(found.get(k) == manifest[k] for k in SAME_RUN)
+    same = found is not None and all(_recorded(found, k) == manifest[k] for k in SAME_RUN)
     if same or (found is None and not jsons):
         return None  # a new directory, or this very run again: every file is rewritten alike
     others = [n for n in jsons if not _SCENE_NAME.fullmatch(n)]
@@ -247,12 +255,12 @@ def _describe(found: dict | None, jsons: list[str]) -> str:
 
 
 def _check_same_sample_run(found: dict, manifest: dict, directory: Path) -> None:
-    differ = [k for k in SAME_RUN if found.get(k) != manifest[k]]
+    differ = [k for k in SAME_RUN if _recorded(found, k) != manifest[k]]
     if differ:
         raise SsgError(
             [
                 Diagnostic(
-                    f"these scenes are of another run ({k}: {json.dumps(found.get(k))}, now "
+                    f"these scenes are of another run ({k}: {json.dumps(_recorded(found, k))}, now "
                     f"{json.dumps(manifest[k])}); {_NEVER_MIX}",
                     str(directory / MANIFEST),
                 )

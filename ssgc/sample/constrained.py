@@ -250,7 +250,7 @@ class _Limits:
 
     def hit(self) -> str | None:
         if self.max_tries is not None and self.drawn.value >= self.max_tries:
-            return f"--max-tries {self.max_tries:,} candidates"
+            return f"--max-tries {self.max_tries:,}"
         if self.deadline is not None and time.monotonic() > self.deadline:
             return self.out_of_time()
         return None

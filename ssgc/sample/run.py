@@ -93,8 +93,10 @@ def plan_sampling(
     if constraints is None:
         if (max_tries, time_limit) != (None, None):
             raise SsgError.single("--max-tries and --time-limit need --constraints (all, or names)")
-        if method != "auto" or penalty_eps is not None:  # they were ignored
-            raise SsgError.single("--method and --penalty-eps need --constraints (all, or names)")
+        if method != "auto" or penalty_eps is not None or jobs != 1:  # they were ignored
+            raise SsgError.single(
+                "--method, --penalty-eps and --jobs need --constraints (all, or names)"
+            )
         return Plan()
     chosen = select(grammar, constraints)
     chosen_method = choose_method(method, chosen)
@@ -220,6 +222,7 @@ def sample_to_directory(
     write: SceneWriter | None = None,
     progress: Progress | None = None,
     subdirs: Sequence[str] = (),
+    settled: bool = False,
 ) -> SampleRun:
     """Write scenes 0..n-1 into `output`, one JSON file each, under the directory's lock.
 
@@ -227,9 +230,11 @@ def sample_to_directory(
     refused unless `overwrite`, and `resume` keeps the complete files of this same run.
     `write` replaces the plain scene file (`ssg sample --settle`, `--export`), writing the
     scene file last; `subdirs` are the directories it also writes into, cleaned of a killed
-    run's temporary files on `resume`.  The manifest is written (and an overwritten run
-    deleted) when the first scene is ready, so a run that finds none (or is stopped before)
-    leaves the directory as it was; on `Unmet` the scenes found are kept.
+    run's temporary files on `resume`.  The formats of `subdirs` and `settled` (the scenes
+    written are settled ones) are part of the run: a directory is never a mixture.  The
+    manifest is written (and an overwritten run deleted) when the first scene is ready, so a
+    run that finds none (or is stopped before) leaves the directory as it was; on `Unmet` the
+    scenes found are kept.
     """
     if resume and overwrite:
         raise SsgError.single(
@@ -241,6 +246,7 @@ def sample_to_directory(
     with directory_lock(output):
         manifest = run_manifest(grammar.name, grammar_file, seed, n, index_width(n))
         manifest.update(constraints=plan.asked[0], method=plan.asked[1])
+        manifest.update(settle=settled, export=sorted(subdirs))
         old = prepare_sample_dir(output, manifest, resume, overwrite)
         run = SampleRun(output)
         have = _resumed(grammar, output, n, seed, subdirs, run) if resume else None
