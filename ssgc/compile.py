@@ -192,8 +192,8 @@ def _errors_beyond_shape(
     base_dir: Path | None,
     allow_outside: bool,
 ) -> list[Diagnostic]:
-    """The semantic errors of the rest of a grammar whose shape is wrong in some node types,
-    so that one run reports them all (not one stage per run).
+    """The semantic errors of the rest of a grammar whose shape is wrong in some node types
+    or in its `observation` section, so that one run reports them all (not one stage per run).
 
     A rule's translation or rotation with a shape error is checked as `same`, and a repeat's
     misshapen count law as `COUNT_STAND_IN`, so the rule's child, probability and other part
@@ -201,10 +201,12 @@ def _errors_beyond_shape(
     list with a shape error elsewhere is left out, and the type's other rules are still
     checked (their messages keep their places: `_Renumbered`).  A type with a shape error
     elsewhere is checked as a terminal stub: its name stays known, so the rest gets no
-    follow-on "unknown type" errors.  Warnings (which a stub or a missing rule could cause)
-    are dropped.  A shape error outside `types` (root, grammar name) leaves nothing sound to
-    check.
+    follow-on "unknown type" errors.  The `observation` section gets stand-ins too
+    (`_observation_stand_in`).  Warnings (which a stub or a missing rule could cause) are
+    dropped.  A shape error elsewhere (root, grammar name) leaves nothing sound to check.
     """
+    in_observation = [loc for loc in locs if loc[:1] == ("observation",)]
+    locs = [loc for loc in locs if loc[:1] != ("observation",)]
     bad: set[str] = set()
     bad_rules: dict[tuple, set[int]] = {}
     # type -> (path, stand-in) of the rule parts (placements, a count law) to check in place
@@ -243,6 +245,8 @@ def _errors_beyond_shape(
             body = _stub(original, [loc for loc in locs if loc[1] == name])
         fixed[name] = body
     stubbed = {**data, "types": fixed}
+    if in_observation:
+        stubbed["observation"] = _observation_stand_in(data.get("observation"), in_observation)
     try:
         doc = dsl.GrammarDoc.model_validate(stubbed)
     except ValidationError:
@@ -254,6 +258,48 @@ def _errors_beyond_shape(
     except GrammarError as later:
         return [d for d in later.diagnostics if d.severity != "warning"]
     return []
+
+
+# What an `observation` section's misshapen part is checked as: no noise, a rate of 1, a unit
+# box, the default `max`.  Each keeps the name it is under checked, and adds no error.
+OBSERVATION_STAND_INS = {
+    "noise": {},
+    "rates": 1.0,
+    "region": {"min": [0, 0, 0], "max": [1, 1, 1]},
+    "max": 3,
+}
+
+
+def _observation_stand_in(section: Any, locs: list[tuple]) -> Any:
+    """The `observation` section with stand-ins (`OBSERVATION_STAND_INS`) for its misshapen
+    parts, so that the types its noise entries and clutter rates name are still checked;
+    without the clutter, or the whole section, when a stand-in does not make it valid."""
+    for loc in locs:
+        path = loc[1:]
+        if path[:1] == ("noise",):
+            section = _noise_stand_in(section, path)
+        elif path[:2] == ("clutter", "rates") and len(path) >= 3:
+            section = _with_value(section, path[:3], OBSERVATION_STAND_INS["rates"])
+        elif path[:1] == ("clutter",) and path[1:2] in (("region",), ("max",)):
+            section = _with_value(section, path[:2], OBSERVATION_STAND_INS[path[1]])
+        elif isinstance(section, dict):
+            section = {**section, "clutter": None}
+    for candidate in (section, {**section, "clutter": None} if isinstance(section, dict) else None):
+        try:
+            dsl.ObservationSpec.model_validate(candidate)
+            return candidate
+        except ValidationError:
+            continue
+    return None
+
+
+def _noise_stand_in(section: Any, path: tuple) -> Any:
+    """`section` with no noise in place of a misshapen noise entry (its name still checked),
+    without an entry whose name is misshapen, with no noise at all for a misshapen `noise`."""
+    noise = section.get("noise") if isinstance(section, dict) else None
+    if len(path) >= 3 and path[2] == "[key]" and isinstance(noise, dict):
+        return {**section, "noise": {k: v for k, v in noise.items() if k != path[1]}}
+    return _with_value(section, path[:2], OBSERVATION_STAND_INS["noise"])
 
 
 STUB_KEEPS = ("observed", "geometry")  # what other checks (noise, keep-out radii) read of a type
@@ -338,13 +384,21 @@ class Report:
         self.names = names
         self.errors: list[Diagnostic] = []
         self.warnings: list[Diagnostic] = list(source.notes)
+        self.said = set(self.warnings)  # every diagnostic so far: each is reported once
         self.suggestions = 0
 
     def error(self, loc: Loc, message: str) -> None:
-        self.errors.append(self.source.diagnostic(loc, message))
+        self.say(self.errors, self.source.diagnostic(loc, message))
 
     def warn(self, loc: Loc, message: str) -> None:
-        self.warnings.append(self.source.diagnostic(loc, message, "warning"))
+        self.say(self.warnings, self.source.diagnostic(loc, message, "warning"))
+
+    def say(self, into: list[Diagnostic], d: Diagnostic) -> None:
+        """Add `d` unless it was said already: a part of the document shared through a YAML
+        alias (`*t`) is checked at each use, but its mistakes are in one place, said once."""
+        if d not in self.said:
+            self.said.add(d)
+            into.append(d)
 
     def add(self, findings: list[Finding]) -> None:
         for severity, loc, message in findings:
@@ -412,13 +466,12 @@ class Compiler(Report):
         sound = not self.errors and not self.partial
         # The observation adds types (clutter, an observed root's node) after the user's: the
         # constraints are checked on the grammar as written but sized for every type.
-        seen = (
-            None
-            if self.errors
-            else observation.apply(
-                self.doc.observation, types, rules, self.ids[root_spec.type], self.ids, self
-            )
-        )
+        seen = None
+        if self.errors:  # no grammar of observed scenes to build, but its section is checked
+            observation.check(self.doc.observation, types, rules, self.ids, self)
+        else:
+            root_id = self.ids[root_spec.type]
+            seen = observation.apply(self.doc.observation, types, rules, root_id, self.ids, self)
         n_types = len(types) if seen is None else len(seen.types)
         constraints = build_constraints(self, types, rules, root, sound, n_types)
         if self.errors:

@@ -71,6 +71,9 @@ class SsgError(Exception):
     exit_code: int = 1
 
     def __post_init__(self) -> None:
+        # One mistake, one message: a part shared through a YAML alias is checked at each use,
+        # and checks that overlap (the compiler's, the meshes') can find the same thing.
+        self.diagnostics = list(dict.fromkeys(self.diagnostics))
         super().__init__(str(self))
 
     @classmethod

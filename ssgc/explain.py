@@ -320,14 +320,14 @@ def explain_tree(
     (default EXPLAIN_BUDGET_S); what they did is `Explanation.reparse`."""
     terms = _terms(grammar, tree)
     obj_of = match_objects(grammar, scene, tree)
-    weights = ownership(grammar, tree, obj_of, len(scene))
+    owners = ownership(grammar, tree, obj_of, len(scene))
     expect = _Expectations(grammar)
     objects = [
         ObjectExplanation(int(o), grammar.types[scene.types[o]].name, 0.0, 0.0, 0.0)
         for o in range(len(scene))
     ]
     for term in terms:
-        w = weights[term["node"]]
+        w = owners.of(term)
         excess = -term["log_prob"] - expect.term(term)
         text = _sentence(grammar, scene, tree, obj_of, term, expect)
         for o in np.flatnonzero(w):
@@ -358,7 +358,7 @@ def explain_tree(
             gain = max(gain, found)
         objects[o].pose_gain = gain
         objects[o].unusual += gain
-    for o, surprise in slot_surprises(grammar, tree, terms, obj_of, weights, expect).items():
+    for o, surprise in slot_surprises(grammar, tree, terms, obj_of, owners, expect).items():
         objects[o].slot_surprise = surprise
     retyped = type_gains(grammar, scene, tree, obj_of, log_prob, parser, deadline, reparse)
     for o, fix in retyped.items():
@@ -400,7 +400,7 @@ def slot_surprises(
     tree: Trees,
     terms: list[dict[str, Any]],
     obj_of: IntArray,
-    weights: FloatArray,
+    owners: Owners,
     expect: _Expectations,
 ) -> dict[int, float]:
     """Each object's *slot surprise*: −log of its `or` choice and placement together (one
@@ -422,8 +422,9 @@ def slot_surprises(
             placement[t["node"]] += t["log_prob"]
     for i, c in pairs:
         surprise = -(choice[i] + placement[c]) - expect.mixture(int(tree.type[i]))
-        for o in np.flatnonzero(weights[c]):
-            out[int(o)] = max(out.get(int(o), -np.inf), float(weights[c][o]) * surprise)
+        w = owners.placement[c]  # the owners of the placement the `or` chose
+        for o in np.flatnonzero(w):
+            out[int(o)] = max(out.get(int(o), -np.inf), float(w[o]) * surprise)
     return out
 
 
@@ -594,14 +595,52 @@ def blocks(grammar: Grammar, tree: Trees) -> IntArray:
     return top
 
 
-def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -> FloatArray:
-    """(nodes, objects) weights, each row summing to 1 (when the scene has objects): who owns
-    each node's terms (module docstring)."""
+@dataclass
+class Owners:
+    """Who owns each node's terms: (nodes, objects) weights, each row summing to 1 (when the
+    scene has objects).  Two matrices, because a node's placement and its choice can belong
+    to different objects: an observed `or` node keeps its own placement, while its choice is
+    about the child it chose (docs/explain.md, "share", rule 1 and its exception)."""
+
+    placement: FloatArray  # a node's position and rotation terms
+    choice: FloatArray  # its count or choice term
+
+    def of(self, term: dict[str, Any]) -> FloatArray:
+        """The weights over the objects of one term of `_terms`."""
+        edge = term["kind"] in ("position", "rotation")
+        return (self.placement if edge else self.choice)[term["node"]]
+
+
+def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -> Owners:
+    """Who owns each node's terms (module docstring), with the `or` exception: a choice is
+    about the child it chose, so when that child has a pose of its own (an `or` whose rules
+    place dishes right side up or upside down), the choice goes to the child's owners, not to
+    whatever object shares the `or` node's pose (the bin).  A latent `or` node's placement
+    follows its choice (its terms go to the object it chose); an `or` node whose block holds
+    an observed object keeps its placement: that object is what the placement places."""
+    top = blocks(grammar, tree)
+    w, observed = _block_owners(tree, obj_of, n_objects, top)
+    choice = w.copy()
+    is_or = np.array([grammar.types[t].kind == Kind.OR for t in tree.type])
+    kids = np.flatnonzero((tree.parent >= 0) & is_or[np.maximum(tree.parent, 0)])
+    for c in kids[::-1]:  # children before parents: chains of `or`s
+        i = tree.parent[c]
+        if top[c] != top[i] and w[c].any():
+            choice[i] = w[c]
+            if not observed[i]:
+                w[i] = w[c]
+    return Owners(w, choice)
+
+
+def _block_owners(
+    tree: Trees, obj_of: IntArray, n_objects: int, top: IntArray
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Rules 1-3 of docs/explain.md ("share"): each node's (nodes, objects) weights, and
+    whether its block holds an observed object (the `or` exception keeps such a placement)."""
     n = len(tree)
     w = np.zeros((n, n_objects))
     if n_objects == 0:
-        return w
-    top = blocks(grammar, tree)
+        return w, np.zeros(n, bool)
     below = np.zeros((n, n_objects), bool)  # objects in each node's subtree
     has = obj_of >= 0
     below[np.flatnonzero(has), obj_of[has]] = True
@@ -620,18 +659,7 @@ def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -
             w[i] = w[tree.parent[i]]
         else:
             w[i] = 1.0 / n_objects
-    # An `or` choice is about the child it chose: when that child has a pose of its own (an
-    # `or` whose rules place dishes right side up or upside down), the choice belongs to the
-    # child's owners, not to whatever object shares the `or` node's pose (the bin).
-    chosen = np.full(n, -1, np.int64)
-    is_or = np.array([grammar.types[t].kind == Kind.OR for t in tree.type])
-    kids = np.flatnonzero((tree.parent >= 0) & is_or[np.maximum(tree.parent, 0)])
-    chosen[tree.parent[kids]] = kids
-    for i in np.flatnonzero(chosen >= 0)[::-1]:  # children before parents: chains of `or`s
-        c = chosen[i]
-        if top[c] != top[i] and w[c].any():
-            w[i] = w[c]
-    return w
+    return w, in_block[top].any(axis=1)
 
 
 # ------------------------------------------------------------ pose repair ---

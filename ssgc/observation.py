@@ -120,6 +120,25 @@ def apply(
     return out
 
 
+def check(
+    spec: dsl.ObservationSpec | None,
+    types: list[NodeType],
+    rules: list[Rule],
+    ids: dict[str, int],
+    report: Report,
+) -> None:
+    """Report the errors `apply` would, without building anything: for a grammar with errors
+    elsewhere, whose types and rules cannot be turned into the grammar of observed scenes,
+    but whose type names, observed flags and rule lists still tell what the section gets
+    wrong (docs/grammar.md, section 6: one run reports what every stage can still check)."""
+    if spec is None:
+        return
+    g = Observed(list(types), list(rules), -1, dict(ids))  # a copy: new clutter types go here
+    _noise_of_types(spec, g, report)
+    if spec.clutter is not None:
+        _clutter_kinds(spec.clutter, g, report)
+
+
 # ------------------------------------------------------------------------- noise ---
 
 
@@ -321,20 +340,29 @@ def _observe_root(g: Observed, noise: Noise) -> None:
 # ----------------------------------------------------------------------- clutter ---
 
 
-def _add_clutter(spec: dsl.ClutterSpec, g: Observed, report: Report) -> None:
-    """The set `~clutter` under the scene root (module docstring)."""
+def _clutter_kinds(spec: dsl.ClutterSpec, g: Observed, report: Report) -> list[int] | None:
+    """The type of each clutter rate (new types for new names), None after an error: the
+    region and every rate are checked, so that one run reports all their errors."""
     loc = (*LOC, "clutter")
     lo, hi = np.asarray(spec.region.min, float), np.asarray(spec.region.max, float)
-    if np.any(hi <= lo):
+    ok = not np.any(hi <= lo)
+    if not ok:
         report.error((*loc, "region", "max"), "the clutter region needs max > min on every axis")
-        return
     kinds: list[int] = []
     for name, _rate in spec.rates.items():
         tid = _clutter_type(name, g, (*loc, "rates", name), report)
         if tid is not None:
             kinds.append(tid)
-    if len(kinds) != len(spec.rates):
+    return kinds if ok and len(kinds) == len(spec.rates) else None
+
+
+def _add_clutter(spec: dsl.ClutterSpec, g: Observed, report: Report) -> None:
+    """The set `~clutter` under the scene root (module docstring)."""
+    loc = (*LOC, "clutter")
+    kinds = _clutter_kinds(spec, g, report)
+    if kinds is None:
         return
+    lo, hi = np.asarray(spec.region.min, float), np.asarray(spec.region.max, float)
     rates = np.array(list(spec.rates.values()), float)
     total = float(rates.sum())
     counts = np.arange(spec.max + 1)

@@ -178,6 +178,45 @@ def test_an_or_choice_belongs_to_the_object_it_placed(slots):
     assert [r.log_prob for r in down] == [pytest.approx(np.log(0.2))]
 
 
+OBSERVED_OR = """
+grammar: observed_or
+root: Table
+types:
+  Table:
+    observed: true
+    and:
+      - child: Plate
+        translation: {parent_normal_offset: {mean: [0, 0, 0.4], variance: 0.01, pin: [z]}}
+        rotation: {revolute: {axis: [0, 0, 1], min: -1, max: 1}}
+  Plate:           # observed, and an `or`: what it holds is its choice
+    observed: true
+    or:
+      - child: Cup
+        translation: {world_box_offset: {min: [-0.05, -0.05, 0.01], max: [0.05, 0.05, 0.01]}}
+        rotation: {offset: {rpy_deg: [0, 0, 45]}}
+      - child: Nothing
+  Cup: {observed: true}
+  Nothing: {}
+"""
+
+
+@pytest.mark.parametrize("noise", ["", "observation: {noise: {default: {position: 0.003}}}"])
+def test_an_observed_or_keeps_its_placement_and_gives_only_its_choice(noise):
+    """Rule 1's `or` exception moves the choice to the chosen child, not the `or` node's own
+    placement: an observed Plate that is an `or` owns the rule that placed it, the Cup it
+    chose owns the choice and its own placement (with and without sensor noise)."""
+    g = compile_text(OBSERVED_OR + noise)
+    types = np.array([g.type_ids[t] for t in ("Table", "Plate", "Cup")])
+    xyz = np.array([[0, 0, 0], [0.1, -0.05, 0.4], [0.12, -0.04, 0.41]])
+    yaw = np.array([0, 0.3, 0.3 + np.pi / 4])  # the Cup turned 45° on the Plate
+    scene = Scene("or", types, xyz, rpy_to_quat(np.c_[np.zeros((3, 2)), yaw]))
+    e = explain(g, scene)
+    kinds = {o.type: sorted((r.kind, r.rule.split("->")[-1]) for r in o.reasons) for o in e.objects}
+    assert kinds["Plate"] == [("position", "Plate"), ("rotation", "Plate")]
+    assert kinds["Cup"] == [("choice", "Plate"), ("position", "Cup")]
+    assert sum(o.share for o in e.objects) == pytest.approx(-e.log_prob, abs=1e-9)
+
+
 def test_a_dish_turned_over_in_place_ranks_first_by_its_slot_surprise(slots):
     """Turned over where it lay, dish 1 is neither right side up nor at the height of an
     upside-down dish: the parse puts it in the catch-all rule, where its pose is typical, so
@@ -203,8 +242,8 @@ def test_slot_surprise_is_zero_on_average_under_the_grammar(slots):
         tree = trees.tree(i)
         scene = scene_from_tree(slots, tree, f"s{i}")
         obj_of = match_objects(slots, scene, tree)
-        weights = ownership(slots, tree, obj_of, len(scene))
-        values += slot_surprises(slots, tree, _terms(slots, tree), obj_of, weights, expect).values()
+        owners = ownership(slots, tree, obj_of, len(scene))
+        values += slot_surprises(slots, tree, _terms(slots, tree), obj_of, owners, expect).values()
     values = np.array(values)
     assert len(values) > 400
     assert abs(values.mean()) < 3 * values.std() / np.sqrt(len(values))

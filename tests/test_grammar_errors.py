@@ -990,6 +990,16 @@ def test_or_weights_are_normalised() -> None:
     assert g.types[g.type_id("Root")].probs.tolist() == [0.75, 0.25]
 
 
+def test_the_rule_table_says_what_p_is_in_each_list() -> None:
+    """docs/grammar.md section 4's rule table said `p` was "a number in [0, 1]" in both lists,
+    while an `or` takes any weight >= 0 and normalises it (above; sections 3.1 and 6)."""
+    text = (SINK.parent.parent / "docs" / "grammar.md").read_text(encoding="utf-8")
+    row = next(line for line in text.splitlines() if line.startswith("| `p` | none |"))
+    in_or, in_independent = row.split("in `independent`:")
+    assert "≥ 0" in in_or and "normalised" in in_or and "[0, 1]" not in in_or
+    assert "probability" in in_independent and "[0, 1]" in in_independent
+
+
 def test_latent_model_duplicate_label_and_missing_mesh_warn(tmp_path: Path) -> None:
     text = doc("""
         Root:
@@ -1398,3 +1408,53 @@ def test_or_weights_whose_sum_overflows_are_normalised():
     assert g.types[g.type_ids["R"]].probs.tolist() == [0.5, 0.5]
     _, log_p = sample_trees(g, 4, 0)
     assert np.allclose(log_p, np.log(0.5))
+
+
+SHARED_LAW = """\
+grammar: shared
+root: Base
+types:
+  Base:
+    and:
+      - child: A
+        translation: &t {world_normal: {mean: [0, 0, 0], variance: [0.1, 0, 0.1]}}
+      - child: B
+        translation: *t
+  A: {observed: true}
+  B: {observed: true}
+"""
+
+
+def test_a_mistake_shared_through_an_alias_is_reported_once() -> None:
+    """The law behind `*t` is checked at each use, but it is one mistake at one place."""
+    (d,) = errors_of(SHARED_LAW)
+    assert (d.line, d.column) == position(SHARED_LAW, "[0.1, |0, 0.1]")
+    assert "variance must be positive, got 0 (y axis)" in d.message
+
+
+SHARED_MESH = """\
+grammar: shared_mesh
+root: Base
+types:
+  Base:
+    and:
+      - {child: A}
+      - {child: B}
+  A: {observed: true, geometry: &g {mesh: {file: nothere.obj}}}
+  B: {observed: true, geometry: *g}
+"""
+
+
+def test_a_missing_mesh_shared_through_an_alias_is_said_once(tmp_path: Path) -> None:
+    """Once as the compiler's warning, once as `ssg validate`'s error (which opens it)."""
+    from typer.testing import CliRunner
+
+    from ssgc.cli.app import app
+
+    path = tmp_path / "mesh.yaml"
+    path.write_text(SHARED_MESH)
+    (w,) = load_grammar(path).warnings
+    assert "mesh file 'nothere.obj' not found" in w.message
+    result = CliRunner().invoke(app, ["validate", str(path)])
+    assert result.exit_code == 1
+    assert result.stderr.splitlines() == [f"{path}:8:50: error: mesh file 'nothere.obj': not found"]

@@ -220,6 +220,27 @@ def test_observation_mistakes_are_located(section, words):
     assert all(e.startswith("dinner.yaml:") and e.split(":")[1].isdigit() for e in errors)
 
 
+def test_observation_mistakes_are_reported_with_the_rules_and_with_each_other():
+    """One run reports them all (docs/grammar.md, section 6): the section was not checked at
+    all while a rule had an error, and an empty clutter region hid the clutter types' errors."""
+    text = DINNER.replace("child: Mug", "child: Mugg")
+    section = (
+        "observation:\n  noise:\n    Table: {position: 0.01}\n    Fork: {position: 0.01}\n"
+        "  clutter:\n    region: {min: [0, 0, 0], max: [1, 0, 1]}\n    rates: {Table: 0.1}\n"
+    )
+    with pytest.raises(GrammarError) as info:
+        with_section(section, text)
+    errors = " | ".join(str(d) for d in info.value.diagnostics)
+    for words in (
+        "child type 'Mugg' is not a type",
+        "noise of 'Table': not an observed type",
+        "noise of 'Fork': not a type of this grammar",
+        "the clutter region needs max > min",
+        "clutter of type 'Table': the type is not observed",
+    ):
+        assert words in errors
+
+
 def test_the_least_rotation_noise_the_message_names_is_accepted():
     """The message said "at least 0.81°" and refused 0.81 (the limit is 0.81028°)."""
     errors = errors_of("observation:\n  noise:\n    Mug: {rotation_deg: 0.81}\n")

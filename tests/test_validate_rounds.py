@@ -170,6 +170,75 @@ def test_a_misshapen_rule_part_leaves_the_rest_of_its_rule_checked(tmp_path: Pat
     assert result.exit_code == 0, result.output
 
 
+# A rule's error, and an `observation` section wrong in every way it can be: a misshapen noise
+# entry, noise on a latent type and on no type, too little rotation noise, an empty clutter
+# region, clutter of a latent type.  The section's errors were held back until the rules had
+# none, and the region's hid the clutter types'.
+OBSERVATION = """\
+grammar: observed_badly
+root: Base
+types:
+  Base:
+    and:
+      - {child: A}
+      - {child: B, rotation: {offset: {quat_wxyz: [1, 0, 0, 0.1]}}}
+  A: {observed: true}
+  B: {observed: true}
+observation:
+  noise:
+    Base: {position: 0.01}
+    Zed: {position: 0.01}
+    A: {rotation_deg: 0.5}
+    B: {position: -1}
+  clutter:
+    region: {min: [0, 0, 0], max: [1, 0, 1]}
+    rates: {Base: 0.1, Napkin: 0.2}
+"""
+
+OBSERVATION_EXPECTED = {
+    (7, 40): "quaternion must have unit norm",
+    (12, 5): "noise of 'Base': not an observed type",
+    (13, 5): "noise of 'Zed': not a type of this grammar",
+    (14, 23): "rotation noise must be 0 or at least",
+    (15, 19): "must be greater than or equal to 0",
+    (17, 30): "the clutter region needs max > min",
+    (18, 19): "clutter of type 'Base': the type is not observed",
+}
+
+OBSERVATION_FIXES = [
+    ("0, 0.1]", "0, 0]"),
+    ("    Base: {position: 0.01}\n", ""),
+    ("    Zed: {position: 0.01}\n", ""),
+    ("rotation_deg: 0.5", "rotation_deg: 1"),
+    ("position: -1", "position: 0.01"),
+    ("max: [1, 0, 1]", "max: [1, 1, 1]"),
+    ("Base: 0.1, ", ""),
+]
+
+
+def test_the_observation_section_is_checked_with_the_rules(tmp_path: Path):
+    grammar = tmp_path / "observed.yaml"
+    grammar.write_text(OBSERVATION)
+    result = runner.invoke(app, ["validate", str(grammar)])
+    assert result.exit_code == 1
+    found = {}
+    for line in result.output.splitlines():
+        if ": error: " in line:
+            where, message = line.split(": error: ", 1)
+            _, row, col = where.rsplit(":", 2)
+            found[(int(row), int(col))] = message
+    assert set(found) == set(OBSERVATION_EXPECTED), result.output
+    for place, words in OBSERVATION_EXPECTED.items():
+        assert words in found[place]
+    text = OBSERVATION
+    for old, new in OBSERVATION_FIXES:
+        assert old in text
+        text = text.replace(old, new, 1)
+    grammar.write_text(text)
+    result = runner.invoke(app, ["validate", str(grammar)])
+    assert result.exit_code == 0, result.output
+
+
 # Shape errors whose stand-ins must not raise anything false: a table whose geometry is wrong
 # keeps its place in the constraints' trees (no "can never hold"), and a missing count law
 # leaves the repeat's rule checked.
