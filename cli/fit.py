@@ -272,7 +272,12 @@ def _run_with_progress(
             progress.reset(task, description=f"iteration {r['iteration'] + 1}")
             lines.start(r["iteration"] + 1, 0)
 
-        return run.fit(time_limit, on_scene=on_scene, on_iteration=on_iteration)
+        def on_tails() -> None:  # after the last report: not a next iteration's bar
+            what = "measuring overlaps and support (the tails of ssg explain)"
+            progress.reset(task, description=what, total=None)
+            lines.say(what)
+
+        return run.fit(time_limit, on_scene=on_scene, on_iteration=on_iteration, on_tails=on_tails)
 
 
 def _print_mmd(mmd: dict[str, dict[str, float]], quiet: bool) -> None:

@@ -33,3 +33,8 @@ class SceneLines:
             markup=False,
             highlight=False,
         )
+
+    def say(self, what: str) -> None:
+        """One line of what is done now (when the lines are on)."""
+        if self.enabled:
+            self.console.print(f"{what} ...", markup=False, highlight=False)

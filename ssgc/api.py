@@ -310,9 +310,11 @@ class FitRun:
         time_limit: float | None = None,
         on_scene: Callable[[], None] | None = None,
         on_iteration: Callable[[dict[str, Any]], None] | None = None,
+        on_tails: Callable[[], None] | None = None,
     ) -> FitReport:
         """Run EM (`ssgc.fit.em.fit_grammar`): `on_scene` after each parsed scene,
-        `on_iteration` with each iteration's report."""
+        `on_iteration` with each iteration's report, `on_tails` when the EM is over and the
+        physical tails are measured."""
         from ssgc.fit.em import fit_grammar
 
         return fit_grammar(
@@ -324,6 +326,7 @@ class FitRun:
             time_limit=time_limit,
             on_scene=on_scene,
             on_iteration=on_iteration,
+            on_tails=on_tails,
         )
 
     def fitted(self, result: FitReport) -> Grammar:

@@ -464,3 +464,26 @@ def test_fit_settings_out_of_range_are_one_message(setting):
     setting, before any work (a variance floor of 6e307 was an internal error at write-back)."""
     with pytest.raises(SsgError, match=next(iter(setting)) + " must be"):
         FitSettings(**setting)
+
+
+FIT_OPTION_NAMES = (
+    "iterations top method seed tol estep samples pseudocount min_variance max_concentration jobs"
+).split()
+
+
+def test_the_tails_are_announced_after_the_last_iteration(tmp_path) -> None:
+    """After the last iteration's report the fit measures the physical tails for seconds; the
+    progress bar showed a next iteration at 0/N that never moved.  `on_tails` says so."""
+    from ssgc.api import fit_defaults, fit_options, open_fit
+
+    g = ssgc.load_grammar(GRAMMARS / "sink.yaml")
+    scenes = [s.data for s in g.sample(2, seed=0)]
+    defaults = {k: v for k, v in fit_defaults().items() if k in FIT_OPTION_NAMES}
+    options = fit_options(**{**defaults, "iterations": 1, "top": 1})
+    calls: list[str] = []
+    with open_fit(g, scenes, tmp_path / "data", options) as run:
+        run.fit(
+            on_iteration=lambda r: calls.append(f"iteration {r['iteration']}"),
+            on_tails=lambda: calls.append("tails"),
+        )
+    assert calls == ["iteration 1", "tails"]

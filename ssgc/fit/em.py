@@ -204,8 +204,11 @@ def fit_grammar(
     time_limit: float | None = None,
     on_scene: Callable[[], None] | None = None,
     on_iteration: Callable[[dict[str, Any]], None] | None = None,
+    on_tails: Callable[[], None] | None = None,
 ) -> FitResult:
-    """Run EM from `text` (or from where `journal` stopped) and return the fitted grammar."""
+    """Run EM from `text` (or from where `journal` stopped) and return the fitted grammar.
+    `on_tails` is called when the EM is over and the physical tails are measured (seconds
+    of work after the last iteration's report: a progress bar would show a next one)."""
     t0 = time.monotonic()
     deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
     current = journal.text or text
@@ -214,15 +217,21 @@ def fit_grammar(
     while True:
         stop = _stop_reason(journal.reports, options, len(scenes))
         if stop:
-            return _with_tails(FitResult(current, journal.reports, *stop), grammar, journal, scenes)
+            return _with_tails(
+                FitResult(current, journal.reports, *stop), grammar, journal, scenes, on_tails
+            )
         if deadline is not None and time.monotonic() >= deadline:
-            return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
+            return _with_tails(
+                _out_of_time(current, journal.reports), grammar, journal, scenes, on_tails
+            )
         started = time.monotonic()
         parser = Parser(grammar, method=options.method, seed=options.seed)
         start = len(journal.scenes)
         for parsed in parse_scenes(parser, scenes, start, options.top, deadline, options.jobs):
             if parsed.limit is not None and _cut_short(parsed.result, parsed.limit):
-                return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
+                return _with_tails(
+                    _out_of_time(current, journal.reports), grammar, journal, scenes, on_tails
+                )
             assert parsed.result is not None
             record = _scene_record(journal.iteration, parsed.index, parsed.result, source.dataset)
             journal.add_scene(record)
@@ -232,7 +241,9 @@ def fit_grammar(
         if options.estep == "mcmc":
             sampled = _posterior(grammar, journal, options, ties, deadline)
             if sampled is None:  # resumed, the journalled parses give the same chains
-                return _with_tails(_out_of_time(current, journal.reports), grammar, journal, scenes)
+                return _with_tails(
+                    _out_of_time(current, journal.reports), grammar, journal, scenes, on_tails
+                )
             trees, weights, report["posterior"] = sampled
             report["trees"] = len(weights)
         m_started = time.monotonic()
@@ -254,7 +265,11 @@ def fit_grammar(
 
 
 def _with_tails(
-    result: FitResult, grammar: Grammar, journal: FitJournal, scenes: Sequence[Scene]
+    result: FitResult,
+    grammar: Grammar,
+    journal: FitJournal,
+    scenes: Sequence[Scene],
+    on_tails: Callable[[], None] | None = None,
 ) -> FitResult:
     """The fitted grammar with the physical tails of `ssg explain` measured on the last
     iteration's best parses (`ssgc.fit.tails`), where its constraints have such tails.  Done
@@ -262,6 +277,8 @@ def _with_tails(
     `--resume` gives the same."""
     if not journal.last_scenes:
         return result
+    if on_tails is not None:
+        on_tails()
     best = [
         _tree_from_json(r["trees"][int(np.argmax(r["scores"]))]) if r["scores"] else None
         for r in journal.last_scenes
