@@ -147,8 +147,14 @@ def scene_from_tree(
     )
 
 
-def _pose_json(xyz: NDArray[np.float64], quat: NDArray[np.float64]) -> dict[str, list[float]]:
-    return {"xyz": [float(v) for v in xyz], "quat_wxyz": [float(v) for v in quat_canonical(quat)]}
+def _poses_json(
+    xyz: NDArray[np.float64], quat: NDArray[np.float64]
+) -> list[dict[str, list[float]]]:
+    """Each row's pose as a file holds it; the signs of all quaternions chosen at once (one
+    call per pose was a sixth of the time `ssg sample` spends writing a scene)."""
+    xyz_rows = np.asarray(xyz, float).reshape(-1, 3).tolist()
+    quat_rows = quat_canonical(np.asarray(quat, float).reshape(-1, 4)).tolist()
+    return [{"xyz": x, "quat_wxyz": q} for x, q in zip(xyz_rows, quat_rows, strict=True)]
 
 
 def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, Any]:
@@ -164,8 +170,8 @@ def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, An
         out["log_prob"] = float(scene.log_prob)
     kept = scene.metadata or ({},) * len(scene)
     out["objects"] = [
-        {"type": grammar.types[t].name, "pose": _pose_json(x, q), **({"metadata": m} if m else {})}
-        for t, x, q, m in zip(scene.types, scene.xyz, scene.quat, kept, strict=True)
+        {"type": grammar.types[t].name, "pose": p, **({"metadata": m} if m else {})}
+        for t, p, m in zip(scene.types, _poses_json(scene.xyz, scene.quat), kept, strict=True)
     ]
     if scene.tree is not None:
         out["tree"] = tree_to_json(grammar, scene.tree)
@@ -179,6 +185,7 @@ def tree_to_json(grammar: Grammar, tree: Trees) -> dict[str, Any]:
     """A single tree as {"nodes": [...]}: parents first, rules named by their index in the
     parent type's rule list."""
     tb = grammar.tables
+    poses = _poses_json(tree.xyz, tree.quat)
     return {
         "nodes": [
             {
@@ -187,7 +194,7 @@ def tree_to_json(grammar: Grammar, tree: Trees) -> dict[str, Any]:
                 "parent": int(tree.parent[i]) if tree.parent[i] >= 0 else None,
                 "rule": int(tb.rule_index[tree.rule[i]]) if tree.rule[i] >= 0 else None,
                 "observed": bool(tb.type_observed[tree.type[i]]),
-                "pose": _pose_json(tree.xyz[i], tree.quat[i]),
+                "pose": poses[i],
             }
             for i in range(len(tree))
         ]
