@@ -123,7 +123,8 @@ def test_fit_defaults_are_one_set_for_the_api_the_command_and_the_fitter():
     command = typer.main.get_command(app).commands["fit"]
     flags = {p.name: p.default for p in command.params}
     for name, value in options.items():
-        assert flags[name] == value, name
+        # --samples has no default of its own: given, it needs --estep mcmc (the help says 100)
+        assert flags[name] == (None if name == "samples" else value), name
 
 
 @pytest.mark.parametrize(
