@@ -11,12 +11,14 @@ rule that produced the child, so the part of the scene the grammar finds unusual
 
 from __future__ import annotations
 
+import colorsys
 import io
 import json
 import math
 import re
 import sys
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -49,6 +51,12 @@ FloatArray = NDArray[np.float64]
 MAX_COORD = 1000.0  # meters
 MAX_GRID = 64  # scenes in one picture; more would be unreadable
 FORMATS = (".png", ".svg")
+MIN_ASPECT = 0.35  # in 3-D, no axis is drawn shorter than this share of the longest
+LEGEND_CHARS = 40  # a type's name in the legend is cut to this many characters (the bundled
+# grammars' longest, PlateRoomEssentialsSaladTurquoise, is 33)
+LEGEND_ENTRY_PT = 10.5  # the height of a legend entry at font size 7 (points)
+HELD_TOL = 0.002  # m: an object resting on its container's floor may reach this far below it
+SMALLER = 0.9  # what a container holds covers less than this share of its area from above
 
 
 @dataclass(frozen=True)
@@ -63,7 +71,7 @@ class View:
     observed: NDArray[np.bool_]
     parent: NDArray[np.int64]  # -1: a root, or no tree known
     score: FloatArray | None = None  # a parse's per-node rule log-probability
-    rules: tuple[str | None, ...] | None = None  # a parse's per-node rule name (`ssg view`)
+    rules: tuple[str | None, ...] | None = None  # per node, the rule that made it (`ssg view`)
 
 
 def require_matplotlib() -> Any:
@@ -111,11 +119,36 @@ def render_file(
     else:
         views = [v for v in load_views(Path(source), sys.maxsize, grammar) if v.name == scene]
         if not views:
-            raise SsgError.single(f"no scene named '{scene}' in it", str(source))
+            raise _no_scene(Path(source), scene)
         views = views[:n]
     fig = draw_views(views, geometry_of(grammar))
     save_figure(fig, out, fmt)
     return len(views)
+
+
+def _no_scene(source: Path, scene: str) -> SsgError:
+    """`--scene NAME` drew nothing: a parse result's scene of that name that has no parse
+    (infeasible, timed out) is there, and the user is told so, with its status."""
+    status = next(_statuses(source, scene), None)
+    if status is None:
+        return SsgError.single(f"no scene named '{shown(scene)}' in it", str(source))
+    return SsgError.single(
+        f"scene '{shown(scene)}' has no parse to draw (its status: {shown(status)})", str(source)
+    )
+
+
+def _statuses(source: Path, scene: str) -> Iterator[str]:
+    """The status of each unparsed scene named `scene` in the parse results of `source` (a
+    file, or a directory's `*.json`), which `load_views` has already read and checked."""
+    for path in sorted(source.glob("*.json")) if source.is_dir() else [source]:
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if is_parse_result(data):
+            for s in data["scenes"]:
+                if isinstance(s, dict) and s.get("name") == scene and not s.get("parses"):
+                    yield str(s.get("status") or "unknown")
 
 
 def render_document(data: Any, output: str | Path, grammar: Grammar | None = None) -> int:
@@ -193,6 +226,8 @@ def _observed(grammar: Grammar | None, name: str, given: bool | None) -> bool:
 
 
 def _tree_view(title: str, tree: NodeTable, grammar: Grammar | None) -> View:
+    """A tree's nodes, each with the rule that made it, so that the viewer can say it for a
+    sampled scene as for a parse (a parse result's own rule names replace these)."""
     return View(
         name=title,
         title=title,
@@ -204,7 +239,20 @@ def _tree_view(title: str, tree: NodeTable, grammar: Grammar | None) -> View:
             bool,
         ).reshape(-1),
         parent=tree.parent,
+        rules=tuple(_rule_name(tree, i, grammar) for i in range(len(tree.types))),
     )
+
+
+def _rule_name(tree: NodeTable, i: int, grammar: Grammar | None) -> str | None:
+    """Node i's rule named as a parse names it (`Parent[index]->Child`, `Grammar.rule_name`):
+    the tree records only its index in the parent type's rule list."""
+    parent, index = int(tree.parent[i]), int(tree.rule[i])
+    if parent < 0 or index < 0:
+        return None
+    if grammar is not None and tree.types[parent] in grammar.type_ids:
+        rule = grammar.tables.type_rules[grammar.type_ids[tree.types[parent]], index]
+        return grammar.rule_name(int(rule))
+    return f"{tree.types[parent]}[{index}]->{tree.types[i]}"
 
 
 def _doc_view(doc: SceneDoc, read: SceneRead, grammar: Grammar | None, stem: str) -> View:
@@ -316,42 +364,117 @@ def plain(text: str) -> str:
 
 
 def _colours(views: list[View]) -> dict[str, Any]:
+    """A colour per observed type: matplotlib's tab10 or tab20 while they suffice, else as
+    many distinct colours as there are types (`many_colours`): never one colour for two."""
     from matplotlib import colormaps
 
     names = sorted({t for v in views for t, o in zip(v.types, v.observed, strict=True) if o})
+    if len(names) > 20:
+        return dict(zip(names, many_colours(len(names)), strict=True))
     cmap = colormaps["tab10" if len(names) <= 10 else "tab20"]
-    return {name: cmap(i % cmap.N) for i, name in enumerate(names)}
+    return {name: cmap(i) for i, name in enumerate(names)}
+
+
+def many_colours(n: int) -> list[tuple[float, float, float]]:
+    """`n` distinct RGB colours for more types than a 20-colour palette holds: a third of them
+    dark, a third medium, a third light, each third spread evenly round the hue circle, so
+    that two types differ in hue by 360°/ceil(n/3) or in lightness (also `ssg view`'s)."""
+    hues = math.ceil(n / 3)
+    return [
+        colorsys.hls_to_rgb((i % hues) / hues, (0.3, 0.5, 0.7)[i // hues], 0.75) for i in range(n)
+    ]
+
+
+def legend_label(name: str) -> str:
+    """A type's name as the legend shows it: at most LEGEND_CHARS characters, a long one cut
+    in the middle (the start and the end usually tell two types apart), so that the legend
+    leaves the panels their room."""
+    if len(name) <= LEGEND_CHARS:
+        return plain(name)
+    tail = LEGEND_CHARS // 3
+    return plain(name[: LEGEND_CHARS - tail - 1] + "…" + name[-tail:])
+
+
+def _legend(fig: Any, handles: list[Any]) -> None:
+    """The legend beside the panels, in as many columns as its entries need to fit the
+    figure's height: every type is listed."""
+    per_column = max(1, int((fig.get_figheight() * 72 - 20) / LEGEND_ENTRY_PT))
+    fig.legend(
+        handles=handles,
+        loc="outside right upper",
+        fontsize=7,
+        frameon=False,
+        ncols=math.ceil(len(handles) / per_column),
+    )
+
+
+def _legend_width(labels: list[str], height: float) -> float:
+    """Inches the legend takes beside the panels: its columns, each as wide as its longest
+    label at font size 7 (measured) plus the colour patch and the gaps."""
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import TextToPath
+
+    per_column = max(1, int((height * 72 - 20) / LEGEND_ENTRY_PT))
+    columns = math.ceil(len(labels) / per_column)
+    font, measure = FontProperties(size=7), TextToPath()
+    text = max(
+        (measure.get_text_width_height_descent(t, font, ismath=False)[0] for t in labels), default=0
+    )
+    return (columns * (34 + text) + 10) / 72
 
 
 def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[int]]]]) -> Any:
     """One figure: a (3-D, top-down) pair of panels per scene, a legend, and for parses a
-    colour bar of rule log-probabilities."""
+    colour bar of rule log-probabilities.  The figure is widened by what the legend needs, so
+    that many types or long names never squeeze the panels."""
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
     from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
 
     cols = math.ceil(math.sqrt(len(views)))
     rows = math.ceil(len(views) / cols)
-    fig = Figure(figsize=(8.0 * cols + 1.6, 3.6 * rows), layout="constrained")
-    fig.get_layout_engine().set(wspace=0.1)  # room for the 3-D panel's z label
-    colours = _colours(views)
-    scores = [v.score[np.isfinite(v.score)] for v in views if v.score is not None]
-    norm, cmap = None, colormaps["RdYlGn"]
-    if scores:
-        finite = np.concatenate(scores)
-        lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (-1.0, 0.0)
-        norm = Normalize(lo, hi if hi > lo else lo + 1.0)
+    colours, norm, cmap = _colours(views), _score_norm(views), colormaps["RdYlGn"]
+    handles = _handles(views, colours, norm)
+    legend = _legend_width([h.get_label() for h in handles], 3.6 * rows)
+    bar = 0.0 if norm is None else 0.9
+    fig = Figure(figsize=(8.0 * cols + max(1.6, legend + bar + 0.2), 3.6 * rows))
+    fig.set_layout_engine("constrained", wspace=0.1)  # room for the 3-D panel's z label
     axes = []
     for i, view in enumerate(views):
         ax3 = fig.add_subplot(rows, 2 * cols, 2 * i + 1, projection="3d")
         ax2 = fig.add_subplot(rows, 2 * cols, 2 * i + 2)
         _draw_view(ax3, ax2, view, geoms, colours, norm, cmap)
         axes += [ax3, ax2]
+    _legend(fig, handles)
+    if norm is not None:
+        colour_bar = fig.colorbar(ScalarMappable(norm, cmap), ax=axes, shrink=0.8, pad=0.02)
+        colour_bar.set_label(
+            "log-probability of the rule making the child (low = unusual)", fontsize=7
+        )
+        colour_bar.ax.tick_params(labelsize=7)
+    return fig
+
+
+def _score_norm(views: list[View]) -> Any:
+    """The colour scale of a parse's edges: all drawn parses' finite rule log-probabilities
+    (None when no view is a parse)."""
+    from matplotlib.colors import Normalize
+
+    scores = [v.score[np.isfinite(v.score)] for v in views if v.score is not None]
+    if not scores:
+        return None
+    finite = np.concatenate(scores)
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (-1.0, 0.0)
+    return Normalize(lo, hi if hi > lo else lo + 1.0)
+
+
+def _handles(views: list[View], colours: dict[str, Any], norm: Any) -> list[Any]:
+    """The legend's entries: every observed type, then the marks the panels use."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     handles: list[Any] = [
-        Patch(facecolor=c, alpha=0.6, label=plain(shown(t))) for t, c in colours.items()
+        Patch(facecolor=c, alpha=0.6, label=legend_label(t)) for t, c in colours.items()
     ]
     if any(not np.all(v.observed) for v in views):
         handles.append(Line2D([], [], ls="", marker="s", ms=4, color="0.35", label="latent node"))
@@ -363,12 +486,7 @@ def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[i
         )
     if norm is None and any(np.any(v.parent >= 0) for v in views):
         handles.append(Line2D([], [], color="0.2", label="tree edge"))
-    fig.legend(handles=handles, loc="outside right upper", fontsize=7, frameon=False)
-    if norm is not None:
-        bar = fig.colorbar(ScalarMappable(norm, cmap), ax=axes, shrink=0.8, pad=0.02)
-        bar.set_label("log-probability of the rule making the child (low = unusual)", fontsize=7)
-        bar.ax.tick_params(labelsize=7)
-    return fig
+    return handles
 
 
 def _draw_view(
@@ -387,6 +505,8 @@ def _draw_view(
 
     points = [view.xyz]
     rot = quat_to_matrix(view.quat) if len(view.types) else np.zeros((0, 3, 3))
+    shaped = [i for i in np.flatnonzero(view.observed) if view.types[i] in geoms]
+    faint = holders(view, {int(i): geoms[view.types[i]][0] for i in shaped})
     for i in np.flatnonzero(view.observed):
         colour, mesh = colours[view.types[i]], geoms.get(view.types[i])
         if mesh is None:
@@ -396,7 +516,7 @@ def _draw_view(
         verts = mesh[0] @ rot[i].T + view.xyz[i]
         points.append(verts)
         polys = [verts[f] for f in mesh[1]]
-        alpha = 0.15 if _holds_others(view, i, mesh[0], rot[i]) else 0.45
+        alpha = 0.15 if faint[i] else 0.45
         ax3.add_collection3d(
             Poly3DCollection(polys, facecolor=colour, edgecolor=colour, alpha=alpha, linewidth=0.4),
             autolim=False,  # limits are set once, equal on every axis (`_limits`)
@@ -439,23 +559,56 @@ def unexplained(view: View) -> NDArray[np.bool_]:
     return view.observed & (view.parent >= 0) & (parent_type == "~clutter:object")
 
 
-def _holds_others(view: View, i: int, local: FloatArray, rot: FloatArray) -> bool:
-    """A container (a bin, a table) is drawn faintly so that what it holds shows through."""
-    others = np.delete(view.xyz[view.observed], np.flatnonzero(view.observed) == i, axis=0)
-    local_xy = ((others - view.xyz[i]) @ rot)[:, :2]  # within its footprint, at any height
+def holders(view: View, local: dict[int, FloatArray]) -> NDArray[np.bool_]:
+    """Which objects hold others (a bin, a table), given the objects' shapes in their own frames
+    (`local`, by node): they are drawn faintly, so that what they hold shows through.  A
+    container is under what it holds and bigger than it; an object inside a bin or stacked on
+    another of its size (a disc, a plate, a steamer tray under its lid) hides nothing, so it is
+    drawn solid whatever lies under it."""
+    rot = quat_to_matrix(view.quat) if len(view.types) else np.zeros((0, 3, 3))
+    objects = np.flatnonzero(view.observed)
+    world = [
+        local[i] @ rot[i].T + view.xyz[i] if i in local else view.xyz[i : i + 1] for i in objects
+    ]
+    bottom = np.array([w[:, 2].min() for w in world])
+    area = np.array([np.prod(np.ptp(w[:, :2], axis=0)) for w in world])
+    out = np.zeros(len(view.types), bool)
+    for k, i in enumerate(objects):
+        if i in local:
+            held = _held(view.xyz[objects], view.xyz[i], rot[i], local[i], bottom, area, k)
+            out[i] = bool(np.any(np.delete(held, k)))
+    return out
+
+
+def _held(
+    xyz: FloatArray,
+    pose: FloatArray,
+    rot: FloatArray,
+    local: FloatArray,
+    bottom: FloatArray,
+    area: FloatArray,
+    k: int,
+) -> NDArray[np.bool_]:
+    """Which objects (centres `xyz`, lowest points `bottom`, areas from above `area`) object k
+    (at `pose`, its shape `local`) holds: each one's centre inside k's footprint and above k's
+    base, reaching no lower than k does, and smaller than k from above."""
+    local_xy = ((xyz - pose) @ rot)[:, :2]
     inside = np.all(np.abs(local_xy) <= np.abs(local[:, :2]).max(axis=0), axis=1)
-    return bool(np.any(inside))
+    above = (xyz[:, 2] > bottom[k]) & (bottom >= bottom[k] - HELD_TOL)
+    return inside & above & (area < SMALLER * area[k])
 
 
 def _limits(ax3: Any, ax2: Any, pts: FloatArray) -> None:
-    """Equal scales on every axis, so shapes and distances look as they are."""
+    """Equal scales on x and y from above, so shapes and distances look as they are; in 3-D
+    too, but an axis shorter than MIN_ASPECT of the longest is stretched to it, so that a flat
+    scene (all on a tabletop) or a long thin one is not drawn as a sheet or a line."""
     if len(pts) == 0:
         pts = np.zeros((1, 3))
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2 * 1.1, 0.05)
     for k, setter in enumerate((ax3.set_xlim, ax3.set_ylim, ax3.set_zlim)):
         setter(centre[k] - half[k], centre[k] + half[k])
-    ax3.set_box_aspect(tuple(np.maximum(half, 0.35 * half.max())), zoom=0.9)  # never flat
+    ax3.set_box_aspect(tuple(np.maximum(half, MIN_ASPECT * half.max())), zoom=0.9)
     ax3.tick_params(labelsize=6)
     ax3.set_xlabel("x (m)", fontsize=7)
     ax3.set_ylabel("y (m)", fontsize=7)
@@ -470,36 +623,39 @@ def _limits(ax3: Any, ax2: Any, pts: FloatArray) -> None:
 
 def save_figure(fig: Any, output: Output, fmt: str) -> None:
     """Rendered in memory, then written atomically: never a half-written image.  SVG text
-    stays text (searchable, and the tests can read the names in it)."""
+    stays text (searchable, and the tests can read the names in it), and carries no date, so
+    that the same input makes the same file."""
     import matplotlib
 
-    buf = io.BytesIO()
+    buf, metadata = io.BytesIO(), {"Date": None} if fmt == "svg" else None
     with (
         warnings.catch_warnings(record=True) as caught,
         matplotlib.rc_context({"svg.fonttype": "none", "svg.hashsalt": "ssgc"}),
     ):
         warnings.simplefilter("always")
-        fig.savefig(buf, format=fmt, dpi=100)
+        fig.savefig(buf, format=fmt, dpi=100, metadata=metadata)
     write_output_bytes(output, buf.getvalue())
-    _say_missing_glyphs(caught)
+    _say_warnings(caught)
 
 
 _GLYPH = re.compile(r"Glyph (\d+) .* missing from font\(s\) (.+)\.$")
 
 
-def _say_missing_glyphs(caught: list[warnings.WarningMessage]) -> None:
-    """matplotlib warns once per character its font lacks (a name in Japanese, an emoji), in
-    its own words and with our source line; one `SsgWarning` says which characters the picture
-    shows as boxes.  Other warnings pass on as they were."""
+def _say_warnings(caught: list[warnings.WarningMessage]) -> None:
+    """matplotlib warns in its own words and with its source lines: once per character its
+    font lacks (a name in Japanese, an emoji), or that a crowded figure could not be laid out.
+    The user gets one `SsgWarning` about the missing characters and at most one about the
+    rest, never matplotlib's raw text."""
     missing: dict[int, None] = {}
     fonts: set[str] = set()
+    other: list[str] = []
     for w in caught:
         found = _GLYPH.match(str(w.message))
         if found:
             missing[int(found.group(1))] = None
             fonts.add(found.group(2))
         else:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            other.append(one_line(str(w.message)))
     if missing:
         codes = ", ".join(f"U+{c:04X}" for c in missing)
         font = ", ".join(sorted(fonts))
@@ -507,4 +663,16 @@ def _say_missing_glyphs(caught: list[warnings.WarningMessage]) -> None:
             f"{len(missing)} character(s) of the names are not in the font {font} and are "
             f"drawn as boxes: {codes}"
         )
-        warnings.warn(SsgWarning(message), stacklevel=2)
+        warnings.warn(SsgWarning(message), stacklevel=3)
+    if other:
+        warnings.warn(SsgWarning(_drawing_trouble(other)), stacklevel=3)
+
+
+def _drawing_trouble(messages: list[str]) -> str:
+    """matplotlib's other warnings, said once in ssgc's words."""
+    if any("constrained_layout" in m for m in messages):
+        return (
+            "the picture is too crowded to lay out (too many scenes, types or too long names): "
+            "its panels and legend may overlap"
+        )
+    return f"drawing the picture, matplotlib warned: {shown(messages[0], 200)}"

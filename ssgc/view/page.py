@@ -26,7 +26,7 @@ from ssgc.errors import SsgError, SsgWarning
 from ssgc.geometry import quat_to_matrix
 from ssgc.io.outputs import check_output, write_output_text
 from ssgc.ir import Grammar, HoldsGrammar, as_ir
-from ssgc.render.scene import View, _holds_others, load_views
+from ssgc.render.scene import View, holders, load_views, many_colours
 
 MAX_SCENES = 1000  # one page; more would make a page too heavy to open
 MAX_FACES = 4000  # a mesh with more triangles is shown as its convex hull
@@ -75,7 +75,7 @@ def page_data(views: list[View], grammar: Grammar | None, title: str) -> dict[st
     """What the page draws, as plain JSON: types (colour, shape), scenes (nodes, objects)."""
     names = sorted({t for v in views for t in v.types})
     seen = {t for v in views for t, o in zip(v.types, v.observed, strict=True) if o}
-    colour = {t: PALETTE[i % len(PALETTE)] for i, t in enumerate(sorted(seen))}
+    colour = _type_colours(sorted(seen))
     shapes = _shapes(grammar, sorted(seen))
     scores = [v.score[np.isfinite(v.score)] for v in views if v.score is not None]
     finite = np.concatenate(scores) if scores else np.zeros(0)
@@ -99,6 +99,15 @@ def page_data(views: list[View], grammar: Grammar | None, title: str) -> dict[st
     }
 
 
+def _type_colours(names: list[str]) -> dict[str, str]:
+    """A colour per observed type: the palette while it suffices, else as many distinct
+    colours as types (`ssg render`'s, `many_colours`): never one colour for two types."""
+    if len(names) <= len(PALETTE):
+        return dict(zip(names, PALETTE, strict=False))
+    rgb = np.rint(np.array(many_colours(len(names))) * 255).astype(int)
+    return {n: "#{:02x}{:02x}{:02x}".format(*c) for n, c in zip(names, rgb, strict=True)}
+
+
 def _scene(
     view: View, index: dict[str, int], shapes: dict[str, Any], bounds: tuple[float, float] | None
 ) -> dict[str, Any]:
@@ -106,15 +115,18 @@ def _scene(
     n = len(view.types)
     rot = quat_to_matrix(view.quat) if n else np.zeros((0, 3, 3))
     objects = np.flatnonzero(view.observed)
-    faint = [
-        bool(name in shapes and _holds_others(view, i, np.array(shapes[name]["vertices"]), rot[i]))
-        for i, name in ((int(i), view.types[i]) for i in objects)
-    ]
+    local = {
+        int(i): np.array(shapes[view.types[i]]["vertices"])
+        for i in objects
+        if view.types[i] in shapes
+    }
+    faint = [bool(f) for f in holders(view, local)[objects]]
     score = view.score if view.score is not None else np.full(n, np.nan)
     edge = _score_colours(score, bounds)
     return {
         "name": view.name,
         "title": view.title,
+        "grid": grid(_radius(view, rot, local)),
         "tree": bool(np.any(view.parent >= 0)),
         "nodes": [
             {
@@ -132,6 +144,35 @@ def _scene(
         "objects": [int(i) for i in objects],
         "faint": faint,
     }
+
+
+def _radius(view: View, rot: np.ndarray, local: dict[int, np.ndarray]) -> float:
+    """Half the diagonal of the box holding the scene's nodes and shapes (at least 5 cm), as
+    the page computes it to frame the scene; a shapeless object is the page's marker cube."""
+    marker = np.array(_marker()["vertices"])
+    points = [view.xyz] + [
+        local.get(int(i), marker) @ rot[i].T + view.xyz[i] for i in np.flatnonzero(view.observed)
+    ]
+    cloud = np.vstack(points) if len(view.types) else np.zeros((1, 3))
+    return max(0.5 * float(np.linalg.norm(np.ptp(cloud, axis=0))), 0.05)
+
+
+def grid(radius: float) -> dict[str, Any]:
+    """The floor grid's step for a scene of this radius: the largest 1, 2 or 5 times a power
+    of ten that puts at least 10 lines across the grid (which spans 1.3 radii each side), so
+    10 cm for a scene of a metre, 100 m for one of a kilometre: never a solid grey plane."""
+    raw = 2.6 * radius / 10
+    power = 10.0 ** math.floor(math.log10(raw))
+    step = power * max(m for m in (1, 2, 5) if m * power <= raw * (1 + 1e-9))
+    step = float(f"{step:.3g}")
+    return {"step": step, "label": _length(step)}
+
+
+def _length(metres: float) -> str:
+    """A grid step as the page's hint shows it: `10 cm`, `100 m`, `5 mm`."""
+    if metres >= 1:
+        return f"{metres:g} m"
+    return f"{metres * 100:g} cm" if metres >= 0.01 else f"{metres * 1000:g} mm"
 
 
 def _number(x: float) -> float | str | None:

@@ -11,6 +11,7 @@
   const $ = (id) => document.getElementById(id);
   const FOV = 40 * Math.PI / 180;
   const LOW_SHARE = 0.25; // a rule in the lowest quarter of the page's range is marked
+  const MIN_PX = 8; // an object is never drawn smaller than this (CSS pixels across)
 
   const state = {
     scene: 0, yaw: -2.2, pitch: 0.6, zoom: 1, pan: [0, 0, 0],
@@ -101,13 +102,16 @@
     const light = norm(add(scale(cam.forward, -1), scale(cam.up, 0.6)));
     const tris = [];
     state.world.forEach((obj, k) => {
+      const mine = [];
       obj.tris.forEach((t) => {
         if (obj.cull && dot(t.normal, sub(t.p[0], cam.eye)) > 0) return; // its back
         const q = t.p.map((p) => project(cam, p));
         if (q[0][2] < cam.near || q[1][2] < cam.near || q[2][2] < cam.near) return;
         const shade = 0.45 + 0.55 * Math.abs(dot(t.normal, light));
-        tris.push({ pts: q, depth: (q[0][2] + q[1][2] + q[2][2]) / 3, object: k, shade: shade });
+        mine.push({ pts: q, depth: (q[0][2] + q[1][2] + q[2][2]) / 3, object: k, shade: shade });
       });
+      atLeast(mine, MIN_PX);
+      mine.forEach((t) => tris.push(t));
     });
     // Far to near; a see-through container (a bin, a table) first, so what it holds is drawn
     // whole over it whatever the depths of its large faces say.
@@ -131,6 +135,21 @@
     drawSelection();
   }
 
+  function atLeast(tris, px) {
+    // An object's projected triangles, grown about their centre to `px` across when they are
+    // smaller: a 3 cm marker in a scene a kilometre wide is still seen, and clicked.
+    let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
+    tris.forEach((t) => t.pts.forEach((p) => {
+      x0 = Math.min(x0, p[0]); y0 = Math.min(y0, p[1]); x1 = Math.max(x1, p[0]); y1 = Math.max(y1, p[1]);
+    }));
+    const size = Math.max(x1 - x0, y1 - y0);
+    if (!tris.length || size >= px) return;
+    const f = px / Math.max(size, 1e-6), cx = (x0 + x1) / 2, cy = (y0 + y1) / 2;
+    tris.forEach((t) => {
+      t.pts = t.pts.map((p) => [cx + (p[0] - cx) * f, cy + (p[1] - cy) * f, p[2]]);
+    });
+  }
+
   function path(pts) {
     ctx.beginPath();
     ctx.moveTo(pts[0][0], pts[0][1]);
@@ -139,8 +158,9 @@
   }
 
   function drawFloor(cam) {
-    // A grid on the lowest height of the scene, 10 cm squares (1 m when the scene is large).
-    const step = state.radius > 3 ? 1 : 0.1;
+    // A grid on the lowest height of the scene, its step chosen for the scene's extent
+    // (page.py: 10 cm for a scene of a metre, 10 to 25 lines across whatever its size).
+    const step = scene().grid.step;
     const half = Math.ceil(state.radius * 1.3 / step) * step;
     const c = state.centre;
     ctx.strokeStyle = "#d5d8dd";
@@ -294,6 +314,7 @@
       ? ", " + latent + " latent node" + (latent === 1 ? "" : "s") + " in its tree"
       : ", no tree known";
     $("position").textContent = "scene " + (state.scene + 1) + " of " + data.scenes.length;
+    $("grid-step").textContent = s.grid.label;
     $("pick-scene").value = String(state.scene);
     $("prev").disabled = state.scene === 0;
     $("next").disabled = state.scene === data.scenes.length - 1;
