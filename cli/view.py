@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import typer
 
@@ -12,10 +12,6 @@ from ssgc.errors import SsgError
 
 from .app import AllowOutside, _command, _warnings_about, app, err
 
-if TYPE_CHECKING:
-    from ssgc.io.outputs import Output
-
-PAGE_SUFFIXES = (".html", ".htm")
 SERVE_HOST = "127.0.0.1"  # this machine only: the page is for the user who runs ssg
 
 
@@ -60,13 +56,13 @@ def view(
     rule scores.  One self-contained HTML file; nothing is fetched from the network."""
     from ssgc.compile import load_grammar
     from ssgc.io.outputs import lock_outputs, write_output_text
-    from ssgc.view.page import view_page
+    from ssgc.view.page import check_page, view_page
 
     if output is None and not (open_it or serve):
         raise SsgError.single("say where the page goes: -o PAGE.html, or --open or --serve")
     if port is not None and not serve:
         raise SsgError.single("--port is the port of --serve, which is not given")
-    dest = None if output is None else _check_page(output, source, grammar)
+    dest = None if output is None else check_page(output, source, grammar)
     with lock_outputs([dest]):
         g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
         with _warnings_about(source):
@@ -80,20 +76,6 @@ def view(
         _open(html, None if dest is None or dest.stream else dest.target)
     if serve:
         _serve(html.encode("utf-8"), 8000 if port is None else port)
-
-
-def _check_page(output: Path, source: Path, grammar: Path | None) -> Output:
-    """The page's output, checked before any work: never an input (the grammar either), and an
-    .html file, so that a page never lands as a `.json` among scenes or over a YAML file."""
-    from ssgc.io.outputs import check_output
-
-    inputs = (source,) if grammar is None else (source, grammar)
-    dest = check_output(output, "page", inputs=inputs)
-    if not dest.stream and output.suffix.lower() not in PAGE_SUFFIXES:
-        raise SsgError.single(
-            f"the page must end in .html or .htm, got '{output.name}'", str(output)
-        )
-    return dest
 
 
 def _open(html: str, page: Path | None) -> None:

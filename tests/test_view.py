@@ -304,3 +304,21 @@ def test_the_page_must_be_an_html_file(scenes, tmp_path, name):
     assert "the page must end in .html or .htm" in result.output
     assert list(tmp_path.iterdir()) == []
     assert run("view", next(scenes.glob("*.json")), "-o", tmp_path / "page.HTM").exit_code == 0
+
+
+def test_the_api_page_has_the_commands_checks(scenes, tmp_path):
+    """`ssgc.view.page.write_view` wrote over the grammar it was given, and as any name."""
+    from ssgc.compile import load_grammar
+    from ssgc.errors import SsgError
+    from ssgc.view.page import write_view
+
+    grammar = tmp_path / "g.yaml"
+    shutil.copy(GRAMMARS / "sink.yaml", grammar)
+    before = grammar.read_bytes()
+    scene = next(scenes.glob("*.json"))
+    with pytest.raises(SsgError, match="the page is the input file"):
+        write_view(scene, grammar, load_grammar(grammar))
+    assert grammar.read_bytes() == before
+    with pytest.raises(SsgError, match=r"must end in \.html"):
+        write_view(scene, tmp_path / "page.json")
+    assert write_view(scene, tmp_path / "page.html", load_grammar(grammar)) == 1

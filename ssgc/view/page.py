@@ -24,7 +24,7 @@ import numpy as np
 
 from ssgc.errors import SsgError, SsgWarning
 from ssgc.geometry import quat_to_matrix
-from ssgc.io.outputs import check_output, write_output_text
+from ssgc.io.outputs import Output, check_output, write_output_text
 from ssgc.ir import Grammar, HoldsGrammar, as_ir
 from ssgc.render.scene import View, holders, load_views, many_colours
 
@@ -62,10 +62,27 @@ def write_view(
 ) -> int:
     """Write the viewer page of `source` to `output` (checked first, written atomically);
     returns the number of scenes on it."""
-    out = check_output(output, "page", inputs=(source,))
+    file = None if grammar is None else as_ir(grammar).file
+    out = check_page(output, source, file)
     html, count = view_page(source, grammar)
     write_output_text(out, html)
     return count
+
+
+PAGE_SUFFIXES = (".html", ".htm")
+
+
+def check_page(output: str | Path, source: str | Path, grammar_file: str | Path | None) -> Output:
+    """The page's output, checked before any work: never an input (the grammar either: a page
+    once replaced it), and an .html file, so that a page never lands as a `.json` among
+    scenes or over a YAML file."""
+    inputs = (source,) if grammar_file is None else (source, grammar_file)
+    dest = check_output(output, "page", inputs=inputs)
+    if not dest.stream and Path(output).suffix.lower() not in PAGE_SUFFIXES:
+        raise SsgError.single(
+            f"the page must end in .html or .htm, got '{Path(output).name}'", str(output)
+        )
+    return dest
 
 
 # ------------------------------------------------------------------ the data ---
