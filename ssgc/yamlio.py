@@ -102,6 +102,16 @@ class SourceMap:
         return Diagnostic(message, self.file, line, col, severity)  # type: ignore[arg-type]
 
 
+def _looks_utf16(data: bytes) -> bool:
+    """A UTF-16 byte-order mark, or ASCII text stored as UTF-16 (every other byte NUL): its
+    NUL bytes would otherwise make it "not a text file"."""
+    head = data[:512]
+    if head.startswith((b"\xff\xfe", b"\xfe\xff")):
+        return True
+    even, odd = head[0::2].strip(b"\0"), head[1::2].strip(b"\0")
+    return len(head) >= 2 and bool(even) != bool(odd)  # all NUL bytes is not text at all
+
+
 def read_text(path: Path, limit: int, what: str) -> str:
     """Read a UTF-8 text file with a size limit and a clear message for every failure."""
     name = str(path)
@@ -119,6 +129,12 @@ def read_text(path: Path, limit: int, what: str) -> str:
         data = path.read_bytes()
     except OSError as exc:
         raise SsgError.single(f"cannot read {what}: {exc.strerror}", name) from None
+    if _looks_utf16(data):
+        raise SsgError.single(
+            f"{what} looks like UTF-16 text (a UTF-16 byte-order mark or every other byte "
+            "NUL); ssgc reads UTF-8: save it as UTF-8",
+            name,
+        )
     if b"\x00" in data:
         line, col = _position(data, data.index(b"\x00"))
         raise SsgError.single(f"{what} is not a text file (it contains NUL bytes)", name, line, col)

@@ -1458,3 +1458,14 @@ def test_a_missing_mesh_shared_through_an_alias_is_said_once(tmp_path: Path) -> 
     result = CliRunner().invoke(app, ["validate", str(path)])
     assert result.exit_code == 1
     assert result.stderr.splitlines() == [f"{path}:8:50: error: mesh file 'nothere.obj': not found"]
+
+
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-le"])
+def test_a_grammar_saved_as_utf16_is_said_to_be(tmp_path: Path, encoding: str) -> None:
+    """It was "not a text file (it contains NUL bytes)", which does not say what to do."""
+    path = tmp_path / "g.yaml"
+    path.write_text("grammar: g\nroot: R\ntypes:\n  R: {observed: true}\n", encoding=encoding)
+    with pytest.raises(GrammarError) as info:
+        load_grammar(path)
+    (d,) = info.value.diagnostics
+    assert "looks like UTF-16 text" in d.message and "save it as UTF-8" in d.message

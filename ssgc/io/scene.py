@@ -255,31 +255,8 @@ def shown(name: str, limit: int = 60) -> str:
 
 
 def read_scene_text(path: Path, what: str = "scene file") -> str:
-    """A scene file's text (`read_text`), and a file saved as UTF-16 said to be that: its
-    NUL bytes would otherwise make it "not a text file"."""
-    if _looks_utf16(path):
-        raise SceneError.single(
-            f"{what} looks like UTF-16 text (a UTF-16 byte-order mark or every other byte "
-            "NUL); ssgc reads UTF-8: save it as UTF-8",
-            str(path),
-        )
+    """A scene file's text (`read_text`: UTF-8, a UTF-16 file said to be that)."""
     return read_text(path, MAX_SCENE_BYTES, what)
-
-
-def _looks_utf16(path: Path) -> bool:
-    """A UTF-16 byte-order mark, or ASCII text stored as UTF-16 (every other byte NUL).
-    Only regular files are looked at: a pipe's bytes, once read, would be gone."""
-    try:
-        if not path.is_file():
-            return False
-        with path.open("rb") as f:
-            head = f.read(512)
-    except OSError:
-        return False  # read_text says why
-    if head.startswith((b"\xff\xfe", b"\xfe\xff")):
-        return True
-    even, odd = head[0::2].strip(b"\0"), head[1::2].strip(b"\0")
-    return len(head) >= 2 and bool(even) != bool(odd)  # all NUL bytes is not text at all
 
 
 def read_scene_file(path: str | Path, grammar: Grammar) -> Scene:
