@@ -7,6 +7,15 @@ every translation law and its rotation from every rotation law of docs/grammar.m
 `extras`, the observed types get geometry and pose constraints of every kind, and the grammar
 maybe an `observation` section (noise, clutter, both), which adds types after the user's.
 
+With `rare` (the parser's property tests ask for it), also the corners that hid parser bugs (a
+`repeat` blocked by `max_nesting` was charged log P(0)): rules back to the type itself or an
+earlier non-root type (cycles, each bounded by `max_nesting` 1–3 on the type it enters), `L`
+types that are observed (observed types with rules, an observed root), pinned axes of Normal
+and box translations, `or` weights of 0 or none at all, `independent` rules with p = 0, and
+count laws with zeros in them.  Left out unless asked: the long profile's grammar `i`
+(`parse_profile.case(seed, i)`, cited in docs/parsing.md) stays the same, and so do the other
+tests that draw grammars of the family (tests/test_fuzz.py, tests/test_constraints.py).
+
 One builder, two drivers: `make_spec(pick)` asks `pick(what, options)` for every choice, so
 hypothesis (`grammars()`, which shrinks) and a numpy generator (`random_spec`, for the long
 profile of thousands of grammars) make grammars of the same family.
@@ -44,14 +53,22 @@ ROTATIONS = (
     "offset",
 )
 KINDS = ("and", "or", "independent", "repeat")
+COUNTS = ({"probs": [0.3, 0.4, 0.3]}, {"geometric": {"p": 0.5, "max": 2}})
+RARE_COUNTS = (
+    {"probs": [0, 1]},
+    {"probs": [0.5, 0, 0.5]},
+    {"probs": [0, 0.5, 0.5]},
+    {"geometric": {"p": 0.5, "max": 2, "start": 1}},
+)
 OBSERVED = ("A", "B")
 MAX_OBJECTS = 5  # scenes with more objects are left out (a property test, not a benchmark)
 
 Pick = Callable[[str, Sequence[Any]], Any]
 
 
-def translation(law: str, pick: Pick) -> Any:
-    """The YAML of one translation law, with numbers from a few fixed choices."""
+def translation(law: str, pick: Pick, rare: bool = False) -> Any:
+    """The YAML of one translation law, with numbers from a few fixed choices; `rare`: maybe
+    with pinned axes (`pin` of a Normal, `min == max` of a box)."""
     mean = list(pick("mean", ([0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [1.0, 0.5, 0.0])))
     variance = pick("variance", (0.01, 0.05, [0.02, 0.01, 0.04]))
     if law == "same":
@@ -59,9 +76,15 @@ def translation(law: str, pick: Pick) -> Any:
     if law == "offset":
         return {"offset": mean}
     if law in ("world_normal", "world_normal_offset", "parent_normal_offset"):
-        return {law: {"mean": mean, "variance": variance}}
+        out = {"mean": mean, "variance": variance}
+        if rare and (pin := pick("pin", ([], ["z"], ["x", "y"]))):
+            out["pin"] = list(pin)
+        return {law: out}
     half = pick("half", (0.1, 0.5))
-    return {law: {"min": [m - half for m in mean], "max": [m + half for m in mean]}}
+    low, high = [m - half for m in mean], [m + half for m in mean]
+    if rare and pick("box_pin", (False, True)):
+        low[2] = high[2] = mean[2]  # z pinned
+    return {law: {"min": low, "max": high}}
 
 
 def rotation(law: str, pick: Pick) -> Any:
@@ -121,31 +144,21 @@ def constraints(pick: Pick) -> dict[str, Any]:
     return out
 
 
-def make_spec(pick: Pick, extras: bool = False) -> dict[str, Any]:
+def make_spec(pick: Pick, extras: bool = False, rare: bool = False) -> dict[str, Any]:
     """A grammar as a YAML-ready dict; `pick(what, options)` makes every choice.  `extras`:
-    also an `observation` section (maybe) and pose constraints on the observed types."""
+    also an `observation` section (maybe) and pose constraints on the observed types; `rare`:
+    the rarer corners of the language (module docstring)."""
     n_latent = pick("latent", (1, 2, 3))
     latent = [f"L{i}" for i in range(n_latent)]
     types: dict[str, Any] = {name: {"observed": True} for name in OBSERVED}
+    entered: set[str] = set()  # types a rule goes back to: each closes a cycle
     for i, name in enumerate(latent):
-        kind = pick("kind", KINDS)
-        reachable = latent[i + 1 :] + list(OBSERVED)
-        n_rules = 1 if kind == "repeat" else pick("rules", (1, 2))
-        rules = []
-        for _ in range(n_rules):
-            rule: dict[str, Any] = {"child": pick("child", reachable)}
-            rule["translation"] = translation(pick("translation", TRANSLATIONS), pick)
-            rule["rotation"] = rotation(pick("rotation", ROTATIONS), pick)
-            if kind == "or":
-                rule["p"] = pick("weight", (1.0, 2.0, 3.0))
-            elif kind == "independent":
-                rule["p"] = pick("p", (0.3, 0.6, 1.0))
-            rules.append(rule)
-        if kind == "repeat":
-            count = pick("count", ({"probs": [0.3, 0.4, 0.3]}, {"geometric": {"p": 0.5, "max": 2}}))
-            types[name] = {"repeat": {"count": count, "rule": rules[0]}}
-        else:
-            types[name] = {kind: rules}
+        back = latent[1 : i + 1] if rare else []  # never the root: no rule may produce it
+        body = latent_type(pick, latent[i + 1 :] + list(OBSERVED) + back, rare)
+        entered |= {r["child"] for r in rules_of(body) if r["child"] in back}
+        types[name] = body
+    for name in sorted(entered):
+        types[name] = {"max_nesting": pick("max_nesting", (1, 2, 3)), **types[name]}
     spec = {"grammar": "generated", "root": latent[0], "types": types}
     if extras:
         types["A"]["geometry"] = {"sphere": {"radius": 0.02}}
@@ -157,6 +170,50 @@ def make_spec(pick: Pick, extras: bool = False) -> dict[str, Any]:
     return spec
 
 
+def latent_type(pick: Pick, reachable: list[str], rare: bool) -> dict[str, Any]:
+    """One `L` type: its kind and rules to `reachable` types; `rare`: maybe observed, with
+    `or` weights that may be 0 or absent, `independent` p = 0 and counts with zeros."""
+    kind = pick("kind", KINDS)
+    n_rules = 1 if kind == "repeat" else pick("rules", (1, 2))
+    rules = [rule(pick, kind, reachable, rare) for _ in range(n_rules)]
+    if kind == "or" and rare and pick("weights", ("p", "none")) == "none":
+        rules = [{k: v for k, v in r.items() if k != "p"} for r in rules]
+    elif kind == "or" and all(r["p"] == 0 for r in rules):
+        rules[0]["p"] = 1.0  # the weights must not all be zero
+    body: dict[str, Any] = {"observed": True} if rare and pick("observed", (False, True)) else {}
+    if kind == "repeat":
+        counts = COUNTS + RARE_COUNTS if rare else COUNTS
+        body["repeat"] = {"count": pick("count", counts), "rule": rules[0]}
+    else:
+        body[kind] = rules
+    return body
+
+
+def rule(pick: Pick, kind: str, reachable: list[str], rare: bool) -> dict[str, Any]:
+    """One rule of a type of `kind`: its child, translation, rotation and `p`."""
+    out: dict[str, Any] = {"child": pick("child", reachable)}
+    out["translation"] = translation(pick("translation", TRANSLATIONS), pick, rare)
+    out["rotation"] = rotation(pick("rotation", ROTATIONS), pick)
+    if kind == "or":
+        out["p"] = pick("weight", (1.0, 2.0, 3.0, 0.0) if rare else (1.0, 2.0, 3.0))
+    elif kind == "independent":
+        out["p"] = pick("p", (0.3, 0.6, 1.0, 0.0) if rare else (0.3, 0.6, 1.0))
+    return out
+
+
+def kind_of(body: dict[str, Any]) -> str | None:
+    """A type's kind key (None for a terminal)."""
+    return next((k for k in body if k in KINDS), None)
+
+
+def rules_of(body: dict[str, Any]) -> list[dict[str, Any]]:
+    """A type's rules (one for a `repeat`, none for a terminal)."""
+    kind = kind_of(body)
+    if kind is None:
+        return []
+    return [body[kind]["rule"]] if kind == "repeat" else list(body[kind])
+
+
 def to_yaml(spec: dict[str, Any]) -> str:
     return yaml.safe_dump(spec, sort_keys=False, default_flow_style=None)
 
@@ -165,19 +222,20 @@ def compile_spec(spec: dict[str, Any]) -> Grammar:
     return compile_text(to_yaml(spec))
 
 
-def random_spec(rng: np.random.Generator) -> dict[str, Any]:
+def random_spec(rng: np.random.Generator, rare: bool = False) -> dict[str, Any]:
     """A grammar of the family drawn by numpy (the long profile: fast, no shrinking)."""
-    return make_spec(lambda what, options: options[int(rng.integers(len(options)))])
+    return make_spec(lambda what, options: options[int(rng.integers(len(options)))], rare=rare)
 
 
-def grammars(extras: bool = False) -> Any:
-    """A hypothesis strategy of grammar specs of the family (`extras`: see `make_spec`)."""
+def grammars(extras: bool = False, rare: bool = False) -> Any:
+    """A hypothesis strategy of grammar specs of the family (`extras`, `rare`: see
+    `make_spec`)."""
     from hypothesis import strategies as st
 
     @st.composite
     def strategy(draw: Any) -> dict[str, Any]:
         return make_spec(
-            lambda what, options: draw(st.sampled_from(list(options)), label=what), extras
+            lambda what, options: draw(st.sampled_from(list(options)), label=what), extras, rare
         )
 
     return strategy()
@@ -205,11 +263,10 @@ def laws(spec: dict[str, Any]) -> set[str]:
     for name, body in spec["types"].items():
         if name in OBSERVED:
             continue
-        (kind, rules), *_ = body.items()
-        out.add(f"kind:{kind}")
-        for rule in [rules["rule"]] if kind == "repeat" else rules:
-            out.add("t:" + _law_name(rule["translation"]))
-            r = rule["rotation"]
+        out.add(f"kind:{kind_of(body)}")
+        for one in rules_of(body):
+            out.add("t:" + _law_name(one["translation"]))
+            r = one["rotation"]
             name = _law_name(r)
             if name == "revolute" and "min" in r["revolute"]:
                 name = "bounded_revolute"

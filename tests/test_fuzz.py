@@ -558,9 +558,12 @@ def built_grammars(draw: st.DrawFn) -> str:
 
 
 @st.composite
-def deep_grammars(draw: st.DrawFn) -> str:
-    """Long chains and cycles of types: recursion bounded, unbounded, and exploding."""
-    n = draw(st.integers(1, 1500))
+def deep_grammars(
+    draw: st.DrawFn, longest: int = 1500, deepest: int = 100, most: int = 1000
+) -> str:
+    """Long chains and cycles of types: recursion bounded, unbounded, and exploding (up to
+    `longest` types, `max_nesting` up to `deepest`, counts up to `most`)."""
+    n = draw(st.integers(1, longest))
     shape = draw(st.sampled_from(["chain", "cycle", "bounded-cycle", "explosive", "wide"]))
     lines = ["grammar: deep", "root: T0", "types:"]
     if shape == "wide":  # one type with n rules, each a child type
@@ -569,8 +572,8 @@ def deep_grammars(draw: st.DrawFn) -> str:
         lines += [f"  T{i + 1}: {{observed: true}}" for i in range(n)]
         return "\n".join(lines) + "\n"
     if shape == "explosive":  # nested repeats with large counts under a recursion bound
-        nesting = draw(st.integers(1, 100))
-        counts = draw(st.integers(1, 1000))
+        nesting = draw(st.integers(1, deepest))
+        counts = draw(st.integers(1, most))
         probs = ", ".join(["0"] * counts + ["1"])
         lines += [
             "  T0: {and: [{child: T1}]}",
@@ -581,11 +584,41 @@ def deep_grammars(draw: st.DrawFn) -> str:
     bounded = draw(st.integers(0, n - 1)) if shape == "bounded-cycle" else -1
     for i in range(n):
         child = f"T{i + 1}" if i + 1 < n or shape == "chain" else "T1"
-        bound = f"max_nesting: {draw(st.integers(1, 100))}, " if i == bounded else ""
+        bound = f"max_nesting: {draw(st.integers(1, deepest))}, " if i == bounded else ""
         lines.append(f"  T{i}: {{{bound}observed: true, and: [{{child: {child}}}]}}")
     if shape == "chain":
         lines.append(f"  T{n}: {{observed: true}}")
     return "\n".join(lines) + "\n"
+
+
+G15 = """grammar: deep
+root: T0
+types:
+  T0: {and: [{child: T1}]}
+  T1: {max_nesting: 2, observed: true, repeat: {count: {probs: [0, 1]}, rule: {child: T1}}}
+"""
+
+
+@fuzz(quick=8)
+@given(text=deep_grammars(longest=6, deepest=3, most=3))
+@example(text=G15)
+def test_fuzz_parse_small_deep_grammars(work: Path, text: str) -> None:
+    """Scenes sampled from small deep grammars parse (exit 0), their best tree at least as
+    probable as the sampled one.  Was exit 2, `infeasible`, for the bug hunt's g15 (G15):
+    the parser charged the second T1's repeat, blocked by `max_nesting`, log P(0) = -inf,
+    where the sampler and the scorer give a blocked repeat no children with probability 1."""
+    data = encode(text)
+    grammar, out = write(work / "deep.yaml", data), work / "deep_scenes"
+    args = ["sample", str(grammar), "-n", "2", "-o", str(out), "-q", "--overwrite"]
+    result, seconds = invoke(args)
+    check(result, seconds, {0, 1}, [grammar, out], data)
+    if result.exit_code != 0:
+        return  # an unbounded cycle: refused
+    result, seconds = invoke(["parse", str(out), "-g", str(grammar), "-q"])
+    check(result, seconds, {0}, [grammar, out], data)
+    for scene in json.loads(result.stdout)["scenes"]:
+        truth = json.loads((out / f"{scene['name']}.json").read_text())["log_prob"]
+        assert scene["parses"][0]["score"] >= truth - 1e-9, (scene, text)
 
 
 NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")

@@ -23,12 +23,13 @@ from collections import Counter
 import numpy as np
 import pytest
 from grammar_gen import compile_spec, grammars, sampled_scenes, to_yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from parse_profile import brute_force_map, check_scene, run_profile
 
 from ssgc.compile import compile_text
 from ssgc.io.scene import Scene
 from ssgc.parse.parser import Parser
+from ssgc.score import score_trees
 
 # The issue's first grammar: a latent `and` under a latent `and`, Normal laws.
 LATENT_AND_CHAIN = """
@@ -91,11 +92,45 @@ def assert_honest(grammar, scenes, time_limit=None) -> Counter[str]:
 def assert_honest_on_samples(spec) -> None:  # type: ignore[no-untyped-def]
     """`assert_honest` on three scenes sampled from a generated grammar, naming it on failure."""
     grammar = compile_spec(spec)
-    scenes = sampled_scenes(grammar, 3, seed=0, max_objects=4)
+    scenes = scored_as_sampled(grammar, sampled_scenes(grammar, 3, seed=0, max_objects=4))
     try:
         assert_honest(grammar, scenes, time_limit=5.0)
     except AssertionError as exc:
         raise AssertionError(f"{exc}\ngrammar:\n{to_yaml(spec)}") from None
+
+
+def scored_as_sampled(grammar, scenes: list[Scene]) -> list[Scene]:  # type: ignore[no-untyped-def]
+    """The scenes whose tree the scorer scores as the sampler did.  A parse's score is the
+    scorer's (score_trees), so where the two disagree the scene says nothing about the parser:
+    an `or` whose unblocked rules all weigh 0 has no child in the sampler, probability 1, and
+    no possible choice in the scorer (test_parse_nesting.py, the xfail)."""
+    kept = []
+    for scene in scenes:
+        scored = float(score_trees(grammar, scene.tree)[0])
+        if np.isclose(scored, scene.log_prob, rtol=1e-9, atol=1e-9):
+            kept.append(scene)
+    return kept
+
+
+# A `repeat` blocked by `max_nesting` (the second L1's) whose count law has P(0) = 0: was
+# `infeasible` with both methods (the parser charged the blocked repeat log P(0)).
+BLOCKED_REPEAT = {
+    "grammar": "generated",
+    "root": "L0",
+    "types": {
+        "A": {"observed": True},
+        "B": {"observed": True},
+        "L0": {"and": [{"child": "L1", "translation": "same", "rotation": "same"}]},
+        "L1": {
+            "max_nesting": 2,
+            "observed": True,
+            "repeat": {
+                "count": {"probs": [0, 1]},
+                "rule": {"child": "L1", "translation": {"offset": [0, 0, 0.1]}, "rotation": "same"},
+            },
+        },
+    },
+}
 
 
 @settings(
@@ -104,7 +139,8 @@ def assert_honest_on_samples(spec) -> None:  # type: ignore[no-untyped-def]
     derandomize=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
-@given(spec=grammars())
+@given(spec=grammars(rare=True))
+@example(spec=BLOCKED_REPEAT)
 def test_sampled_scenes_get_no_false_status(spec):
     assert_honest_on_samples(spec)
 
@@ -115,7 +151,7 @@ def test_sampled_scenes_get_no_false_status(spec):
     derandomize=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
-@given(spec=grammars(extras=True))
+@given(spec=grammars(extras=True, rare=True))
 def test_scenes_with_noise_and_clutter_get_no_false_status(spec):
     """The same over grammars with an `observation` section (noise on every observed type,
     clutter objects) and pose constraints (which parsing does not read, but the compiled

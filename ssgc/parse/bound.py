@@ -128,7 +128,8 @@ def set_bounds(
                 return None
             memo[key] = made
         bound, rows = memo[key]
-        source = _copies_rows(bound, _copies(st, int(e)))
+        objects = np.array([not latent[c] for *_, c in _columns(groups)], bool)
+        source = _copies_rows(bound, _copies(st, int(e)), objects)
         m = _copies_apart(bound, source)
         placed = None if parent is False else parent
         out[int(e)] = SetBound(
@@ -170,23 +171,28 @@ def _copies(st: Supertree, e: int) -> int:
     return sum(1 for c in st.children[parent] if st.rule[c] == st.rule[top])
 
 
-def _copies_rows(bound: SetBound, copies: int) -> IntArray:
-    """The rows of `_copies_apart`'s bound, as indices of `bound`'s rows."""
+def _copies_rows(bound: SetBound, copies: int, objects: NDArray[np.bool_]) -> IntArray:
+    """The rows of `_copies_apart`'s bound, as indices of `bound`'s rows.  `objects` marks
+    the columns whose child set is observed (the others are lifted latent sets)."""
     n = len(bound.assignment)
-    empty = np.flatnonzero(np.all(bound.assignment < 0, axis=1) & ~bound.free_rows)
+    no_object = np.all((bound.assignment < 0) | ~objects, axis=1)
+    empty = np.flatnonzero(no_object & ~bound.free_rows)
     if copies < 2 or not len(empty):
         return np.arange(n)
     return np.concatenate([np.arange(n), np.repeat(empty, copies - 1)])
 
 
 def _copies_apart(bound: SetBound, rows: IntArray) -> SetBound:
-    """The bound with each assignment that names no child repeated once per further copy of
-    a `repeat` (`_copies_rows`).
+    """The bound with each assignment that names no object repeated once per further copy
+    of a `repeat` (`_copies_rows`).
 
     The unrolled model gives a `repeat`'s copies distinct candidates.  Assignments that name
     an object are distinct by nature (an object has one parent), but several copies may take
-    the same childless assignment (two latent nodes with the same best pose): without the
-    repeats, a tree using it twice would have no encoding and the bound could miss it."""
+    the same assignment naming none — childless, or naming only rows of lifted latent child
+    sets (each copy has its own child) — (two latent nodes with the same best pose): without
+    the repeats, a tree using it twice would have no encoding and the bound could miss it.
+    Found by the generated grammars with `max_nesting`: two copies of a latent node whose
+    latent child ends the chain (a blocked `or`) were certified at one copy's score."""
     if len(rows) == len(bound.assignment):
         return bound
     return SetBound(

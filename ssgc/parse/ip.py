@@ -43,7 +43,7 @@ from ssgc.parse.milp import (
 )
 from ssgc.parse.proposals import Candidates
 from ssgc.parse.reduction import Request
-from ssgc.parse.supertree import Supertree
+from ssgc.parse.supertree import Supertree, or_weight
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
 
@@ -300,7 +300,8 @@ class _Reduction:
         """Renormalised over the rules present at this node (blocked rules are absent)."""
         node = self.g.types[self.st.type[p]]
         idx = self.g.tables.rule_index[self.st.rule[list(self.st.children[p])]]
-        return float(node.probs[self.g.tables.rule_index[self.st.rule[c]]] / node.probs[idx].sum())
+        weight = node.probs[self.g.tables.rule_index[self.st.rule[c]]]
+        return or_weight(float(weight), float(node.probs[idx].sum()))
 
     # -------------------------------------------------------------- variables ---
 
@@ -391,7 +392,7 @@ class _Reduction:
                         if self.can[c]:
                             cost_col.append(col[c])
                             cost_val.append(float(np.log(prob) - np.log1p(-prob)))
-            elif node.kind == Kind.REPEAT and node.count is not None:
+            elif node.kind == Kind.REPEAT and node.count is not None and kids:
                 self._repeat(p, live, node.count.probs)
         self.rows.add(
             np.asarray(eq_r, np.int64),
@@ -404,6 +405,9 @@ class _Reduction:
         self.cols.add_cost(np.asarray(cost_col, np.int64), np.asarray(cost_val, float))
 
     def _repeat(self, p: int, live: list[int], probs: FloatArray) -> None:
+        """The count law of a `repeat` node with supertree children.  A node without any (its
+        rule blocked by `max_nesting`, or a largest count of 0) makes nothing with probability
+        1 and gets no count law: charging log P(0) there was wrong, and -inf when P(0) = 0."""
         col = self.node_col
         add_count_law(self.cols, self.rows, int(col[p]), col[live], probs)
         if len(live) > 1:  # copies fill up in order: a[c_k+1] <= a[c_k]

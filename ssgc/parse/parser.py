@@ -654,7 +654,8 @@ class _Run:
 
 
 def _repeat_empty_poses(cand: Candidates, bounds: dict[int, SetBound]) -> None:
-    """Give a latent set its childless assignment's pose once per copy of its `repeat`.
+    """Give a latent set its childless assignment's pose once per copy of its `repeat`, and
+    the pose of every assignment the bound repeats (one naming only latent children).
 
     The model over proposals gives each candidate pose of a `repeat`'s child set to at most
     one copy, so two childless latent copies (each best at its rule's mode) could not both sit
@@ -663,9 +664,20 @@ def _repeat_empty_poses(cand: Candidates, bounds: dict[int, SetBound]) -> None:
     are appended as they are."""
     for e, sb in bounds.items():
         empty = np.flatnonzero(np.all(sb.assignment < 0, axis=1))
-        if len(empty) > 1:
-            cand.xyz[e] = np.vstack([cand.xyz[e], sb.xyz[empty[1:]]])
-            cand.quat[e] = np.vstack([cand.quat[e], sb.quat[empty[1:]]])
+        extra = np.union1d(empty[1:], _repeated_rows(sb))
+        if len(extra):
+            cand.xyz[e] = np.vstack([cand.xyz[e], sb.xyz[extra]])
+            cand.quat[e] = np.vstack([cand.quat[e], sb.quat[extra]])
+
+
+def _repeated_rows(sb: SetBound) -> np.ndarray:
+    """The rows of a bound that repeat an earlier row (assignment and pose): the copies
+    `_copies_apart` made of an assignment naming no object."""
+    key = np.column_stack([sb.assignment, sb.xyz, sb.quat])
+    if not len(key):
+        return np.zeros(0, np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    return np.setdiff1d(np.arange(len(key)), first)
 
 
 def tree_signature(grammar: Grammar, tree: Trees) -> bytes:

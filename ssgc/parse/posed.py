@@ -49,7 +49,7 @@ from ssgc.parse.milp import (
 )
 from ssgc.parse.proposals import Candidates, near_earlier
 from ssgc.parse.reduction import Request
-from ssgc.parse.supertree import Supertree
+from ssgc.parse.supertree import Supertree, or_weight
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
 
@@ -732,7 +732,7 @@ class _Model:
                 can[i] = any(slots.values())
             elif node.kind == Kind.INDEPENDENT:
                 can[i] = all(slots.get(k) for k, p in self._slot_probs(i).items() if p >= 1)
-            elif node.kind == Kind.REPEAT and node.count is not None:
+            elif node.kind == Kind.REPEAT and node.count is not None and n_slots:
                 live = sum(len(v) for v in slots.values())
                 can[i] = bool(np.any(node.count.probs[: live + 1] > 0))
         for i in range(1, n):
@@ -773,7 +773,7 @@ class _Model:
             rules = sorted({int(st.rule[k]) for k in st.children[p]})
             probs = {r: float(node.probs[g.tables.rule_index[r]]) for r in rules}
             w = probs[int(st.rule[c])]
-            per_node[c] = w / sum(probs.values()) if node.kind == Kind.OR else w
+            per_node[c] = or_weight(w, sum(probs.values())) if node.kind == Kind.OR else w
         self.prob = per_node[self.node]
         self.prob[0] = 1.0
 
@@ -876,7 +876,7 @@ class _Model:
                                 -np.inf,
                                 0.0,
                             )
-            elif node.kind == Kind.REPEAT and node.count is not None:
+            elif node.kind == Kind.REPEAT and node.count is not None and self._slot_rules(i):
                 kids = [c for v in groups.values() for c in v]
                 self._repeat(a, kids, node.count.probs)
         self.rows.add(
@@ -890,6 +890,8 @@ class _Model:
         self.cols.add_cost(np.asarray(cost_c, np.int64), np.asarray(cost_v, float))
 
     def _repeat(self, a: int, kids: list[int], probs: FloatArray) -> None:
+        """The count law of a `repeat` whose rule is there in the supertree: one blocked by
+        `max_nesting` makes nothing with probability 1 (no law, docs/grammar.md 3.4)."""
         add_count_law(self.cols, self.rows, a, self.col[kids], probs)
         # copies at one pose (a fixed `repeat` rule) fill up in order
         st = self.st

@@ -162,6 +162,14 @@ def _always_observed(
     return must[set_top]
 
 
+def or_weight(weight: float, present: float) -> float:
+    """An `or` rule's probability at a node: its weight over the weights of the rules present
+    there (max_nesting leaves the blocked ones out).  When those all weigh 0 no rule can be
+    chosen: the scorer gives every choice -inf (0/0), so the rule gets 0, not a division by
+    zero (which stopped `ssg parse`)."""
+    return weight / present if present > 0 else 0.0
+
+
 def max_observed(grammar: Grammar, st: Supertree) -> NDArray[np.int64]:
     """The most nodes of each type one tree can hold (0 for unobserved types).
 
