@@ -124,6 +124,16 @@ def _turned(axis: np.ndarray, angle: float) -> np.ndarray:
 
 @settings(max_examples=60, deadline=None)
 @given(quats, quats, quats, axes, axes, axes, hs.floats(-3.0, 3.0), hs.floats(-3.0, 3.0))
+@example(
+    qv=[0.0, 0.0, 0.0, 1.0],
+    tv=[1.0, 0.0, 1.0, 1.0],
+    rv=[1.0, 1.0, 0.0, 0.75],
+    av=[1.0, -0.25, 0.0],
+    bv=[1.0, 0.0, 0.0],
+    cv=[1.0, 1.192092896e-07, 0.0],
+    psi=0.0,
+    phi=2.0,
+)  # the relay's axes 1.2e-7 rad apart: taken as one, the meet was 1.04e-6 rad off
 def test_a_relay_meets_its_arc_at_the_truth(qv, tv, rv, av, bv, cv, psi, phi) -> None:  # type: ignore[no-untyped-def]
     """Two revolute laws in a row: a set's rotation q on an arc about a (from its own child),
     its latent child's rotation q ⊗ turn ⊗ R(b, φ) on an arc about c (from the grandchild).

@@ -305,17 +305,27 @@ def relay_meets(first: Arc, relay: Relay) -> FloatArray:
     a1 = first.axis / np.linalg.norm(first.axis)
     b = quat_rotate(k, relay.axis / np.linalg.norm(relay.axis))
     c = quat_rotate(quat_conjugate(w), c_arc.axis / np.linalg.norm(c_arc.axis))
-    found = []
     mc = quat_rotate(m, c)
-    # The relay's two axes are one, to within δ < 4.5e-7 rad (rounding alone leaves ~5e-8):
-    # its angle is free, and the meet holds to O(δ).  Wider apart, `two_axis_angles` resolves
-    # φ to ~1e-16 / δ.
+    # `two_axis_angles` resolves φ to ~1e-16 / δ, δ the angle between the relay's two axes:
+    # its meets, where both arcs hold them, are taken first.  When there are none and the
+    # axes are one to within δ < 4.5e-7 rad (rounding alone leaves ~5e-8), the relay's angle
+    # is free and the meet holds to O(δ).  Taking such axes as one before trying left a meet
+    # 1.04e-6 rad off (δ = 1.2e-7; tests/test_parse_hard_poses.py, found by hypothesis).
+    found = _isolated_meets(first, relay, a1, b, c, mc)
+    if found.size or 1.0 - abs(float(b @ c)) >= 1e-13:
+        return found
     off = float(np.linalg.norm(np.cross(b, c)))
-    if 1.0 - abs(float(b @ c)) < 1e-13:
-        if 1.0 - abs(float(a1 @ c)) < 1e-9 or abs(float(a1 @ c - a1 @ mc)) > 1e-9 + 2 * off:
-            return np.zeros((0, 4))  # all coaxial (the sampled arc covers it), or no meet
-        q = first.at(np.array([_turn(a1, c, mc)]))
-        return q[first.holds(q)]
+    if 1.0 - abs(float(a1 @ c)) < 1e-9 or abs(float(a1 @ c - a1 @ mc)) > 1e-9 + 2 * off:
+        return np.zeros((0, 4))  # all coaxial (the sampled arc covers it), or no meet
+    q = first.at(np.array([_turn(a1, c, mc)]))
+    return q[first.holds(q)]
+
+
+def _isolated_meets(
+    first: Arc, relay: Relay, a1: FloatArray, b: FloatArray, c: FloatArray, mc: FloatArray
+) -> FloatArray:
+    """The meets `two_axis_angles` finds (at most two), kept where both arcs hold them."""
+    c_arc, found = relay.arc, []
     for psi, phi in two_axis_angles(a1, b, c, mc):
         q = first.at(np.array([psi]))
         turned = quat_multiply(quat_multiply(q[0], relay.turn), _axis_quat(relay.axis, phi))
