@@ -13,13 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import GRAMMARS
 from test_parse_property import LATENT_AND_CHAIN
 from typer.testing import CliRunner
 
 import ssgc.cli.app as cli
 from ssgc.compile import compile_text
 from ssgc.io.journal import JOURNAL_FORMAT, journal_path
-from ssgc.io.scene import Scene, dumps_json
+from ssgc.io.scene import Scene, dumps_json, scene_from_tree
 from ssgc.parse.parser import STEPS, Parser, exit_code
 
 runner = CliRunner()
@@ -258,3 +259,21 @@ def test_a_supertree_too_large_to_build_is_a_user_error(tmp_path):
     assert result.exit_code == 1, result.output
     assert f"{grammar_path}: error: the grammar's supertree" in result.stderr
     assert "internal error" not in result.output
+
+
+def test_a_scene_of_too_many_node_object_pairs_is_refused_before_they_are_made(monkeypatch):
+    """100 B of 100 C each under 100 A asked numpy for 10^8 poses: a MemoryError (exit 70)
+    before any limit was checked.  Here the limit is made small: 10 discs under 10 nodes."""
+    import ssgc.parse.posed as posed
+    from ssgc.compile import load_grammar
+    from ssgc.sample.forward import sample_trees
+
+    g = load_grammar(GRAMMARS / "bin_packing.yaml")
+    trees, _ = sample_trees(g, 40, seed=0)
+    scene = next(
+        s for s in (scene_from_tree(g, trees.tree(i), "s") for i in range(40)) if len(s) > 6
+    )
+    monkeypatch.setattr(posed, "MAX_IMPLIED", 20)
+    result = Parser(g).parse(scene, top=1)
+    assert result.status == "no_parse" and result.phase == "instance_limit"
+    assert "(node, object) pairs to place, over the limit of 20" in result.message

@@ -48,7 +48,7 @@ from ssgc.parse.milp import (
     add_leq,
 )
 from ssgc.parse.proposals import Candidates, near_earlier
-from ssgc.parse.reduction import Request
+from ssgc.parse.reduction import ModelTooLarge, Request
 from ssgc.parse.supertree import Supertree, or_weight
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
@@ -59,6 +59,10 @@ MAX_INSTANCES = 60_000
 
 
 IMPLIED_ROWS = 8192  # (node, object) poses worked out at once (between deadline checks)
+# (node, object) pairs of one scene at most: 10 million poses take 640 MB.  100 nodes of 100
+# objects each under 100 others asked for 10^8 (a MemoryError, exit 70), and 3,600 of 3,600
+# took 2 GB and half a minute before the model's size was refused.
+MAX_IMPLIED = 10_000_000
 
 
 _CACHE: dict[tuple[int, str], tuple[Supertree, Any]] = {}  # (id(supertree), what) -> table
@@ -173,6 +177,12 @@ def _implied_poses(
     n_objs = np.bincount(scene.types, minlength=len(grammar.types))[st.type[observed]]
     start = np.cumsum(n_objs) - n_objs  # each node's first row
     total = int(n_objs.sum())
+    if total > MAX_IMPLIED:
+        raise ModelTooLarge.single(
+            f"scene '{scene.name}': {total:,} (node, object) pairs to place, over the limit of "
+            f"{MAX_IMPLIED:,} ({len(scene)} objects, {len(observed):,} observed nodes in the "
+            "grammar's supertree); parse fewer objects at a time"
+        )
     node = np.repeat(observed, n_objs)
     xyz, quat = np.empty((total, 3)), np.empty((total, 4))
     for t in np.unique(st.type[observed][n_objs > 0]).tolist():
