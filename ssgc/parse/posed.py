@@ -56,6 +56,11 @@ from ssgc.tree import Trees
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
 MAX_INSTANCES = 60_000
+# A grammar without latent sets has no proposals to trim, and its instances are counted before
+# pruning, where most fall away (a 50-dish sink scene: 63,260 counted, 6,663 kept; parsed in
+# 0.7 s): over MAX_INSTANCES it went to the set model, which did not solve that scene in 100 s
+# (457,324 variables), so the unrolled model takes such requests up to this many.
+MAX_OBSERVED_INSTANCES = 200_000
 
 
 IMPLIED_ROWS = 8192  # (node, object) poses worked out at once (between deadline checks)
@@ -453,9 +458,12 @@ def _row_children(named: IntArray, n_cand: int) -> tuple[IntArray, IntArray, Int
 
 
 def instance_count(
-    st: Supertree, cand: Candidates, restricted: frozenset[int] = frozenset()
+    st: Supertree,
+    cand: Candidates,
+    restricted: frozenset[int] = frozenset(),
+    limit: int = MAX_INSTANCES,
 ) -> int:
-    """How many instances `reduce_posed` would unroll (counting stops past MAX_INSTANCES):
+    """How many instances `reduce_posed` would unroll (counting stops past `limit`):
     a fixed child has one per instance of its parent, the first copy of every other rule one
     per candidate pose of its set (one, under a `restrict`ed parent set), other copies none."""
     n_cand = [len(x) for x in cand.xyz]
@@ -476,7 +484,7 @@ def instance_count(
                 count[c] = count[n] * per
             seen.add(r)
             total += count[c]
-        if total > MAX_INSTANCES:
+        if total > limit:
             break
     return total
 
@@ -574,12 +582,12 @@ class PosedReduction:
     bound's assignments whose unrolled instances stay within MAX_INSTANCES."""
 
     def accepts(self, request: Request) -> bool:
-        return _unbound(request) and self._count(request) <= MAX_INSTANCES
+        return _unbound(request) and self._count(request) <= _limit(request)
 
     def refusal(self, request: Request) -> str | None:
-        if not _unbound(request) or self._count(request) <= MAX_INSTANCES:
+        if not _unbound(request) or self._count(request) <= _limit(request):
             return None
-        return too_many_instances(request.scene)
+        return too_many_instances(request.scene, _limit(request))
 
     def apply(self, request: Request) -> tuple[Milp, PosedProblem]:
         r = request
@@ -593,7 +601,11 @@ class PosedReduction:
 
     @staticmethod
     def _count(request: Request) -> int:
-        return instance_count(request.supertree, request.cand)
+        return instance_count(request.supertree, request.cand, limit=_limit(request))
+
+
+def _limit(request: Request) -> int:
+    return MAX_INSTANCES if request.latent else MAX_OBSERVED_INSTANCES
 
 
 def _unbound(request: Request) -> bool:
@@ -601,9 +613,9 @@ def _unbound(request: Request) -> bool:
     return request.bounds is None or any(b.decoupled for b in request.bounds.values())
 
 
-def too_many_instances(scene: Scene) -> str:
+def too_many_instances(scene: Scene, limit: int = MAX_INSTANCES) -> str:
     return (
-        f"scene '{scene.name}': the parse model would have more than {MAX_INSTANCES} node "
+        f"scene '{scene.name}': the parse model would have more than {limit:,} node "
         f"instances ({len(scene)} objects); parse fewer objects at a time"
     )
 
