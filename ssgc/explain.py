@@ -1345,7 +1345,7 @@ def _off_root(grammar: Grammar, scene: Scene) -> dict[int, str]:
     for o in range(len(scene)):
         fixed = _fixed_pose(grammar, int(scene.types[o]), scene.xyz[o], scene.quat[o])
         if fixed is not None and (fixed[1] > POS_TOL or np.radians(fixed[2]) > ROT_TOL):
-            out[o] = _root_offset(grammar, scene, o) or ""
+            out[o] = _fixed_offset_words(grammar, int(scene.types[o]), fixed)
     return out
 
 
@@ -1370,11 +1370,14 @@ def _root_offset(grammar: Grammar, scene: Scene, o: int) -> str | None:
     no rule places it, so how far it lies from that pose, worded as the fixed laws word
     theirs ("fixed rotation off by 3°"), so that `_hint` offers noise for a small offset."""
     fixed = _fixed_pose(grammar, int(scene.types[o]), scene.xyz[o], scene.quat[o])
-    if fixed is None:
-        return None
+    return None if fixed is None else _fixed_offset_words(grammar, int(scene.types[o]), fixed)
+
+
+def _fixed_offset_words(grammar: Grammar, t: int, fixed: tuple[FloatArray, float, float]) -> str:
+    """`_fixed_pose`'s answer for an object of type t, in words."""
     (x, y, z), off, angle = fixed
     what = "the grammar's root"
-    if int(scene.types[o]) != grammar.root:
+    if t != grammar.root:
         what = "tied to the grammar's root by fixed rules"
     where = f"{what}, fixed at ({x:.2f}, {y:.2f}, {z:.2f})"
     parts = [f"fixed position off by {off:.3g} m"] if off > POS_TOL else []

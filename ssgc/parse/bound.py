@@ -128,12 +128,13 @@ def set_bounds(
                 return None
             memo[key] = made
         bound, rows = memo[key]
-        objects = np.array([not latent[c] for *_, c in _columns(groups)], bool)
+        columns = _columns(groups)
+        objects = np.array([not latent[c] for *_, c in columns], bool)
         source = _copies_rows(bound, _copies(st, int(e)), objects)
         m = _copies_apart(bound, source)
         placed = None if parent is False else parent
         out[int(e)] = SetBound(
-            _columns(groups), m.assignment, m.upper, m.xyz, m.quat, placed, parent is False, m.free
+            columns, m.assignment, m.upper, m.xyz, m.quat, placed, parent is False, m.free
         )
         if parent is False and rows is not None:
             chains[int(e)] = lifted(out[int(e)], rows, source)

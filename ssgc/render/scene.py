@@ -398,7 +398,7 @@ def legend_label(name: str) -> str:
 def _legend(fig: Any, handles: list[Any]) -> None:
     """The legend beside the panels, in as many columns as its entries need to fit the
     figure's height: every type is listed."""
-    per_column = max(1, int((fig.get_figheight() * 72 - 20) / LEGEND_ENTRY_PT))
+    per_column = _legend_rows(fig.get_figheight())
     fig.legend(
         handles=handles,
         loc="outside right upper",
@@ -408,14 +408,18 @@ def _legend(fig: Any, handles: list[Any]) -> None:
     )
 
 
+def _legend_rows(height: float) -> int:
+    """Legend entries one column holds in a figure `height` inches tall."""
+    return max(1, int((height * 72 - 20) / LEGEND_ENTRY_PT))
+
+
 def _legend_width(labels: list[str], height: float) -> float:
     """Inches the legend takes beside the panels: its columns, each as wide as its longest
     label at font size 7 (measured) plus the colour patch and the gaps."""
     from matplotlib.font_manager import FontProperties
     from matplotlib.textpath import TextToPath
 
-    per_column = max(1, int((height * 72 - 20) / LEGEND_ENTRY_PT))
-    columns = math.ceil(len(labels) / per_column)
+    columns = math.ceil(len(labels) / _legend_rows(height))
     font, measure = FontProperties(size=7), TextToPath()
     text = max(
         (measure.get_text_width_height_descent(t, font, ismath=False)[0] for t in labels), default=0

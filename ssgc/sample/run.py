@@ -263,8 +263,8 @@ def sample_to_directory(
                 note = f"kept the {run.written} complete scene file(s) found"
                 exc.diagnostics.append(Diagnostic(note, str(output)))
             raise
-        if not run.written:
-            _begin(output, manifest, old)
+        if not run.written and old is not None:  # `-n 0 --overwrite`: the old run goes too
+            clear_old_run(output, old)
         _write_manifest(output, {**manifest, "complete": True})
     return run
 
