@@ -25,7 +25,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from ssgc import __version__
 from ssgc.cli import render as render_cli
 from ssgc.errors import SsgError, SsgWarning, one_line
-from ssgc.io.outputs import ENVIRONMENT_ERRNOS, Output, unused_removed
+from ssgc.io.outputs import ENVIRONMENT_ERRNOS, Output, command_line, unused_removed
 
 app = typer.Typer(
     name="ssg",
@@ -123,7 +123,7 @@ def _command(fn: Callable[..., Any]) -> Callable[..., Any]:
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        with unused_removed(), _user_errors():
+        with unused_removed(), command_line(sys.argv[1:]), _user_errors():
             return fn(*args, **kwargs)
 
     return wrapper

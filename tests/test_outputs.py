@@ -1050,3 +1050,16 @@ def test_a_trailing_slash_on_a_file_output_is_refused(
         assert done.stderr.decode().strip().endswith(f"{name}: error: not a directory")
     assert notes.read_text() == "precious\n"
     assert not (tmp_path / "new.txt").exists()
+
+
+def test_a_python_callers_path_is_not_read_against_the_process_words(tmp_path, monkeypatch):
+    """The trailing-slash check reads the running `ssg` command's words; a Python caller's
+    `Path("out")` was refused because the host process (a notebook, pytest) had `out/` on its
+    own command line."""
+    import sys
+
+    from ssgc.io.outputs import check_output
+
+    target = tmp_path / "out"
+    monkeypatch.setattr(sys, "argv", ["python", f"{target}/"])
+    assert check_output(target, "page").target == target

@@ -27,8 +27,9 @@ import os
 import stat
 import sys
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -121,11 +122,26 @@ def _usable_name(path: str | Path, what: str) -> Path:
     return Path(path)
 
 
+# The words of the `ssg` command being run (`command_line`); empty for Python callers, whose
+# paths keep their slashes and whose process's words are someone else's.
+_COMMAND_LINE: ContextVar[tuple[str, ...]] = ContextVar("command_line", default=())
+
+
+@contextmanager
+def command_line(words: Sequence[str]) -> Iterator[None]:
+    """While an `ssg` command runs: its words, for `_refuse_slash_on_file`."""
+    token = _COMMAND_LINE.set(tuple(words))
+    try:
+        yield
+    finally:
+        _COMMAND_LINE.reset(token)
+
+
 def _refuse_slash_on_file(path: str | Path) -> None:
     """A name ending in `/` asks for a directory, as `cp` reads it; refuse it unless it is one.
 
     `pathlib` drops the slash (typer hands us `Path("notes.txt")` for `-o notes.txt/`), which
-    would write the file `notes.txt`, so the command line's own words are checked too."""
+    would write the file `notes.txt`, so the running command's own words are checked too."""
     name = str(path)
     if isinstance(path, Path):
         name = next((a for a in _argv_values() if a.endswith("/") and Path(a) == path), name)
@@ -135,7 +151,7 @@ def _refuse_slash_on_file(path: str | Path) -> None:
 
 def _argv_values() -> Iterator[str]:
     """Each word of the command line, and the value of each `--name=VALUE` or `-oVALUE`."""
-    for arg in sys.argv[1:]:
+    for arg in _COMMAND_LINE.get():
         yield arg
         if arg.startswith("--") and "=" in arg:
             yield arg.split("=", 1)[1]
