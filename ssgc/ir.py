@@ -66,6 +66,12 @@ class NodeType:
     # "clutter" (the clutter set and its placement)
     synthetic: str = ""
 
+    def never_fires(self, index: int) -> bool:
+        """Whether this type's rule `index` can never fire: an `or` rule of weight 0, an
+        `independent` rule of probability 0.  The supertree leaves such rules out, so an `or`
+        whose every rule of positive weight is blocked makes nothing (docs/grammar.md 3.4)."""
+        return self.kind in (Kind.OR, Kind.INDEPENDENT) and not self.probs[index] > 0
+
 
 @dataclass(frozen=True)
 class Tables:

@@ -157,13 +157,15 @@ def _choice_terms(
     is_or = kind == Kind.OR
     if np.any(is_or):
         c, a, lp = counts[is_or], allowed[is_or], logp[is_or]
-        any_allowed = a.any(axis=1)
+        # rules of weight 0 never fire: with every other rule blocked the node makes nothing,
+        # with probability 1, as the sampler draws it (docs/grammar.md 3.4)
+        any_allowed = (a & np.isfinite(lp)).any(axis=1)
         chosen = np.argmax(c, axis=1)
         one_allowed = (c.sum(axis=1) == 1) & a[np.arange(len(c)), chosen]
         ok[is_or] = np.where(any_allowed, one_allowed, c.sum(axis=1) == 0)
-        with np.errstate(divide="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore"):  # (-inf - -inf: not one_allowed)
             log_mass = np.log(np.sum(np.where(a, np.exp(lp), 0.0), axis=1))
-        out[is_or] = np.where(one_allowed, lp[np.arange(len(c)), chosen] - log_mass, 0.0)
+            out[is_or] = np.where(one_allowed, lp[np.arange(len(c)), chosen] - log_mass, 0.0)
 
     is_ind = kind == Kind.INDEPENDENT
     if np.any(is_ind):

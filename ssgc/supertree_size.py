@@ -2,7 +2,8 @@
 
 The supertree (thesis 3.3; built by `ssgc.parse.supertree`) holds every node any tree of the
 grammar could contain: each node expands all of its rules (a `repeat` as many times as its
-largest count), down to the recursion bounds.  Its size tells a user how big a parse problem a
+largest count), down to the recursion bounds; rules that can never fire (weight or probability
+0) are left out.  Its size tells a user how big a parse problem a
 grammar makes, even for grammars whose supertree is far too large to build.
 """
 
@@ -38,6 +39,8 @@ def supertree_size(grammar: Grammar) -> int | None:
         out = []
         for rid in node.rules:
             child = grammar.rules[rid].child
+            if node.never_fires(grammar.rules[rid].index):
+                continue  # left out of the supertree too
             depth = nesting
             if child in slot:
                 i = slot[child]

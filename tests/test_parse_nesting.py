@@ -15,7 +15,9 @@ from grammar_gen import sampled_scenes
 from ssgc.compile import compile_text
 from ssgc.parse.ip import SetReduction
 from ssgc.parse.parser import REDUCTIONS, Parser
+from ssgc.parse.supertree import build_supertree
 from ssgc.score import score_trees
+from ssgc.supertree_size import supertree_size
 
 # The bug hunt's g15: T1's repeat is blocked at the second T1, and P(count = 0) = 0 there.
 EXPLOSIVE = """
@@ -140,30 +142,28 @@ types:
 
 @pytest.mark.parametrize("formulation", sorted(FORMULATIONS))
 @pytest.mark.parametrize("method", ["ip", "micp"])
-def test_an_or_whose_unblocked_rules_weigh_nothing_is_no_crash(method, formulation):
+def test_an_or_whose_unblocked_rules_weigh_nothing_makes_nothing(method, formulation):
     """Was ZeroDivisionError (an internal error of `ssg parse`): the `or` renormalised over
-    its unblocked rules divided by their weight, 0.  The parser follows the scorer, which
-    gives every choice of such a node -inf: the sampled tree's score decides the status.
-    (The sampler gives the node no child with probability 1 instead: a disagreement outside
-    the parser, reported.)"""
+    its unblocked rules divided by their weight, 0.  Then the parser followed the scorer,
+    which gave every choice of such a node -inf, and called the sampled scene infeasible.  A
+    rule of weight 0 never fires, so the node makes nothing with probability 1 (as the
+    sampler draws it): the sampled tree is the only one, of probability 1."""
     grammar = compile_text(ZERO_MASS_OR)
     scene = sampled_scenes(grammar, 1, seed=0)[0]
     truth = float(score_trees(grammar, scene.tree)[0])
+    assert truth == pytest.approx(0.0)
     result = Parser(grammar, method=method, reductions=FORMULATIONS[formulation]).parse(scene)
-    if np.isfinite(truth):
-        assert result.status == "optimal" and result.parses[0].score >= truth - 1e-9
-    else:
-        assert result.status == "infeasible", result.message
+    assert result.status == "optimal", result.message
+    assert result.parses[0].score == pytest.approx(truth, abs=1e-9)
 
 
-@pytest.mark.xfail(strict=True, reason="sampler and scorer disagree; outside the parser")
 def test_the_scorer_scores_a_zero_mass_or_as_the_sampler_draws_it():
-    """The sampler gives ZERO_MASS_OR's T1 no child (probability 1, like an `or` whose every
-    rule is blocked); the scorer gives that tree -inf (0/0 after renormalising).  Reported,
-    not fixed here (ssgc/score.py, ssgc/sample/forward.py); when they agree, the parser must
-    follow the scorer (test_an_or_whose_unblocked_rules_weigh_nothing_is_no_crash says so)."""
+    """The sampler gives ZERO_MASS_OR's T1 no child (probability 1: a rule of weight 0
+    never fires, so the node is as one whose every rule is blocked); the scorer gave that tree
+    -inf (0/0 after renormalising), and the parser called the sampled scene infeasible."""
     grammar = compile_text(ZERO_MASS_OR)
     scene = sampled_scenes(grammar, 1, seed=0)[0]
+    assert len(scene.tree.type) == 2  # T0, T1: T1's rule of T1 is blocked, its A weighs 0
     assert float(score_trees(grammar, scene.tree)[0]) == pytest.approx(scene.log_prob)
 
 
@@ -209,3 +209,17 @@ def test_two_copies_of_one_latent_assignment_are_counted(method, text):
     assert best.score >= scene.log_prob - 1e-6 * max(1.0, abs(scene.log_prob))
     l1 = grammar.type_ids["L1"]
     assert np.count_nonzero((best.tree.type == l1) & (best.tree.parent == 0)) == 2
+
+
+def test_rules_that_never_fire_are_left_out_of_the_supertree_and_its_count():
+    """`ssg inspect`'s count is the supertree the parser builds; neither holds a rule of weight
+    or probability 0 (they used to: ZERO_MASS_OR's A, and here the `independent` B)."""
+    text = ZERO_MASS_OR.replace(
+        "A: {observed: true}",
+        "A: {observed: true}\n  B: {observed: true}\n  I: {independent: [{child: B, p: 0}]}",
+    ).replace("{child: A, p: 0}]}", "{child: A, p: 0}, {child: I, p: 2}]}")
+    grammar = compile_text(text)
+    tree = build_supertree(grammar)
+    names = sorted(grammar.types[t].name for t in tree.type)
+    assert names == ["I", "T0", "T1"]
+    assert supertree_size(grammar) == len(tree)

@@ -100,16 +100,13 @@ def assert_honest_on_samples(spec) -> None:  # type: ignore[no-untyped-def]
 
 
 def scored_as_sampled(grammar, scenes: list[Scene]) -> list[Scene]:  # type: ignore[no-untyped-def]
-    """The scenes whose tree the scorer scores as the sampler did.  A parse's score is the
-    scorer's (score_trees), so where the two disagree the scene says nothing about the parser:
-    an `or` whose unblocked rules all weigh 0 has no child in the sampler, probability 1, and
-    no possible choice in the scorer (test_parse_nesting.py, the xfail)."""
-    kept = []
+    """The scenes, after checking that the scorer scores each tree as the sampler drew it.  A
+    parse's score is the scorer's (score_trees), so the parser's honesty rests on it.  They
+    disagreed on an `or` whose unblocked rules all weigh 0 (test_parse_nesting.py)."""
     for scene in scenes:
         scored = float(score_trees(grammar, scene.tree)[0])
-        if np.isclose(scored, scene.log_prob, rtol=1e-9, atol=1e-9):
-            kept.append(scene)
-    return kept
+        assert np.isclose(scored, scene.log_prob, rtol=1e-9, atol=1e-9), (scored, scene.log_prob)
+    return scenes
 
 
 # A `repeat` blocked by `max_nesting` (the second L1's) whose count law has P(0) = 0: was

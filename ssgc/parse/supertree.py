@@ -3,7 +3,10 @@
 The supertree holds every node any tree of the grammar could contain: each node expands all of
 its rules (a `repeat` into as many copies as its largest count), down to the `max_nesting`
 bounds — rules blocked by a bound are simply absent, exactly as in the sampler and the scorer.
-Any parse tree is a subtree of it.
+So are rules that can never fire: an `or` rule of weight 0 and an `independent` rule of
+probability 0.  An `or` whose every rule of positive weight is blocked therefore makes nothing,
+with probability 1, as one whose every rule is blocked (docs/grammar.md 3.4).  Any parse tree
+is a subtree of it.
 
 Equivalent sets are the connected groups of supertree nodes joined by rules whose translation
 and rotation are both fixed: their poses follow from one pose (the set's top node) and a fixed
@@ -63,6 +66,8 @@ def build_supertree(grammar: Grammar) -> Supertree:
             slot = tb.nesting_slot[child]
             if slot >= 0 and nest[i][slot] >= tb.nesting_max[slot]:
                 continue  # blocked by max_nesting
+            if node.never_fires(int(tb.rule_index[rid])):
+                continue
             copies_n = node.count.max_count if node.kind == Kind.REPEAT and node.count else 1
             for k in range(copies_n):
                 child_nest = nest[i].copy()
@@ -164,9 +169,8 @@ def _always_observed(
 
 def or_weight(weight: float, present: float) -> float:
     """An `or` rule's probability at a node: its weight over the weights of the rules present
-    there (max_nesting leaves the blocked ones out).  When those all weigh 0 no rule can be
-    chosen: the scorer gives every choice -inf (0/0), so the rule gets 0, not a division by
-    zero (which stopped `ssg parse`)."""
+    there (max_nesting leaves the blocked ones out, and the supertree the rules of weight 0).
+    A rule of weight 0 gets 0, never a division by zero (which stopped `ssg parse`)."""
     return weight / present if present > 0 else 0.0
 
 
