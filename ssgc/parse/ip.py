@@ -250,13 +250,7 @@ class _Reduction:
         """can[n]: n could be in a tree explaining this scene (cheap necessary conditions)."""
         st, g = self.st, self.g
         has_cand = np.array([len(x) > 0 for x in self.cand_xyz])
-        can = has_cand[st.set_of].copy()
-        for c in range(1, len(st)):  # rules that can never fire at this node
-            kind = g.types[st.type[st.parent[c]]].kind
-            if (kind == Kind.OR and self._or_weight(st.parent[c], c) <= 0) or (
-                kind == Kind.INDEPENDENT and self._p(c) <= 0
-            ):
-                can[c] = False
+        can = has_cand[st.set_of].copy()  # (rules that never fire are not in the supertree)
         explains = np.zeros(len(st), bool)
         explains[[n for n, _, _ in self.pairs]] = True
         if self.implicit_root:
@@ -269,7 +263,7 @@ class _Reduction:
             if node.kind == Kind.AND:
                 can[n] = all(can[c] for c in kids)
             elif node.kind == Kind.OR and kids:
-                can[n] = any(can[c] and self._or_weight(n, c) > 0 for c in kids)
+                can[n] = any(can[c] for c in kids)
             elif node.kind == Kind.INDEPENDENT:
                 can[n] = all(can[c] for c in kids if self._p(c) >= 1.0)
             elif node.kind == Kind.REPEAT and kids and node.count is not None:
@@ -371,7 +365,7 @@ class _Reduction:
                     eq_v += [1.0, -1.0]
                     n_eq += 1
             elif node.kind == Kind.OR and kids:
-                for c in live:  # zero-weight children were pruned
+                for c in live:
                     cost_col.append(col[c])
                     cost_val.append(float(np.log(self._or_weight(p, c))))
                 eq_r += [n_eq] * (len(live) + 1)
@@ -386,7 +380,7 @@ class _Reduction:
                         eq_c += [col[c], col[p]]
                         eq_v += [1.0, -1.0]
                         n_eq += 1
-                    elif prob > 0.0:  # (p = 0 children were pruned)
+                    else:  # (rules of p = 0 are not in the supertree)
                         cost_col.append(col[p])
                         cost_val.append(float(np.log1p(-prob)))
                         if self.can[c]:
