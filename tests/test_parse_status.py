@@ -261,22 +261,48 @@ def test_a_supertree_too_large_to_build_is_a_user_error(tmp_path):
     assert "internal error" not in result.output
 
 
-def test_a_scene_of_too_many_node_object_pairs_is_refused_before_they_are_made(monkeypatch):
-    """100 B of 100 C each under 100 A asked numpy for 10^8 poses: a MemoryError (exit 70)
-    before any limit was checked.  Here the limit is made small: 10 discs under 10 nodes."""
-    import ssgc.parse.posed as posed
+def _bin_packing_scene(least: int):  # type: ignore[no-untyped-def]
+    """bin_packing and one of its sampled scenes with more than `least` objects."""
     from ssgc.compile import load_grammar
     from ssgc.sample.forward import sample_trees
 
     g = load_grammar(GRAMMARS / "bin_packing.yaml")
     trees, _ = sample_trees(g, 40, seed=0)
-    scene = next(
-        s for s in (scene_from_tree(g, trees.tree(i), "s") for i in range(40)) if len(s) > 6
-    )
-    monkeypatch.setattr(posed, "MAX_IMPLIED", 20)
+    scenes = (scene_from_tree(g, trees.tree(i), "s") for i in range(40))
+    return g, next(s for s in scenes if len(s) > least)
+
+
+def test_a_scene_of_too_many_node_object_pairs_is_refused_before_they_are_made(monkeypatch):
+    """100 B of 100 C each under 100 A asked numpy for 10^8 poses: a MemoryError (exit 70)
+    before any limit was checked.  Here the limit is made small: a bin and its discs are
+    more pairs than 5."""
+    import ssgc.parse.posed as posed
+
+    g, scene = _bin_packing_scene(6)
+    monkeypatch.setattr(posed, "MAX_IMPLIED", 5)
     result = Parser(g).parse(scene, top=1)
     assert result.status == "no_parse" and result.phase == "instance_limit"
-    assert "(node, object) pairs to place, over the limit of 20" in result.message
+    assert "(node, object) pairs to place, over the limit of 5" in result.message
+
+
+def test_the_copies_of_a_repeat_share_their_candidate_poses(monkeypatch):
+    """Every copy of bin_packing's `repeat` of discs is a set of the same shape, so each has
+    the same candidates: they are worked out once, for as many (node, object) pairs as the
+    scene has objects.  Each copy had its own, N copies times N discs (94% of the parse of a
+    1,000-disc scene)."""
+    import ssgc.parse.posed as posed
+
+    g, scene = _bin_packing_scene(6)
+    parser = Parser(g)
+    shared = posed.candidate_poses(g, parser.supertree, scene)
+    monkeypatch.setattr(posed, "_alike_sets", lambda st, *_: np.arange(st.n_sets))
+    each = posed.candidate_poses(g, parser.supertree, scene)
+    for a, b in zip(shared.xyz + shared.quat, each.xyz + each.quat, strict=True):
+        np.testing.assert_array_equal(a, b)
+    monkeypatch.undo()
+    monkeypatch.setattr(posed, "MAX_IMPLIED", len(scene))
+    result = parser.parse(scene, top=1)
+    assert result.status == "optimal", result.message
 
 
 def test_a_scene_past_the_latent_instance_limit_is_still_unrolled():

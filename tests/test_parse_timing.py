@@ -82,29 +82,37 @@ def test_near_pairs_match_every_pair_compared(n_old, n_new, sites, jitter, flat,
     jitter=hs.sampled_from([0.0, 0.3, 1.0, 3.0]),
     turns=hs.integers(1, 3),
     nodes=hs.integers(1, 3),
+    objects=hs.integers(1, 6),
+    held=hs.booleans(),
     seed=hs.integers(0, 2**31),
 )
-def test_first_distinct_poses_match_every_pair_compared(n, sites, jitter, turns, nodes, seed):
+def test_first_distinct_poses_match_every_pair_compared(
+    n, sites, jitter, turns, nodes, objects, held, seed
+):
     """The implied poses a set keeps (`candidate_poses`), exactly as comparing every pair
-    says: a pose is the r-th of its node among the poses within both tolerances of it, and
-    is kept unless an earlier pose of another node within them is the r-th of its own.  So
-    two objects at one pose through one node get two candidates, and an object of another
-    node there shares one."""
+    says.  Where every instance holds an observed node (`held`): a pose is the r-th of its
+    node among the poses within both tolerances of it, and is kept unless an earlier pose of
+    another node within them is the r-th of its own; so two objects at one pose through one
+    node get two candidates, and an object of another node there shares one.  Otherwise a
+    pose is kept unless an earlier one within them is the same object's."""
     rng = np.random.default_rng(seed)
     xyz = rng.normal(size=(sites, 3))[rng.integers(0, sites, n)]
     xyz = xyz + rng.normal(size=xyz.shape) * POS_TOL * jitter
     quat = np.eye(4)[rng.integers(0, turns, n)]
     node = np.sort(rng.integers(0, nodes, n))  # poses come in node order
-    keep = _first_distinct(xyz, quat, node, None)
+    obj = rng.integers(0, objects, n)
+    keep = _first_distinct(xyz, quat, obj, node if held else None, None)
     close = np.linalg.norm(xyz[:, None] - xyz[None], axis=2) <= POS_TOL
     same = close & (quat_angle(quat[:, None], quat[None]) <= ROT_TOL)
     one_node = node[:, None] == node[None]
     rank = [int((same[:j, j] & one_node[:j, j]).sum()) for j in range(n)]
-    expected = [
-        j
-        for j in range(n)
-        if not any(same[i, j] and not one_node[i, j] and rank[i] == rank[j] for i in range(j))
-    ]
+
+    def shares(i: int, j: int) -> bool:
+        if held:
+            return bool(same[i, j] and not one_node[i, j] and rank[i] == rank[j])
+        return bool(same[i, j] and obj[i] == obj[j])
+
+    expected = [j for j in range(n) if not any(shares(i, j) for i in range(j))]
     assert keep.tolist() == expected
 
 

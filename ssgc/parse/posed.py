@@ -148,37 +148,84 @@ def candidate_poses(
 
     The poses are worked out for all observed nodes of one type and all objects of that type
     at once; a set keeps them in node, then object order, each unless it is within the pose
-    tolerances of an earlier one.  Past the deadline it raises OutOfTime: a wide `repeat` of a
-    large scene has a thousand sets of a thousand poses each."""
+    tolerances of an earlier one.  Sets of the same shape (`_alike_sets`: the copies of a
+    `repeat`) get the same poses, worked out once and shared: a 1,000-disc scene has a
+    thousand sets of a thousand poses each, and working out each took 94% of its parse.
+    Past the deadline it raises OutOfTime."""
     cand = Candidates(
         [np.zeros((0, 3)) for _ in range(st.n_sets)], [np.zeros((0, 4)) for _ in range(st.n_sets)]
     )
-    node, xyz, quat = _implied_poses(grammar, st, scene, deadline)
+    observed = np.flatnonzero(grammar.tables.type_observed[st.type])
+    mandatory = _mandatory(grammar, st)
+    first = _alike_sets(st, observed, mandatory)
+    leaders = observed[first[st.set_of[observed]] == st.set_of[observed]]
+    node, obj, xyz, quat = _implied_poses(grammar, st, scene, leaders, deadline)
     check_deadline(deadline)
     e = st.set_of[node]
     order = np.argsort(e, kind="stable")  # per set, in node then object order
     check_deadline(deadline)
-    e, node, xyz, quat = e[order], node[order], xyz[order], quat[order]
+    e, node, obj, xyz, quat = e[order], node[order], obj[order], xyz[order], quat[order]
+    held = np.zeros(st.n_sets, bool)  # sets where every instance holds an observed node
+    held[st.set_of[observed[mandatory[observed]]]] = True
     sets, starts = np.unique(e, return_index=True)
     ends = np.r_[starts[1:], len(e)][: len(starts)]
     for s, lo, hi in zip(sets.tolist(), starts.tolist(), ends.tolist(), strict=True):
-        keep = _first_distinct(xyz[lo:hi], quat[lo:hi], node[lo:hi], deadline)
+        who = node[lo:hi] if held[s] else None
+        keep = _first_distinct(xyz[lo:hi], quat[lo:hi], obj[lo:hi], who, deadline)
         cand.xyz[s], cand.quat[s] = xyz[lo:hi][keep], quat[lo:hi][keep]
+    for s in np.flatnonzero(first != np.arange(st.n_sets)).tolist():
+        cand.xyz[s], cand.quat[s] = cand.xyz[first[s]], cand.quat[first[s]]
     root_set = int(st.set_of[0])  # the root's set has exactly one pose
     cand.xyz[root_set] = grammar.root_xyz.reshape(1, 3).copy()
     cand.quat[root_set] = grammar.root_quat.reshape(1, 4).copy()
     return cand
 
 
+def _mandatory(grammar: Grammar, st: Supertree) -> NDArray[np.bool_]:
+    """Supertree nodes present in every instance of their equivalent set: its top, and the
+    children of mandatory `and` nodes in the same set."""
+    out = np.zeros(len(st), bool)
+    out[st.set_top] = True
+    is_and = grammar.tables.type_kind[st.type] == Kind.AND
+    for n in range(1, len(st)):  # parents first
+        p = st.parent[n]
+        out[n] |= bool(out[p] and is_and[p] and st.set_of[p] == st.set_of[n])
+    return out
+
+
+def _alike_sets(st: Supertree, observed: IntArray, mandatory: NDArray[np.bool_]) -> IntArray:
+    """For each equivalent set, the first set of its shape: the same observed node types at
+    the same offsets from the set's top, each mandatory or not alike, in the same order.  Two
+    such sets have the same implied poses and keep the same candidates (the copies of a
+    `repeat`, and the sets below them).  A set with no observed node is its own first."""
+    first = np.arange(st.n_sets)
+    e = st.set_of[observed]
+    order = np.argsort(e, kind="stable")
+    rows = np.column_stack(
+        [st.type[observed], mandatory[observed], st.offset_xyz[observed], st.offset_quat[observed]]
+    )
+    rows, e = rows[order], e[order]
+    sets, starts = np.unique(e, return_index=True)
+    ends = np.r_[starts[1:], len(e)][: len(starts)]
+    shapes: dict[bytes, int] = {}
+    for s, lo, hi in zip(sets.tolist(), starts.tolist(), ends.tolist(), strict=True):
+        first[s] = shapes.setdefault(rows[lo:hi].tobytes(), s)
+    return first
+
+
 def _implied_poses(
-    grammar: Grammar, st: Supertree, scene: Scene, deadline: float | None = None
-) -> tuple[IntArray, FloatArray, FloatArray]:
-    """(observed supertree node, set-top xyz, set-top quat) of every (node, object of its
-    type) pair, in node order, then object order: the pose of the node's set top that puts
-    the node on the object.  Worked out about IMPLIED_ROWS pairs at a time, each written
-    straight to its place, with a deadline check between (a thousand nodes of a thousand
-    objects each are a million poses)."""
-    observed = np.flatnonzero(grammar.tables.type_observed[st.type])
+    grammar: Grammar,
+    st: Supertree,
+    scene: Scene,
+    observed: IntArray,
+    deadline: float | None = None,
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+    """(observed supertree node, object, set-top xyz, set-top quat) of every (node, object of its
+    type) pair of the given `observed` nodes, in node order, then object order: the pose of
+    the node's set top that puts the node on the object.  Worked out about IMPLIED_ROWS
+    pairs at a time, each written straight to its place, with a deadline check between (a
+    thousand nodes of a thousand objects each are a million poses).  Also returns each pair's
+    object."""
     n_objs = np.bincount(scene.types, minlength=len(grammar.types))[st.type[observed]]
     start = np.cumsum(n_objs) - n_objs  # each node's first row
     total = int(n_objs.sum())
@@ -189,6 +236,7 @@ def _implied_poses(
             "grammar's supertree); parse fewer objects at a time"
         )
     node = np.repeat(observed, n_objs)
+    obj = np.empty(total, np.int64)
     xyz, quat = np.empty((total, 3)), np.empty((total, 4))
     for t in np.unique(st.type[observed][n_objs > 0]).tolist():
         objs = np.flatnonzero(scene.types == t)
@@ -204,30 +252,42 @@ def _implied_poses(
             x = scene.xyz[objs][None, :, :] - quat_rotate(q, st.offset_xyz[n][:, None, :])
             rows = (start[m][:, None] + np.arange(len(objs))[None, :]).reshape(-1)
             xyz[rows], quat[rows] = x.reshape(-1, 3), q.reshape(-1, 4)
-    return node, xyz, quat
+            obj[rows] = np.tile(objs, len(m))
+    return node, obj, xyz, quat
 
 
 def _first_distinct(
-    xyz: FloatArray, quat: FloatArray, node: IntArray, deadline: float | None
+    xyz: FloatArray,
+    quat: FloatArray,
+    obj: IntArray,
+    node: IntArray | None,
+    deadline: float | None,
 ) -> IntArray:
-    """Indices of the poses a set keeps as its candidates: as many at one pose as the node
-    with the most objects there needs.
+    """Indices of the poses a set keeps as its candidates: as many at one pose as the
+    instances a tree can have there.
 
-    Objects of two nodes at one set pose share a candidate (one instance of the set explains
-    both), but two objects that put one node at one pose need two instances: two mugs at the
-    same pose were one candidate, and the scene was proven infeasible.  So a pose is the
-    r-th of its node there (its rank: how many earlier poses of its node are within the
-    tolerances), and is dropped when an earlier pose of another node has the same rank.  The
-    near pairs come from the sorted sweep of `Candidates.add`: a wide `repeat` of a
-    1,000-object scene has a thousand sets of a thousand poses each, and comparing every
-    pair of each set took 25 s of CPU."""
+    Where every instance holds some observed node (`node` given: the set's top or an `and`
+    below it is observed), each instance there holds its one object, so a pose is the r-th
+    of its node there (its rank: how many earlier poses of its node are within the
+    tolerances), and is dropped when an earlier pose of another node has the same rank: one
+    instance explains both.  (Two mugs at the same pose were one candidate, and the scene
+    was proven infeasible.)  Where the observed nodes are optional (`node` None: below an
+    `or`, an `independent` or a `repeat`), each object there may be its own instance, so a
+    pose is dropped only when an earlier one is the same object's: a cup and a plate at one
+    pose, each a choice of an `or`, were one candidate, and the scene was proven
+    infeasible.  The near pairs come from the sorted sweep of `Candidates.add`: a wide
+    `repeat` of a 1,000-object scene has a thousand sets of a thousand poses each, and
+    comparing every pair of each set took 25 s of CPU."""
     check_deadline(deadline)
     i, j = near_earlier(xyz, 0)
     same = quat_angle(quat[i], quat[j]) <= ROT_TOL
     i, j = i[same], j[same]
-    one_node = node[i] == node[j]
-    rank = np.bincount(j[one_node], minlength=len(xyz))
-    taken = ~one_node & (rank[i] == rank[j])
+    if node is None:
+        taken = obj[i] == obj[j]
+    else:
+        one_node = node[i] == node[j]
+        rank = np.bincount(j[one_node], minlength=len(xyz))
+        taken = ~one_node & (rank[i] == rank[j])
     drop = np.zeros(len(xyz), bool)
     drop[j[taken]] = True
     return np.flatnonzero(~drop)
