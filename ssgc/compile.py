@@ -491,8 +491,18 @@ class Compiler(Report):
             type_ids=seen.ids,
             constraints=constraints,
             observation=self.doc.observation,
-            required_root=seen.ids[root_spec.type] if root_spec.required else None,
+            required_root=self.required_root(root_spec, seen),
         )
+
+    def required_root(self, root_spec: dsl.Root, seen: observation.Observed) -> int | None:
+        """The root type every scene must show: one declared `required`, or an observed
+        root that the `observation` section moved under a new root (noise on the root, or
+        clutter).  A missing root is implied only as the tree's root, at its exact pose; under
+        the new root it would be an observed node without an object, and every such scene was
+        `infeasible` with no word of the root."""
+        root = seen.ids[root_spec.type]
+        moved = seen.root != root and seen.types[root].observed
+        return root if root_spec.required or moved else None
 
     # ----------------------------------------------------------------- node types ---
 

@@ -379,3 +379,59 @@ def test_constraints_of_every_pose_kind_with_an_observation_that_adds_types():
     assert len(kept) == 4
     for s in kept:
         assert np.isfinite(s.log_prob)
+
+
+TEA = """
+grammar: tea_table
+root: {type: Table, pose: {xyz: [0, 0, 0.375]}}
+types:
+  Table:
+    observed: true
+    repeat:
+      count: {probs: [0.2, 0.4, 0.4]}
+      rule:
+        child: Teacup
+        translation: {parent_normal_offset: {mean: [0, 0, 0.405], variance: 0.04, pin: [z]}}
+        rotation: {revolute: {axis: [0, 0, 1]}}
+  Teacup: {observed: true}
+"""
+TEA_OBSERVED = {
+    "noise on the root": "observation: {noise: {default: {position: 0.005}}}",
+    "clutter": "observation: {clutter: {region: {min: [-1, -1, 0], max: [1, 1, 2]}, "
+    "rates: {Sponge: 0.1}}}",
+}
+
+
+@pytest.mark.parametrize("section", sorted(TEA_OBSERVED))
+def test_an_observation_section_that_moves_the_root_names_a_missing_root(section):
+    """Noise on an observed root, or clutter, hangs the root under a new `~scene` root, where
+    it cannot be implied: a scene without the table was `infeasible` with "no tree of the
+    grammar contains this scene's objects, and removing up to 2 object(s) does not help"
+    (for a one-object scene).  It is now refused at once, naming the root and why."""
+    grammar = compile_text(TEA + TEA_OBSERVED[section])
+    cup = Scene(
+        name="cup",
+        types=np.array([grammar.type_id("Teacup")]),
+        xyz=np.array([[0.1, 0.0, 0.78]]),
+        quat=np.array([[1.0, 0, 0, 0]]),
+    )
+    result = Parser(grammar).parse(cup)
+    assert result.status == "infeasible"
+    assert "scene 'cup' has no Table" in result.message
+    assert "`observation` section" in result.message
+    with pytest.raises(UnexplainedScene, match="has no Table"):
+        explain(grammar, cup)
+
+
+def test_noise_off_the_root_still_implies_a_missing_root():
+    """Noise on the cups only leaves the table the tree's root: a scene of one cup parses,
+    the table implied at its pose."""
+    grammar = compile_text(TEA + "observation: {noise: {Teacup: {position: 0.005}}}")
+    cup = Scene(
+        name="cup",
+        types=np.array([grammar.type_id("Teacup")]),
+        xyz=np.array([[0.1, 0.0, 0.78]]),
+        quat=np.array([[1.0, 0, 0, 0]]),
+    )
+    assert grammar.required_root is None
+    assert Parser(grammar).parse(cup).status == "optimal"

@@ -815,7 +815,10 @@ def missing_root(grammar: Grammar, scene_name: str) -> str:
     """Why a scene without its grammar's required root has no tree."""
     assert grammar.required_root is not None
     name = grammar.types[grammar.required_root].name
-    return (
-        f"scene '{scene_name}' has no {name}: every scene of this grammar shows its root "
-        f"(`root: {{required: true}}` in {grammar.file})"
-    )
+    why = f"`root: {{required: true}}` in {grammar.file}"
+    if grammar.root != grammar.required_root:
+        why = (
+            f"with the `observation` section of {grammar.file}, an observed root is an object "
+            "of every scene, never implied"
+        )
+    return f"scene '{scene_name}' has no {name}: every scene of this grammar shows its root ({why})"
