@@ -18,6 +18,7 @@ import copy
 import inspect
 import json
 import math
+import reprlib
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
@@ -79,8 +80,16 @@ def _compiled_again(text: str, path: str | None, allow_outside: bool) -> Grammar
 
 
 def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
-    """Scenes from a JSON scene file, a directory of them, or a sink-format YAML dataset."""
-    return [Scene(grammar, s) for s in scene_io.load_scenes(path, grammar.ir)]
+    """Scenes from a JSON scene file, a directory of them, or a sink-format YAML dataset.  A
+    scene `ssg sample` wrote keeps its seed and index (`Scene.run`), so that saving it again
+    writes a file `ssg sample --resume` still accepts."""
+    if not isinstance(path, str | Path):
+        raise TypeError(
+            f"path must be a str or Path of scenes (load_scenes(path, grammar)), "
+            f"got {type(path).__name__}"
+        )
+    _checked(grammar)
+    return [Scene(grammar, s, run=s.run) for s in scene_io.load_scenes(path, grammar.ir)]
 
 
 def parse(
@@ -148,22 +157,22 @@ def fit(
     if isinstance(dataset, str | Path):
         where, scenes = Path(dataset), load_scenes(dataset, grammar)
     else:
-        where, scenes = Path("<scenes>"), list(dataset)
+        where, scenes = Path("<scenes>"), _fit_scenes(grammar, dataset, "dataset")
     options = fit_options(
         iterations=_count("iterations", iterations),
         top=_count("top", top),
         method=method,
         seed=_seed(seed),
-        tol=float(tol),
+        tol=_real("tol", tol),
         estep=estep,
         samples=_count("samples", samples),
-        pseudocount=float(pseudocount),
-        min_variance=float(min_variance),
-        max_concentration=float(max_concentration),
+        pseudocount=_real("pseudocount", pseudocount),
+        min_variance=_real("min_variance", min_variance),
+        max_concentration=_real("max_concentration", max_concentration),
         jobs=_count("jobs", jobs),
     )
     time_limit = _time_limit(time_limit)
-    with open_fit(grammar, [_scene_data(grammar, s) for s in scenes], where, options) as run:
+    with open_fit(grammar, scenes, where, options) as run:
         result = run.fit(time_limit)
     fitted = run.fitted(result)
     return FitResult(fitted, result.iterations, result.status, result.message, result.tails)
@@ -185,31 +194,69 @@ def _count(name: str, value: Any, least: int | None = None) -> int:
     (`FitOptions` says it as `ssg fit` does)."""
     if not _whole(value) or (least is not None and value < least):
         wanted = "a whole number" + ("" if least is None else f" >= {least}")
-        raise ValueError(f"{name} must be {wanted}, got {value!r}")
+        raise ValueError(f"{name} must be {wanted}, got {_shown(value)}")
     return int(value)
 
 
 def _seed(value: Any) -> int:
     if not _whole(value) or not 0 <= value < 2**63:
-        raise ValueError(f"seed must be a whole number in [0, 2**63) as for ssg, got {value!r}")
+        raise ValueError(
+            f"seed must be a whole number in [0, 2**63) as for ssg, got {_shown(value)}"
+        )
     return int(value)
+
+
+def _shown(value: Any) -> str:
+    """An argument as a message quotes it: 10**400 or a long string cut short."""
+    return reprlib.repr(value)
 
 
 def _time_limit(value: Any) -> float | None:
     """Seconds, > 0 and finite, or None for no limit (nan ran without one; 0 gave no parse)."""
     if value is None:
         return None
+    seconds = _as_float(value)
+    if seconds is None or not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(
+            f"time_limit must be a finite number of seconds > 0 or None, got {_shown(value)}"
+        )
+    return seconds
+
+
+def _real(name: str, value: Any) -> float:
+    """A real-number argument as a float; its range is left to the caller (`FitOptions` says
+    it as `ssg fit` does).  A string or None raised `float()`'s own error, which named no
+    argument."""
+    number = _as_float(value)
+    if number is None:
+        raise ValueError(f"{name} must be a number, got {_shown(value)}")
+    return number
+
+
+def _as_float(value: Any) -> float | None:
+    """A number (numpy's too, not a bool) as a float, inf when too large for one (10**400
+    raised OverflowError); None for anything else."""
     if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise TypeError(f"time_limit must be a number of seconds or None, got {value!r}")
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"time_limit must be a finite number of seconds > 0, got {value!r}")
-    return float(value)
+        return None
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
 
 
 def _checked(grammar: Any) -> Grammar:
-    """The grammar, or a TypeError that says what is wanted (not an AttributeError deep in)."""
+    """The grammar, or a TypeError that says what is wanted (not an AttributeError deep in).
+    The compiled grammar (`Grammar.ir`) is a class named Grammar too: said so, or the message
+    would read "expected a Grammar, got Grammar"."""
+    if isinstance(grammar, ir.Grammar):
+        raise TypeError(
+            "expected a Grammar (ssgc.load_grammar) as grammar, got the compiled grammar "
+            "(ssgc.ir.Grammar, a Grammar's .ir): pass the Grammar itself"
+        )
     if not isinstance(grammar, Grammar):
-        raise TypeError(f"expected a Grammar (ssgc.load_grammar), got {type(grammar).__name__}")
+        raise TypeError(
+            f"expected a Grammar (ssgc.load_grammar) as grammar, got {type(grammar).__name__}"
+        )
     return grammar
 
 
@@ -273,25 +320,56 @@ def fit_options(
 @contextmanager
 def open_fit(
     grammar: Grammar,
-    scenes: Sequence[scene_io.Scene],
-    dataset: Path,
+    scenes: Iterable[Scene | scene_io.Scene],
+    dataset: str | Path,
     options: FitOptions,
     journal_next_to: Path | None = None,
     resume: bool = False,
 ) -> Iterator[FitRun]:
     """A fit of `grammar` to `scenes` (read from `dataset`), with its journal open: what `fit`
-    and `ssg fit` share.  The journal lies next to `journal_next_to` (the fitted grammar's
-    file, so that `resume` finds it), or in a temporary directory removed at the end; the
-    caller decides when to delete a finished run's journal, after writing its results."""
+    and `ssg fit` share.  `scenes` are the API's (`load_scenes`, `Grammar.sample`) or the
+    library's read with `grammar.ir` (`ssgc.io.scene`, as `ssg fit` has them); `dataset`
+    names where they came from, for the journal and messages; `options` come from
+    `fit_options`.  The journal lies next to `journal_next_to` (the fitted grammar's file,
+    so that `resume` finds it), or in a temporary directory removed at the end; the caller
+    decides when to delete a finished run's journal, after writing its results."""
     from ssgc.errors import SsgError
-    from ssgc.fit.em import FitJournal, fit_header, fit_journal_file
+    from ssgc.fit.em import FitJournal, FitOptions, fit_header, fit_journal_file
 
-    if not scenes:
+    data = _fit_scenes(_checked(grammar), scenes, "scenes")
+    if not isinstance(dataset, str | Path):
+        raise TypeError(f"dataset must be a str or Path, got {type(dataset).__name__}")
+    if not isinstance(options, FitOptions):
+        raise TypeError(
+            f"options must come from ssgc.api.fit_options, got {type(options).__name__}"
+        )
+    if not data:
         raise SsgError.single("the dataset has no scenes", str(dataset))
     source = grammar.source(str(dataset))
-    header = fit_header(grammar.text, dataset, scenes, options)
+    header = fit_header(grammar.text, Path(dataset), data, options)
     with fit_journal_file(journal_next_to) as path, FitJournal(path, header, resume) as journal:
-        yield FitRun(grammar, list(scenes), options, source, journal)
+        yield FitRun(grammar, data, options, source, journal)
+
+
+def _fit_scenes(grammar: Grammar, scenes: Any, name: str) -> list[scene_io.Scene]:
+    """The scenes to fit (the argument `name`), as the fitter reads them: the API's in
+    `grammar`'s type numbers (`_scene_data`), the library's as they are.  A path here is a
+    mistake (`fit` reads one before; `open_fit` wants scenes), as is anything that is not a
+    scene: they raised AttributeError from the fitter."""
+    if isinstance(scenes, str | bytes | Path) or not isinstance(scenes, Iterable):
+        raise TypeError(
+            f"{name} must be a list of scenes (ssgc.load_scenes, Grammar.sample), "
+            f"got {type(scenes).__name__}"
+        )
+    data = []
+    for k, scene in enumerate(scenes):
+        if isinstance(scene, scene_io.Scene):
+            data.append(scene)
+        elif isinstance(scene, Scene):
+            data.append(_scene_data(grammar, scene))
+        else:
+            raise TypeError(f"{name}[{k}] must be a Scene, got {type(scene).__name__}")
+    return data
 
 
 @dataclass(frozen=True, eq=False)
@@ -384,6 +462,7 @@ class Grammar:
         from ssgc.sample.run import draw_scenes, plan_sampling
 
         n, seed, time_limit = _count("n", n, 0), _seed(seed), _time_limit(time_limit)
+        max_tries = None if max_tries is None else _count("max_tries", max_tries, 1)
         if constraints is not None and not isinstance(constraints, str):
             raise TypeError(
                 f"constraints must be a string (`all`, `NAME,NAME`), got {constraints!r}"
@@ -492,11 +571,26 @@ class Tree:
         return _render(self.scene("tree").to_json(), path, self.grammar)
 
     def same_as(self, other: Tree) -> bool:
-        """The same tree up to the order of siblings (the test `ssg bench parse` uses)."""
+        """The same tree up to the order of siblings (the test `ssg bench parse` uses).  Trees
+        of two grammars with the same types and rules (the file loaded twice, or fitted)
+        compare; trees of grammars that differ in them cannot, and raise ValueError."""
         from ssgc.parse.parser import tree_signature
 
-        g = self.grammar.ir
-        return tree_signature(g, self.trees) == tree_signature(g, other.trees)
+        if not isinstance(other, Tree):
+            raise TypeError(f"other must be a Tree, got {type(other).__name__}")
+        mine, theirs = self.grammar.ir, other.grammar.ir
+        if mine is not theirs and _structure(mine) != _structure(theirs):
+            raise ValueError(
+                f"other is a tree of grammar '{theirs.name}', whose types and rules are not "
+                f"those of '{mine.name}': trees of different grammars cannot be compared"
+            )
+        return tree_signature(mine, self.trees) == tree_signature(theirs, other.trees)
+
+
+def _structure(grammar: ir.Grammar) -> tuple[list[str], list[str]]:
+    """A grammar's type and rule names in id order: the numbers a tree is written in."""
+    rules = [grammar.rule_name(r) for r in range(len(grammar.rules))]
+    return [t.name for t in grammar.types], rules
 
 
 @dataclass(frozen=True, eq=False)
@@ -551,11 +645,15 @@ class Scene:
         )
 
     def save(self, path: str | Path) -> Path:
-        """Write the scene as a JSON file every `ssg` command reads (atomically)."""
+        """Write the scene as a JSON file every `ssg` command reads, replacing a file already
+        at `path` (atomically, as `ssg sample -o` does), but never the grammar's own file: a
+        stray `save(g.path)` replaced the grammar with a scene.  Metadata JSON cannot hold
+        (NaN, a set) is refused: the file would be one no command reads."""
         from ssgc.io.outputs import check_output, write_output_text
 
-        out = check_output(path, "scene file")
-        text = scene_io.dumps_json(self.to_json())
+        grammar_file = () if self.grammar.path is None else (self.grammar.path,)
+        out = check_output(path, "scene file", inputs=grammar_file)
+        text = _json_text(self.to_json(), str(path))
         write_output_text(out, text)
         return Path(path)
 
@@ -653,6 +751,20 @@ def _numbers(values: Iterable[Any]) -> list[Any]:
         except TypeError:
             return values  # a number or None where a list belongs: the check says so
     return [v.item() if isinstance(v, np.generic) else v for v in values]
+
+
+def _json_text(doc: dict[str, Any], file: str) -> str:
+    """A scene's document as its file's text, or a SceneError when its metadata holds what
+    JSON cannot (NaN or infinity, which the reader refuses; a set; a huge integer)."""
+    try:
+        json.dumps(doc, allow_nan=False)
+    except (ValueError, TypeError) as exc:
+        raise SceneError.single(
+            "the scene's metadata must hold only what JSON holds (finite numbers, text, "
+            f"lists, dicts with text keys): {exc}",
+            file,
+        ) from None
+    return scene_io.dumps_json(doc)
 
 
 def _render(doc: dict[str, Any], path: str | Path, grammar: Grammar) -> Path:

@@ -1,5 +1,10 @@
 """Why a scene scores what it scores: −log p of its best parse, split over objects and rules.
 
+Also callable: `ssgc.explain(grammar, scene, time_limit=None)` is `ssgc.api.explain`, which
+takes `ssgc.load_grammar`'s grammar and an API scene and explains the scene's best parse as
+`ssg explain` does; this module's own `explain(grammar, scene, tree=None, **parse)` takes the
+compiled grammar (`ssgc.ir.Grammar`) and the library's scene.
+
 Two numbers per object, for two questions (docs/explain.md):
 
 * **share** — its exact part of −log p (thesis Eq. 2.1).  Every term of the score belongs to a
@@ -217,7 +222,7 @@ class Explanation:
                 "nats_per_object": self.nats_per_object,
                 "unattributed": self.unattributed,
                 "objects": [o.to_json() for o in self.objects],
-                "rules": self.rules,
+                "rules": [dict(r) for r in self.rules],  # the caller's: edits stay there
             }
             | ({} if self.reparse is None else {"reparse": self.reparse.to_json()})
         )
@@ -279,8 +284,14 @@ class UnexplainedScene(SsgError):
 
     def __init__(self, message: str, status: str, diagnosis: Diagnosis | None = None) -> None:
         super().__init__([Diagnostic(message)], 2 if status == "infeasible" else 3)
+        self.message = message
         self.status = status
         self.diagnosis = diagnosis
+
+    def __reduce__(self) -> tuple[type[UnexplainedScene], tuple[str, str, Diagnosis | None]]:
+        """Pickled (and copied) as its own arguments: an exception is rebuilt from its `args`,
+        one string here, so explaining in a process pool broke the pool."""
+        return type(self), (self.message, self.status, self.diagnosis)
 
 
 def best_tree(grammar: Grammar, scene: Scene, parser: Any = None, **parse: Any) -> Trees:
@@ -1133,10 +1144,10 @@ class Diagnosis:
     message: str
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "objects": self.objects,
-            "reasons": {str(k): v for k, v in self.reasons.items()},
-            "alternatives": self.alternatives,
+        return {  # copies: editing the document must not change the diagnosis
+            "objects": list(self.objects),
+            "reasons": {str(k): list(v) for k, v in self.reasons.items()},
+            "alternatives": [list(a) for a in self.alternatives],
             "message": self.message,
         }
 

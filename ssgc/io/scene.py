@@ -15,6 +15,7 @@ index in the parent's rule list.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
@@ -127,6 +128,9 @@ class Scene:
     tree: Trees | None = None
     log_prob: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    # the `seed` and `index` of a file `ssg sample` wrote: kept so that the API can save the
+    # scene again as a file `--resume` accepts (the commands write their own, or none)
+    run: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         return int(self.types.shape[0])
@@ -160,15 +164,16 @@ def _poses_json(
 def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, Any]:
     """The JSON document of a scene (and its tree, when it has one).  The `metadata` the
     scene was read with, its own and its objects', is written back as it was (a `metadata`
-    in `header` adds to the scene's)."""
+    in `header` adds to the scene's).  The document is the caller's: the metadata is copied,
+    so that editing the document cannot change the scene."""
     out: dict[str, Any] = {"format": FORMAT, "name": scene.name, "grammar": grammar.name}
-    metadata = {**scene.extra, **(header.pop("metadata", None) or {})}
+    metadata = copy.deepcopy({**scene.extra, **(header.pop("metadata", None) or {})})
     out.update({k: v for k, v in header.items() if v is not None})
     if metadata:
         out["metadata"] = metadata
     if scene.log_prob is not None:
         out["log_prob"] = float(scene.log_prob)
-    kept = scene.metadata or ({},) * len(scene)
+    kept = copy.deepcopy(scene.metadata) or ({},) * len(scene)
     out["objects"] = [
         {"type": grammar.types[t].name, "pose": p, **({"metadata": m} if m else {})}
         for t, p, m in zip(scene.types, _poses_json(scene.xyz, scene.quat), kept, strict=True)
@@ -270,7 +275,8 @@ def read_scene_file(path: str | Path, grammar: Grammar) -> Scene:
 def parse_scene_text(text: str, file: str, grammar: Grammar, default_name: str = "scene") -> Scene:
     data = loads_json(text, file)
     if is_parse_result(data):
-        raise _json_error(text, file, PARSE_RESULT_IS_NO_SCENE, ("scenes",))
+        said = EXPLAIN_RESULT_IS_NO_SCENE if is_explain_result(data) else PARSE_RESULT_IS_NO_SCENE
+        raise _json_error(text, file, said, ("scenes",))
     doc = validated(SceneDoc, data, text, file)
     return _scene_from_doc(doc, grammar, _LazySource(text, file), default_name)
 
@@ -279,6 +285,21 @@ PARSE_RESULT_IS_NO_SCENE = (
     "this is an `ssg parse` output, not a scene: `ssg parse`, `explain` and `fit` read "
     "scenes; `ssg render`, `view`, `export` and `settle` read parse outputs"
 )
+
+
+EXPLAIN_RESULT_IS_NO_SCENE = (
+    "this is an `ssg explain --json` output, not a scene: `ssg parse`, `explain` and `fit` "
+    "read scenes, such as the files `ssg sample` writes"
+)
+
+
+def is_explain_result(data: Any) -> bool:
+    """An `ssg explain --json` output: a parse output's shape (`is_parse_result`) whose
+    scenes are explanations (`neg_log_prob`, which no parse entry has)."""
+    scenes = data.get("scenes") if isinstance(data, dict) else None
+    if not isinstance(scenes, list):
+        return False
+    return any(isinstance(s, dict) and "neg_log_prob" in s for s in scenes)
 
 
 def is_parse_result(data: Any) -> bool:
@@ -590,6 +611,7 @@ def _scene_from_doc(doc: SceneDoc, grammar: Grammar, source: Locator, default_na
         tree=None if read.tree is None else trees_of(read.tree, grammar),
         log_prob=doc.log_prob,
         extra=dict(doc.metadata),
+        run=None if doc.seed is None or doc.index is None else (doc.seed, doc.index),
     )
 
 
