@@ -213,6 +213,23 @@ def onto_arc(
     return quat_multiply(pq, np.hstack([np.cos(half), np.sin(half) * a]))
 
 
+def _rotation_between(a: FloatArray, b: FloatArray) -> FloatArray:
+    """The smallest rotation taking each vector a onto the direction of b (same lengths
+    here), as quaternions; the identity where they are already aligned, and a half turn
+    about a perpendicular axis where they are opposite."""
+    a = a / np.linalg.norm(a, axis=1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    w = 1.0 + np.sum(a * b, axis=1)
+    axis = np.cross(a, b)
+    opposite = w < 1e-12
+    if np.any(opposite):  # any axis perpendicular to a
+        other = np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0, 0]], [[0.0, 1, 0]])
+        perp = np.cross(a, other)
+        axis = np.where(opposite[:, None], perp / np.linalg.norm(perp, axis=1, keepdims=True), axis)
+        w = np.where(opposite, 0.0, w)
+    return quat_normalize(np.hstack([w[:, None], axis]))
+
+
 def known_parent(grammar: Grammar, st: Supertree, cand: Candidates, e: int):  # type: ignore[no-untyped-def]
     """The pose of set e's parent node, at which the set's own rule is scored: None if the rule
     ignores its parent (world frame), False if the parent's set has other than one pose."""
@@ -249,6 +266,7 @@ class _SetProposer:
         known = known_parent(grammar, st, cand, e) not in (None, False)
         self.arc = own_arc if known else None  # the own rule's arc about a known parent
         self.pinned_xyz, self.pinned_quat = self._pinned() if known else (None, None)
+        self.pins = self._own_pins()
 
     def _slots(self) -> list[tuple[int, int, int, int]]:
         """(member node, rule, child set, copies) for each rule leaving the set."""
@@ -325,7 +343,56 @@ class _SetProposer:
             q_top = quat_multiply(q_v, quat_conjugate(self.st.offset_quat[v]))
             q_top = self._onto_arc(q_top, slot, child_xyz, child_quat)
             q_v = quat_multiply(q_top, self.st.offset_quat[v])
-        return self._translation(slot, child_xyz, q_v, default_xyz)
+        t_top, q_top = self._translation(slot, child_xyz, q_v, default_xyz)
+        if self.pins is not None and self.pinned_quat is None and self.arc is None:
+            t_top, q_top = self._onto_pins(child_xyz, t_top, q_top)
+        return t_top, q_top
+
+    def _own_pins(self) -> tuple[NDArray[np.bool_], FloatArray, FloatArray, FloatArray] | None:
+        """The axes the set's own translation pins, where its frame puts them: (pinned,
+        their values, the frame's origin, the frame's rotation); None without pinned axes,
+        or when the frame's parent pose is not known."""
+        law = self.g.rules[int(self.st.rule[self.top])].translation
+        free = getattr(law, "free", None)
+        if free is None or np.all(free) or self.prior is None or self.pinned_xyz is not None:
+            return None
+        origin, turn = self.prior
+        if law.frame == Frame.WORLD:
+            origin, turn = np.zeros(3), np.array([1.0, 0, 0, 0])
+        elif law.frame == Frame.WORLD_OFFSET:
+            turn = np.array([1.0, 0, 0, 0])
+        return ~np.asarray(free, bool), np.asarray(law.offset, float), origin, turn
+
+    def _onto_pins(
+        self, child_xyz: FloatArray, t_top: FloatArray, q_top: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Set-top poses moved onto the own rule's pinned axes, the child kept where the
+        inversion put it by turning the set about it: the set's vector u to the child keeps
+        its length, its pinned components become what the pins ask, its free ones keep
+        their direction.  Where no turn reaches (the child too far from the pinned line or
+        plane, or at the set's own position) the pose is left as it was.
+
+        Why: a latent set whose own Normal pins axes (`pin: [x, y]`) and whose child sits at
+        a fixed offset was proposed at `child - R·offset`, off its pins, where its density is
+        zero; refinement cannot step in from outside, and every sampled scene of such a
+        grammar was `no_parse`."""
+        assert self.pins is not None
+        pinned, value, origin, turn = self.pins
+        u = quat_rotate(quat_conjugate(turn), child_xyz - t_top)  # in the law's frame
+        want = quat_rotate(quat_conjugate(turn), child_xyz - origin) - value  # pinned parts
+        length2 = np.sum(u * u, axis=1)
+        left2 = length2 - np.sum(np.where(pinned, want, 0.0) ** 2, axis=1)
+        free_u = np.where(pinned, 0.0, u)
+        free_norm = np.linalg.norm(free_u, axis=1)
+        ok = (left2 >= 0) & (length2 > POS_TOL**2) & (free_norm > 1e-12)
+        scale = np.sqrt(np.maximum(left2, 0.0)) / np.where(ok, free_norm, 1.0)
+        new_u = np.where(pinned, want, free_u * scale[:, None])
+        world_u = quat_rotate(turn, u)
+        world_new = quat_rotate(turn, new_u)
+        swing = _rotation_between(world_u, world_new)
+        q_new = quat_multiply(swing, q_top)
+        t_new = child_xyz - world_new
+        return np.where(ok[:, None], t_new, t_top), np.where(ok[:, None], q_new, q_top)
 
     def _onto_arc(
         self,
