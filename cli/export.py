@@ -51,7 +51,7 @@ def export_cmd(
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_export_scenes(scenes, g)
     distinct_stems([s.name for s in items], SUFFIXES[fmt], str(scenes))
-    shapes = load_shapes(g, collision=fmt != "glb")
+    shapes = load_shapes(g, collision=fmt != "glb")  # glTF carries no collision geometry
     refuse_changed_shared_files(g, items, shapes, fmt, output)
     written = []
     with _progress(quiet) as progress:
@@ -79,10 +79,15 @@ class SampleExtras:
             from ssgc.simulate.settle import require_mujoco
 
             require_mujoco()
-        self.shapes = load_shapes(g) if export or settle else {}
+        self.shapes = load_shapes(g, collision=self.needs_collision()) if export or settle else {}
         self.unsettled = 0
         for fmt in self.formats:  # as `ssg export` does, before anything is written
             refuse_changed_shared_files(g, [every_type_scene(g)], self.shapes, fmt, output / fmt)
+
+    def needs_collision(self) -> bool:
+        """Whether some output carries collision geometry: glTF has none, so `--export glb`
+        alone neither decomposes meshes (slow) nor needs coacd, as `ssg export -f glb`."""
+        return self.settle or any(f != "glb" for f in self.formats)
 
     def write(
         self, scene: Scene, path: Path, seed: int, index: int, metadata: dict | None = None

@@ -71,7 +71,9 @@ def _load_mesh(path: Path, scale: float | list[float]) -> object:
         raise ValueError(f"trimesh cannot read it ({type(exc).__name__}: {exc})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ValueError("it holds no triangles")
-    mesh.apply_scale(np.broadcast_to(np.asarray(scale, dtype=float), 3))
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge scale: `_check_size` tells
+        mesh.apply_scale(np.broadcast_to(np.asarray(scale, dtype=float), 3))
+    _check_size(mesh)
     if not _encloses_a_volume(mesh):
         raise ValueError(
             "it encloses no volume (its points lie in a plane or on a line): an object needs "
@@ -80,17 +82,50 @@ def _load_mesh(path: Path, scale: float | list[float]) -> object:
     return mesh
 
 
+def _check_size(mesh: object) -> None:
+    """Refuse a mesh larger than the space poses may span (`dsl.MAX_COORDINATE` from the
+    origin): scaled by 1e200 its volume overflowed, and its mass was then blamed on the
+    density."""
+    vertices = np.asarray(mesh.vertices, dtype=float)  # type: ignore[attr-defined]
+    with np.errstate(all="ignore"):
+        size = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    if not size <= 2 * dsl.MAX_COORDINATE:  # NaN too
+        raise ValueError(
+            f"it is {size:g} m across once scaled, more than the "
+            f"{2 * dsl.MAX_COORDINATE / 1000:,.0f} km that poses may span (each axis within "
+            f"{dsl.MAX_COORDINATE / 1000:,.0f} km of the origin); check its scale"
+        )
+
+
 def _encloses_a_volume(mesh: object) -> bool:
     """Whether the mesh's convex hull has a volume (a flat mesh, one triangle or points on a
     line gave NaN masses or an internal error in every export).  Relative to the mesh's size:
-    a hull a billionth of its bounding cube is flat for any simulator."""
-    size = float(np.max(mesh.extents))  # type: ignore[attr-defined]
+    a hull a billionth of its bounding cube is flat for any simulator.  Measured on the mesh
+    brought to unit size, so that no scale changes the answer: trimesh merges points closer
+    than 1e-8 (a box scaled by 1e-6 lost its depth) and rounds coordinates to integers (a box
+    scaled by 1e15 overflowed), and size**3 overflowed for a scale of 1e200."""
+    unit = _unit_sized(mesh)
+    if unit is None:
+        return False
     try:
         with np.errstate(all="ignore"):  # a flat hull's centre of mass divides by 0
-            volume = float(mesh.convex_hull.volume)  # type: ignore[attr-defined]
+            volume = float(unit[0].convex_hull.volume)  # type: ignore[attr-defined]
     except Exception:  # qhull refuses points in a plane or on a line
         return False
-    return size > 0 and np.isfinite(volume) and volume > 1e-9 * size**3
+    return bool(np.isfinite(volume) and volume > 1e-9)
+
+
+def _unit_sized(mesh: object) -> tuple[object, NDArray[np.float64], float] | None:
+    """A copy of the mesh centred on its bounding box and scaled to a largest side of 1, with
+    that centre and side; None when the mesh has no finite, positive size."""
+    vertices = np.asarray(mesh.vertices, dtype=float)  # type: ignore[attr-defined]
+    with np.errstate(all="ignore"):  # sides of 1e308 overflow: no finite size
+        low, high = vertices.min(axis=0), vertices.max(axis=0)
+        centre, size = (low + high) / 2, float(np.max(high - low))
+    if not (np.isfinite(size) and np.all(np.isfinite(centre)) and size > 0):
+        return None
+    unit = _trimesh().Trimesh((vertices - centre) / size, mesh.faces, process=False)  # type: ignore[attr-defined]
+    return unit, centre, size
 
 
 def check_assets(grammar: Grammar, text: str | None = None) -> list[Diagnostic]:
@@ -242,13 +277,21 @@ def _mesh_mass_properties(
     A mesh that does not enclose a volume (open, inside out, or with faces wound both ways,
     which halved a cube's mass) falls back to its convex hull, which does (`_load_mesh`
     refuses a flat one): a simulator needs a positive mass and a valid inertia.
+
+    Computed on the mesh brought to unit size and scaled back (volume by size³, centre of
+    mass by size, inertia per unit mass by size²), for the reasons `_encloses_a_volume` gives.
     """
-    own = mesh.is_volume or (closed and mesh.volume > 0)  # type: ignore[attr-defined]
-    solid = mesh if own else mesh.convex_hull  # type: ignore[attr-defined]
-    volume = float(solid.volume)
-    com = np.asarray(solid.center_mass, dtype=float)
-    unit = np.asarray(solid.moment_inertia, dtype=float) / (solid.density * volume)
-    return volume, com, unit
+    unit_sized = _unit_sized(mesh)
+    if unit_sized is None:  # `_load_mesh` refuses such a mesh; a revolve always has a size
+        raise ValueError("the mesh has no finite size")
+    unit, centre, size = unit_sized
+    own = unit.is_volume or (closed and unit.volume > 0)  # type: ignore[attr-defined]
+    solid = unit if own else unit.convex_hull  # type: ignore[attr-defined]
+    with np.errstate(over="ignore"):  # a size of 1e200: an infinite mass, refused in our words
+        volume = float(solid.volume) * np.float64(size) ** 3
+        com = centre + size * np.asarray(solid.center_mass, dtype=float)
+        per_mass = np.asarray(solid.moment_inertia, dtype=float) / (solid.density * solid.volume)
+        return volume, com, per_mass * np.float64(size) ** 2
 
 
 def _collision_pieces(mesh: object, how: str, name: str) -> tuple[object, ...]:
@@ -351,14 +394,21 @@ def check_document_meshes(path: Path, allow_outside: bool = False) -> list[Diagn
         target = (path.parent / file).resolve()
         if not allow_outside and not target.is_relative_to(base):
             continue
-        scale = mesh.get("scale", 1.0)
-        try:
-            scale = np.broadcast_to(np.asarray(scale, dtype=float), 3)
-        except (TypeError, ValueError):
-            scale = np.ones(3)
+        scale = _usable_scale(mesh.get("scale", 1.0))
         try:
             _load_mesh(path.parent / file, scale.tolist())
         except ValueError as exc:
             loc = ("types", name, "geometry", "mesh", "file")
             problems.append(source.diagnostic(loc, f"mesh file '{file}': {exc}"))
     return problems
+
+
+def _usable_scale(scale: object) -> NDArray[np.float64]:
+    """A mesh's `scale` as three factors; 1 when it is not three finite, positive numbers
+    (the compiler reports that: a scale of 0 or NaN also read as a flat mesh was one mistake
+    told twice)."""
+    try:
+        factors = np.broadcast_to(np.asarray(scale, dtype=float), 3)
+    except (TypeError, ValueError):
+        return np.ones(3)
+    return factors if bool(np.all(np.isfinite(factors) & (factors > 0))) else np.ones(3)

@@ -364,7 +364,8 @@ class PlacedGeometry(Strict):
     """Where a geometry sits in its object's frame: the data may put an object's frame at its
     base (a dish on a floor), while a primitive is centred on its own origin."""
 
-    origin: Vec3 = Field(
+    # bounded as a pose is: at [1e300, 0, 0] the USD export's float32 centre of mass was inf
+    origin: Position = Field(
         default_factory=lambda: [0.0, 0.0, 0.0],
         description="The geometry's centre (a mesh's origin) in the object's frame, metres.",
     )

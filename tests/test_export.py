@@ -21,6 +21,7 @@ from ssgc.cli.app import app
 from ssgc.compile import compile_text, load_grammar
 from ssgc.errors import GrammarError
 from ssgc.geometry import quat_to_matrix
+from ssgc.io.resume import MANIFEST
 from ssgc.io.scene import scene_stem
 
 runner = CliRunner()
@@ -65,6 +66,16 @@ def scene_names(root: Path) -> list[str]:
     return names
 
 
+def drake_plant():  # type: ignore[no-untyped-def]
+    """A MultibodyPlant with a SceneGraph, as users build one: a bare MultibodyPlant(0.0)
+    skips every <visual> and <collision>, and missed that Drake refused each mesh's
+    <drake:declare_convex/> where the exports put it."""
+    from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
+    from pydrake.systems.framework import DiagramBuilder
+
+    return AddMultibodyPlantSceneGraph(DiagramBuilder(), 0.0)  # (plant, scene_graph)
+
+
 def drake_poses(plant, names) -> dict:  # type: ignore[no-untyped-def]
     context = plant.CreateDefaultContext()
     poses = {}
@@ -77,10 +88,9 @@ def drake_poses(plant, names) -> dict:  # type: ignore[no-untyped-def]
 
 def test_drake_model_directives_load_into_a_plant(exported: Path) -> None:
     from pydrake.multibody.parsing import LoadModelDirectives, Parser, ProcessModelDirectives
-    from pydrake.multibody.plant import MultibodyPlant
 
     for name in scene_names(exported):
-        plant = MultibodyPlant(0.0)
+        plant, _ = drake_plant()
         parser = Parser(plant)
         parser.package_map().AddPackageXml(str(exported / "dmd" / "package.xml"))
         directives = LoadModelDirectives(str(exported / "dmd" / f"{name}.dmd.yaml"))
@@ -97,10 +107,9 @@ def test_drake_model_directives_load_into_a_plant(exported: Path) -> None:
 
 def test_sdformat_world_loads_in_drakes_parser(exported: Path) -> None:
     from pydrake.multibody.parsing import Parser
-    from pydrake.multibody.plant import MultibodyPlant
 
     for name in scene_names(exported):
-        plant = MultibodyPlant(0.0)
+        plant, _ = drake_plant()
         Parser(plant).AddModels(str(exported / "sdf" / f"{name}.sdf"))
         plant.Finalize()
         want = expected(exported, name)
@@ -367,9 +376,8 @@ def test_revolve_dishes_load_as_meshes_in_drake_usd_and_gltf(tmp_path: Path) -> 
     dishes = [k for k in want if not k.startswith("DishBin")]
     assert dishes
     from pydrake.multibody.parsing import Parser
-    from pydrake.multibody.plant import MultibodyPlant
 
-    plant = MultibodyPlant(0.0)
+    plant, _ = drake_plant()
     Parser(plant).AddModels(str(tmp_path / "sdf" / f"{name}.sdf"))
     plant.Finalize()
     assert_same_poses(drake_poses(plant, want), want)
@@ -474,7 +482,6 @@ def test_type_names_that_look_like_export_file_names_keep_their_own_shapes(tmp_p
     model names SDFormat reserves (Drake refused them)."""
     import mujoco
     from pydrake.multibody.parsing import LoadModelDirectives, Parser, ProcessModelDirectives
-    from pydrake.multibody.plant import MultibodyPlant
 
     grammar, scenes = clash_scenes(tmp_path)
     for fmt in ("dmd", "sdf", "mjcf"):
@@ -486,12 +493,12 @@ def test_type_names_that_look_like_export_file_names_keep_their_own_shapes(tmp_p
         "Cup_collision_0_2": 4.15,
         "_empty_4": 8.0,
     }
-    plant = MultibodyPlant(0.0)
+    plant, _ = drake_plant()
     parser = Parser(plant)
     parser.package_map().AddPackageXml(str(tmp_path / "dmd" / "package.xml"))
     directives = LoadModelDirectives(str(next((tmp_path / "dmd").glob("*.dmd.yaml"))))
     ProcessModelDirectives(directives, plant, parser)
-    sdf_plant = MultibodyPlant(0.0)
+    sdf_plant, _ = drake_plant()
     Parser(sdf_plant).AddModels(str(next((tmp_path / "sdf").glob("*.sdf"))))
     for p in (plant, sdf_plant):
         for name, mass in masses.items():
@@ -506,7 +513,6 @@ def test_type_names_that_look_like_export_file_names_keep_their_own_shapes(tmp_p
 def test_a_scene_named_as_sdformat_reserves_loads_in_drake(tmp_path: Path) -> None:
     """`<world name="world">` (a scene called `world`, or `__x__`) was refused by Drake."""
     from pydrake.multibody.parsing import Parser
-    from pydrake.multibody.plant import MultibodyPlant
 
     grammar, _ = clash_scenes(tmp_path)
     for name in ("world", "__model__"):
@@ -515,7 +521,7 @@ def test_a_scene_named_as_sdformat_reserves_loads_in_drake(tmp_path: Path) -> No
         scene.write_text(json.dumps({"name": name, "objects": objects}))
         out = tmp_path / f"sdf_{name}"
         assert run("export", scene, "-g", grammar, "-f", "sdf", "-o", out, "-q").exit_code == 0
-        plant = MultibodyPlant(0.0)
+        plant, _ = drake_plant()
         Parser(plant).AddModels(str(next(out.glob("*.sdf"))))
         assert plant.HasModelInstanceNamed("Table_0")
 
@@ -652,3 +658,195 @@ def test_a_revolve_that_touches_itself_weighs_what_it_encloses(tmp_path, profile
         expected = load_shapes(plain, collision=False)[plain.type_ids["Thing"]].mass
     assert shape.mass == pytest.approx(expected, rel=1e-9)
     assert shape.com[2] == pytest.approx(0.01, abs=1e-9)
+
+
+# A mesh (scaled, moved by `origin`), a revolve and a cylinder (both moved by `origin`), on a
+# fixed tray: every kind of geometry Drake reads, each placed off its frame.
+PLACED = """grammar: placed
+root: {type: Tray, pose: {xyz: [0.1, -0.2, 0.3], rpy_deg: [0, 0, 30]}}
+types:
+  Tray:
+    observed: true
+    geometry: {box: {size: [1.0, 1.0, 0.02]}, origin: [0.01, 0.02, -0.01]}
+    body: {static: true}
+    and:
+      - {child: Brick, translation: {offset: [0.2, 0, 0.1]}, rotation: uniform}
+      - {child: Dish, translation: {offset: [-0.2, 0, 0.1]}, rotation: uniform}
+      - {child: Can, translation: {offset: [0, 0.2, 0.1]}, rotation: uniform}
+  Brick:
+    observed: true
+    geometry: {mesh: {file: brick.obj, scale: [1, 2, 1]}, origin: [0.01, 0.02, 0.03]}
+  Dish:
+    observed: true
+    geometry:
+      revolve:
+        profile: [[0, 0], [0.05, 0], [0.08, 0.03], [0.075, 0.03], [0.045, 0.005], [0, 0.005]]
+      origin: [0, 0.01, -0.01]
+  Can: {observed: true, geometry: {cylinder: {radius: 0.03, length: 0.1}, origin: [0, 0, 0.05]}}
+"""
+
+
+def drake_loaded(root: Path, fmt: str, name: str):  # type: ignore[no-untyped-def]
+    """The `fmt` (sdf or dmd) export of scene `name` in a plant with a SceneGraph."""
+    from pydrake.multibody.parsing import LoadModelDirectives, Parser, ProcessModelDirectives
+
+    plant, scene_graph = drake_plant()
+    parser = Parser(plant)
+    if fmt == "sdf":
+        parser.AddModels(str(root / "sdf" / f"{name}.sdf"))
+    else:
+        parser.package_map().AddPackageXml(str(root / "dmd" / "package.xml"))
+        directives = LoadModelDirectives(str(root / "dmd" / f"{name}.dmd.yaml"))
+        ProcessModelDirectives(directives, plant, parser)
+    plant.Finalize()
+    return plant, scene_graph.model_inspector()
+
+
+@pytest.mark.parametrize("fmt", ["sdf", "dmd"])
+def test_meshes_and_revolves_load_in_a_plant_with_a_scene_graph(tmp_path: Path, fmt) -> None:
+    """Drake refused every sdf and dmd export with a mesh or a revolve once the plant had a
+    SceneGraph ("Unsupported SDFormat element in collision: drake:declare_convex"): the mark
+    stood after </geometry>, and Drake takes it only inside <mesh>.  Now each loads, every
+    object where the scene puts it, each geometry where its origin puts it (a mesh's OBJ is
+    already placed), each convex piece a Convex, each body of the mass ssgc computes."""
+    import trimesh
+    from pydrake.geometry import Convex
+
+    trimesh.creation.box(extents=[0.1, 0.05, 0.04]).export(tmp_path / "brick.obj")
+    grammar = tmp_path / "g.yaml"
+    grammar.write_text(PLACED)
+    result = run("sample", grammar, "-n", 1, "--seed", 4, "-o", tmp_path, "-q", "--export", fmt)
+    assert result.exit_code == 0, result.output
+    name = "placed_000000"
+    want = expected(tmp_path, name)
+    plant, inspector = drake_loaded(tmp_path, fmt, name)
+    assert_same_poses(drake_poses(plant, want), want)
+    g = load_grammar(grammar)
+    shapes = {s.type: s for s in load_shapes(g).values()}
+    for obj in want:
+        shape = shapes[obj.rsplit("_", 1)[0]]
+        body = plant.GetBodyByName("body", plant.GetModelInstanceByName(obj))
+        assert body.default_mass() == pytest.approx(shape.mass, rel=1e-9), obj
+        visual = plant.GetVisualGeometriesForBody(body)
+        collision = plant.GetCollisionGeometriesForBody(body)
+        assert (len(visual), len(collision)) == (1, max(1, len(shape.collision))), obj
+        at = np.zeros(3) if shape.kind == "mesh" else np.array(shape.origin)
+        for gid in [*visual, *collision]:
+            np.testing.assert_allclose(inspector.GetPoseInFrame(gid).translation(), at, atol=TOL)
+        convex = [isinstance(inspector.GetShape(i), Convex) for i in collision]
+        assert convex == [shape.kind == "mesh"] * len(collision), obj
+
+
+def test_two_crossed_flat_quads_load_in_mujoco_and_settle(tmp_path: Path) -> None:
+    """Their hull has a volume (validation accepts them), but MuJoCo refused the MJCF: "mesh
+    volume is too small ... Try setting inertia to shell", and `sample --settle` exited 1
+    with an incomplete run.  The mesh assets' own inertia (unused: the body's is the
+    <inertial>) is now a shell's."""
+    import mujoco
+
+    quads = "v -0.05 0 -0.05\nv 0.05 0 -0.05\nv 0.05 0 0.05\nv -0.05 0 0.05\n"
+    quads += "v 0 -0.05 -0.05\nv 0 0.05 -0.05\nv 0 0.05 0.05\nv 0 -0.05 0.05\n"
+    (tmp_path / "cross.obj").write_text(quads + "f 1 2 3\nf 1 3 4\nf 5 6 7\nf 5 7 8\n")
+    grammar = wrapped(tmp_path, "{mesh: {file: cross.obj}}")
+    assert run("validate", grammar).exit_code == 0
+    result = run("sample", grammar, "-n", 1, "-o", tmp_path / "s", "-q", "--export", "mjcf")
+    assert result.exit_code == 0, result.output
+    model = mujoco.MjModel.from_xml_path(str(next((tmp_path / "s" / "mjcf").glob("*.xml"))))
+    shape = load_shapes(load_grammar(grammar))[1]
+    assert model.body_mass[-1] == pytest.approx(shape.mass)
+    result = run("sample", grammar, "-n", 1, "-o", tmp_path / "st", "-q", "--settle")
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "st" / MANIFEST).read_text())["complete"] is True
+
+
+def test_a_box_a_nanometre_thin_loads_in_mujoco_with_its_own_inertia(tmp_path: Path) -> None:
+    """Its largest principal moment is the sum of the other two, and rounding put it one float
+    step above: MuJoCo refused the MJCF ("inertia must satisfy A + B >= C").  Lowered by that
+    step, not balanced (`balanceinertia` sets all three to their mean, 21% to 330% off)."""
+    import mujoco
+
+    grammar = wrapped(tmp_path, "{box: {size: [0.3, 0.7, 1.0e-9]}}")
+    scenes = tmp_path / "s"
+    assert run("sample", grammar, "-n", 1, "-o", scenes, "-q").exit_code == 0
+    assert run("export", scenes, "-g", grammar, "-f", "mjcf", "-o", tmp_path / "e").exit_code == 0
+    model = mujoco.MjModel.from_xml_path(str(next((tmp_path / "e").glob("*.xml"))))
+    shape = load_shapes(load_grammar(grammar))[1]
+    np.testing.assert_allclose(
+        np.sort(model.body_inertia[-1]), np.sort(np.diag(shape.inertia)), rtol=1e-15
+    )
+
+
+@pytest.mark.parametrize("scale", ["1.0e-6", "1.0e-3", "1000"])
+def test_a_scaled_box_is_a_box_at_any_size(tmp_path: Path, scale: str) -> None:
+    """Scaled by 1e-6 a 0.1 m box was refused as "encloses no volume" (trimesh merged its
+    points), as were scales of 1e15 and 1e20 (its integer rounding overflowed); now the
+    test and the mass are computed at unit size: the box has a box's mass at any scale."""
+    import trimesh
+
+    trimesh.creation.box(extents=[0.1, 0.05, 0.03]).export(tmp_path / "box.obj")
+    grammar = wrapped(tmp_path, f"{{mesh: {{file: box.obj, scale: {scale}}}}}")
+    result = run("validate", grammar)
+    assert result.exit_code == 0, result.output
+    g = load_grammar(grammar)
+    shape = load_shapes(g, collision=False)[g.type_ids["Thing"]]
+    s = float(scale)
+    assert shape.mass == pytest.approx(1000 * 0.1 * 0.05 * 0.03 * s**3, rel=1e-9)
+    np.testing.assert_allclose(
+        np.diag(shape.inertia),
+        shape.mass / 12 * s**2 * np.array([0.05**2 + 0.03**2, 0.1**2 + 0.03**2, 0.1**2 + 0.05**2]),
+        rtol=1e-9,
+    )
+
+
+@pytest.mark.parametrize("scale", ["1.0e15", "1.0e20", "1.0e200"])
+def test_a_mesh_scaled_beyond_the_scene_is_one_message(tmp_path: Path, scale: str) -> None:
+    """1e200 was an internal error (OverflowError in size**3, exit 70); 1e15 and 1e20 said
+    "encloses no volume" of a solid box."""
+    import trimesh
+
+    trimesh.creation.box(extents=[0.1, 0.05, 0.03]).export(tmp_path / "box.obj")
+    grammar = wrapped(tmp_path, f"{{mesh: {{file: box.obj, scale: {scale}}}}}")
+    result = run("validate", grammar)
+    assert result.exit_code == 1, result.output
+    assert f"{grammar}:10:" in result.output and "m across once scaled" in result.output
+    assert "encloses no volume" not in result.output and "internal error" not in result.output
+
+
+@pytest.mark.parametrize("scale", ["0", ".nan", "-1"])
+def test_a_bad_mesh_scale_is_one_error(tmp_path: Path, scale: str) -> None:
+    """A scale of 0 or NaN printed the scale's error and "encloses no volume" for one mistake."""
+    import trimesh
+
+    trimesh.creation.box(extents=[0.1, 0.05, 0.03]).export(tmp_path / "box.obj")
+    grammar = wrapped(tmp_path, f"{{mesh: {{file: box.obj, scale: {scale}}}}}")
+    result = run("validate", grammar)
+    assert result.exit_code == 1, result.output
+    assert result.output.count("error:") == 1 and "scale" in result.output, result.output
+
+
+def test_a_geometry_origin_is_bounded_as_a_pose_is(tmp_path: Path) -> None:
+    """An origin of [1e300, 0, 0] validated, and the USD export wrote a centre of mass of
+    (inf, 0, 0) (float32)."""
+    grammar = wrapped(tmp_path, "{box: {size: [0.1, 0.1, 0.1]}, origin: [1.0e300, 0, 0]}")
+    result = run("validate", grammar)
+    assert result.exit_code == 1, result.output
+    assert "geometry.origin: a position must lie within 1,000 km" in result.output
+    near = wrapped(tmp_path / "near", "{box: {size: [0.1, 0.1, 0.1]}, origin: [1.0e6, 0, 0]}")
+    assert run("validate", near).exit_code == 0
+
+
+def test_sample_export_glb_does_not_need_coacd(tmp_path: Path, monkeypatch) -> None:
+    """glTF carries no collision geometry: `ssg export -f glb` never decomposed meshes, but
+    `ssg sample --export glb` did, and exited 1 "needs coacd" without it."""
+    import sys
+
+    import trimesh
+
+    trimesh.creation.box(extents=[0.1, 0.05, 0.03]).export(tmp_path / "box.obj")
+    grammar = wrapped(tmp_path, "{mesh: {file: box.obj}}", "{collision: decomposition}")
+    monkeypatch.setitem(sys.modules, "coacd", None)  # `import coacd` raises ImportError
+    result = run("sample", grammar, "-n", 1, "-o", tmp_path / "s", "-q", "--export", "glb")
+    assert result.exit_code == 0, result.output
+    assert len(list((tmp_path / "s" / "glb").glob("*.glb"))) == 1
+    result = run("sample", grammar, "-n", 1, "-o", tmp_path / "m", "-q", "--export", "mjcf")
+    assert result.exit_code == 1 and "needs coacd" in result.output, result.output

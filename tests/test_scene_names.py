@@ -106,7 +106,7 @@ def test_a_scene_named_by_an_odd_file_name_gets_it_escaped(tmp_path: Path) -> No
     assert result.exit_code == 0, result.output
     assert "\x1b" not in result.output and shown in result.output
     settled = tmp_path / "settled"
-    result = run("settle", scenes, "-g", DIMSUM, "-o", settled, "-q", "--max-time", "0.05")
+    result = run("settle", scenes, "-g", DIMSUM, "-o", settled, "-q", "--max-time", "0.2")
     assert result.exit_code in (0, 2), result.output
     from ssgc.compile import load_grammar
     from ssgc.io.scene import load_scenes

@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from ssgc.cli.app import app
 from ssgc.compile import load_grammar
+from ssgc.errors import SsgError
 from ssgc.io.resume import MANIFEST
 from ssgc.io.scene import read_scene_file
 from ssgc.simulate.settle import SettleOptions
@@ -75,13 +76,13 @@ def test_settling_drops_the_block_and_lifts_the_ball(dropped, tmp_path: Path) ->
 
 def test_too_short_a_simulation_is_reported_not_settled(dropped, tmp_path: Path) -> None:
     grammar, scenes = dropped
-    result = run("settle", scenes, "-g", grammar, "-o", tmp_path / "o", "--max-time", 0.02)
+    result = run("settle", scenes, "-g", grammar, "-o", tmp_path / "o", "--max-time", 0.21)
     assert result.exit_code == 2, result.output
     assert "drop_000000: not settled: did not come to rest" in result.stderr
     doc = json.loads((tmp_path / "o" / "drop_000000.json").read_text())
     assert doc["metadata"]["settle"]["settled"] is False
-    # --max-time is at most: 0.02 s simulated 0.05 s, one 50 ms chunk of steps
-    assert doc["metadata"]["settle"]["sim_time"] == pytest.approx(0.02)
+    # --max-time is at most: 0.21 s simulated 0.25 s, five 50 ms chunks of steps
+    assert doc["metadata"]["settle"]["sim_time"] == pytest.approx(0.21)
 
 
 def test_sample_settle_writes_settled_scenes(tmp_path: Path) -> None:
@@ -174,7 +175,7 @@ def test_settle_never_writes_over_its_input_scene(dropped, tmp_path: Path) -> No
     grammar, scenes = dropped
     scene = next(scenes.glob("*.json"))
     before = scene.read_bytes()
-    result = run("settle", scene, "-g", grammar, "-o", scenes, "--max-time", 0.05)
+    result = run("settle", scene, "-g", grammar, "-o", scenes)
     assert result.exit_code == 1, result.output
     assert "is the input file" in result.output and "Traceback" not in result.output
     assert scene.read_bytes() == before
@@ -236,7 +237,7 @@ def test_sample_settle_exits_2_when_a_scene_does_not_settle(tmp_path: Path, monk
     import ssgc.simulate.settle as settle
 
     real = settle.settle_scene
-    monkeypatch.setattr(settle, "settle_scene", lambda b, o=None: real(b, SettleOptions(0.01)))
+    monkeypatch.setattr(settle, "settle_scene", lambda b, o=None: real(b, SettleOptions(0.2)))
     grammar = tmp_path / "drop.yaml"
     grammar.write_text(GRAMMAR)
     out = tmp_path / "s"
@@ -244,3 +245,73 @@ def test_sample_settle_exits_2_when_a_scene_does_not_settle(tmp_path: Path, monk
     assert result.exit_code == 2, result.output
     assert "2 scene(s) did not settle" in result.output
     assert len(list(out.glob("*.json"))) == 2
+
+
+def test_settle_never_writes_into_a_sample_run(tmp_path: Path) -> None:
+    """`ssg settle B/s.json -o A`, A a directory of `ssg sample`, replaced A's scene file
+    without a word, and A's `--resume` then failed ("this scene file has seed null ...").
+    Refused now, as is replacing any file but a settled scene; settling into the same
+    output again still replaces its settled scenes."""
+    grammar = tmp_path / "drop.yaml"
+    grammar.write_text(GRAMMAR)
+    a, b = tmp_path / "A", tmp_path / "B"
+    assert run("sample", grammar, "-n", 2, "--seed", 1, "-o", a, "-q").exit_code == 0
+    assert run("sample", grammar, "-n", 2, "--seed", 2, "-o", b, "-q").exit_code == 0
+    before = {p.name: p.read_bytes() for p in a.iterdir()}
+    result = run("settle", b / "drop_000000.json", "-g", grammar, "-o", a, "-q")
+    assert result.exit_code == 1, result.output
+    assert f"{a}: error: the output directory holds a run of `ssg sample`" in result.output
+    assert {p.name: p.read_bytes() for p in a.iterdir()} == before
+    assert run("sample", grammar, "-n", 2, "--seed", 1, "-o", a, "-q", "--resume").exit_code == 0
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    (plain / "drop_000000.json").write_bytes((a / "drop_000001.json").read_bytes())
+    result = run("settle", b / "drop_000000.json", "-g", grammar, "-o", plain, "-q")
+    assert result.exit_code == 1, result.output
+    assert "is not a scene `ssg settle` wrote" in result.output
+    assert (plain / "drop_000000.json").read_bytes() == (a / "drop_000001.json").read_bytes()
+    for _ in range(2):
+        result = run("settle", b / "drop_000000.json", "-g", grammar, "-o", tmp_path / "st", "-q")
+        assert result.exit_code == 0, result.output
+
+
+def test_settle_takes_the_lock_of_its_output_directory(dropped, tmp_path: Path) -> None:
+    """As `ssg sample` does: a second writer into the directory is refused at once."""
+    from ssgc.io.outputs import directory_lock
+
+    grammar, scenes = dropped
+    out = tmp_path / "settled"
+    out.mkdir()
+    with directory_lock(out):
+        result = run("settle", scenes, "-g", grammar, "-o", out, "-q")
+    assert result.exit_code == 1, result.output
+    assert "another ssg run is writing this output directory" in result.output
+    assert list(out.glob("*.json")) == []
+
+
+def test_a_max_time_below_the_still_time_is_refused(dropped, tmp_path: Path) -> None:
+    """Below the 0.2 s every object must stay still, nothing could ever settle: not even an
+    empty scene ("not settled: did not come to rest; largest displacement 0.0 mm")."""
+    grammar, scenes = dropped
+    result = run("settle", scenes, "-g", grammar, "-o", tmp_path / "o", "--max-time", 0.1)
+    assert result.exit_code == 1, result.output
+    assert "--max-time 0.1 is shorter than the 0.2 s" in result.output
+    assert "Traceback" not in result.output and not (tmp_path / "o").exists()
+    with pytest.raises(SsgError, match=r"shorter than the 0\.2 s"):
+        SettleOptions(max_time=0.1)
+
+
+@pytest.mark.parametrize("objects", [[], [{"type": "Tray", "pose": {"xyz": [0, 0, 0.3]}}]])
+def test_a_scene_without_a_free_body_is_settled_at_once(dropped, tmp_path, objects) -> None:
+    """No object, or fixed ones only: nothing can move, so there is nothing to wait for."""
+    grammar, _ = dropped
+    scene = tmp_path / "still.json"
+    scene.write_text(json.dumps({"name": "still", "objects": objects}))
+    report = tmp_path / "r.json"
+    args = ("-g", grammar, "-o", tmp_path / "o", "--report", report, "--max-time", 0.2)
+    result = run("settle", scene, *args)
+    assert result.exit_code == 0, result.output
+    (r,) = json.loads(report.read_text())["scenes"]
+    assert r["settled"] and r["sim_time"] == 0.0 and r["max_displacement"] == 0.0
+    doc = json.loads((tmp_path / "o" / "still.json").read_text())
+    assert [o["pose"]["xyz"] for o in doc["objects"]] == [o["pose"]["xyz"] for o in objects]

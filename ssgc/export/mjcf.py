@@ -60,8 +60,21 @@ def _geoms(shape: Shape) -> list[str]:
     return out
 
 
+def _triangle_inequality(moments: np.ndarray) -> np.ndarray:
+    """Principal moments (ascending) with the largest at most the sum of the other two.
+
+    For a flat body (a box 1e-9 m thick) the largest equals that sum, and rounding put it one
+    float step above: MuJoCo refused the file ("A + B >= C").  Lowering it by that step is
+    exact to 1e-16; MuJoCo's `balanceinertia` instead sets all three to their mean, 21% to
+    330% off for a 0.3 x 0.7 m sheet."""
+    out = np.array(moments, dtype=float)
+    out[2] = min(out[2], out[0] + out[1])
+    return out
+
+
 def _inertial(shape: Shape) -> str:
     moments, axes = principal_axes(shape.inertia)
+    moments = _triangle_inequality(moments)
     return (
         f'<inertial pos="{_nums(shape.com)}" quat="{_nums(matrix_to_quat(axes))}" '
         f'mass="{shape.mass!r}" diaginertia="{_nums(moments)}"/>'
@@ -80,15 +93,25 @@ def body_xml(body: Body) -> str:
     return "\n".join(lines)
 
 
+def _mesh_asset(name: str) -> str:
+    """A mesh asset whose own inertia is a shell's: MuJoCo computes every mesh's inertia even
+    though none is used (`inertiafromgeom` is off), and refuses a mesh that encloses almost no
+    volume (two crossed flat quads, which validation accepts: their hull has one), while a
+    shell needs only an area.  MuJoCo places the geom by the mesh's own frame either way."""
+    return f'    <mesh name="{name}" file="{name}.obj" inertia="shell"/>'
+
+
 def mjcf_text(
     scene: SceneBodies, meshdir: str = "meshes", floor: bool = False, timestep: float = 0.001
 ) -> str:
     assets = []
     for shape in used_shapes(scene):
         if shape.kind == "mesh":
-            assets.append(f'    <mesh name="{shape.type}" file="{shape.type}.obj"/>')
-            pieces = [collision_piece(shape.type, k) for k in range(len(shape.collision))]
-            assets += [f'    <mesh name="{p}" file="{p}.obj"/>' for p in pieces]
+            names = [
+                shape.type,
+                *(collision_piece(shape.type, k) for k in range(len(shape.collision))),
+            ]
+            assets += [_mesh_asset(name) for name in names]
     ground = [f'    <geom name="floor" type="plane" size="0 0 1" {CONTACT}/>'] if floor else []
     return "\n".join(
         [

@@ -27,7 +27,10 @@ def pose_text(xyz: np.ndarray, quat: np.ndarray) -> str:
     return " ".join(num(v) for v in (*xyz, *quat_to_rpy(quat)))
 
 
-def geometry_xml(shape: Shape, mesh_uri: str) -> str:
+def geometry_xml(shape: Shape, mesh_uri: str, convex: bool = False) -> str:
+    """The `<geometry>` content.  `convex`: a convex piece, marked `<drake:declare_convex/>`
+    inside its `<mesh>`, the one place Drake accepts it (after `</geometry>`, Drake's parser
+    refused the whole file as soon as the plant had a SceneGraph)."""
     if shape.kind == "box":
         return f"<box><size>{' '.join(num(v) for v in shape.size)}</size></box>"
     if shape.kind == "cylinder":
@@ -35,7 +38,8 @@ def geometry_xml(shape: Shape, mesh_uri: str) -> str:
         return f"<cylinder><radius>{num(r)}</radius><length>{num(h)}</length></cylinder>"
     if shape.kind == "sphere":
         return f"<sphere><radius>{num(shape.size[0])}</radius></sphere>"
-    return f"<mesh><uri>{escape(mesh_uri)}</uri></mesh>"
+    mark = "<drake:declare_convex/>" if convex else ""
+    return f"<mesh><uri>{escape(mesh_uri)}</uri>{mark}</mesh>"
 
 
 def link_xml(shape: Shape | None, meshes: str, indent: str = "      ") -> str:
@@ -69,8 +73,8 @@ def link_xml(shape: Shape | None, meshes: str, indent: str = "      ") -> str:
     for k in range(len(shape.collision)):
         uri = f"{meshes}/{collision_piece(shape.type, k)}.obj"
         lines.append(
-            f'{indent}  <collision name="collision_{k}"><geometry>{geometry_xml(shape, uri)}'
-            f"</geometry><drake:declare_convex/></collision>"
+            f'{indent}  <collision name="collision_{k}"><geometry>'
+            f"{geometry_xml(shape, uri, convex=True)}</geometry></collision>"
         )
     lines.append(f"{indent}</link>")
     return "\n".join(lines)

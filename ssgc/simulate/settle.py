@@ -38,6 +38,16 @@ class SettleOptions:
     separated: float = 0.0005  # m: deepest contact left by the separation phase
     separate_steps: int = 2000
 
+    def __post_init__(self) -> None:
+        """A scene settles only after `still_time` of stillness: a shorter `max_time` could
+        never settle any scene, so it is refused, not run to a certain "not settled"."""
+        if not self.max_time >= self.still_time:
+            raise SsgError.single(
+                f"the simulated time per scene ({self.max_time:g} s) is shorter than the "
+                f"{self.still_time:g} s every object must stay still to count as settled; "
+                f"give at least {self.still_time:g} s"
+            )
+
 
 @dataclass(frozen=True)
 class Settled:
@@ -120,6 +130,8 @@ def _settle(mujoco, scene: SceneBodies, options: SettleOptions) -> Settled:  # t
     ids = [model.body(b.name).id for b in scene.bodies]
     xyz0 = data.xpos[ids].copy()
     free = model.jnt_type == mujoco.mjtJoint.mjJNT_FREE
+    if not free.any():
+        return _nothing_moves(scene, before, start)
     dofs = model.jnt_dofadr[free]
     lin = np.concatenate([dofs + k for k in range(3)])
     ang = np.concatenate([dofs + k for k in range(3, 6)])
@@ -161,6 +173,16 @@ def _settle(mujoco, scene: SceneBodies, options: SettleOptions) -> Settled:  # t
         time.perf_counter() - start,
         unstable=bad,
     )
+
+
+def _nothing_moves(scene: SceneBodies, penetration: float, start: float) -> Settled:
+    """A scene without a free body (no object, or fixed ones only) is settled as it is, its
+    poses unchanged: there is nothing to wait for (with a short `max_time` such a scene was
+    reported "not settled")."""
+    xyz = np.array([b.xyz for b in scene.bodies], dtype=float).reshape(-1, 3)
+    quat = np.array([b.quat for b in scene.bodies], dtype=float).reshape(-1, 4)
+    wall = time.perf_counter() - start
+    return Settled(scene.name, True, xyz, quat, 0.0, penetration, penetration, 0.0, wall)
 
 
 def _separate(mujoco, model, data, options: SettleOptions) -> None:  # type: ignore[no-untyped-def]
