@@ -487,3 +487,54 @@ def test_the_tails_are_announced_after_the_last_iteration(tmp_path) -> None:
             on_tails=lambda: calls.append("tails"),
         )
     assert calls == ["iteration 1", "tails"]
+
+
+IMPOSSIBLE = """\
+grammar: g13
+root: {type: Table, pose: {xyz: [0, 0, 0.5]}}
+types:
+  Table:
+    observed: true
+    repeat:
+      count: {probs: [0.25, 0, 0.5, 0.25]}
+      rule:
+        child: Thing
+        translation:
+          parent_normal_offset: {mean: [0, 0, 0.05], variance: [0.05, 0.05, 0], pin: [z]}
+        rotation: {revolute: {axis: [0, 0, 1]}}
+  Thing:
+    or:
+      - {child: Saucer, p: 0}
+      - {child: Cup, p: 1}
+      - {child: Plate, p: 1}
+  Saucer: {observed: true}
+  Cup: {observed: true}
+  Plate: {observed: true}
+"""
+
+
+def test_impossible_outcomes_keep_their_written_zeros(tmp_path) -> None:
+    """A 0 the fit keeps (docs/fitting.md 4.2) was rewritten as 0.0."""
+    _, scenes = scenes_of(IMPOSSIBLE, 20, seed=1)
+    text = run_fit(tmp_path, IMPOSSIBLE, scenes, iterations=1, top=1).text
+    assert re.search(r"count: \{probs: \[0\.\d+, 0, 0\.\d+, 0\.\d+\]\}", text), text
+    assert "- {child: Saucer, p: 0}\n" in text
+    assert "- {child: Cup, p: 1}" not in text  # fitted
+
+
+def test_a_grammar_without_tails_announces_no_tail_measurement(tmp_path) -> None:
+    """The progress line "measuring overlaps and support" was shown after every fit, though a
+    grammar without such constraints gets no tails (docs/fitting.md 4.4)."""
+    from ssgc.api import fit_defaults, fit_options, open_fit
+
+    g = ssgc.load_grammar(GRAMMARS / "gmm.yaml")
+    scenes = [s.data for s in g.sample(3, seed=0)]
+    defaults = {k: v for k, v in fit_defaults().items() if k in FIT_OPTION_NAMES}
+    options = fit_options(**{**defaults, "iterations": 1, "top": 1})
+    calls: list[str] = []
+    with open_fit(g, scenes, tmp_path / "data", options) as run:
+        run.fit(
+            on_iteration=lambda r: calls.append(f"iteration {r['iteration']}"),
+            on_tails=lambda: calls.append("tails"),
+        )
+    assert calls == ["iteration 1"]

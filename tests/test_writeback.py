@@ -734,3 +734,37 @@ def test_the_fitted_file_keeps_the_grammars_byte_order_mark(tmp_path: Path) -> N
     plain.mkdir()
     result, out = fit_cli(plain, TINY, "--iterations", "1")
     assert result.exit_code == 0 and not out.read_bytes().startswith(b"\xef\xbb\xbf")
+
+
+UNUSED_ANCHORS = """\
+grammar: g5
+root: {type: Root}
+types:
+  Root:
+    observed: true
+    geometry: &shape {sphere: {radius: 0.05}}
+    and:
+      - child: A
+        translation: {world_normal: &law {mean: [0.0, 0.0, 0.0], variance: 1.0}}
+      - child: B
+        translation: {world_normal: &unused {mean: [1.0, 0.0, 0.0], variance: 1.0}}
+  A: {observed: true, geometry: &lonely {box: {size: [0.1, 0.1, 0.1]}}}
+  B: {observed: true, geometry: *shape}
+"""
+
+
+def test_anchors_without_aliases_are_kept() -> None:
+    """ruamel.yaml leaves out an anchor on a mapping or list that no alias uses: `&law`,
+    `&unused` and `&lonely` (on a geometry the fit never touches) were deleted on write-back."""
+    rules = ("types", "Root", "and")
+    updates = [
+        Update((*rules, i, "translation", "world_normal"), {"mean": [0.5, 0.0, 0.0]})
+        for i in (0, 1)
+    ]
+    out = apply_updates(UNUSED_ANCHORS, updates)
+    assert out == UNUSED_ANCHORS.replace("mean: [0.0,", "mean: [0.5,").replace(
+        "mean: [1.0,", "mean: [0.5,"
+    )
+    assert apply_updates(UNUSED_ANCHORS, []) == UNUSED_ANCHORS
+    seq = "a: &l [1, 2]\nb: &m {c: &n [3]}\n"
+    assert apply_updates(seq, []) == seq

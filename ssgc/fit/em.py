@@ -9,9 +9,11 @@ written into the grammar's YAML text (`ssgc.fit.writeback`) and the next iterati
 that text: what the user gets is exactly the grammar the last iteration fitted.
 
 The log-evidence reported per iteration is the thesis's estimate: for every scene, the
-log-sum-exp of the same numbers over its top-N trees.  It is a lower bound of the true
-log-evidence (only N trees are summed), so it is comparable between iterations with the same
-N, not across N.
+log-sum-exp of the same numbers over its top-N trees.  Where every pose is observed or fixed by
+observed ones, it is a lower bound of the true log-evidence (only N trees are summed), so it is
+comparable between iterations with the same N, not across N.  With free latent poses it is no
+bound: a score is then a density at the parser's latent poses, not integrated over them
+(docs/fitting.md sections 4.5 and 6).
 
 Work is journalled (`FitJournal`): every parsed scene and every finished iteration is on disk
 before the next starts, so `--resume` redoes nothing that was finished.  The results do not
@@ -40,7 +42,7 @@ from ssgc.errors import SsgError
 from ssgc.fit.estep import parse_scenes
 from ssgc.fit.mstep import FitSettings, Ties, m_step, refuse_out_of_range
 from ssgc.fit.posterior import McmcSettings, log_orders, posterior_e_step
-from ssgc.fit.tails import measure_tails, tail_updates
+from ssgc.fit.tails import has_tails, measure_tails, tail_updates
 from ssgc.fit.writeback import (
     Loc,
     SharedValueConflict,
@@ -274,8 +276,9 @@ def _with_tails(
     """The fitted grammar with the physical tails of `ssg explain` measured on the last
     iteration's best parses (`ssgc.fit.tails`), where its constraints have such tails.  Done
     once, after the last M-step, so it changes no fitted law; a function of the journal, so
-    `--resume` gives the same."""
-    if not journal.last_scenes:
+    `--resume` gives the same.  `on_tails` is called only when there is something to
+    measure, so a grammar without such constraints is not announced as measuring them."""
+    if not journal.last_scenes or not has_tails(grammar):
         return result
     if on_tails is not None:
         on_tails()

@@ -14,7 +14,11 @@ that the current parses happen not to use does not become impossible (the refere
 unseen counts fall to probability 0).  Outcomes the user made impossible (a weight of 0, an
 independent rule with p = 0 or 1) stay so.  Boxes and revolute ranges are supports, not
 shapes: their maximum-likelihood value is the hull of the data, which would make every scene
-slightly outside it impossible, so they are kept as written (docs/fitting.md).
+slightly outside it impossible, so they are kept as written (docs/fitting.md).  Nodes below a
+rule whose subtree can hold no observed node (`ssgc.fit.observable`) are not counted: the
+parser puts them at their modes, which says nothing about the data (docs/fitting.md 4.1).
+Latent poses with observed nodes below are counted at the parser's (MAP) values, which makes
+the laws into and out of them too tight (docs/fitting.md 4.5: a known limitation).
 
 The output is a list of `Update`s: document paths and the numbers to put there, which
 `ssgc.fit.writeback` writes into the user's YAML.
@@ -31,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.errors import SsgError
+from ssgc.fit.observable import observable_rules
 from ssgc.fit.writeback import Update
 from ssgc.ir import Grammar, Kind, NodeType
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
@@ -124,7 +129,8 @@ def m_step(
     time, and the posterior E-step's per-draw spread (`ssgc.fit.posterior`) repeats the M-step
     twenty times for the discrete laws and the translations."""
     ties = ties or Ties.none(grammar)
-    node_weight = tree_weight[trees.scene]
+    observable = observable_rules(grammar)
+    node_weight = np.where(_unobserved(trees, observable), 0.0, tree_weight[trees.scene])
     counts, exists, blocked = fired_slots(grammar, trees)
     allowed = exists & ~blocked
     updates: list[Update] = []
@@ -135,7 +141,8 @@ def m_step(
             continue
         rows = weighted[by_type[t.id]]
         c, a, w = counts[rows], allowed[rows], node_weight[rows]
-        updates += _choice_updates(grammar, t, c, a, w, settings.pseudocount)
+        seen = observable[list(t.rules)]
+        updates += _choice_updates(grammar, t, c, a, w, seen, settings.pseudocount)
     edges = _edges(grammar, trees, node_weight)
     by_translation = _groups(ties.translation[edges.rule], len(grammar.rules))
     by_rotation = _groups(ties.rotation[edges.rule], len(grammar.rules))
@@ -157,6 +164,22 @@ def _groups(keys: NDArray[np.int64], n: int) -> list[NDArray[np.int64]]:
     return np.split(order, np.searchsorted(keys[order], np.arange(1, n)))
 
 
+def _unobserved(trees: Trees, observable: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Nodes at or below the child of a rule whose subtree can hold no observed node
+    (`ssgc.fit.observable`): where the parser put them says nothing about the data, so
+    neither their edges nor their own choices are counted (docs/fitting.md 4.1)."""
+    if observable.all():
+        return np.zeros(len(trees), bool)
+    own = (trees.rule >= 0) & ~observable[np.maximum(trees.rule, 0)]
+    hidden = own.copy()
+    above = trees.parent.copy()
+    while np.any(above >= 0):  # one step up per round, for every node at once
+        up = above >= 0
+        hidden[up] |= own[above[up]]
+        above[up] = trees.parent[above[up]]
+    return hidden
+
+
 def _edges(grammar: Grammar, trees: Trees, node_weight: FloatArray) -> _Edges:
     child = np.flatnonzero((trees.rule >= 0) & (node_weight > 0))
     rule, parent = trees.rule[child], trees.parent[child]
@@ -176,8 +199,11 @@ def _choice_updates(
     counts: NDArray[np.int64],
     allowed: NDArray[np.bool_],
     w: FloatArray,
+    observable: NDArray[np.bool_],
     alpha: float,
 ) -> list[Update]:
+    """The type's discrete law.  `observable[k]`: whether rule k's subtree can hold an
+    observed node; the data say nothing about whether one that cannot fired."""
     k = len(t.rules)
     counts, allowed = counts[:, :k], allowed[:, :k]
     if t.kind == Kind.OR:
@@ -185,13 +211,32 @@ def _choice_updates(
         probs = _or_probs(counts[fired], allowed[fired], w[fired], t.probs, alpha)
         if probs is None:
             return []
+        probs = _share_unobservable(probs, t.probs, observable)
         return [
             Update(grammar.rules[r].path, {"p": float(p)})
-            for r, p in zip(t.rules, probs, strict=True)
+            for r, p, old in zip(t.rules, probs, t.probs, strict=True)
+            if old > 0  # a written 0 stays as written
         ]
     if t.kind == Kind.INDEPENDENT:
-        return _independent_updates(grammar, t, counts, allowed, w, alpha)
+        return _independent_updates(grammar, t, counts, allowed & observable, w, alpha)
+    if not observable[0]:
+        return []
     return _count_update(t, counts[allowed[:, 0], 0], w[allowed[:, 0]], alpha)
+
+
+def _share_unobservable(
+    probs: FloatArray, old: FloatArray, observable: NDArray[np.bool_]
+) -> FloatArray:
+    """The fitted mass of the rules whose subtrees hold nothing observed, split between them
+    as the old weights were.  Together they are seen (a scene without the observable options
+    is evidence for them), but which of them fired, no scene tells: the parser picks the one
+    whose mode scores best, which would otherwise take all their mass."""
+    group = ~observable & (old > 0)
+    if not group.any():
+        return probs
+    out = probs.copy()
+    out[group] = probs[group].sum() * old[group] / old[group].sum()
+    return out
 
 
 def _or_probs(

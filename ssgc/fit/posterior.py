@@ -443,9 +443,12 @@ def spread(updates_per_draw: list[list[Any]]) -> dict[str, dict[str, float]]:
                 v = u.values.get(key)
                 if isinstance(v, (int, float)):
                     values.setdefault(f"{where}.{key}", []).append(float(v))
-                elif isinstance(v, list | tuple) and all(isinstance(x, int | float) for x in v):
+                elif isinstance(v, list | tuple) and all(
+                    isinstance(x, int | float) or x is None for x in v
+                ):  # None: kept as written (an impossible count, a pinned axis)
                     for j, x in enumerate(v):
-                        values.setdefault(f"{where}.{key}[{j}]", []).append(float(x))
+                        if x is not None:
+                            values.setdefault(f"{where}.{key}[{j}]", []).append(float(x))
     return {
         k: {"mean": float(np.mean(v)), "std": float(np.std(v))}
         for k, v in values.items()

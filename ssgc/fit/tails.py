@@ -81,6 +81,23 @@ def measure_tails(
 ) -> list[Measured]:
     """Each physical tail of the grammar's constraints, measured on the scenes' best parses
     (`trees[k]` of scene k; None: the scene had no parse and is left out)."""
+    out = _tallies(grammar)
+    if not out:
+        return []
+    for scene, tree in zip(scenes, trees, strict=True):
+        if tree is not None and len(scene):
+            _measure_scene(grammar, scene, tree, out)
+    return list(out.values())
+
+
+def has_tails(grammar: Grammar) -> bool:
+    """Whether the grammar has a constraint with a physical tail to measure: the fit says it
+    measures them only then (a grammar without constraints gets nothing written)."""
+    return bool(_tallies(grammar))
+
+
+def _tallies(grammar: Grammar) -> dict[tuple[str, str], Measured]:
+    """An empty tally per (constraint, key) of every tail the grammar's constraints have."""
     out: dict[tuple[str, str], Measured] = {}
     for c in grammar.constraints:
         if isinstance(c, NonPenetration):
@@ -88,12 +105,7 @@ def measure_tails(
         elif isinstance(c, InsideBox) and c.shapes is not None:
             for key in ("floating", "outside"):
                 out[c.name, key] = Measured(c.name, key)
-    if not out:
-        return []
-    for scene, tree in zip(scenes, trees, strict=True):
-        if tree is not None and len(scene):
-            _measure_scene(grammar, scene, tree, out)
-    return list(out.values())
+    return out
 
 
 def _measure_scene(

@@ -260,6 +260,7 @@ def _apply(text: str, updates: list[Update], file: str, digits: int) -> str:
     if not isinstance(tree, (CommentedMap, CommentedSeq)):  # ruamel would add `...`
         return text
     _relink(tree)
+    _keep_anchors(tree)
     out = io.StringIO()
     yaml.dump(tree, out)
     return head + out.getvalue()[: None if body.endswith("\n") else -1] + tail
@@ -311,6 +312,16 @@ def _relink(tree: Any) -> None:
         anchor = _anchor(value)
         if anchor is not None and id(anchor) in new and value is not new[id(anchor)]:
             container[key] = new[id(anchor)]
+
+
+def _keep_anchors(tree: Any) -> None:
+    """Mark every anchor on a mapping or list to be written: ruamel.yaml writes such an anchor
+    only where an alias uses it, so `&law` on a law no rule aliases (yet) was deleted from the
+    user's file.  (Its anchored numbers and strings are already marked when read.)"""
+    for node in [tree, *(value for _, _, value in _entries(tree))]:
+        anchor = _anchor(node) if isinstance(node, (CommentedMap, CommentedSeq)) else None
+        if anchor is not None:
+            anchor.always_dump = True
 
 
 def _entries(node: Any, seen: set[int] | None = None) -> Iterator[tuple[Any, Any, Any]]:

@@ -71,8 +71,12 @@ class ProbsCount(RepeatCount):
         return cls(law=CountLaw(np.asarray(spec.probs, float)), path=loc)
 
     def fit(self, histogram: FloatArray) -> tuple[Loc, dict[str, object]] | None:
-        probs = np.where(self.probs > 0, histogram, 0.0)
-        return self.path, {"probs": [float(x) for x in probs / probs.sum()]}
+        """Frequencies of the possible counts; None (keep as written) at a count of
+        probability 0, which stays impossible: a written `0` would come back as `0.0`."""
+        possible = self.probs > 0
+        probs = np.where(possible, histogram, 0.0)
+        freq = (probs / probs.sum()).tolist()
+        return self.path, {"probs": [x if p else None for x, p in zip(freq, possible, strict=True)]}
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)

@@ -1,0 +1,108 @@
+"""Which rules the data can say something about: a static analysis of the grammar.
+
+The parser puts a latent node at its best pose.  For a latent node with observed nodes below,
+that pose is pinned by what is observed; for one with nothing observed at or below it, it is
+simply the mode of its own law, and a fit to those poses shrinks the law onto its mode (the
+variance floor, the concentration cap), while a tree with the node always scores above one
+without (a density at its mode against nothing), so its `independent` probability or its
+count law goes to the largest count.  No scene carries evidence about any of this: whether
+such a subtree exists, and where, changes nothing that is observed.  So the M-step
+(`ssgc.fit.mstep`) leaves the laws of such subtrees as written (docs/fitting.md 4.1).
+
+A rule is *observable* when some tree of the grammar puts an observed node at or below its
+child.  That is decided on the grammar, not on the parses: on the compiled grammar (so the
+types an `observation` section adds count like any other), over the states (type, nesting
+depth of every type with `max_nesting`) the grammar can reach, since a rule blocked by
+`max_nesting` at some depth makes nothing there.  Rules that can never fire (weight or
+probability 0, a count law that puts all its mass on 0) make nothing either.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ssgc.ir import Grammar, Kind, NodeType
+
+# Reachable (type, depths) states beyond which nesting is ignored: the analysis then only
+# adds paths, so it may call a rule observable that is not (and fit it, as before).
+MAX_STATES = 100_000
+
+State = tuple[int, tuple[int, ...]]  # a type and the nesting depth of every bounded type
+
+
+def observable_rules(grammar: Grammar) -> NDArray[np.bool_]:
+    """(rules,) whether some tree holds an observed node at or below the rule's child."""
+    edges = _state_edges(grammar, _bounded(grammar))
+    if edges is None:  # too many nesting states: the type graph alone
+        edges = _state_edges(grammar, {})
+    assert edges is not None
+    parent, rule, child, observed = edges
+    holds = observed.copy()
+    while True:  # a state holds an observed node if it is one, or a child state holds one
+        grown = holds.copy()
+        grown[parent[holds[child]]] = True
+        if np.array_equal(grown, holds):
+            break
+        holds = grown
+    out = np.zeros(len(grammar.rules), bool)
+    out[rule[holds[child]]] = True
+    return out
+
+
+def _bounded(grammar: Grammar) -> dict[int, tuple[int, int]]:
+    """Type -> (its slot in a state's depths, its `max_nesting`), for the bounded types."""
+    bounded = [t for t in grammar.types if t.max_nesting is not None]
+    return {t.id: (i, int(t.max_nesting or 0)) for i, t in enumerate(bounded)}
+
+
+def _state_edges(
+    grammar: Grammar, bounded: dict[int, tuple[int, int]]
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]] | None:
+    """(parent state, rule, child state) of every rule that can fire in a reachable state,
+    and whether each state's type is observed; None past `MAX_STATES`.  Depths count the
+    node itself, as `ssgc.score.nesting_counts` does."""
+    start: State = (grammar.root, tuple(int(t == grammar.root) for t in bounded))
+    index = {start: 0}
+    queue = [start]
+    edges: list[tuple[int, int, int]] = []
+    while queue:
+        state = queue.pop()
+        for rid, next_state in _children(grammar, state, bounded):
+            if next_state not in index:
+                if len(index) >= MAX_STATES:
+                    return None
+                index[next_state] = len(index)
+                queue.append(next_state)
+            edges.append((index[state], rid, index[next_state]))
+    table = np.array(edges, np.int64).reshape(-1, 3)
+    observed = np.array([grammar.types[t].observed for t, _ in index], bool)
+    return table[:, 0], table[:, 1], table[:, 2], observed
+
+
+def _children(
+    grammar: Grammar, state: State, bounded: dict[int, tuple[int, int]]
+) -> list[tuple[int, State]]:
+    """(rule, child state) of every rule that can fire at a node in `state`."""
+    type_id, depth = state
+    node = grammar.types[type_id]
+    out = []
+    for rid in node.rules if _can_fire(node) else ():
+        rule = grammar.rules[rid]
+        if node.never_fires(rule.index):
+            continue
+        child_depth = depth
+        if rule.child in bounded:
+            i, limit = bounded[rule.child]
+            if depth[i] >= limit:
+                continue  # blocked by max_nesting
+            child_depth = (*depth[:i], depth[i] + 1, *depth[i + 1 :])
+        out.append((rid, (rule.child, child_depth)))
+    return out
+
+
+def _can_fire(node: NodeType) -> bool:
+    """A `repeat` whose count law is 0 for sure makes no children."""
+    if node.kind != Kind.REPEAT:
+        return True
+    return node.count is not None and bool(np.any(node.count.probs[1:] > 0))
