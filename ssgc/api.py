@@ -211,6 +211,36 @@ def _shown(value: Any) -> str:
     return reprlib.repr(value)
 
 
+def _sampling_options(
+    constraints: Any, method: Any, max_tries: int | None, time_limit: float | None
+) -> None:
+    """`Grammar.sample`'s options, checked in the API's words (`plan_sampling` says the same
+    in `ssg sample`'s flags, which an API user never typed)."""
+    from ssgc.sample.constrained import METHODS
+
+    if constraints is not None and not isinstance(constraints, str):
+        raise TypeError(
+            f"constraints must be a string, 'all' or 'NAME,NAME', got {_shown(constraints)}"
+            + ("; join the names with commas" if isinstance(constraints, list | tuple) else "")
+        )
+    if not isinstance(method, str) or method not in ("auto", *METHODS):
+        raise ValueError(
+            f"method must be 'auto' or one of: {', '.join(METHODS)}, got {_shown(method)}"
+        )
+    if constraints is not None:
+        return
+    if (max_tries, time_limit) != (None, None):
+        raise ValueError(
+            "max_tries= and time_limit= bound constrained sampling: they need constraints= "
+            "('all', or 'NAME,NAME')"
+        )
+    if method != "auto":
+        raise ValueError(
+            "method= chooses how constrained sampling draws: it needs constraints= "
+            "('all', or 'NAME,NAME')"
+        )
+
+
 def _time_limit(value: Any) -> float | None:
     """Seconds, > 0 and finite, or None for no limit (nan ran without one; 0 gave no parse)."""
     if value is None:
@@ -458,16 +488,17 @@ class Grammar:
         `ssg sample -n N --seed SEED` writes (scene i depends only on the seed and i).  With
         `constraints` (`all`, or `NAME,NAME`) they follow the grammar conditioned on them
         (docs/constraints.md); `max_tries` and `time_limit` bound that search, and when they
-        run out first `ssgc.sample.constrained.Unmet` is raised."""
+        run out first `ssgc.sample.constrained.Unmet` is raised.  Mistakes name these
+        arguments, never the flags of `ssg sample`."""
+        from ssgc.sample.constrained import ARGUMENTS
         from ssgc.sample.run import draw_scenes, plan_sampling
 
         n, seed, time_limit = _count("n", n, 0), _seed(seed), _time_limit(time_limit)
         max_tries = None if max_tries is None else _count("max_tries", max_tries, 1)
-        if constraints is not None and not isinstance(constraints, str):
-            raise TypeError(
-                f"constraints must be a string (`all`, `NAME,NAME`), got {constraints!r}"
-            )
-        plan = plan_sampling(self.ir, constraints, method, max_tries, time_limit)
+        _sampling_options(constraints, method, max_tries, time_limit)
+        plan = plan_sampling(
+            self.ir, constraints, method, max_tries, time_limit, spelling=ARGUMENTS
+        )
         drawn = draw_scenes(self.ir, n, seed, plan)
         return [Scene(self, d.scene, d.metadata, (seed, d.index)) for d in drawn]
 

@@ -266,3 +266,60 @@ def test_an_explain_output_given_as_a_scene_is_called_one(gmm, tmp_path) -> None
     path.write_text(json.dumps({"grammar": "gmm", "scenes": [why.to_json()]}))
     with pytest.raises(SceneError, match="this is an `ssg explain --json` output, not a scene"):
         ssgc.load_scenes(path, gmm)
+
+
+@pytest.mark.parametrize(
+    ("keywords", "wanted"),
+    [
+        ({"max_tries": 10}, r"max_tries= and time_limit= bound constrained sampling"),
+        ({"time_limit": 1.0}, r"max_tries= and time_limit= bound constrained sampling"),
+        ({"method": "rjmcmc"}, r"method= chooses how constrained sampling draws"),
+        ({"constraints": "all", "method": "bogus"}, r"method must be 'auto' or one of: "),
+        ({"constraints": "all", "method": None}, r"method must be .*, got None"),
+    ],
+)
+def test_sample_mistakes_name_the_apis_arguments(sink: Grammar, keywords, wanted) -> None:
+    """They said "ssg: error: --max-tries and --time-limit need --constraints" and
+    "--method, --penalty-eps and --jobs need --constraints", options `g.sample` has not."""
+    with pytest.raises(ValueError, match=wanted) as caught:
+        sink.sample(2, **keywords)
+    assert "--" not in str(caught.value) and "ssg:" not in str(caught.value)
+
+
+UNREACHABLE = """\
+grammar: unreachable
+root: {type: Bin, pose: {xyz: [0, 0, 0]}}
+types:
+  Bin:
+    observed: true
+    geometry: {box: {size: [0.3, 0.3, 0.1]}}
+    repeat:
+      count: {probs: [0, 0, 1]}
+      rule:
+        child: Disc
+        translation: {world_box_offset: {min: [-0.14, -0.14, 0], max: [0.14, 0.14, 0]}}
+  Disc: {observed: true, geometry: {cylinder: {radius: 0.05, length: 0.02}}}
+constraints:
+  far_apart: {clearance: {types: [Disc], radius: {Disc: 0.3}}}
+"""
+
+
+@pytest.mark.parametrize(
+    ("keywords", "wanted"),
+    [({"max_tries": 3000}, "(max_tries=3000)"), ({"time_limit": 0.2}, "(time_limit=0.2)")],
+)
+def test_unmet_names_the_apis_limit(tmp_path: Path, keywords, wanted) -> None:
+    """It quoted "(--max-tries 3,000)" and "(--time-limit 0.2 s)"."""
+    (tmp_path / "g.yaml").write_text(UNREACHABLE)
+    g = load_grammar(tmp_path / "g.yaml")
+    with pytest.raises(SsgError) as caught:
+        g.sample(2, constraints="far_apart", **keywords)
+    assert caught.value.exit_code == 2
+    assert wanted in str(caught.value) and "--" not in str(caught.value)
+
+
+def test_constraints_as_a_list_is_a_type_error_that_says_what_to_pass(sink: Grammar) -> None:
+    """docs/api.md did not say what else is refused: a list of names is an argument of the
+    wrong kind (a TypeError), and the message says how to pass those names."""
+    with pytest.raises(TypeError, match=r"got \['dishes_in_bin'\]; join the names with commas"):
+        sink.sample(1, constraints=["dishes_in_bin"])

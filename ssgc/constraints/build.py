@@ -99,26 +99,31 @@ class _Builder:
         if self.root is not None:
             for t in listed:
                 if self.reachable_avoiding(t, tid):
+                    own = " (its frame is a proper ancestor, never itself)" if t == tid else ""
                     self.c.error(
                         loc,
                         f"a '{self.types[t].name}' can occur without a '{name}' above it, so it "
-                        "has no frame to be checked in",
+                        f"has no frame to be checked in{own}",
                     )
                     return False
         return tid
 
     def reachable_avoiding(self, target: int, avoid: int) -> bool:
-        """Can `target` be produced by a chain of rules from the root that skips `avoid`?"""
+        """Can a `target` node occur with no `avoid` node among its proper ancestors?  A
+        frame is the nearest proper ancestor of its type (`nearest_ancestor`): the root has
+        none, and a type that is its own frame needs another of itself above it, so the
+        node reached is never checked against `avoid`, only the nodes on the way to it."""
         assert self.root is not None
+        if self.root == target:
+            return True
         if self.root == avoid:
             return False
         seen, stack = {self.root}, [self.root]
         while stack:
-            t = stack.pop()
-            if t == target:
-                return True
-            for rid in self.types[t].rules:
+            for rid in self.types[stack.pop()].rules:
                 child = self.rules[rid].child
+                if child == target:
+                    return True
                 if child != avoid and child not in seen:
                     seen.add(child)
                     stack.append(child)

@@ -69,6 +69,19 @@ AUTO = {
 }
 
 
+@dataclass(frozen=True)
+class Spelling:
+    """How messages name the try and time limits: `ssg sample`'s flags, or the arguments of
+    the Python API (`ssgc.api.Grammar.sample`), whose users never typed a flag."""
+
+    max_tries: str  # a format for the number of tries
+    time_limit: str  # a format for the seconds
+
+
+FLAGS = Spelling("--max-tries {:,}", "--time-limit {:g} s")
+ARGUMENTS = Spelling("max_tries={}", "time_limit={:g}")
+
+
 def attempt_size(
     k: int,
     drawn: int = 0,
@@ -145,12 +158,14 @@ class Tally:
     evaluated: dict[str, int] = field(default_factory=dict)
     rejected: dict[str, int] = field(default_factory=dict)
     best: dict[str, float] = field(default_factory=dict)
+    abandoned: int = 0  # attempts the time limit cut short (a chain method's can take minutes)
 
     def merge(self, other: Tally) -> None:
         """Add another tally (a block drawn by another process)."""
         self.drawn += other.drawn
         self.passed += other.passed
         self.kept += other.kept
+        self.abandoned += other.abandoned
         for k in other.evaluated:
             self.evaluated[k] = self.evaluated.get(k, 0) + other.evaluated[k]
             self.rejected[k] = self.rejected.get(k, 0) + other.rejected[k]
@@ -210,6 +225,7 @@ def sample_blocks(
     jobs: int = 1,
     blocks: Iterable[int] | None = None,
     options: dict[str, Any] | None = None,
+    spelling: Spelling = FLAGS,
 ) -> Iterator[Block]:
     """Yield the blocks of scenes 0..n-1 (or only the blocks numbered in `blocks`, e.g. those
     `--resume` still needs), in order.  With `jobs` > 1, blocks are drawn by that many forked
@@ -219,11 +235,15 @@ def sample_blocks(
     seconds are spent first (tries are checked between attempts, time also between an
     attempt's stages); the scenes found by then in the first unfinished block are yielded
     first, as a last, shorter block, after every block before it.  `options` are keyword
-    arguments of the method (`method_options`)."""
+    arguments of the method (`method_options`); `spelling` how messages name the limits.
+    A constraint that the fixed root fails on its own raises `SsgError` (exit 2) at once
+    (`check_root`)."""
+    check_root(grammar, constraints)
     tally = tally if tally is not None else Tally()
     deadline = None if time_limit is None else time.monotonic() + time_limit
     todo = list(range((n + BLOCK - 1) // BLOCK) if blocks is None else blocks)
-    limits = _Limits(max_tries, time_limit, deadline, _counter(jobs > 1 and len(todo) > 1))
+    shared = _counter(jobs > 1 and len(todo) > 1)
+    limits = _Limits(max_tries, time_limit, deadline, shared, spelling)
     work = _BlockWork(grammar, constraints, n, seed, method, limits, options or {})
     results = ordered_map(functools.partial(_draw_block, work), todo, jobs)
     for done in results:
@@ -247,16 +267,17 @@ class _Limits:
     time_limit: float | None
     deadline: float | None
     drawn: Any  # candidates drawn by every process: a shared multiprocessing.Value or a _Count
+    spelling: Spelling = FLAGS
 
     def hit(self) -> str | None:
         if self.max_tries is not None and self.drawn.value >= self.max_tries:
-            return f"--max-tries {self.max_tries:,}"
+            return self.spelling.max_tries.format(self.max_tries)
         if self.deadline is not None and time.monotonic() > self.deadline:
             return self.out_of_time()
         return None
 
     def out_of_time(self) -> str:
-        return f"--time-limit {self.time_limit:g} s"
+        return self.spelling.time_limit.format(self.time_limit)
 
 
 class _Count:
@@ -317,9 +338,11 @@ def _draw_block(work: _BlockWork, b: int) -> _Done:
             o = draw(work.grammar, work.constraints, size, rng, limits.deadline)
         except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
             limit = limits.out_of_time()
+            tally.abandoned += 1
             break
         with limits.drawn.get_lock():
             limits.drawn.value += o.drawn
+        o = only_holding(o)
         tally.add(o)
         if o.trees.n_scenes:
             got.append(o)
@@ -328,6 +351,65 @@ def _draw_block(work: _BlockWork, b: int) -> _Done:
     tally.kept = min(have, want)  # the last attempt's scenes beyond the block are not kept
     block = _block(b, got, min(have, want)) if have else None
     return _Done(block, tally, limit if have < want else None)
+
+
+def only_holding(o: Outcome) -> Outcome:
+    """The outcome without the scenes on which some final margin fails (counted as that
+    constraint's rejections).  Every method judges its candidates itself; this is the last
+    word whatever the method: a scene is written only if every chosen constraint holds on
+    it (a staged sampler that skipped the root's terms once wrote scenes with margin -0.125)."""
+    ok = np.ones(o.trees.n_scenes, bool)
+    for m in o.margins.values():
+        ok &= m >= 0
+    if np.all(ok):
+        return o
+    rejected, best = dict(o.rejected), dict(o.best)
+    for name, m in o.margins.items():
+        bad = ~(m >= 0)
+        rejected[name] += int(np.count_nonzero(bad))
+        if np.any(bad):
+            best[name] = max(best[name], float(np.max(m[bad])))
+    kept: dict[str, Any] = {
+        "trees": o.trees.select(ok),
+        "logp": o.logp[ok],
+        "margins": {k: v[ok] for k, v in o.margins.items()},
+        "rejected": rejected,
+        "best": best,
+    }
+    chain = getattr(o, "chain", None)
+    if chain is not None:
+        kept["chain"] = {k: v[ok] for k, v in chain.items()}
+    return replace(o, **kept)
+
+
+def check_root(grammar: Grammar, constraints: list[Constraint]) -> None:
+    """Refuse, before drawing anything, the progressive pose constraints that the root fails
+    on its own.  The root's pose is fixed (`root: pose`) and such a margin is a minimum over
+    terms, which more nodes can only lower (what the staged sampler's partial judgements rest
+    on): no tree can satisfy it, and sampling would only run out of tries."""
+    root = Trees(
+        scene=np.zeros(1, np.int64),
+        type=np.full(1, grammar.root, np.int64),
+        parent=np.full(1, -1, np.int64),
+        rule=np.full(1, -1, np.int64),
+        xyz=np.asarray(grammar.root_xyz, float)[None, :],
+        quat=np.asarray(grammar.root_quat, float)[None, :],
+        n_scenes=1,
+    )
+    name = grammar.types[grammar.root].name
+    lines = []
+    for c in constraints:
+        if c.kind != "pose" or not c.progressive:
+            continue
+        m = float(c.margin(root)[0])
+        if not m >= 0:
+            by = f" (margin {m:.4g})" if np.isfinite(m) else ""
+            lines.append(
+                f"constraint '{c.name}' can never hold: the root '{name}' fails it on its "
+                f"own{by}, and the grammar's `root:` fixes its pose"
+            )
+    if lines:
+        raise SsgError([Diagnostic(line, grammar.file) for line in lines], exit_code=2)
 
 
 def _block(index: int, outcomes: list[Outcome], want: int) -> Block:
@@ -355,11 +437,13 @@ def _judged(constraints: list[Constraint], method: str) -> dict[str, str]:
 
 
 def _unmet(grammar: Grammar, tally: Tally, n: int, limit: str, judged: dict[str, str]) -> Unmet:
-    after = f"after {tally.drawn:,} candidates" if tally.drawn else "before the first candidate"
-    head = (
-        f"found {tally.kept:,} of the {n:,} requested scene(s) satisfying the constraints "
-        f"{after} ({limit})"
-    )
+    found = f"found {tally.kept:,} of the {n:,} requested scene(s) satisfying the constraints"
+    if tally.drawn:
+        head = f"{found} after {tally.drawn:,} candidates ({limit})"
+    elif tally.abandoned:  # work was done (a chain method's attempt can take many seconds)
+        head = f"{found}: no attempt finished within the limit ({limit})"
+    else:
+        head = f"{found} before the first candidate ({limit})"
     lines = [head, *tally.report(judged)]
     return Unmet([Diagnostic(line, grammar.file) for line in lines], exit_code=2)
 

@@ -32,6 +32,8 @@ from ssgc.ir import Grammar
 from ssgc.sample import forward
 from ssgc.sample.constrained import (
     BLOCK,
+    FLAGS,
+    Spelling,
     Tally,
     Unmet,
     choose_method,
@@ -73,6 +75,7 @@ class Plan:
     jobs: int = 1  # processes drawing constrained blocks (the same scenes for any number)
     eps: float | None = None  # the penalty scale of hmc and rjmcmc; None: the method's default
     tally: Tally = field(default_factory=Tally)
+    spelling: Spelling = FLAGS  # how messages name the limits: flags, or the API's arguments
 
     @property
     def constrained(self) -> bool:
@@ -87,9 +90,11 @@ def plan_sampling(
     time_limit: float | None = None,
     jobs: int = 1,
     penalty_eps: float | None = None,
+    spelling: Spelling = FLAGS,
 ) -> Plan:
     """Check the sampling options: `constraints` is `all` or `NAME,NAME`; a try or time
-    limit only bounds constrained sampling, so it needs constraints."""
+    limit only bounds constrained sampling, so it needs constraints.  `spelling`: how the
+    run's messages name its limits."""
     if constraints is None:
         if (max_tries, time_limit) != (None, None):
             raise SsgError.single("--max-tries and --time-limit need --constraints (all, or names)")
@@ -101,7 +106,9 @@ def plan_sampling(
     chosen = select(grammar, constraints)
     chosen_method = choose_method(method, chosen)
     asked = (constraints, method)
-    return Plan(chosen, chosen_method, asked, max_tries, time_limit, jobs, penalty_eps)
+    return Plan(
+        chosen, chosen_method, asked, max_tries, time_limit, jobs, penalty_eps, spelling=spelling
+    )
 
 
 def draw_scenes(
@@ -182,6 +189,7 @@ def _constrained(
         plan.jobs,
         todo,
         method_options(plan.method, plan.eps),
+        plan.spelling,
     )
     for block in blocks:
         first = block.index * BLOCK

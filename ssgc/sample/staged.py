@@ -504,8 +504,7 @@ def rejection_batch(
     pending, read = _pose_stage_partial(batch, alive, pending)
     check_deadline(deadline)
     _rest_stage(batch, alive, pending, read, chain, late)
-    full = view(nodes, alive)
-    margins = {c.name: c.margin(full) for c in constraints}
+    margins = _final_verdict(nodes, constraints, alive, stats)
     trees = _as_trees(nodes, alive)
     kept = np.flatnonzero(alive)
     return Outcome(
@@ -517,6 +516,21 @@ def rejection_batch(
         best=stats.best,
         drawn=size,
     )
+
+
+def _final_verdict(
+    nodes: Nodes, constraints: list[Constraint], alive: NDArray[np.bool_], stats: _Stats
+) -> dict[str, FloatArray]:
+    """Every constraint's margin on the complete trees of the candidates `alive`, and the
+    last word on them: a candidate is kept only if every margin holds.  The stages already
+    judged every term, so this rejects none unless a stage missed one (as the pose stage
+    once missed the root's own terms); the margins are computed for the files anyway."""
+    full = view(nodes, alive)
+    margins = {c.name: c.margin(full) for c in constraints}
+    for c in constraints:
+        if np.any(alive):
+            alive &= stats.judge(c, margins[c.name], alive)
+    return margins
 
 
 @dataclass
@@ -600,8 +614,24 @@ def _pose_stage_partial(
     deferred = np.zeros(len(nodes.type), bool)
     deferred[pending[~read[nodes.type[pending]] & (nodes.parent[pending] >= 0)]] = True
     todo = np.flatnonzero((nodes.parent >= 0) & ~deferred)
+    _judge_roots(batch, alive)
     moved = pose_stage(grammar, nodes, batch.pose, alive, batch.rng, batch.logp, batch.stats, todo)
     return (pending if moved is None else renumber(moved, pending)), read
+
+
+def _judge_roots(batch: _Batch, alive: NDArray[np.bool_]) -> None:
+    """Judge the progressive pose constraints that read the root's type on the roots alone,
+    updating `alive` in place.  A root is posed when its tree is made, never by `pose_stage`,
+    which judges only the terms with a freshly posed node: without this, the root's own terms
+    (an `inside_box` or `upright` listing its type) were never judged."""
+    grammar, nodes = batch.grammar, batch.nodes
+    early = [c for c in batch.pose if c.progressive and c.reads(len(grammar.types))[grammar.root]]
+    if not early:
+        return
+    roots_alone = view(nodes, alive, waiting=nodes.parent >= 0)
+    for c in early:
+        if np.any(alive):
+            alive &= batch.stats.judge(c, c.margin(roots_alone), alive)
 
 
 def _rest_stage(
