@@ -69,7 +69,7 @@ def write_scene(path: Path, grammar, scene: Scene) -> Path:
 
 def test_time_limit_in_model_building_says_no_parse_and_the_step():
     grammar = compile_text(WIDE)
-    result = Parser(grammar).parse(wide_scene(grammar, 300), time_limit=0.02)
+    result = Parser(grammar).parse(wide_scene(grammar, 1000), time_limit=0.001)
     assert (result.status, result.phase) == ("no_parse", "time")
     assert result.timed_out_in in STEPS and not result.parses
     assert "time limit" in result.message
@@ -117,8 +117,8 @@ def test_cli_parse_time_limit_exits_4_with_the_phase(tmp_path):
     grammar_path = tmp_path / "wide.yaml"
     grammar_path.write_text(WIDE)
     grammar = compile_text(WIDE)
-    scene = write_scene(tmp_path / "wide.json", grammar, wide_scene(grammar, 300))
-    result = run("parse", scene, "-g", grammar_path, "--time-limit", 0.02, "-q")
+    scene = write_scene(tmp_path / "wide.json", grammar, wide_scene(grammar, 1000))
+    result = run("parse", scene, "-g", grammar_path, "--time-limit", 0.001, "-q")
     assert result.exit_code == 4, result.output
     row = json.loads(result.stdout)["scenes"][0]
     assert (row["status"], row["phase"]) == ("no_parse", "time")

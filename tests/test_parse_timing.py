@@ -156,9 +156,9 @@ def test_time_limit_with_output_file_writes_a_whole_file(tmp_path):
     grammar_path = tmp_path / "wide.yaml"
     grammar_path.write_text(WIDE)
     grammar = compile_text(WIDE)
-    scene = write_scene(tmp_path / "wide.json", grammar, wide_scene(grammar, 300))
+    scene = write_scene(tmp_path / "wide.json", grammar, wide_scene(grammar, 1000))
     out = tmp_path / "out.json"
-    result = run("parse", scene, "-g", grammar_path, "--time-limit", 0.02, "-q", "-o", out)
+    result = run("parse", scene, "-g", grammar_path, "--time-limit", 0.001, "-q", "-o", out)
     assert result.exit_code == 4, result.output
     row = json.loads(out.read_text())["scenes"][0]
     assert (row["status"], row["phase"]) == ("no_parse", "time")
