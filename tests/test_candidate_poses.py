@@ -86,3 +86,60 @@ def test_clutter_of_two_types_at_one_pose_is_two_clutter_objects(method):
         assert result.status == "optimal", result.message
         scores.append(result.parses[0].score)
     assert scores[0] == pytest.approx(scores[1], abs=1e-9)
+
+
+def coincident_grammar(kind: str, count: str, clutter: bool) -> str:
+    """A table with a `repeat` of items, each item an `or` or an `and` of a cup
+    and a plate at the item's own pose; maybe clutter of cups, plates and sponges."""
+    same = "translation: same, rotation: same"
+    rules = {
+        "or": f"or: [{{child: Cup, {same}, p: 1}}, {{child: Plate, {same}, p: 2}}]",
+        "and": f"and: [{{child: Cup, {same}}}, {{child: Plate, {same}}}]",
+    }[kind]
+    text = f"""
+grammar: coincident
+root: {{type: Table, pose: {{xyz: [0, 0, 0]}}}}
+types:
+  Table:
+    observed: true
+    repeat:
+      count: {{probs: {count}}}
+      rule:
+        child: Item
+        translation: {{parent_normal_offset: {{mean: [0, 0, 0.5], variance: 0.01}}}}
+        rotation: uniform
+  Item: {{{rules}}}
+  Cup: {{observed: true}}
+  Plate: {{observed: true}}
+"""
+    if clutter:
+        text += """observation:
+  clutter:
+    region: {min: [-1, -1, 0], max: [1, 1, 1]}
+    rates: {Cup: 0.2, Plate: 0.1, Sponge: 0.1}
+    max: 3
+"""
+    return text
+
+
+@pytest.mark.parametrize("clutter", [False, True], ids=["plain", "clutter"])
+@pytest.mark.parametrize("kind", ["or", "and"])  # (brute force: no empty latent item)
+@pytest.mark.parametrize(
+    "objects",
+    [("Cup", "Plate"), ("Cup", "Cup"), ("Cup", "Plate", "Cup"), ("Cup", "Plate", "Plate", "Cup")],
+    ids=lambda names: "+".join(names),
+)
+def test_objects_at_one_pose_parse_to_the_brute_force_map(kind, clutter, objects):
+    """Every mix of cups and plates at one pose, under every kind of item, with and without
+    clutter: the parse is the brute-force MAP (or both say no tree exists)."""
+    grammar = compile_text(coincident_grammar(kind, "[0.1, 0.3, 0.3, 0.3]", clutter))
+    at = [0.05, 0.0, 0.5]
+    observed = scene(grammar, [("Table", [0, 0, 0])] + [(name, at) for name in objects])
+    trees = enumerate_parses(grammar, observed)
+    for method in ("ip", "micp"):
+        result = Parser(grammar, method=method).parse(observed, top=1)
+        if not trees:
+            assert result.status == "infeasible", (method, result.status, result.message)
+            continue
+        assert result.status == "optimal", (method, result.message)
+        assert result.parses[0].score == pytest.approx(trees[0][0], abs=1e-9), method
