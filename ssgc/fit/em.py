@@ -40,6 +40,7 @@ import numpy as np
 from ssgc.compile import compile_text
 from ssgc.errors import SsgError
 from ssgc.fit.estep import parse_scenes
+from ssgc.fit.laplace import latent_spread
 from ssgc.fit.mstep import FitSettings, Ties, m_step, refuse_out_of_range
 from ssgc.fit.posterior import McmcSettings, log_orders, posterior_e_step
 from ssgc.fit.tails import has_tails, measure_tails, tail_updates
@@ -471,7 +472,10 @@ def _weigh(
 
     A tree's log-posterior (up to the scene's constant) is its parse score plus `log_orders`
     (log c! per repeat node with c children): the parser scores one ordered draw of the
-    children, the scene is their set (`ssgc.fit.posterior.log_orders`).  The log-evidence is
+    children, the scene is their set (`ssgc.fit.posterior.log_orders`).  Trees with free latent
+    positions (`ssgc.fit.laplace`) also get ½ log det(2πΣ) of those positions' Gaussian
+    posterior: the Laplace approximation of the tree's probability with them integrated out,
+    rather than at their best values.  The log-evidence is
     that of the set, the log-sum-exp of the same numbers.
     """
     batches, per_scene, skipped = [], [], []
@@ -486,6 +490,9 @@ def _weigh(
     trees = Trees.concatenate(batches)
     raw = np.concatenate([np.asarray(r["scores"], float) for r in records if r["scores"]])
     scores = raw + log_orders(grammar, trees)
+    spread = latent_spread(grammar, trees)
+    if spread.any:  # free latent positions integrated out (Laplace): docs/fitting.md 4.5
+        scores = scores + spread.log_volume
     scene = np.repeat(np.arange(len(per_scene)), per_scene)
     best = np.full(len(per_scene), -np.inf)
     np.maximum.at(best, scene, scores)

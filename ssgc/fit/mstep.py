@@ -17,8 +17,11 @@ shapes: their maximum-likelihood value is the hull of the data, which would make
 slightly outside it impossible, so they are kept as written (docs/fitting.md).  Nodes below a
 rule whose subtree can hold no observed node (`ssgc.fit.observable`) are not counted: the
 parser puts them at their modes, which says nothing about the data (docs/fitting.md 4.1).
-Latent poses with observed nodes below are counted at the parser's (MAP) values, which makes
-the laws into and out of them too tight (docs/fitting.md 4.5: a known limitation).
+Latent poses with observed nodes below are counted at the parser's (MAP) values.  Where a
+latent position's posterior is Gaussian (every translation law touching it a Normal,
+`ssgc.fit.laplace`), each Normal edge also gets its residual's posterior covariance, so a
+Normal's spread is fitted to E[r rᵀ] = r̂ r̂ᵀ + Cov(r) rather than to the MAP residuals alone,
+which are too tight (docs/fitting.md 4.5); rotations stay at their MAP values.
 
 The output is a list of `Update`s: document paths and the numbers to put there, which
 `ssgc.fit.writeback` writes into the user's YAML.
@@ -35,9 +38,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.errors import SsgError
+from ssgc.fit.laplace import latent_spread
 from ssgc.fit.observable import observable_rules
 from ssgc.fit.writeback import Update
 from ssgc.ir import Grammar, Kind, NodeType
+from ssgc.laws.position_normal import NormalTranslation
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 from ssgc.rules import rotation_coordinates, translation_coordinates
 from ssgc.score import fired_slots
@@ -113,6 +118,7 @@ class _Edges:
     weight: FloatArray
     u: FloatArray  # (E, 3) translation coordinates
     q: FloatArray  # (E, 4) rotation coordinates
+    cov: FloatArray | None  # (E, 3, 3) posterior covariance of u (ssgc.fit.laplace), if any
 
 
 def m_step(
@@ -122,15 +128,22 @@ def m_step(
     settings: FitSettings,
     ties: Ties | None = None,
     rotations: bool = True,
+    map_latents: bool = True,
 ) -> list[Update]:
     """New values for every fittable parameter that the weighted trees say something about.
 
     `rotations=False` leaves the rotation laws out: their Bingham fits are most of an M-step's
     time, and the posterior E-step's per-draw spread (`ssgc.fit.posterior`) repeats the M-step
-    twenty times for the discrete laws and the translations."""
+    twenty times for the discrete laws and the translations.
+
+    `map_latents`: the trees' latent positions are the parser's MAP values, so the Normal
+    edges touching free ones get their posterior covariance (`ssgc.fit.laplace`).  Pass False
+    for trees whose latent positions are known (sampled trees: the maximum likelihood on the
+    true trees)."""
     ties = ties or Ties.none(grammar)
     observable = observable_rules(grammar)
-    node_weight = np.where(_unobserved(trees, observable), 0.0, tree_weight[trees.scene])
+    hidden = _unobserved(trees, observable)
+    node_weight = np.where(hidden, 0.0, tree_weight[trees.scene])
     counts, exists, blocked = fired_slots(grammar, trees)
     allowed = exists & ~blocked
     updates: list[Update] = []
@@ -143,7 +156,7 @@ def m_step(
         c, a, w = counts[rows], allowed[rows], node_weight[rows]
         seen = observable[list(t.rules)]
         updates += _choice_updates(grammar, t, c, a, w, seen, settings.pseudocount)
-    edges = _edges(grammar, trees, node_weight)
+    edges = _edges(grammar, trees, node_weight, hidden if map_latents else None)
     by_translation = _groups(ties.translation[edges.rule], len(grammar.rules))
     by_rotation = _groups(ties.rotation[edges.rule], len(grammar.rules))
     for rule in grammar.rules:
@@ -152,7 +165,11 @@ def m_step(
             parts.append((rule.rotation, by_rotation[rule.id], edges.q))
         for law, take, local in parts:
             if law.fits and take.size:
-                values = law.fit(local[take], edges.weight[take], settings)
+                x, w = local[take], edges.weight[take]
+                spread = local is edges.u and edges.cov is not None
+                if spread and isinstance(law, NormalTranslation):
+                    x, w = _with_spread(x, w, edges.cov[take])
+                values = law.fit(x, w, settings)
                 if values is not None:
                     updates.append(Update(law.path, values))
     return updates
@@ -180,14 +197,37 @@ def _unobserved(trees: Trees, observable: NDArray[np.bool_]) -> NDArray[np.bool_
     return hidden
 
 
-def _edges(grammar: Grammar, trees: Trees, node_weight: FloatArray) -> _Edges:
+def _edges(
+    grammar: Grammar, trees: Trees, node_weight: FloatArray, hidden: NDArray[np.bool_] | None
+) -> _Edges:
+    """`hidden`: the nodes `_unobserved` names, to integrate the free latent positions of the
+    others (`ssgc.fit.laplace`); None to take every pose as it is."""
     child = np.flatnonzero((trees.rule >= 0) & (node_weight > 0))
     rule, parent = trees.rule[child], trees.parent[child]
     u = translation_coordinates(
         grammar, rule, trees.xyz[parent], trees.quat[parent], trees.xyz[child]
     )
     q = rotation_coordinates(grammar, rule, trees.quat[parent], trees.quat[child])
-    return _Edges(rule, node_weight[child], u, q)
+    spread = None if hidden is None else latent_spread(grammar, trees, hidden)
+    cov = spread.edge_cov[child] if spread is not None and spread.any else None
+    return _Edges(rule, node_weight[child], u, q, cov)
+
+
+def _with_spread(u: FloatArray, w: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Points and weights whose weighted mean is that of `u` and whose weighted second moment
+    is that of `u` plus `cov`: each edge with a covariance C = Σ λᵢ vᵢ vᵢᵀ becomes the six
+    points u ± √(3λᵢ) vᵢ, each with a sixth of its weight (the points of an unscented
+    transform).  A Normal's weighted maximum-likelihood fit reads only these two moments, so
+    it is then the fit to E[u uᵀ] = û ûᵀ + C.  Edges without a covariance stay one point."""
+    spread = np.any(cov != 0, axis=(1, 2))
+    if not spread.any():
+        return u, w
+    lam, vec = np.linalg.eigh(cov[spread])
+    axes = vec * np.sqrt(3.0 * np.maximum(lam, 0.0))[:, None, :]  # columns √(3λᵢ) vᵢ
+    steps = np.concatenate([axes, -axes], axis=2).transpose(0, 2, 1)  # (S, 6, 3)
+    points = (u[spread][:, None, :] + steps).reshape(-1, 3)
+    weights = np.repeat(w[spread] / 6.0, 6)
+    return np.concatenate([u[~spread], points]), np.concatenate([w[~spread], weights])
 
 
 # ------------------------------------------------------------------ discrete laws ---
