@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ssgc.fit.observable import observable_rules
+from ssgc.fit.observable import observable_rules, unobserved_nodes
 from ssgc.geometry import quat_to_matrix
 from ssgc.ir import Grammar
 from ssgc.laws.base import Frame
@@ -58,9 +58,7 @@ class LatentSpread:
 
 def hidden_nodes(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
     """Nodes at or below the child of a rule whose subtree can hold nothing observed."""
-    from ssgc.fit.mstep import _unobserved  # the M-step's own reading, shared
-
-    return _unobserved(trees, observable_rules(grammar))
+    return unobserved_nodes(trees, observable_rules(grammar))
 
 
 def latent_spread(

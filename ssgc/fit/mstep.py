@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from ssgc.errors import SsgError
 from ssgc.fit.laplace import latent_spread
-from ssgc.fit.observable import observable_rules
+from ssgc.fit.observable import observable_rules, unobserved_nodes
 from ssgc.fit.writeback import Update
 from ssgc.ir import Grammar, Kind, NodeType
 from ssgc.laws.position_normal import NormalTranslation
@@ -142,7 +142,7 @@ def m_step(
     true trees)."""
     ties = ties or Ties.none(grammar)
     observable = observable_rules(grammar)
-    hidden = _unobserved(trees, observable)
+    hidden = unobserved_nodes(trees, observable)
     node_weight = np.where(hidden, 0.0, tree_weight[trees.scene])
     counts, exists, blocked = fired_slots(grammar, trees)
     allowed = exists & ~blocked
@@ -181,26 +181,10 @@ def _groups(keys: NDArray[np.int64], n: int) -> list[NDArray[np.int64]]:
     return np.split(order, np.searchsorted(keys[order], np.arange(1, n)))
 
 
-def _unobserved(trees: Trees, observable: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Nodes at or below the child of a rule whose subtree can hold no observed node
-    (`ssgc.fit.observable`): where the parser put them says nothing about the data, so
-    neither their edges nor their own choices are counted (docs/fitting.md 4.1)."""
-    if observable.all():
-        return np.zeros(len(trees), bool)
-    own = (trees.rule >= 0) & ~observable[np.maximum(trees.rule, 0)]
-    hidden = own.copy()
-    above = trees.parent.copy()
-    while np.any(above >= 0):  # one step up per round, for every node at once
-        up = above >= 0
-        hidden[up] |= own[above[up]]
-        above[up] = trees.parent[above[up]]
-    return hidden
-
-
 def _edges(
     grammar: Grammar, trees: Trees, node_weight: FloatArray, hidden: NDArray[np.bool_] | None
 ) -> _Edges:
-    """`hidden`: the nodes `_unobserved` names, to integrate the free latent positions of the
+    """`hidden`: the nodes `unobserved_nodes` names, to integrate the free latent positions of the
     others (`ssgc.fit.laplace`); None to take every pose as it is."""
     child = np.flatnonzero((trees.rule >= 0) & (node_weight > 0))
     rule, parent = trees.rule[child], trees.parent[child]

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.ir import Grammar, Kind, NodeType
+from ssgc.tree import Trees
 
 # Reachable (type, depths) states beyond which nesting is ignored: the analysis then only
 # adds paths, so it may call a rule observable that is not (and fit it, as before).
@@ -106,3 +107,19 @@ def _can_fire(node: NodeType) -> bool:
     if node.kind != Kind.REPEAT:
         return True
     return node.count is not None and bool(np.any(node.count.probs[1:] > 0))
+
+
+def unobserved_nodes(trees: Trees, observable: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Nodes at or below the child of a rule whose subtree can hold no observed node
+    (`observable_rules`): where the parser put them says nothing about the data, so
+    neither their edges nor their own choices are counted (docs/fitting.md 4.1)."""
+    if observable.all():
+        return np.zeros(len(trees), bool)
+    own = (trees.rule >= 0) & ~observable[np.maximum(trees.rule, 0)]
+    hidden = own.copy()
+    above = trees.parent.copy()
+    while np.any(above >= 0):  # one step up per round, for every node at once
+        up = above >= 0
+        hidden[up] |= own[above[up]]
+        above[up] = trees.parent[above[up]]
+    return hidden
