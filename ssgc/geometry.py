@@ -30,6 +30,7 @@ __all__ = [
     "profile_area",
     "profile_problem",
     "quat_angle",
+    "quat_between",
     "quat_canonical",
     "quat_conjugate",
     "quat_multiply",
@@ -153,6 +154,33 @@ def quat_rotate(q: ArrayLike, v: ArrayLike) -> FloatArray:
     # v' = v + w t + u x t with t = 2 u x v: cheaper than q v q* and exact for unit q.
     t = 2.0 * _cross(u, v)
     return v + w * t + _cross(u, t)
+
+
+def quat_between(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """Unit quaternions of the shortest turns taking each vector ``a`` onto the direction of
+    ``b`` (``(..., 3)``, broadcast; neither need be unit, a zero vector gives the identity).
+
+    Aligned vectors give the identity; opposite ones a half turn about an axis perpendicular
+    to ``a``: the direction of ``a × x̂``, or of ``a × ŷ`` where ``|a_x| >= 0.9 |a|``.
+    """
+    a, b = np.broadcast_arrays(_as_vec3(a), _as_vec3(b))
+    a = a / _nonzero_norm(a)
+    b = b / _nonzero_norm(b)
+    w = 1.0 + np.sum(a * b, axis=-1, keepdims=True)
+    other = np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    opposite = w < 1e-12
+    q = np.where(
+        opposite,
+        np.concatenate([np.zeros_like(w), _cross(a, other)], axis=-1),
+        np.concatenate([w, _cross(a, b)], axis=-1),
+    )
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def _nonzero_norm(v: FloatArray) -> FloatArray:
+    """The norms of vectors ``v`` (kept dims), 1 where a vector is zero."""
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.where(norm > 0.0, norm, 1.0)
 
 
 def quat_angle(q1: ArrayLike, q2: ArrayLike) -> FloatArray:

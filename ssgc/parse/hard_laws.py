@@ -26,7 +26,13 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
-from ssgc.geometry import quat_conjugate, quat_multiply, quat_normalize, quat_rotate
+from ssgc.geometry import (
+    quat_between,
+    quat_conjugate,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+)
 from ssgc.ir import Grammar
 from ssgc.laws.base import Frame
 from ssgc.laws.position_box import BoxTranslation
@@ -374,17 +380,8 @@ def _pin_pair_arcs(laws: Laws) -> list[Arc]:
         la, lb = np.linalg.norm(a), np.linalg.norm(b)
         if lb < 1e-6 or la < 1e-6 or abs(la - lb) > 1e-6 * max(1.0, lb):
             continue
-        return [Arc(_align(b / lb, a / la), b / lb, -np.pi, np.pi, IDENTITY)]
+        return [Arc(quat_between(b[None], a[None])[0], b / lb, -np.pi, np.pi, IDENTITY)]
     return []
-
-
-def _align(b: FloatArray, a: FloatArray) -> FloatArray:
-    """A unit quaternion rotating unit vector b onto unit vector a."""
-    c = float(b @ a)
-    if c < -1.0 + 1e-12:  # opposite: a half turn about any axis normal to b
-        n = np.cross(b, [1.0, 0, 0] if abs(b[0]) < 0.9 else [0, 1.0, 0])
-        return np.r_[0.0, n / np.linalg.norm(n)]
-    return quat_normalize(np.r_[1.0 + c, np.cross(b, a)])
 
 
 def _plane_meet(a: Arc, b: Arc) -> FloatArray | None:

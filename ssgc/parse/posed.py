@@ -187,9 +187,13 @@ def _mandatory(grammar: Grammar, st: Supertree) -> NDArray[np.bool_]:
     out = np.zeros(len(st), bool)
     out[st.set_top] = True
     is_and = grammar.tables.type_kind[st.type] == Kind.AND
-    for n in range(1, len(st)):  # parents first
-        p = st.parent[n]
-        out[n] |= bool(out[p] and is_and[p] and st.set_of[p] == st.set_of[n])
+    parent = np.maximum(st.parent, 0)
+    done = st.parent < 0  # the root
+    while not np.all(done):  # generation by generation: each node once its parent is done
+        lvl = np.flatnonzero(~done & done[parent])
+        par = parent[lvl]
+        out[lvl] |= out[par] & is_and[par] & (st.set_of[par] == st.set_of[lvl])
+        done[lvl] = True
     return out
 
 

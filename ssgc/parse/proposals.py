@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from ssgc.geometry import (
     quat_angle,
+    quat_between,
     quat_conjugate,
     quat_multiply,
     quat_normalize,
@@ -213,23 +214,6 @@ def onto_arc(
     return quat_multiply(pq, np.hstack([np.cos(half), np.sin(half) * a]))
 
 
-def _rotation_between(a: FloatArray, b: FloatArray) -> FloatArray:
-    """The smallest rotation taking each vector a onto the direction of b (same lengths
-    here), as quaternions; the identity where they are already aligned, and a half turn
-    about a perpendicular axis where they are opposite."""
-    a = a / np.linalg.norm(a, axis=1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
-    w = 1.0 + np.sum(a * b, axis=1)
-    axis = np.cross(a, b)
-    opposite = w < 1e-12
-    if np.any(opposite):  # any axis perpendicular to a
-        other = np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0, 0]], [[0.0, 1, 0]])
-        perp = np.cross(a, other)
-        axis = np.where(opposite[:, None], perp / np.linalg.norm(perp, axis=1, keepdims=True), axis)
-        w = np.where(opposite, 0.0, w)
-    return quat_normalize(np.hstack([w[:, None], axis]))
-
-
 def known_parent(grammar: Grammar, st: Supertree, cand: Candidates, e: int):  # type: ignore[no-untyped-def]
     """The pose of set e's parent node, at which the set's own rule is scored: None if the rule
     ignores its parent (world frame), False if the parent's set has other than one pose."""
@@ -389,7 +373,7 @@ class _SetProposer:
         new_u = np.where(pinned, want, free_u * scale[:, None])
         world_u = quat_rotate(turn, u)
         world_new = quat_rotate(turn, new_u)
-        swing = _rotation_between(world_u, world_new)
+        swing = quat_between(world_u, world_new)
         q_new = quat_multiply(swing, q_top)
         t_new = child_xyz - world_new
         return np.where(ok[:, None], t_new, t_top), np.where(ok[:, None], q_new, q_top)

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from ssgc.geometry import (
     axis_angle_to_quat,
     quat_angle,
+    quat_between,
     quat_conjugate,
     quat_multiply,
     quat_normalize,
@@ -150,19 +151,6 @@ def _arc_meet(
     piece = np.where(first[:, None], np.stack([lo1, hi1], 1), np.stack([lo2, hi2], 1))
     out[one] = piece[one]
     return out, ~full & ~first & ~wrap
-
-
-def _align(a: FloatArray, b: FloatArray) -> FloatArray:
-    """(n, 4): the shortest turns taking unit vectors a to unit vectors b (a half turn
-    about an axis across a where they are opposite)."""
-    w = 1.0 + np.sum(a * b, axis=1)
-    xyz = np.cross(a, b)
-    opposite = w <= 1e-12
-    side = np.cross(a, np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-    q = np.where(
-        opposite[:, None], np.hstack([np.zeros((len(a), 1)), side]), np.hstack([w[:, None], xyz])
-    )
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _isotropic(precision: FloatArray) -> bool:
@@ -437,7 +425,7 @@ class _LocalBounds:
                 continue
             a = np.broadcast_to(m / length, (self.n, 3))
             b = v / np.where(reach > 0, reach, 1.0)[:, None]
-            self.fam_base = np.where(use[:, None], _align(a, b), self.fam_base)
+            self.fam_base = np.where(use[:, None], quat_between(a, b), self.fam_base)
             self.fam_axis = np.where(use[:, None], a, self.fam_axis)
             self.fam_post = np.where(use[:, None], IDENTITY, self.fam_post)
             self.fam_range = np.where(use[:, None], [-np.pi, np.pi], self.fam_range)
