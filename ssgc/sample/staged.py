@@ -504,7 +504,8 @@ def rejection_batch(
     pending, read = _pose_stage_partial(batch, alive, pending)
     check_deadline(deadline)
     _rest_stage(batch, alive, pending, read, chain, late)
-    margins = _final_verdict(nodes, constraints, alive, stats)
+    full = view(nodes, alive)
+    margins = {c.name: c.margin(full) for c in constraints}
     trees = _as_trees(nodes, alive)
     kept = np.flatnonzero(alive)
     return Outcome(
@@ -516,21 +517,6 @@ def rejection_batch(
         best=stats.best,
         drawn=size,
     )
-
-
-def _final_verdict(
-    nodes: Nodes, constraints: list[Constraint], alive: NDArray[np.bool_], stats: _Stats
-) -> dict[str, FloatArray]:
-    """Every constraint's margin on the complete trees of the candidates `alive`, and the
-    last word on them: a candidate is kept only if every margin holds.  The stages already
-    judged every term, so this rejects none unless a stage missed one (as the pose stage
-    once missed the root's own terms); the margins are computed for the files anyway."""
-    full = view(nodes, alive)
-    margins = {c.name: c.margin(full) for c in constraints}
-    for c in constraints:
-        if np.any(alive):
-            alive &= stats.judge(c, margins[c.name], alive)
-    return margins
 
 
 @dataclass
