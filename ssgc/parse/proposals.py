@@ -395,10 +395,24 @@ class _SetProposer:
             b = quat_rotate(st.offset_quat[v], child_arc[0])
             aligns.append((b, quat_rotate(child_quat, child_arc[0])))
         law = self.g.rules[r].translation
-        if self.pinned_xyz is not None and law.point is not None and law.frame == Frame.PARENT:
+        anchor = self.pinned_xyz if self.pinned_xyz is not None else self._on_pins(child_xyz)
+        if anchor is not None and law.point is not None and law.frame == Frame.PARENT:
             m = st.offset_xyz[v] + quat_rotate(st.offset_quat[v], law.point)
-            aligns.append((m, child_xyz - self.pinned_xyz))
+            aligns.append((m, child_xyz - anchor))
         return onto_arc(self.prior[1], self.arc, q_top, tuple(aligns))
+
+    def _on_pins(self, child_xyz: FloatArray) -> FloatArray | None:
+        """Where the set's own pins put it, as far as they say: each child's position with
+        its pinned coordinates replaced by the pins' (in the law's frame); None without pins.
+        A shelf pinned at x = y = 0 and turning about z: the turn that takes its book's fixed
+        offset onto the book's direction from the z axis needs only the pinned x and y.
+        Without it, such a set got no proposal on its pins, and every scene was `no_parse`."""
+        if self.pins is None:
+            return None
+        pinned, value, origin, turn = self.pins
+        local = quat_rotate(quat_conjugate(turn), child_xyz - origin)
+        local = np.where(pinned, value, local)
+        return origin + quat_rotate(turn, local)
 
     def _translation(
         self,
