@@ -86,9 +86,7 @@ def _check_size(mesh: object) -> None:
     """Refuse a mesh larger than the space poses may span (`dsl.MAX_COORDINATE` from the
     origin): scaled by 1e200 its volume overflowed, and its mass was then blamed on the
     density."""
-    vertices = np.asarray(mesh.vertices, dtype=float)  # type: ignore[attr-defined]
-    with np.errstate(all="ignore"):
-        size = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    _, size = _bounds(mesh)
     if not size <= 2 * dsl.MAX_COORDINATE:  # NaN too
         raise ValueError(
             f"it is {size:g} m across once scaled, more than the "
@@ -118,14 +116,21 @@ def _encloses_a_volume(mesh: object) -> bool:
 def _unit_sized(mesh: object) -> tuple[object, NDArray[np.float64], float] | None:
     """A copy of the mesh centred on its bounding box and scaled to a largest side of 1, with
     that centre and side; None when the mesh has no finite, positive size."""
-    vertices = np.asarray(mesh.vertices, dtype=float)  # type: ignore[attr-defined]
-    with np.errstate(all="ignore"):  # sides of 1e308 overflow: no finite size
-        low, high = vertices.min(axis=0), vertices.max(axis=0)
-        centre, size = (low + high) / 2, float(np.max(high - low))
+    centre, size = _bounds(mesh)
     if not (np.isfinite(size) and np.all(np.isfinite(centre)) and size > 0):
         return None
+    vertices = np.asarray(mesh.vertices, dtype=float)  # type: ignore[attr-defined]
     unit = _trimesh().Trimesh((vertices - centre) / size, mesh.faces, process=False)  # type: ignore[attr-defined]
     return unit, centre, size
+
+
+def _bounds(mesh: object) -> tuple[NDArray[np.float64], float]:
+    """The centre of the mesh's bounding box and its largest side (inf or NaN when sides of
+    1e308 overflow)."""
+    vertices = np.asarray(mesh.vertices, dtype=float)  # type: ignore[attr-defined]
+    with np.errstate(all="ignore"):
+        low, high = vertices.min(axis=0), vertices.max(axis=0)
+        return (low + high) / 2, float(np.max(high - low))
 
 
 def check_assets(grammar: Grammar, text: str | None = None) -> list[Diagnostic]:
