@@ -473,7 +473,8 @@ class Compiler(Report):
             root_id = self.ids[root_spec.type]
             seen = observation.apply(self.doc.observation, types, rules, root_id, self.ids, self)
         n_types = len(types) if seen is None else len(seen.types)
-        constraints = build_constraints(self, types, rules, root, sound, n_types)
+        true = {} if seen is None else observation.true_nodes(seen, types, root)
+        constraints = build_constraints(self, types, rules, root, sound, n_types, true)
         if self.errors:
             raise GrammarError(self.errors + self.warnings)
         assert seen is not None

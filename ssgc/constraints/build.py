@@ -43,12 +43,17 @@ def build_constraints(
     root: int | None,
     sound: bool,
     n_types: int,
+    true: dict[int, int] | None = None,
 ) -> tuple[Constraint, ...]:
     """Lower and check every constraint.  `sound`: the grammar itself had no error, so its
     recursion is bounded and the can-never-hold checks may explore it.  `n_types`: how many
     types the compiled grammar has (more than `types` when its observation adds some, which
-    no constraint names); the constraints' per-type tables cover them all."""
-    b = _Builder(compiler, types, rules, root if sound else None, n_types)
+    no constraint names); the constraints' per-type tables cover them all.  `true`: {a root
+    type the observation gives noise: its true node's type} (`observation.true_nodes`): a
+    constraint that names the root is about the world, so it means that true node — its
+    frame, its children, its pose (the root type is never a rule's child, so no other node
+    has it; docs/constraints.md).  Names are checked on the grammar as written."""
+    b = _Builder(compiler, types, rules, root if sound else None, n_types, true or {})
     out = []
     for name, spec in compiler.doc.constraints.items():
         c = b.build(name, spec, ("constraints", name))
@@ -70,12 +75,25 @@ class _Builder:
         rules: list[Rule],
         root: int | None,
         n_types: int,
+        true: dict[int, int],
     ):
         self.c = compiler
         self.types = types
         self.rules = rules
         self.root = root
         self.n = n_types  # the length of every per-type table
+        self.true = true  # `true_nodes`
+
+    def node(self, tid: int) -> int:
+        """The type that nodes of the written type `tid` have in trees of the compiled grammar:
+        for a root the observation gives noise, its true node's (`true_nodes`).  Names are
+        checked on the grammar as written, where the root's rules are its own, so that the
+        checks hold for the true node; the constraints' tables are indexed by this."""
+        return self.true.get(tid, tid)
+
+    def mask(self, ids: list[int]) -> Any:
+        """The constraint's per-type mask of the written types `ids`."""
+        return type_mask([self.node(t) for t in ids], self.n)
 
     # ----------------------------------------------------------------- names ---
 
@@ -106,7 +124,7 @@ class _Builder:
                         f"has no frame to be checked in{own}",
                     )
                     return False
-        return tid
+        return self.node(tid)
 
     def reachable_avoiding(self, target: int, avoid: int) -> bool:
         """Can a `target` node occur with no `avoid` node among its proper ancestors?  A
@@ -165,7 +183,7 @@ class _Builder:
         possible = self.count_range(lambda tt: int(tt == t))
         if not self.bounds(s, loc, possible, f"the number of '{s.type}' nodes"):
             return None
-        return Count(name, loc, type_id=t, lo=s.min, hi=s.max)
+        return Count(name, loc, type_id=self.node(t), lo=s.min, hi=s.max)
 
     def chain(self, name: str, s: dsl.ChainC, loc: Loc) -> Constraint | None:
         t = self.type_id(s.type, (*loc, "type"))
@@ -178,7 +196,7 @@ class _Builder:
         possible = None if present is None else (min(1, present[0]), top if present[1] else 0)
         if not self.bounds(s, loc, possible, f"the longest chain of '{s.type}'"):
             return None
-        return LongestChain(name, loc, type_id=t, lo=s.min, hi=s.max)
+        return LongestChain(name, loc, type_id=self.node(t), lo=s.min, hi=s.max)
 
     def children(self, name: str, s: dsl.ChildrenC, loc: Loc) -> Constraint | None:
         of = self.type_id(s.of, (*loc, "of"))
@@ -195,7 +213,8 @@ class _Builder:
             return None
         nodes = self.count_range(lambda tt: int(tt == of))
         single = nodes is not None and nodes[1] <= 1
-        return Children(name, loc, of=of, child=child, lo=s.min, hi=s.max, single=single)
+        child = None if child is None else self.node(child)
+        return Children(name, loc, of=self.node(of), child=child, lo=s.min, hi=s.max, single=single)
 
     # ---------------------------------------------------------------- radii ---
 
@@ -212,14 +231,14 @@ class _Builder:
                 )
                 ok = False
             else:
-                r[t] = value
+                r[self.node(t)] = value
         if needed:
             for t in ids:
                 tname = self.types[t].name
                 if tname in given:
                     continue
                 try:
-                    r[t] = keep_out_radius(self.types[t].geometry, self.c.base_dir)
+                    r[self.node(t)] = keep_out_radius(self.types[t].geometry, self.c.base_dir)
                 except ShapeError as exc:
                     self.c.error(
                         (*loc, "types"),
@@ -235,7 +254,7 @@ class _Builder:
             tb = self.type_id(b, (*loc, "exempt", k, 1))
             if ta is None or tb is None:
                 return None
-            ids.append((ta, tb))
+            ids.append((self.node(ta), self.node(tb)))
         return pair_table(ids, self.n)
 
     # ----------------------------------------------------------------- pose ---
@@ -257,11 +276,12 @@ class _Builder:
         if s.keep_out:
             width = np.nanmin(np.where(np.isnan(hi - lo), np.inf, hi - lo)[:2])
             for t in ids:
-                if 2 * r[t] > width:
+                across = 2 * r[self.node(t)]
+                if across > width:
                     self.c.error(
                         (*loc, "types"),
                         f"can never hold: the box is {width:g} m wide, narrower than the "
-                        f"keep-out disc of '{self.types[t].name}' ({2 * r[t]:g} m across)",
+                        f"keep-out disc of '{self.types[t].name}' ({across:g} m across)",
                     )
                     return None
         if not s.keep_out:
@@ -280,7 +300,7 @@ class _Builder:
         return InsideBox(
             name,
             loc,
-            types=type_mask(ids, self.n),
+            types=self.mask(ids),
             frame=frame,
             lo=lo,
             hi=hi,
@@ -299,9 +319,9 @@ class _Builder:
                 )
                 return None
         try:
-            wanted = set(ids)
-            geometries = [t.geometry if k in wanted else None for k, t in enumerate(self.types)]
-            geometries += [None] * (self.n - len(geometries))
+            geometries: list[Any] = [None] * self.n
+            for t in ids:
+                geometries[self.node(t)] = self.types[t].geometry
             return extents_of(geometries, self.c.base_dir)
         except ShapeError as exc:
             self.c.error((*loc, "types"), f"cannot bound the geometry: {exc}")
@@ -318,7 +338,7 @@ class _Builder:
         return Clearance(
             name,
             loc,
-            types=type_mask(ids, self.n),
+            types=self.mask(ids),
             radius=r,
             exempt=ex,
             exempt_ancestors=s.exempt_ancestors,
@@ -334,7 +354,7 @@ class _Builder:
         return Upright(
             name,
             loc,
-            types=type_mask(ids, self.n),
+            types=self.mask(ids),
             axis=AXIS[s.axis],
             frame=frame,
             frame_axis=AXIS[s.frame_axis],
@@ -352,19 +372,20 @@ class _Builder:
         hollow = [False] * self.n
         r = np.zeros(self.n)
         for t in ids:
+            k, geometry = self.node(t), self.types[t].geometry
             try:
-                shapes[t] = collision_shape(self.types[t].geometry, self.c.base_dir)
-                solids[t] = solid_of(self.types[t].geometry)
-                hollow[t] = isinstance(self.types[t].geometry, dsl.RevolveG)
-                origins[t] = tuple(geometry_origin(self.types[t].geometry).tolist())
-                r[t] = bounding_radius(self.types[t].geometry, self.c.base_dir)
+                shapes[k] = collision_shape(geometry, self.c.base_dir)
+                solids[k] = solid_of(geometry)
+                hollow[k] = isinstance(geometry, dsl.RevolveG)
+                origins[k] = tuple(geometry_origin(geometry).tolist())
+                r[k] = bounding_radius(geometry, self.c.base_dir)
             except ShapeError as exc:
                 self.c.error((*loc, "types"), f"cannot check '{self.types[t].name}': {exc}")
                 return None
         sel = Clearance(
             name,
             loc,
-            types=type_mask(ids, self.n),
+            types=self.mask(ids),
             radius=r,
             exempt=ex,
             exempt_ancestors=s.exempt_ancestors,
