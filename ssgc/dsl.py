@@ -40,18 +40,32 @@ Mat3 = Annotated[list[Vec3], Field(min_length=3, max_length=3)]
 MAX_COORDINATE = 1e6
 
 
-def _near_origin(xyz: list[float]) -> list[float]:
+def _within_limit(xyz: list[float], what: str) -> list[float]:
     far = max(abs(v) for v in xyz)
     if far > MAX_COORDINATE:
         raise ValueError(
-            f"a position must lie within {MAX_COORDINATE / 1000:,.0f} km of the origin on each "
+            f"{what} must lie within {MAX_COORDINATE / 1000:,.0f} km of the origin on each "
             f"axis, got {far:g} m (poses are resolved to 1e-6 m, which floating point cannot "
             "hold there)"
         )
     return xyz
 
 
+def _near_origin(xyz: list[float]) -> list[float]:
+    return _within_limit(xyz, "a position")
+
+
+def _near_parent(xyz: list[float]) -> list[float]:
+    """A rule's constant (an offset, a Normal's mean, a box corner; the clutter region) is
+    bounded as a position is: every scene reader refuses a pose beyond the limit, so a rule
+    placing its child there made scenes no command reads.  Each constant is bounded on its own;
+    what spreads and chained offsets add up to, `ssg sample` checks on the scenes it writes."""
+    return _within_limit(xyz, "a position or offset")
+
+
 Position = Annotated[Vec3, AfterValidator(_near_origin)]
+# a position or offset written in a rule (an `offset`, a Normal's `mean`, a box corner)
+RulePosition = Annotated[Vec3, AfterValidator(_near_parent)]
 Mat4 = Annotated[list[Vec4], Field(min_length=4, max_length=4)]
 Axis = Literal["x", "y", "z"]
 TypeName = Annotated[str, StringConstraints(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$", max_length=200)]
@@ -148,7 +162,7 @@ def _choice(*variants: tuple[Any, str], what: str) -> Any:
 class NormalParams(Strict):
     """A Normal law on a 3-D offset; pinned axes are held at the mean (density over the rest)."""
 
-    mean: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    mean: RulePosition = Field(default_factory=lambda: [0.0, 0.0, 0.0])
     variance: Positive | Vec3 | None = Field(
         None, description="Per-axis variances (m^2), or one number for all axes."
     )
@@ -166,13 +180,13 @@ class NormalParams(Strict):
 class BoxParams(Strict):
     """Uniform on an axis-aligned box; an axis with min == max is pinned."""
 
-    min: Vec3
-    max: Vec3
+    min: RulePosition
+    max: RulePosition
     fixed: bool = False
 
 
 class OffsetT(Strict):
-    offset: Vec3 = Field(description="Fixed offset, in the parent's frame.")
+    offset: RulePosition = Field(description="Fixed offset, in the parent's frame.")
 
 
 class WorldNormalT(Strict):

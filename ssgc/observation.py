@@ -16,9 +16,11 @@ change:
   noise.  The noise of the parent's end adds its rotation's lever arm (|mean offset|·σ_rot)
   to a parent-frame translation.  This is the exact marginal P(o | rest) for an edge whose
   parent pose is exact (the root, or a type without noise) and a first-order one otherwise
-  (siblings' shared parent error is treated as independent).  An observed root with noise
-  gets its own node at the grammar's root pose (type `~node:NAME`), of which the observed
-  object is a noisy child.
+  (siblings' shared parent error is treated as independent).  A box translation and a
+  revolute range short of the full circle are not widened (their convolutions are laws ssgc
+  does not have); the compiler warns about each rule that noise reaches there.  An observed
+  root with noise gets its own node at the grammar's root pose (type `~node:NAME`), of which
+  the observed object is a noisy child.
 - **Clutter**: a new root (type `~scene`, at the grammar's root pose) holds the grammar's root
   by a fixed rule and a set `~clutter` of at most `max` clutter objects: their number Poisson
   with the total rate (truncated), each one of a type chosen in proportion to its rate,
@@ -47,10 +49,10 @@ from ssgc.distributions.discrete import CountLaw
 from ssgc.distributions.normal import Normal
 from ssgc.distributions.uniform import UniformBox
 from ssgc.ir import Grammar, Kind, Loc, NodeType, Rule
-from ssgc.laws.base import Frame, PoseLaw, frozen
+from ssgc.laws.base import MIN_WIDTH, Frame, PoseLaw, frozen
 from ssgc.laws.counts import ProbsCount
 from ssgc.laws.fixed import FixedRotation, FixedTranslation
-from ssgc.laws.position_box import BoxTranslation
+from ssgc.laws.position_box import BoxTranslation, narrow_box
 from ssgc.laws.position_normal import NormalTranslation, Spread
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION, BinghamRotation, Form
 from ssgc.laws.rotation_revolute import RevoluteRotation
@@ -112,7 +114,7 @@ def apply(
         return out
     noise = _noise_of_types(spec, out, report)
     if any(noise.values()):
-        _widen(out, noise, root)
+        _widen(out, noise, root, report)
         if noise.get(root):
             _observe_root(out, noise[root])
     if spec.clutter is not None:
@@ -137,6 +139,18 @@ def check(
     _noise_of_types(spec, g, report)
     if spec.clutter is not None:
         _clutter_kinds(spec.clutter, g, report)
+
+
+def true_nodes(g: Observed, types: list[NodeType], root: int | None) -> dict[int, int]:
+    """{the root type: its true node's type} when `apply` gave an observed root noise (the
+    root's rules moved to `~node:NAME`, the root type a noisy leaf under `~scene`), else {}:
+    what a constraint naming the root refers to (`ssgc.constraints.build`)."""
+    if root is None:
+        return {}
+    node = g.ids.get(NODE_PREFIX + types[root].name)
+    if node is None or g.types[node].synthetic != "node":
+        return {}
+    return {root: node}
 
 
 # ------------------------------------------------------------------------- noise ---
@@ -193,11 +207,12 @@ def _components(n_types: int, joins: list[Rule]) -> list[int]:
     return [find(a) for a in range(n_types)]
 
 
-def _widen(g: Observed, noise: dict[int, Noise], root: int) -> None:
+def _widen(g: Observed, noise: dict[int, Noise], root: int, report: Report) -> None:
     """Replace each rule between observed poses by the law of the observed relative pose.
 
     The root's own node is at the grammar's root pose exactly (`_observe_root`), so the root
-    type's noise does not reach the rules it fires."""
+    type's noise does not reach the rules it fires.  A rule whose box or revolute range the
+    noise would widen but does not (`_kept_sharp`) is warned about."""
     n_types = len(g.types)
     fixed = [r for r in g.rules if _is_fixed(r)]
     into_noisy = [r for r in fixed if noise.get(r.child)]
@@ -217,6 +232,7 @@ def _widen(g: Observed, noise: dict[int, Noise], root: int) -> None:
             continue
         child, parent = block[r.child], block[r.parent]
         if child or parent:
+            _warn_kept_sharp(g, r, child, parent, report)
             g.rules[r.id] = dataclasses.replace(
                 r,
                 translation=_noisy_translation(r.translation, child, parent),
@@ -248,14 +264,62 @@ def _tied_types(g: Observed, loose_candidates: set[int]) -> list[bool]:
     return [tied(t) for t in range(len(g.types))]
 
 
-def _noisy_translation(law: PoseLaw, child: Noise, parent: Noise) -> PoseLaw:
-    """`law` convolved with the position noise of the relative pose it places."""
+def _position_variance(law: PoseLaw, child: Noise, parent: Noise) -> float:
+    """The noise variance of each coordinate of the relative position `law` places."""
     if law.frame == Frame.WORLD:
         var = child.position**2
     else:
         var = child.position**2 + parent.position**2
     if law.frame == Frame.PARENT and isinstance(law, NormalTranslation | FixedTranslation):
         var += (float(np.linalg.norm(law.offset)) * parent.rotation) ** 2
+    return var
+
+
+def _rotation_variance(law: PoseLaw, child: Noise, parent: Noise) -> float:
+    """The noise variance of each angle of the relative rotation `law` places."""
+    return child.rotation**2 + (parent.rotation**2 if law.frame != Frame.WORLD else 0.0)
+
+
+def _kept_sharp(r: Rule, child: Noise, parent: Noise) -> list[str]:
+    """The parts of rule `r` that noise reaches but does not widen: a box translation and a
+    revolute range keep their edges (`_noisy_translation`, `_noisy_rotation`).
+
+    Widening them exactly would take a new law, a box convolved with a Normal (per axis a
+    difference of two normal CDFs), which the parser would have to place latent nodes by and
+    bound; ssgc has none, so such a rule places an observed object only inside its range (to
+    1e-6 m or rad), with noise as without, and `ssg validate` says so (docs/grammar.md 9)."""
+    parts = []
+    t, q = r.translation, r.rotation
+    if isinstance(t, BoxTranslation) and _position_variance(t, child, parent) > 0:
+        parts.append("box translation")
+    if (
+        isinstance(q, RevoluteRotation)
+        and not q.revolute.is_full_circle
+        and _rotation_variance(q, child, parent) > 0
+    ):
+        parts.append("revolute range")
+    return parts
+
+
+def _warn_kept_sharp(g: Observed, r: Rule, child: Noise, parent: Noise, report: Report) -> None:
+    """One warning for a rule whose box or revolute range noise does not widen, at the first
+    of them."""
+    parts = _kept_sharp(r, child, parent)
+    if not parts:
+        return
+    at = r.translation.path if parts[0] == "box translation" else r.rotation.path
+    them = "them" if len(parts) > 1 else "it"
+    report.warn(
+        at,
+        f"noise does not widen this rule's {' and '.join(parts)}: it places an observed "
+        f"{g.types[r.child].name} only within {them} (to 1e-6 m, 1e-6 rad), as without noise "
+        "(docs/grammar.md, section 9)",
+    )
+
+
+def _noisy_translation(law: PoseLaw, child: Noise, parent: Noise) -> PoseLaw:
+    """`law` convolved with the position noise of the relative pose it places."""
+    var = _position_variance(law, child, parent)
     if var <= 0:
         return law
     if isinstance(law, FixedTranslation):
@@ -282,7 +346,7 @@ def _noisy_translation(law: PoseLaw, child: Noise, parent: Noise) -> PoseLaw:
 
 def _noisy_rotation(law: PoseLaw, child: Noise, parent: Noise) -> PoseLaw:
     """`law` with its concentration combined with the rotation noise's (module docstring)."""
-    var = child.rotation**2 + (parent.rotation**2 if law.frame != Frame.WORLD else 0.0)
+    var = _rotation_variance(law, child, parent)
     if var <= 0 or isinstance(law, UniformRotation):
         return law
     k = 2.0 / var  # the concentration of a Bingham whose angle about an axis has variance var
@@ -348,6 +412,10 @@ def _clutter_kinds(spec: dsl.ClutterSpec, g: Observed, report: Report) -> list[i
     ok = not np.any(hi <= lo)
     if not ok:
         report.error((*loc, "region", "max"), "the clutter region needs max > min on every axis")
+    elif np.any(hi - lo < MIN_WIDTH):  # a box: its faces have the same tolerance
+        i = int(np.argmax(hi - lo < MIN_WIDTH))
+        report.error((*loc, "region", "max", i), narrow_box(float(hi[i] - lo[i]), "xyz"[i]))
+        ok = False
     kinds: list[int] = []
     for name, _rate in spec.rates.items():
         tid = _clutter_type(name, g, (*loc, "rates", name), report)

@@ -1502,6 +1502,25 @@ def test_sampling_an_exploding_grammar_is_a_message(work: Path) -> None:
     assert "makes scenes too large to sample" in result.stderr
 
 
+def test_sampling_beyond_the_limit_is_a_message(work: Path) -> None:
+    """A variance of 1e14 m² drew objects thousands of km away, written to scene files no
+    command reads; now refused before any is written."""
+    text = dedent("""\
+        grammar: far
+        root: R
+        types:
+          R: {and: [{child: A, translation: {world_normal: {variance: 1e14}}}]}
+          A: {observed: true}
+        """)
+    path = write(work / "far.yaml", encode(text))
+    out = work / "far_out"  # `out` may hold another case's run, which is left as it was
+    result = run_ok(
+        ["sample", str(path), "-n", "2", "-o", str(out), "-q", "--overwrite"], b"", [path], {1}
+    )
+    assert "scene far_000000: object A was drawn at" in result.stderr
+    assert "1,000 km" in result.stderr and not list(out.glob("*.json"))
+
+
 def test_sampling_too_deep_trees_is_a_message(work: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Deeper than MAX_LEVELS was a RuntimeError (exit 70)."""
     import ssgc.sample.forward
@@ -1574,6 +1593,40 @@ def test_bad_sink_datasets(work: Path, text: str, fragment: str) -> None:
             "grammar: " + "1" * 5000 + "\n",
             "as !!int (an integer of more than 4300 digits)",
             id="5000-digit-integer",
+        ),
+        # a rule's constants beyond the 1,000 km scene files hold made unreadable scenes
+        pytest.param(
+            "grammar: g\nroot: R\ntypes:\n  R: {and: [{child: A, translation: {offset: "
+            "[0, 2e6, 0]}}]}\n  A: {observed: true}\n",
+            "4:38: error: types.R.and[0].translation.offset: a position or offset must lie "
+            "within 1,000 km",
+            id="far-offset",
+        ),
+        pytest.param(
+            "grammar: g\nroot: R\ntypes:\n  R: {and: [{child: A, translation: {world_normal: "
+            "{mean: [1e300, 0, 0], variance: 1}}}]}\n  A: {observed: true}\n",
+            "within 1,000 km of the origin on each axis, got 1e+300 m",
+            id="far-mean",
+        ),
+        # a box or arc this narrow had a mass of up to 21 (its faces' 1e-6 tolerance)
+        pytest.param(
+            "grammar: g\nroot: R\ntypes:\n  R: {and: [{child: A, translation: {world_box: "
+            "{min: [0, 0, 0], max: [1, 1, 1e-7]}}}]}\n  A: {observed: true}\n",
+            "box is 1e-07 m wide on z, narrower than 0.0001 m",
+            id="narrow-box",
+        ),
+        pytest.param(
+            "grammar: g\nroot: R\ntypes:\n  R: {and: [{child: A, rotation: {revolute: "
+            "{min: 0, max: 1e-7}}}]}\n  A: {observed: true}\n",
+            "revolute range is 1e-07 rad wide, narrower than 0.0001 rad",
+            id="narrow-revolute",
+        ),
+        pytest.param(
+            "grammar: g\nroot: R\ntypes:\n  R: {and: [{child: A, translation: {world_normal: "
+            "{covariance: [[1, 0, 0], [0, 1, 0], [0, 0, -1]], pin: [z]}}}]}\n"
+            "  A: {observed: true}\n",
+            "the variance of a pinned axis may be 0 but not negative, got -1 (z axis)",
+            id="negative-pinned-covariance",
         ),
     ],
 )

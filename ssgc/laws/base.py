@@ -39,6 +39,10 @@ Columns = Mapping[str, NDArray[Any]]
 
 POS_TOL = 1e-6  # meters: how far a pinned coordinate may be from its value
 ROT_TOL = 1e-6  # radians: same for fixed rotations and revolute axes
+# m, rad: the narrowest free box axis or revolute range.  Their densities count points within
+# POS_TOL / ROT_TOL outside as inside (frame arithmetic and rounded data put objects on a face
+# with round-off), so a range w wide carries mass (w + 2 tol) / w: at most 1.02 from here up.
+MIN_WIDTH = 100 * POS_TOL
 LOG_2 = float(np.log(2.0))
 
 

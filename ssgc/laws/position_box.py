@@ -3,6 +3,11 @@
 An axis with min == max is pinned (a point mass).  A box is a support, not a shape: its
 maximum-likelihood value is the hull of the data, which would make every scene slightly
 outside it impossible, so `ssg fit` keeps it as written (docs/fitting.md).
+
+The density holds up to `POS_TOL` outside each face, as a pin does: frame arithmetic and
+rounded data put an object lying on a face a round-off outside it.  A free axis w wide then
+carries mass (w + 2 POS_TOL) / w, so one narrower than `MIN_WIDTH` (2% too much) is refused
+(docs/grammar.md 4.2).
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import numpy as np
 from ssgc import dsl
 from ssgc.distributions.uniform import UniformBox
 from ssgc.laws.base import (
+    MIN_WIDTH,
     POS_TOL,
     Columns,
     Context,
@@ -25,6 +31,15 @@ from ssgc.laws.base import (
     TranslationLaw,
     register,
 )
+
+
+def narrow_box(width: float, axis: str) -> str:
+    """Why a free box axis `width` wide is refused (`MIN_WIDTH`)."""
+    return (
+        f"box is {width:g} m wide on {axis}, narrower than {MIN_WIDTH:g} m: positions within "
+        f"{POS_TOL:g} m outside a face count as inside, which would give it a mass of "
+        f"{(width + 2 * POS_TOL) / width:.3g}, not 1; pin the axis (min == max) or widen it"
+    )
 
 
 @register
@@ -48,6 +63,11 @@ class BoxTranslation(TranslationLaw):
             too_wide = not np.all(np.isfinite(hi - lo))
         if too_wide:  # the density 1/volume would be 0
             ctx.error((*loc, "max"), "box is too large (its width overflows)")
+            return None
+        narrow = np.flatnonzero((hi > lo) & (hi - lo < MIN_WIDTH))
+        for i in narrow:  # `density` would give it more than 1.02 of mass on that axis
+            ctx.error((*loc, "max", int(i)), narrow_box(float(hi[i] - lo[i]), "xyz"[i]))
+        if narrow.size:
             return None
         return cls(key=key, frame=cls.keys[key], path=loc, fixed=p.fixed, box=UniformBox(lo, hi))
 

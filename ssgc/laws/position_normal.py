@@ -191,6 +191,17 @@ def _covariance(
     if not np.allclose(cov, cov.T, rtol=0, atol=1e-12 * max(1.0, np.abs(cov).max())):
         ctx.error((*loc, "covariance"), "covariance must be symmetric")
         return None
+    # a pinned axis's row and column are dropped, but its variance may be 0, not negative,
+    # as in the `variance` form (docs/grammar.md 4.2)
+    negative = np.flatnonzero(~free & (np.diag(cov) < 0))
+    for i in negative:
+        ctx.error(
+            (*loc, "covariance", int(i), int(i)),
+            f"the variance of a pinned axis may be 0 but not negative, got {cov[i, i]:g} "
+            f"({'xyz'[i]} axis)",
+        )
+    if negative.size:
+        return None
     sub = cov[np.ix_(free, free)]
     try:
         with np.errstate(all="ignore"):  # huge entries overflow: NaN fails below

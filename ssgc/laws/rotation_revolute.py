@@ -1,7 +1,9 @@
 """Revolute rotations (`revolute`): the parent's rotation times a turn about a fixed axis by an
 angle uniform on [min, max] (radians, modulo 2π), a density w.r.t. the angle.
 
-Like a box, the range is a support, so `ssg fit` keeps it as written.
+Like a box, the range is a support, so `ssg fit` keeps it as written, and like a box's faces
+its ends hold to `ROT_TOL` beyond: a range narrower than `MIN_WIDTH` would carry more than 2%
+too much mass, and is refused (docs/grammar.md 4.6).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from ssgc import dsl
 from ssgc.distributions.uniform import UniformRevolute
 from ssgc.geometry import axis_angle_to_quat
 from ssgc.laws.base import (
+    MIN_WIDTH,
     ROT_TOL,
     Columns,
     Context,
@@ -56,6 +59,16 @@ class RevoluteRotation(RotationLaw):
             return None
         if p.max - p.min > 2 * np.pi + 1e-9:
             ctx.error((*loc, "max"), f"revolute range exceeds 2π ({p.max - p.min:g} rad)")
+            return None
+        width = p.max - p.min
+        if width < MIN_WIDTH:  # `density` would give it more than 1.02 of mass
+            ctx.error(
+                (*loc, "max"),
+                f"revolute range is {width:g} rad wide, narrower than {MIN_WIDTH:g} rad: angles "
+                f"within {ROT_TOL:g} rad beyond its ends count as inside, which would give it a "
+                f"mass of {(width + 2 * ROT_TOL) / width:.3g}, not 1; use a fixed rotation "
+                "`offset`, or widen it",
+            )
             return None
         return cls(
             key=key,

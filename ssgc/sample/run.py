@@ -16,6 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from ssgc.dsl import MAX_COORDINATE
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.io.atomic import remove_stale_temps_below
 from ssgc.io.outputs import Output, check_directory, directory_lock, write_output_text
@@ -42,6 +45,7 @@ from ssgc.sample.constrained import (
     scene_metadata,
     select,
 )
+from ssgc.tree import Trees
 
 # What a run does with each scene it draws: (scene, its file, seed, index, metadata).
 SceneWriter = Callable[[Scene, Path, int, int, dict[str, Any] | None], None]
@@ -152,6 +156,7 @@ def _forward(
         trees, logp = forward.sample_chunk(grammar, forward.chunk_rng(seed, chunk))
         if have is not None:
             have.check_same_draws(lo, logp[: hi - lo], name_of)
+        check_within_limit(grammar, trees, hi - lo, lo, name_of)
         for index in range(lo, hi):
             k = index - lo
             if have is None or not have.done[index]:
@@ -195,6 +200,7 @@ def _constrained(
         first = block.index * BLOCK
         if have is not None:
             have.check_same_draws(first, block.logp, name_of)
+        check_within_limit(grammar, block.trees, block.trees.n_scenes, first, name_of)
         for k in range(block.trees.n_scenes):
             index = first + k
             if have is None or not have.done[index]:
@@ -203,6 +209,40 @@ def _constrained(
                 meta = scene_metadata(plan.method, names, block.margins, k, block.chain)
                 yield Drawn(index, scene, meta)
             step(1)
+
+
+class BeyondLimit(SsgError):
+    """A drawn scene has a node beyond the 1,000 km every scene reader accepts."""
+
+
+def check_within_limit(
+    grammar: Grammar, trees: Trees, count: int, first: int, name_of: Callable[[int], str]
+) -> None:
+    """Refuse a batch of drawn scenes (the first `count` trees of `trees`, scenes `first`...)
+    if a node of one lies beyond `dsl.MAX_COORDINATE` on an axis, before any of them is
+    written or returned: every scene reader refuses such a pose, so the file would be one no
+    command reads.  The grammar's constants are within the limit (`ssgc.dsl`), but a spread (a
+    variance of 1e14 m²) or offsets added along a chain can carry a node beyond it; no bound on
+    the variances at validate time could exclude that (a Normal has no edge, and chains add
+    up), so this is checked here, on the poses themselves.  The first such scene is named,
+    with the node's type and coordinate."""
+    with np.errstate(invalid="ignore"):
+        far = ~(np.abs(trees.xyz) <= MAX_COORDINATE) & (trees.scene < count)[:, None]
+    if not far.any():
+        return
+    nodes = np.flatnonzero(far.any(axis=1))
+    node = int(nodes[np.argmin(trees.scene[nodes])])  # of the first scene that has one
+    axis = int(np.argmax(np.where(far[node], np.abs(trees.xyz[node]), -1.0)))  # its farthest
+    t = grammar.types[int(trees.type[node])]
+    what = "object" if t.observed else "node"
+    raise BeyondLimit.single(
+        f"scene {name_of(first + int(trees.scene[node]))}: {what} {t.name} was drawn at "
+        f"{'xyz'[axis]} = {trees.xyz[node, axis]:g} m, beyond the "
+        f"{MAX_COORDINATE / 1000:,.0f} km from the origin (on each axis) that scene files may "
+        "hold; no command would read it, so it is not written. The grammar's spreads or "
+        "chained offsets reach that far: narrow them",
+        grammar.file,
+    )
 
 
 @dataclass
@@ -266,7 +306,7 @@ def sample_to_directory(
                 write(drawn.scene, path, seed, drawn.index, drawn.metadata)
                 run.first, run.last = run.first or path, path
                 run.written += 1
-        except Unmet as exc:
+        except (Unmet, BeyondLimit) as exc:
             if run.written:
                 note = f"kept the {run.written} complete scene file(s) found"
                 exc.diagnostics.append(Diagnostic(note, str(output)))
