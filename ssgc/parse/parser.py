@@ -395,8 +395,8 @@ class Parser:
         return parse
 
     def scored(self, tree: Trees, status: str, gap: float, objective: float) -> Parse:
-        score = float(score_trees(self.grammar, tree)[0])
-        terms = node_terms(self.grammar, tree)
+        score = float(score_trees(self.grammar, tree, marginal=True)[0])
+        terms = node_terms(self.grammar, tree, marginal=True)
         return Parse(
             tree=tree,
             score=score,
