@@ -71,6 +71,8 @@ def latent_spread(
         hidden = hidden_nodes(grammar, trees) | ~seen_nodes(grammar, trees)
     edge_cov = np.zeros((n, 3, 3))
     log_volume = np.zeros(trees.n_scenes)
+    if not grammar.rules:  # a grammar of one root: no edge, nothing latent to spread
+        return LatentSpread(edge_cov, log_volume, np.zeros(n, bool))
     normal, precision, frame = _rule_tables(grammar)
     is_edge = (trees.rule >= 0) & ~hidden
     rule = np.maximum(trees.rule, 0)
