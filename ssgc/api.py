@@ -579,7 +579,9 @@ class Tree:
 
     @property
     def log_prob(self) -> float:
-        """log p(tree) under the grammar (thesis Eq. 2.1), as the scorer computes it."""
+        """log p(tree) under the grammar (thesis Eq. 2.1), as the scorer computes it: the
+        poses of latent nodes with nothing observed below them integrated out
+        (docs/conventions.md, "Unseen nodes"), as every score ssgc reports."""
         from ssgc.score import score_trees
 
         return float(score_trees(self.grammar.ir, self.trees)[0])

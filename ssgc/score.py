@@ -5,6 +5,15 @@ the discrete term of each parent (which rules fired, Table 2.3.1 node kinds) is 
 all nodes at once from a (node × rule slot) child-count matrix, and the continuous term of
 each edge comes from `ssgc.rules`.  A tree the grammar cannot produce scores -inf;
 `explain` says why, for messages.
+
+A tree's score integrates out the poses of its *unseen* nodes — nodes with no observed node at
+or below them.  Every pose law is a normalised density, so each such node's edge integrates to
+1 and drops out, exactly: what is left is the probability of the tree's structure and the
+density of the poses a scene can show.  Parses maximise it; samplers record it, explanations
+and fits use it.  `marginal=False` gives Eq. 2.1 as written, every pose's density included.  At its
+mode a Normal of variance 0.01 has density e^4.15 per node, so under Eq. 2.1 an empty latent
+node placed at its mode raised a tree's score, and parses added such nodes (docs/parsing.md,
+"What a parse maximises").
 """
 
 from __future__ import annotations
@@ -31,9 +40,10 @@ class NodeTerms:
     valid: NDArray[np.bool_]  # False where the structure is impossible (the term is -inf)
 
 
-def score_trees(grammar: Grammar, trees: Trees) -> FloatArray:
-    """Log-probability of each tree in the batch (-inf for trees the grammar cannot produce)."""
-    terms = node_terms(grammar, trees)
+def score_trees(grammar: Grammar, trees: Trees, marginal: bool = True) -> FloatArray:
+    """Log-probability of each tree in the batch (-inf for trees the grammar cannot produce);
+    `marginal`: with the poses of unseen nodes integrated out (the module's docstring)."""
+    terms = node_terms(grammar, trees, marginal)
     total = np.bincount(trees.scene, terms.choice + terms.edge, minlength=trees.n_scenes)
     invalid = np.bincount(trees.scene, ~terms.valid, minlength=trees.n_scenes) > 0
     invalid |= _roots(trees) != 1  # a tree of no nodes summed to 0: probability 1
@@ -44,7 +54,36 @@ def _roots(trees: Trees) -> NDArray[np.int64]:
     return np.bincount(trees.scene[trees.parent < 0], minlength=trees.n_scenes)
 
 
-def node_terms(grammar: Grammar, trees: Trees) -> NodeTerms:
+def seen_nodes(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
+    """Nodes with an observed node at or below them: the nodes whose poses a scene can show
+    (directly, or through where its observed descendants lie)."""
+    seen = grammar.tables.type_observed[trees.type].copy()
+    up = np.flatnonzero(seen)
+    while len(up):  # one level per round, each round only the nodes newly seen
+        parent = trees.parent[up]
+        parent = np.unique(parent[parent >= 0])
+        up = parent[~seen[parent]]
+        seen[up] = True
+    return seen
+
+
+def unseen_edges(grammar: Grammar, trees: Trees) -> FloatArray:
+    """Per tree, the log-densities of its unseen nodes' poses: what a sampler, which draws
+    every pose, takes off its Eq. 2.1 sum to record the tree's score (`marginal`)."""
+    unseen = np.flatnonzero(~seen_nodes(grammar, trees) & (trees.parent >= 0))
+    out = np.zeros(trees.n_scenes)
+    if len(unseen):
+        r, p = trees.rule[unseen], trees.parent[unseen]
+        edge = translation_log_density(
+            grammar, r, trees.xyz[p], trees.quat[p], trees.xyz[unseen]
+        ) + rotation_log_density(grammar, r, trees.quat[p], trees.quat[unseen])
+        out += np.bincount(trees.scene[unseen], edge, minlength=trees.n_scenes)
+    return out
+
+
+def node_terms(grammar: Grammar, trees: Trees, marginal: bool = True) -> NodeTerms:
+    """`marginal`: an unseen node's edge is 0, its pose integrated out (the module's
+    docstring); a pose its law cannot produce still makes the tree impossible."""
     n = len(trees)
     valid = _structure_valid(grammar, trees)
     # Only trust the rule/type tables on nodes whose parent link is consistent.
@@ -61,6 +100,8 @@ def node_terms(grammar: Grammar, trees: Trees) -> NodeTerms:
             grammar, r, trees.xyz[p], trees.quat[p], trees.xyz[child]
         ) + rotation_log_density(grammar, r, trees.quat[p], trees.quat[child])
     valid &= ok & np.isfinite(edge) & np.isfinite(choice)
+    if marginal:
+        edge = np.where(seen_nodes(grammar, trees), edge, 0.0)
     return NodeTerms(choice=np.where(ok, choice, -np.inf), edge=edge, valid=valid)
 
 

@@ -1244,6 +1244,7 @@ def test_fuzz_fit_bounds(work: Path, variance: str, ceiling: str) -> None:
 @fuzz(quick=8)
 @given(data=grammar_inputs(), estep=st.sampled_from(["topn", "mcmc"]))
 @example(data=b"\xef\xbb\xbf" * 2 + GRAMMAR_TEXTS["gmm.yaml"].encode(), estep="topn")
+@example(data=b"grammar: g\nroot: R\ntypes: {R: {}}\n", estep="topn")  # no rule: exit 70
 def test_fuzz_fit_grammar(work: Path, data: bytes, estep: str) -> None:
     """Fuzzed grammars fitted to scenes they sampled themselves (when they can sample)."""
     path = write(work / "grammar.yaml", data)

@@ -35,6 +35,7 @@ from ssgc.geometry import quat_to_matrix
 from ssgc.ir import Grammar
 from ssgc.laws.base import Frame
 from ssgc.laws.position_normal import NormalTranslation
+from ssgc.score import seen_nodes
 from ssgc.tree import Trees
 
 FloatArray = NDArray[np.float64]
@@ -66,9 +67,12 @@ def latent_spread(
 ) -> LatentSpread:
     """The Gaussian posterior of every tree's free latent positions about their MAP values."""
     n = len(trees)
-    hidden = hidden_nodes(grammar, trees) if hidden is None else hidden
+    if hidden is None:  # and the unseen nodes, whose positions the score integrates out
+        hidden = hidden_nodes(grammar, trees) | ~seen_nodes(grammar, trees)
     edge_cov = np.zeros((n, 3, 3))
     log_volume = np.zeros(trees.n_scenes)
+    if not grammar.rules:  # a grammar of one root: no edge, nothing latent to spread
+        return LatentSpread(edge_cov, log_volume, np.zeros(n, bool))
     normal, precision, frame = _rule_tables(grammar)
     is_edge = (trees.rule >= 0) & ~hidden
     rule = np.maximum(trees.rule, 0)

@@ -45,7 +45,7 @@ from ssgc.ir import Grammar, Kind, NodeType
 from ssgc.laws.position_normal import NormalTranslation
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 from ssgc.rules import rotation_coordinates, translation_coordinates
-from ssgc.score import fired_slots
+from ssgc.score import fired_slots, seen_nodes
 from ssgc.tree import Trees
 
 FloatArray = NDArray[np.float64]
@@ -156,7 +156,11 @@ def m_step(
         c, a, w = counts[rows], allowed[rows], node_weight[rows]
         seen = observable[list(t.rules)]
         updates += _choice_updates(grammar, t, c, a, w, seen, settings.pseudocount)
-    edges = _edges(grammar, trees, node_weight, hidden if map_latents else None)
+    # an unseen node's pose is integrated out of the score (`ssgc.score`): where the parser
+    # left it says nothing about its law
+    shown = seen_nodes(grammar, trees)
+    edge_weight = np.where(shown, node_weight, 0.0)
+    edges = _edges(grammar, trees, edge_weight, (hidden | ~shown) if map_latents else None)
     by_translation = _groups(ties.translation[edges.rule], len(grammar.rules))
     by_rotation = _groups(ties.rotation[edges.rule], len(grammar.rules))
     for rule in grammar.rules:

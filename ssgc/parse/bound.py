@@ -78,7 +78,7 @@ from ssgc.parse.set_terms import (
     counted_supremum,
     relaxed_upper_bound,
 )
-from ssgc.parse.supertree import Supertree
+from ssgc.parse.supertree import Supertree, hideable_nodes
 from ssgc.rules import rotation_log_density, translation_log_density
 from ssgc.tree import Trees
 
@@ -98,6 +98,7 @@ def set_bounds(
     latent = latent_sets(st)
     memo: dict[tuple, tuple[SetBound, ChainRows | None]] = {}
     chains: dict[int, Lifted] = {}
+    hide = hideable_nodes(grammar, st)
     for e in np.flatnonzero(latent)[::-1]:
         parent = known_parent(grammar, st, cand, int(e))
         lift = children_to_lift(st, int(e), chains)
@@ -136,7 +137,9 @@ def set_bounds(
         out[int(e)] = SetBound(
             columns, m.assignment, m.upper, m.xyz, m.quat, placed, parent is False, m.free
         )
-        if parent is False and rows is not None:
+        if parent is False and rows is not None and not hide[st.set_top[e]]:
+            # a set that can be unseen keeps its own bound: lifted, its edge would sit in
+            # its parent's rows, which count it even where the tree leaves it unseen
             chains[int(e)] = lifted(out[int(e)], rows, source)
             out[int(e)] = replace(out[int(e)], chain=chains[int(e)])
     return dict(sorted(out.items()))

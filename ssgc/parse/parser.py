@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ssgc.errors import SsgError
+from ssgc.geometry import quat_canonical
 from ssgc.io.scene import Scene
 from ssgc.ir import Grammar
 from ssgc.parse.bound import (
@@ -199,15 +200,22 @@ class Parser:
             return _failed(scene, NO_PARSE, SsgError.single(message), t0, "time", step)
         except ModelTooLarge as exc:
             return _failed(scene, NO_PARSE, exc, t0, "instance_limit")
+        # With a bound, the best tree is certified before the time goes on more trees: asked
+        # for three under a time limit, the first lost its certificate to the search for
+        # the others (`--top 3 --time-limit 5`: feasible, where `--top 1` was optimal).
+        first = 1 if bounds is not None else top
         if run is None:
             run = _Run(self, scene, problem, cand, bounds, deadline, complete)
-            run.solve(top)
+            run.solve(first)
         if not run.parses and run.status == NO_PARSE and run.phase == "proposals":
-            run = self._retry_hard(scene, cand, bounds, deadline, top) or run
+            run = self._retry_hard(scene, cand, bounds, deadline, first) or run
             if not run.parses and past(deadline):
                 run.timed_out_in = run.timed_out_in or "proposals"
         if bounds is not None and run.parses:
             run.certify()
+            if top > len(run.parses) and not run.timed_out_in:
+                run.solve(top)
+                run.recertify()
         elif self.has_latent and not complete:
             run.message = (
                 run.message or "no upper bound for this grammar's shape: the gap is unknown"
@@ -395,8 +403,8 @@ class Parser:
         return parse
 
     def scored(self, tree: Trees, status: str, gap: float, objective: float) -> Parse:
-        score = float(score_trees(self.grammar, tree)[0])
-        terms = node_terms(self.grammar, tree)
+        score = float(score_trees(self.grammar, tree, marginal=True)[0])
+        terms = node_terms(self.grammar, tree, marginal=True)
         return Parse(
             tree=tree,
             score=score,
@@ -463,7 +471,14 @@ class _Run:
 
     def solve(self, top: int) -> None:
         tries = 0
-        while len(self.parses) < top and tries < 20 * top:
+        while len(self.parses) < top:
+            if tries >= 20 * top:  # each solve found another encoding of a tree found
+                self.message = (
+                    f"only {len(self.parses)} distinct tree(s) found in {tries} solves "
+                    "(the others were the same trees with latent nodes at other poses); "
+                    "more may exist"
+                )
+                return
             tries += 1
             sol = self._solve_once()
             if sol is None or (sol.x is None and sol.status == "time_limit"):
@@ -586,6 +601,24 @@ class _Run:
         if best.gap <= GAP_TOL:
             self.certified.add(id(best))
 
+    def recertify(self) -> None:
+        """After more trees were found: the certificate, if any, goes to the best of them,
+        against the bound `certify` computed (it holds for every tree)."""
+        if not np.isfinite(self.bound):
+            return
+        self.certified.clear()
+        best = max(self.parses, key=lambda p: p.score)
+        if (best.score - self.bound) / max(1.0, abs(best.score)) > BOUND_SHORTFALL:
+            self.message = "the bound fell below a tree's score: the gap is unknown"
+            self.bound = float("nan")
+            for p in self.parses:
+                p.gap = float("nan")
+            return
+        for p in self.parses:
+            p.gap = (max(self.bound, p.score) - p.score) / max(1.0, abs(p.score))
+        if best.gap <= GAP_TOL:
+            self.certified.add(id(best))
+
     def _polished(self, best: Parse) -> Parse:
         """The best parse with its latent poses moved to a local maximum of the exact score
         (`refine_tree`, with the structure fixed), when that scores higher; it replaces the
@@ -694,7 +727,9 @@ def tree_signature(grammar: Grammar, tree: Trees) -> bytes:
     keys: list[bytes] = [b""] * len(tree)
     kids: list[list[bytes]] = [[] for _ in range(len(tree))]
     for i in range(len(tree) - 1, -1, -1):  # children first
-        rounded = np.round(np.r_[tree.xyz[i], np.abs(tree.quat[i])], 6) + 0.0  # no -0.0
+        # q and -q are one rotation: the sign-canonical quaternion, not |q| per component,
+        # which made yaw +30° and -30° one key (two planks crossed at one place: one tree)
+        rounded = np.round(np.r_[tree.xyz[i], quat_canonical(tree.quat[i])], 6) + 0.0
         pose = () if latent[i] else tuple(rounded.tolist())
         own = repr((int(tree.type[i]), int(tree.rule[i]), pose)).encode()
         keys[i] = hashlib.blake2b(own + b"".join(sorted(kids[i])), digest_size=20).digest()

@@ -49,7 +49,7 @@ from ssgc.parse.milp import (
 )
 from ssgc.parse.proposals import Candidates, near_earlier
 from ssgc.parse.reduction import ModelTooLarge, Request
-from ssgc.parse.supertree import Supertree, or_weight
+from ssgc.parse.supertree import Supertree, hideable_nodes, or_weight
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
 from ssgc.tree import Trees
 
@@ -876,7 +876,10 @@ class _Model:
         par = self.parent
         kids = np.flatnonzero(par >= 0)
         is_or = np.array([t.kind == Kind.OR for t in self.g.types])
+        hide = per_supertree(self.st, "hideable", lambda st: hideable_nodes(self.g, st))
+        # an unseen subtree scores its choice alone, a seen one its edge too: not comparable
         kids = kids[is_or[self.type[par[kids]]] & (sig[self.node[kids]] >= 0)]
+        kids = kids[~hide[self.node[kids]]]
         if len(kids) < 2:
             return
         key = np.column_stack([par[kids], sig[self.node[kids]], self.xyz[kids], self.quat[kids]])
@@ -890,12 +893,36 @@ class _Model:
 
     def columns(self) -> None:
         live = np.flatnonzero(self.can)
+        latent = live[~self.observed[live] & (live != 0)]
         self.col = np.full(len(self.node), -1, np.int64)
-        self.col[live] = self.cols.add(len(live), integer=True, cost=self.score[live])
+        cost = np.where(self.observed[live] | (live == 0), self.score[live], 0.0)
+        self.col[live] = self.cols.add(len(live), integer=True, cost=cost)
         self.cols.lo[-1] = np.where(live == 0, 1.0, 0.0)
         self.structural.append(self.col[live[live != 0]])
         ch = live[live != 0]
         add_leq(self.rows, self.col[ch], self.col[self.parent[ch]])  # child <= parent
+        self.seen_rows(live, latent)
+
+    def seen_rows(self, live: IntArray, latent: IntArray) -> None:
+        """A latent instance's edge counts only where something observed lies at or below it
+        (`ssgc.score`, marginal): v[i] = a[i] and OR(v of its children), v = a for an
+        observed instance.  v ≤ a, v ≤ the children's sum and v ≥ each child's make v exactly
+        that OR, so v needs no integrality (it is integral whenever the a are)."""
+        v = self.col.copy()
+        v[latent] = self.cols.add(len(latent), integer=False, cost=self.score[latent])
+        add_leq(self.rows, v[latent], self.col[latent])
+        kids = live[live != 0]
+        kids = kids[np.isin(self.parent[kids], latent)]
+        add_leq(self.rows, v[kids], v[self.parent[kids]])  # something seen below: seen
+        row = np.searchsorted(latent, self.parent[kids])  # v[p] <= sum of its children's v
+        self.rows.add(
+            np.r_[np.arange(len(latent)), row],
+            np.r_[v[latent], v[kids]],
+            np.r_[np.ones(len(latent)), -np.ones(len(kids))],
+            len(latent),
+            -np.inf,
+            0.0,
+        )
 
     def correspondence_rows(self) -> None:
         keep = self.can[self.match_inst]

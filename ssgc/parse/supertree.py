@@ -167,6 +167,36 @@ def _always_observed(
     return must[set_top]
 
 
+def hideable_nodes(grammar: Grammar, st: Supertree) -> NDArray[np.bool_]:
+    """Per supertree node, whether it can be in a tree with no observed node at or below it.
+
+    Such a node is unseen there: its pose is integrated out of the parse score
+    (`ssgc.score`), so the parser lets it go unplaced (`ssgc.parse.posed`) and the bound never
+    counts its terms inside its parent's (`ssgc.parse.bound`).  AND: every rule's child can
+    be; OR: some child can, or none can fire; `independent`: every rule of p = 1; `repeat`:
+    a count of 0 is possible, or its child can be; a latent terminal always is.
+    """
+    hide = np.zeros(len(st), bool)
+    for i in range(len(st) - 1, -1, -1):  # children before parents
+        node = grammar.types[st.type[i]]
+        if node.observed:
+            continue
+        kids = st.children[i]
+        if node.kind == Kind.AND:
+            hide[i] = all(hide[c] for c in kids)
+        elif node.kind == Kind.OR:
+            hide[i] = not kids or any(hide[c] for c in kids)
+        elif node.kind == Kind.INDEPENDENT:
+            sure = [c for c in kids if node.probs[grammar.rules[st.rule[c]].index] >= 1.0]
+            hide[i] = all(hide[c] for c in sure)
+        elif node.kind == Kind.REPEAT:
+            zero = node.count is None or node.count.probs[0] > 0
+            hide[i] = not kids or zero or all(hide[c] for c in kids)
+        else:
+            hide[i] = True
+    return hide
+
+
 def or_weight(weight: float, present: float) -> float:
     """An `or` rule's probability at a node: its weight over the weights of the rules present
     there (max_nesting leaves the blocked ones out, and the supertree the rules of weight 0).

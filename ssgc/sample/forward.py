@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from ssgc.errors import SsgError
 from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
+from ssgc.score import unseen_edges
 from ssgc.tree import Trees
 
 CHUNK = 256
@@ -35,7 +36,7 @@ MAX_CHUNK_NODES = 4_000_000  # nodes of the trees drawn together (a chunk): ~320
 
 
 def sample_trees(grammar: Grammar, n: int, seed: int) -> tuple[Trees, NDArray[np.float64]]:
-    """Draw `n` scene trees; returns them and each tree's log-probability (Eq. 2.1)."""
+    """Draw `n` scene trees; returns them and each tree's score (`ssgc.score.score_trees`)."""
     if n < 0:
         raise ValueError(f"number of scenes must be >= 0, got {n}")
     batches, logps = [], []
@@ -89,7 +90,8 @@ def sample_chunk(
         xyz.append(level["xyz"])
         quat.append(level["quat"])
     logp = np.bincount(np.concatenate(lp_scene), np.concatenate(lp_value), minlength=size)
-    return _group_by_scene(scene, ntype, parent, rule, xyz, quat, size), logp
+    trees = _group_by_scene(scene, ntype, parent, rule, xyz, quat, size)
+    return trees, logp - unseen_edges(grammar, trees)  # the score (`ssgc.score`)
 
 
 LEVEL_KEYS = ("origin", "type", "parent", "rule", "xyz", "quat", "nest", "lp")

@@ -44,6 +44,7 @@ from ssgc.rules import sample_children
 from ssgc.sample.forward import MAX_CHUNK_NODES, MAX_LEVELS, _choose_rules
 from ssgc.sample.proposals import ChainProposal, chain_proposal, count_proposals, forced_rules
 from ssgc.sample.watch import Watch, is_watched, relevant_types
+from ssgc.score import unseen_edges
 from ssgc.tree import Trees
 
 IntArray = NDArray[np.int64]
@@ -510,7 +511,7 @@ def rejection_batch(
     kept = np.flatnonzero(alive)
     return Outcome(
         trees=trees,
-        logp=logp[kept],
+        logp=logp[kept] - unseen_edges(grammar, trees),  # the score (`ssgc.score`)
         margins={k: v[kept] for k, v in margins.items()},
         evaluated=stats.evaluated,
         rejected=stats.rejected,
