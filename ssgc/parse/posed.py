@@ -893,9 +893,11 @@ class _Model:
 
     def columns(self) -> None:
         live = np.flatnonzero(self.can)
-        latent = live[~self.observed[live] & (live != 0)]
+        # a latent node that cannot be unseen (every way of making it shows an object) is
+        # seen whenever it is there: its edge stays on its a, with no column or row more
+        latent = live[self._needs_seen_column(live)]
         self.col = np.full(len(self.node), -1, np.int64)
-        cost = np.where(self.observed[live] | (live == 0), self.score[live], 0.0)
+        cost = np.where(np.isin(live, latent), 0.0, self.score[live])
         self.col[live] = self.cols.add(len(live), integer=True, cost=cost)
         self.cols.lo[-1] = np.where(live == 0, 1.0, 0.0)
         self.structural.append(self.col[live[live != 0]])
@@ -903,10 +905,27 @@ class _Model:
         add_leq(self.rows, self.col[ch], self.col[self.parent[ch]])  # child <= parent
         self.seen_rows(live, latent)
 
+    def _needs_seen_column(self, live: IntArray) -> NDArray[np.bool_]:
+        """Which live instances get a column v: latent ones that can be unseen and either
+        have an edge to count or a parent that has v (its OR needs theirs).  The sink's
+        empty `repeat`s at their parent's pose need none: their edges are 0."""
+        hide = per_supertree(self.st, "hideable", lambda st: hideable_nodes(self.g, st))
+        can_hide = np.zeros(len(self.node), bool)
+        can_hide[live] = ~self.observed[live] & hide[self.node[live]]
+        can_hide[0] = False
+        need = can_hide & (self.score != 0.0)
+        parent = np.maximum(self.parent, 0)
+        while True:  # one generation per round: a v parent's hideable children need v
+            more = need | (can_hide & need[parent] & (self.parent >= 0))
+            if np.array_equal(more, need):
+                return need[live]
+            need = more
+
     def seen_rows(self, live: IntArray, latent: IntArray) -> None:
         """A latent instance's edge counts only where something observed lies at or below it
         (`ssgc.score`, marginal): v[i] = a[i] and OR(v of its children), v = a for an
-        observed instance.  v ≤ a, v ≤ the children's sum and v ≥ each child's make v exactly
+        observed instance and for one that cannot be unseen (`latent` holds the others).
+        v ≤ a, v ≤ the children's sum and v ≥ each child's make v exactly
         that OR, so v needs no integrality (it is integral whenever the a are)."""
         v = self.col.copy()
         v[latent] = self.cols.add(len(latent), integer=False, cost=self.score[latent])
