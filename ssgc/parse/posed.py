@@ -684,6 +684,18 @@ def too_many_instances(scene: Scene, limit: int = MAX_INSTANCES) -> str:
     )
 
 
+def _rule_copies(st: Supertree) -> IntArray:
+    """Per supertree node, how many children its parent has by the node's rule (a
+    `repeat`'s copies; 1 otherwise)."""
+    out = np.ones(len(st), np.int64)
+    for kids in st.children:
+        rules = st.rule[np.asarray(kids, np.int64)]
+        if len(rules):
+            _, inverse, counts = np.unique(rules, return_inverse=True, return_counts=True)
+            out[np.asarray(kids, np.int64)] = counts[inverse]
+    return out
+
+
 def rigid_signatures(st: Supertree) -> IntArray:
     """Per supertree node, an id shared by nodes heading identical rigid subtrees (the same
     types and rules below, every rule fixed, so the same instances at the same pose), -1 for
@@ -942,6 +954,25 @@ class _Model:
             -np.inf,
             0.0,
         )
+        if self.order_copies:
+            self._unseen_first(latent, v)
+
+    def _unseen_first(self, latent: IntArray, v: IntArray) -> None:
+        """An unseen instance's pose is integrated out, so the same tree has it at any of its
+        candidates; each solve of `--top N` found one more of them, a copy to refine and
+        drop (60 solves for 2 trees).  Only the first m candidates of each (parent, node)
+        may hold an unseen instance, m the copies of its rule (1 but for a `repeat`): enough
+        for every unseen copy wherever the seen ones sit.  For the model over proposals
+        only: a candidate whose children a pose law rules out may then be the one kept, so
+        the bound's models (`adjust`, `restrict`) keep every candidate."""
+        copies = per_supertree(self.st, "rule copies", _rule_copies)
+        order = np.lexsort((self.cand_k[latent], self.node[latent], self.parent[latent]))
+        inst = latent[order]
+        key = np.column_stack([self.parent[inst], self.node[inst]])
+        start = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
+        first = np.maximum.accumulate(np.where(start, np.arange(len(inst)), 0))
+        late = inst[np.arange(len(inst)) - first >= copies[self.node[inst]]]
+        add_leq(self.rows, self.col[late], v[late])  # a <= v: seen where it is at all
 
     def correspondence_rows(self) -> None:
         keep = self.can[self.match_inst]
