@@ -70,8 +70,11 @@ def seen_nodes(grammar: Grammar, trees: Trees) -> NDArray[np.bool_]:
 def unseen_edges(grammar: Grammar, trees: Trees) -> FloatArray:
     """Per tree, the log-densities of its unseen nodes' poses: what a sampler, which draws
     every pose, takes off its Eq. 2.1 sum to record the tree's score (`marginal`)."""
-    unseen = np.flatnonzero(~seen_nodes(grammar, trees) & (trees.parent >= 0))
     out = np.zeros(trees.n_scenes)
+    maybe = _maybe_unseen(grammar)  # a shortcut: the sink's trees never have such a node
+    if len(trees) == 0 or not maybe[trees.type, np.maximum(trees.rule, 0)].any():
+        return out
+    unseen = np.flatnonzero(~seen_nodes(grammar, trees) & (trees.parent >= 0))
     if len(unseen):
         r, p = trees.rule[unseen], trees.parent[unseen]
         edge = translation_log_density(
@@ -79,6 +82,34 @@ def unseen_edges(grammar: Grammar, trees: Trees) -> FloatArray:
         ) + rotation_log_density(grammar, r, trees.quat[p], trees.quat[unseen])
         out += np.bincount(trees.scene[unseen], edge, minlength=trees.n_scenes)
     return out
+
+
+def _maybe_unseen(grammar: Grammar) -> NDArray[np.bool_]:
+    """(types, rules): whether a node of this type, made by this rule, might be unseen and
+    carry a density: a latent type that some expansion leaves with nothing observed (a
+    fixed point over the types, nesting bounds ignored: it may say yes too often, never no
+    wrongly), under a rule with a translation or rotation that is not fixed."""
+    can = ~grammar.tables.type_observed.copy()
+    while True:
+        new = can.copy()
+        for t in np.flatnonzero(can):
+            node = grammar.types[t]
+            kids = [(grammar.rules[r].child, grammar.rules[r].index) for r in node.rules]
+            if node.kind == Kind.AND:
+                new[t] = all(can[c] for c, _ in kids)
+            elif node.kind == Kind.OR:
+                new[t] = any(can[c] for c, i in kids if node.probs[i] > 0) or not kids
+            elif node.kind == Kind.INDEPENDENT:
+                new[t] = all(can[c] for c, i in kids if node.probs[i] >= 1.0)
+            elif node.kind == Kind.REPEAT and node.count is not None:
+                new[t] = bool(node.count.probs[0] > 0) or all(can[c] for c, _ in kids)
+        if np.array_equal(new, can):
+            break
+        can = new
+    free = np.array(
+        [r.translation.point is None or r.rotation.point is None for r in grammar.rules] or [False]
+    )
+    return can[:, None] & free[None, :]
 
 
 def node_terms(grammar: Grammar, trees: Trees, marginal: bool = True) -> NodeTerms:
