@@ -31,10 +31,10 @@ def validate(
             failed += 1
             continue
         if g is None or any(d.severity == "error" for d in found):
-            _print_diagnostics(GrammarError(found))
+            _print_diagnostics(GrammarError(_shown(found, quiet)))
             failed += 1
             continue
-        for w in found:
+        for w in _shown(found, quiet):
             err.print(str(w), markup=False, highlight=False)
         if not quiet:
             out.print(
@@ -44,6 +44,12 @@ def validate(
             )
     if failed:
         raise typer.Exit(1)
+
+
+def _shown(found: list[Diagnostic], quiet: bool) -> list[Diagnostic]:
+    """The messages to print: with `-q` ("Print errors only.") the errors alone, so that a
+    script checking many grammars sees only what fails them; the exit code is the same."""
+    return [d for d in found if d.severity == "error"] if quiet else found
 
 
 def _check(path: Path, allow_outside: bool) -> tuple[Grammar | None, list[Diagnostic]]:

@@ -22,7 +22,7 @@ import reprlib
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -500,7 +500,7 @@ class Grammar:
             self.ir, constraints, method, max_tries, time_limit, spelling=ARGUMENTS
         )
         drawn = draw_scenes(self.ir, n, seed, plan)
-        return [Scene(self, d.scene, d.metadata, (seed, d.index)) for d in drawn]
+        return [Scene(self, d.scene, d.metadata or {}, (seed, d.index)) for d in drawn]
 
     def scene(self, objects: Iterable[Sequence[Any]], name: str = "scene") -> Scene:
         """A scene from Python data: `(type, xyz)` or `(type, xyz, quat_wxyz)` per object,
@@ -632,8 +632,17 @@ class Scene:
 
     grammar: Grammar
     data: scene_io.Scene
-    metadata: dict[str, Any] | None = None  # constrained sampling: its method and margins
+    # the scene file's `metadata` (constrained sampling adds its method and margins); {} for
+    # none.  What it holds when the scene is saved is what its file's `metadata` holds.
+    metadata: dict[str, Any] = field(default_factory=dict)
     run: tuple[int, int] | None = None  # a sampled scene's seed and index, as its file has
+
+    def __post_init__(self) -> None:
+        """`metadata` is the file's (`data.extra`, what a loaded scene was read with) with the
+        given one added: a loaded scene showed None while its `to_json()` held the file's
+        record.  A copy, so that editing it changes neither the caller's dict nor the data."""
+        merged = copy.deepcopy({**self.data.extra, **(self.metadata or {})})
+        object.__setattr__(self, "metadata", merged)
 
     def __len__(self) -> int:
         return len(self.data)
@@ -673,8 +682,10 @@ class Scene:
         """The scene file's document: for a sampled scene, what `ssg sample` writes, its seed
         and index included (a file saved without them was refused by `--resume`)."""
         seed, index = self.run if self.run is not None else (None, None)
+        # `metadata` alone, not merged with the data's: a key deleted from it stays deleted
+        data = replace(self.data, extra={})
         return scene_io.scene_to_json(
-            self.grammar.ir, self.data, seed=seed, index=index, metadata=self.metadata
+            self.grammar.ir, data, seed=seed, index=index, metadata=self.metadata
         )
 
     def save(self, path: str | Path) -> Path:

@@ -570,7 +570,7 @@ CASES = [
             Leaf: {}
         """),
         "-1",
-        "variance must be positive, got -1 (z axis)",
+        "the variance of a pinned axis may be 0 but not negative, got -1 (z axis)",
         id="variance-negative-pinned",
     ),
     pytest.param(

@@ -561,7 +561,10 @@ def _tree_from_json(t: dict[str, list[Any]]) -> Trees:
 
 
 def report_json(result: FitResult) -> str:
-    """The `--report` file: every iteration's numbers and how the fit ended."""
+    """The `--report` file: every iteration's numbers and how the fit ended.  `tails` is
+    always there (`[]` when none were written, docs/fitting.md section 11), so that a script
+    reads it without first asking whether the grammar has such constraints; `mmd` only with
+    `--mmd`, which the user asked for."""
     doc: dict[str, Any] = {
         "status": result.status,
         "message": result.message,
@@ -569,6 +572,5 @@ def report_json(result: FitResult) -> str:
     }
     if result.mmd is not None:
         doc["mmd"] = result.mmd
-    if result.tails:
-        doc["tails"] = result.tails
+    doc["tails"] = result.tails
     return json.dumps(doc, indent=1) + "\n"

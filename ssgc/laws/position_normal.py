@@ -219,5 +219,13 @@ def _variance(p: dsl.NormalParams, free: FloatArray, loc: Loc, ctx: Lowering) ->
     bad = (var < 0) | (free & (var == 0))  # zero is fine only on a pinned axis
     for i in np.flatnonzero(bad):
         where = (*loc, "variance", int(i)) if isinstance(p.variance, list) else (*loc, "variance")
-        ctx.error(where, f"variance must be positive, got {var[i]:g} ({'xyz'[i]} axis)")
+        # a pinned axis is told what the `covariance` form tells it: 0 is allowed there
+        if free[i]:
+            message = f"variance must be positive, got {var[i]:g} ({'xyz'[i]} axis)"
+        else:
+            message = (
+                f"the variance of a pinned axis may be 0 but not negative, got {var[i]:g} "
+                f"({'xyz'[i]} axis)"
+            )
+        ctx.error(where, message)
     return None if np.any(bad) else np.diag(var[free])
