@@ -184,11 +184,15 @@ def nesting_counts(grammar: Grammar, trees: Trees) -> NDArray[np.int64]:
     own = np.zeros((len(grammar.types), n_bounded), np.int64)
     bounded_types = np.flatnonzero(tb.nesting_slot >= 0)
     own[bounded_types, tb.nesting_slot[bounded_types]] = 1
-    anc = np.arange(len(trees))
-    while np.any(anc >= 0):
-        has = anc >= 0
-        out[has] += own[trees.type[anc[has]]]
-        anc[has] = trees.parent[anc[has]]
+    # path sums by pointer doubling: after k rounds, out[v] sums the 2**k nodes nearest v on
+    # its path and jump[v] is the next node past them, so a chain of 10,000 nodes takes 14
+    # rounds (walking up one node per round, as before, took 10,000 rounds over every node)
+    out[:] = own[trees.type]
+    jump = np.asarray(trees.parent, np.int64).copy()
+    while np.any(jump >= 0):
+        has = np.flatnonzero(jump >= 0)
+        out[has] += out[jump[has]]
+        jump[has] = jump[jump[has]]
     return out
 
 

@@ -47,7 +47,7 @@ from ssgc.parse.milp import (
     add_count_law,
     add_leq,
 )
-from ssgc.parse.proposals import Candidates, near_earlier
+from ssgc.parse.proposals import Candidates, cross_pairs, earlier_count, pose_groups
 from ssgc.parse.reduction import ModelTooLarge, Request
 from ssgc.parse.supertree import Supertree, hideable_nodes, or_weight
 from ssgc.rules import POS_TOL, ROT_TOL, rotation_log_density, translation_log_density
@@ -281,20 +281,22 @@ def _first_distinct(
     pose, each a choice of an `or`, were one candidate, and the scene was proven
     infeasible.  The near pairs come from the sorted sweep of `Candidates.add`: a wide
     `repeat` of a 1,000-object scene has a thousand sets of a thousand poses each, and
-    comparing every pair of each set took 25 s of CPU."""
+    comparing every pair of each set took 25 s of CPU; a chain of 10,000 objects at one
+    pose made 50 million pairs, so poses at one place are taken as a group
+    (`proposals.PoseGroups`) and only distinct nearby poses are compared pairwise."""
     check_deadline(deadline)
-    i, j = near_earlier(xyz, 0)
-    same = quat_angle(quat[i], quat[j]) <= ROT_TOL
-    i, j = i[same], j[same]
+    groups = pose_groups(xyz, quat)
+    i, j = cross_pairs(groups)
     if node is None:
-        taken = obj[i] == obj[j]
+        taken = earlier_count(groups.of, obj) > 0
+        taken[j[obj[i] == obj[j]]] = True
     else:
         one_node = node[i] == node[j]
-        rank = np.bincount(j[one_node], minlength=len(xyz))
-        taken = ~one_node & (rank[i] == rank[j])
-    drop = np.zeros(len(xyz), bool)
-    drop[j[taken]] = True
-    return np.flatnonzero(~drop)
+        rank = earlier_count(groups.of, node) + np.bincount(j[one_node], minlength=len(xyz))
+        # within a group the ranks of one node increase, so equal ranks are other nodes'
+        taken = earlier_count(groups.of, rank) > 0
+        taken[j[~one_node & (rank[i] == rank[j])]] = True
+    return np.flatnonzero(~taken)
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from ssgc.geometry import (
     quat_angle,
     quat_between,
+    quat_canonical,
     quat_conjugate,
     quat_multiply,
     quat_normalize,
@@ -67,15 +68,77 @@ class Candidates:
     def add(self, e: int, xyz: FloatArray, quat: FloatArray) -> None:
         """Append poses to set e, skipping any already there (within the pose tolerances)."""
         xyz, quat = xyz.reshape(-1, 3), quat.reshape(-1, 4)
-        all_xyz = np.vstack([self.xyz[e], xyz])
-        all_quat = np.vstack([self.quat[e], quat])
-        # a new pose is kept unless it matches an old one or an earlier new one
-        i, j = near_earlier(all_xyz, len(self.xyz[e]))
-        same = quat_angle(all_quat[i], quat[j]) <= ROT_TOL
-        keep = np.ones(len(xyz), bool)
-        keep[j[same]] = False
+        n_old = len(self.xyz[e])
+        groups = pose_groups(np.vstack([self.xyz[e], xyz]), np.vstack([self.quat[e], quat]))
+        # a new pose is kept unless it matches an old one or an earlier new one: it must be
+        # the first of its group, and no group with an earlier first pose may be near it
+        own = groups.of[n_old:]
+        shadowed = np.zeros(len(groups.first), bool)
+        shadowed[groups.b] = True
+        keep = (groups.first[own] == n_old + np.arange(len(xyz))) & ~shadowed[own]
         self.xyz[e] = np.vstack([self.xyz[e], xyz[keep]])
         self.quat[e] = np.vstack([self.quat[e], quat[keep]])
+
+
+GROUP_GRID = 1e-9  # poses whose coordinates round to one multiple of this are one pose
+
+
+@dataclass(frozen=True)
+class PoseGroups:
+    """Poses that agree to GROUP_GRID (position and sign-canonical quaternion), numbered in
+    the order of their first pose, and the pairs of distinct groups within the tolerances.
+
+    Why: N objects at one pose (a chain with zero offsets) are N²/2 pairs within the
+    tolerances, which took minutes and gigabytes; one group stands for all of them, and only
+    the pairs between distinct nearby poses are compared.  GROUP_GRID is a thousand times
+    finer than POS_TOL and ROT_TOL, so a group's poses are within the tolerances of each
+    other, and a pose's neighbours are those of its group's first pose, up to 2e-9 at the
+    tolerance's edge."""
+
+    of: IntArray  # the group of each pose
+    first: IntArray  # the first pose of each group, increasing
+    a: IntArray  # near groups: group a's first pose comes before group b's
+    b: IntArray
+
+
+def pose_groups(xyz: FloatArray, quat: FloatArray) -> PoseGroups:
+    """Group the poses; see `PoseGroups`."""
+    key = np.rint(np.hstack([xyz, quat_canonical(quat)]) / GROUP_GRID) + 0.0  # no -0.0
+    _, first, of = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    renumber = np.empty_like(order)
+    renumber[order] = np.arange(len(order))
+    first = first[order]
+    a, b = near_earlier(xyz[first], 0)
+    near = quat_angle(quat[first[a]], quat[first[b]]) <= ROT_TOL
+    return PoseGroups(renumber[of.ravel()], first, a[near], b[near])
+
+
+def cross_pairs(groups: PoseGroups) -> tuple[IntArray, IntArray]:
+    """Every pair of poses (i < j) in two distinct groups within the tolerances."""
+    if not len(groups.a):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.argsort(groups.of, kind="stable")
+    counts = np.bincount(groups.of, minlength=len(groups.first))
+    starts = np.cumsum(counts) - counts
+    na, nb = counts[groups.a], counts[groups.b]
+    pair = np.repeat(np.arange(len(na)), na * nb)
+    k = np.arange(len(pair)) - np.repeat(np.cumsum(na * nb) - na * nb, na * nb)
+    x = order[starts[groups.a][pair] + k // nb[pair]]
+    y = order[starts[groups.b][pair] + k % nb[pair]]
+    return np.minimum(x, y), np.maximum(x, y)
+
+
+def earlier_count(group: IntArray, value: IntArray) -> IntArray:
+    """How many earlier rows have the same group and the same (non-negative) value."""
+    key = group.astype(np.int64) * (int(value.max(initial=0)) + 1) + value
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    run_start = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
+    lengths = np.diff(np.r_[run_start, len(key)])
+    count = np.empty(len(key), np.int64)
+    count[order] = np.arange(len(key)) - np.repeat(run_start, lengths)
+    return count
 
 
 # A generic unit direction: positions within POS_TOL are within POS_TOL along it, and poses
