@@ -61,7 +61,6 @@ PROFILE = os.environ.get("SSG_FUZZ", "quick")
 if PROFILE not in ("quick", "long") and not PROFILE.isdigit():
     raise ValueError(f"SSG_FUZZ must be 'quick', 'long' or a number of cases, got {PROFILE!r}")
 LONG_CASES = 10_000
-HANG_SECONDS = 60.0  # one input taking longer than this is a hang
 # A warning of the YAML reader reaches the user's terminal as ruamel's own text (its source
 # file, '<unicode string>' for the file): ssg turns what it warns about into located
 # diagnostics, so here any such warning is an uncaught exception.
@@ -75,8 +74,9 @@ PARSE_GRAMMARS = ("sink.yaml", "singles_pairs_dependency.yaml")
 
 def fuzz(quick: int) -> settings:
     """`quick` cases by default, `LONG_CASES` in the long profile (or SSG_FUZZ=N cases); no
-    per-case deadline (the hang check is ours), and the CI profile's derandomisation is
-    inherited."""
+    per-case deadline (tests check behaviour, not wall-clock time; pytest's
+    `faulthandler_timeout` prints the stack of a test that hangs), and the CI profile's
+    derandomisation is inherited."""
     cases = {"quick": quick, "long": LONG_CASES}.get(PROFILE) or int(PROFILE)
     return settings(
         max_examples=cases,
@@ -610,12 +610,12 @@ def test_fuzz_parse_small_deep_grammars(work: Path, text: str) -> None:
     data = encode(text)
     grammar, out = write(work / "deep.yaml", data), work / "deep_scenes"
     args = ["sample", str(grammar), "-n", "2", "-o", str(out), "-q", "--overwrite"]
-    result, seconds = invoke(args)
-    check(result, seconds, {0, 1}, [grammar, out], data)
+    result = invoke(args)
+    check(result, {0, 1}, [grammar, out], data)
     if result.exit_code != 0:
         return  # an unbounded cycle: refused
-    result, seconds = invoke(["parse", str(out), "-g", str(grammar), "-q"])
-    check(result, seconds, {0}, [grammar, out], data)
+    result = invoke(["parse", str(out), "-g", str(grammar), "-q"])
+    check(result, {0}, [grammar, out], data)
     for scene in json.loads(result.stdout)["scenes"]:
         truth = json.loads((out / f"{scene['name']}.json").read_text())["log_prob"]
         assert scene["parses"][0]["score"] >= truth - 1e-9, (scene, text)
@@ -1009,15 +1009,13 @@ def work(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("fuzz")
 
 
-def invoke(args: list[str]) -> tuple[Result, float]:
+def invoke(args: list[str]) -> Result:
     """Run `ssg ARGS` in process, with numpy's floating-point warnings off as `main()` does."""
-    started = time.monotonic()
     with np.errstate(all="ignore"):
-        result = RUNNER.invoke(app, args)
-    return result, time.monotonic() - started
+        return RUNNER.invoke(app, args)
 
 
-def check(result: Result, seconds: float, codes: set[int], files: list[Path], data: bytes) -> None:
+def check(result: Result, codes: set[int], files: list[Path], data: bytes) -> None:
     """The contract of every command with any input (see the module docstring)."""
     shown = f"input {data[:300]!r}{'...' if len(data) > 300 else ''}\nstderr:\n{result.stderr}"
     if result.exception is not None and not isinstance(result.exception, SystemExit):
@@ -1028,7 +1026,6 @@ def check(result: Result, seconds: float, codes: set[int], files: list[Path], da
     assert result.exit_code != 70, f"internal error\n{shown}"
     assert result.exit_code in codes, f"exit code {result.exit_code}\n{shown}"
     assert "Traceback" not in result.output, shown
-    assert seconds < HANG_SECONDS, f"took {seconds:.0f} s\n{shown}"
     if result.exit_code != 0:
         assert result.stderr.strip(), f"an error without a message\n{shown}"
     diagnostic = re.compile(
@@ -1048,15 +1045,15 @@ def write(path: Path, data: bytes) -> Path:
 @given(data=grammar_inputs())
 def test_fuzz_validate(work: Path, data: bytes) -> None:
     path = write(work / "grammar.yaml", data)
-    check(*invoke(["validate", str(path)]), {0, 1}, [path], data)
+    check(invoke(["validate", str(path)]), {0, 1}, [path], data)
 
 
 @fuzz(quick=40)
 @given(data=grammar_inputs(), as_json=st.booleans())
 def test_fuzz_inspect(work: Path, data: bytes, as_json: bool) -> None:
     path = write(work / "grammar.yaml", data)
-    result, seconds = invoke(["inspect", str(path), *(["--json"] if as_json else [])])
-    check(result, seconds, {0, 1}, [path], data)
+    result = invoke(["inspect", str(path), *(["--json"] if as_json else [])])
+    check(result, {0, 1}, [path], data)
     if result.exit_code == 0 and as_json:
         json.loads(result.stdout)
 
@@ -1066,8 +1063,8 @@ def test_fuzz_inspect(work: Path, data: bytes, as_json: bool) -> None:
 def test_fuzz_sample(work: Path, data: bytes) -> None:
     path = write(work / "grammar.yaml", data)
     out = work / "out"  # each case is another run: --overwrite clears the last one's scenes
-    result, seconds = invoke(["sample", str(path), "-n", "2", "-o", str(out), "-q", "--overwrite"])
-    check(result, seconds, {0, 1}, [path, out], data)
+    result = invoke(["sample", str(path), "-n", "2", "-o", str(out), "-q", "--overwrite"])
+    check(result, {0, 1}, [path, out], data)
 
 
 @fuzz(quick=40)
@@ -1080,8 +1077,8 @@ def test_fuzz_sample_constrained(work: Path, data: bytes, names: str, more: list
     path = write(work / "grammar.yaml", data)
     out = work / "out_constrained"
     args = ["sample", str(path), "-n", "2", "-o", str(out), "-q", "--constraints", names, *more]
-    result, seconds = invoke([*args, "--max-tries", "3000", "--time-limit", "20"])
-    check(result, seconds, {0, 1, 2}, [path, out], data)
+    result = invoke([*args, "--max-tries", "3000", "--time-limit", "20"])
+    check(result, {0, 1, 2}, [path, out], data)
 
 
 @fuzz(quick=30)
@@ -1095,8 +1092,8 @@ def test_fuzz_export_json(work: Path, data: bytes, grammar: str, fmt: str) -> No
     path = write(work / "scene.json", data)
     grammar_path = GRAMMARS / grammar
     args = ["export", str(path), "-g", str(grammar_path), "-f", fmt, "-o", str(work / "exported")]
-    result, seconds = invoke([*args, "-q"])
-    check(result, seconds, {0, 1}, [path, grammar_path], data)
+    result = invoke([*args, "-q"])
+    check(result, {0, 1}, [path, grammar_path], data)
 
 
 @fuzz(quick=20)
@@ -1105,8 +1102,8 @@ def test_fuzz_settle_json(work: Path, data: bytes, grammar: str) -> None:
     path = write(work / "scene.json", data)
     grammar_path = GRAMMARS / grammar
     args = ["settle", str(path), "-g", str(grammar_path), "-o", str(work / "settled"), "-q"]
-    result, seconds = invoke([*args, "--max-time", "0.2"])
-    check(result, seconds, {0, 1, 2}, [path, grammar_path], data)
+    result = invoke([*args, "--max-time", "0.2"])
+    check(result, {0, 1, 2}, [path, grammar_path], data)
     if result.exit_code in (0, 2):
         for settled in (work / "settled").glob("*.json"):
             json.loads(settled.read_text(), parse_constant=pytest.fail)  # no NaN or Infinity
@@ -1122,8 +1119,8 @@ def test_fuzz_mesh_file(work: Path, data: bytes, suffix: str) -> None:
         f"grammar: g\nroot: A\ntypes:\n  A:\n    observed: true\n"
         f"    geometry: {{mesh: {{file: m{suffix}}}}}\n"
     )
-    result, seconds = invoke(["validate", str(path)])
-    check(result, seconds, {0, 1}, [path], data)
+    result = invoke(["validate", str(path)])
+    check(result, {0, 1}, [path], data)
     if result.exit_code == 1:
         assert f"{path}:6:" in result.stderr, result.stderr
 
@@ -1131,8 +1128,8 @@ def test_fuzz_mesh_file(work: Path, data: bytes, suffix: str) -> None:
 def check_parse(work: Path, data: bytes, suffix: str, grammar: str) -> None:
     path = write(work / f"scene{suffix}", data)
     grammar_path = GRAMMARS / grammar
-    result, seconds = invoke(["parse", str(path), "-g", str(grammar_path), "-q"])
-    check(result, seconds, PARSE_CODES, [path, grammar_path], data)
+    result = invoke(["parse", str(path), "-g", str(grammar_path), "-q"])
+    check(result, PARSE_CODES, [path, grammar_path], data)
     if result.exit_code in (0, 2, 3, 4):
         assert json.loads(result.stdout)["scenes"], result.stdout
 
@@ -1154,8 +1151,8 @@ def test_fuzz_parse_sink_yaml(work: Path, data: bytes, grammar: str) -> None:
 def test_fuzz_explain_json(work: Path, data: bytes, grammar: str) -> None:
     path = write(work / "scene.json", data)
     grammar_path = GRAMMARS / grammar
-    result, seconds = invoke(["explain", str(path), "-g", str(grammar_path), "--json"])
-    check(result, seconds, PARSE_CODES, [path, grammar_path], data)
+    result = invoke(["explain", str(path), "-g", str(grammar_path), "--json"])
+    check(result, PARSE_CODES, [path, grammar_path], data)
     if result.exit_code in (0, 2, 3, 4):
         assert json.loads(result.stdout)["scenes"], result.stdout
 
@@ -1168,8 +1165,8 @@ def test_fuzz_render(work: Path, data: bytes, with_grammar: bool) -> None:
     out = work / "picture.png"
     out.unlink(missing_ok=True)
     grammar = ["-g", str(GRAMMARS / "sink.yaml")] if with_grammar else []
-    result, seconds = invoke(["render", str(path), "-o", str(out), "-q", *grammar])
-    check(result, seconds, {0, 1}, [path, GRAMMARS / "sink.yaml"], data)
+    result = invoke(["render", str(path), "-o", str(out), "-q", *grammar])
+    check(result, {0, 1}, [path, GRAMMARS / "sink.yaml"], data)
     assert out.exists() == (result.exit_code == 0)
     assert not list(work.glob(".picture.png.*"))
 
@@ -1182,8 +1179,8 @@ def test_fuzz_view(work: Path, data: bytes, with_grammar: bool) -> None:
     out = work / "page.html"
     out.unlink(missing_ok=True)
     grammar = ["-g", str(GRAMMARS / "sink.yaml")] if with_grammar else []
-    result, seconds = invoke(["view", str(path), "-o", str(out), "-q", *grammar])
-    check(result, seconds, {0, 1}, [path, GRAMMARS / "sink.yaml"], data)
+    result = invoke(["view", str(path), "-o", str(out), "-q", *grammar])
+    check(result, {0, 1}, [path, GRAMMARS / "sink.yaml"], data)
     assert out.exists() == (result.exit_code == 0)
     if result.exit_code == 0:
         html = out.read_text()
@@ -1198,8 +1195,8 @@ def check_fit(work: Path, dataset: Path, grammar: Path, data: bytes, estep: str 
     args = ["fit", str(dataset), "-g", str(grammar), "-o", str(out), "-q", "--estep", estep]
     if estep == "mcmc":
         args += ["--samples", "4"]
-    result, seconds = invoke([*args, "--iterations", "2", "--top", "2", "--time-limit", "5"])
-    check(result, seconds, {0, 1, 2}, [dataset, grammar, out], data)
+    result = invoke([*args, "--iterations", "2", "--top", "2", "--time-limit", "5"])
+    check(result, {0, 1, 2}, [dataset, grammar, out], data)
     if result.exit_code == 0:  # read as ssgc reads a grammar (a leading BOM is not text)
         compile_text(read_grammar_text(out), str(out))
     else:
@@ -1223,16 +1220,16 @@ def test_fuzz_fit_bounds(work: Path, variance: str, ceiling: str) -> None:
     data = work / "bounds_data"
     if not data.exists():
         assert (
-            invoke(["sample", str(GRAMMARS / "gmm.yaml"), "-n", "4", "-o", str(data), "-q"])[
-                0
-            ].exit_code
+            invoke(
+                ["sample", str(GRAMMARS / "gmm.yaml"), "-n", "4", "-o", str(data), "-q"]
+            ).exit_code
             == 0
         )
     out = work / "bounds.yaml"
     out.unlink(missing_ok=True)
     args = ["fit", str(data), "-g", str(GRAMMARS / "gmm.yaml"), "-o", str(out), "-q"]
     bounds = [f"--min-variance={variance}", f"--max-concentration={ceiling}"]
-    result, _ = invoke([*args, "--iterations", "1", "--top", "1", *bounds])
+    result = invoke([*args, "--iterations", "1", "--top", "1", *bounds])
     assert result.exception is None or isinstance(result.exception, SystemExit), result.output
     assert result.exit_code in (0, 2), result.output
     assert "Traceback" not in result.output
@@ -1250,7 +1247,7 @@ def test_fuzz_fit_grammar(work: Path, data: bytes, estep: str) -> None:
     path = write(work / "grammar.yaml", data)
     scenes = work / "fit_scenes"
     shutil.rmtree(scenes, ignore_errors=True)
-    result, _ = invoke(["sample", str(path), "-n", "3", "-o", str(scenes), "-q"])
+    result = invoke(["sample", str(path), "-n", "3", "-o", str(scenes), "-q"])
     if result.exit_code != 0:
         scenes.mkdir(exist_ok=True)  # an empty dataset: refused, with a message
     check_fit(work, scenes, path, data, estep)
@@ -1281,9 +1278,7 @@ def journals(work: Path) -> dict[str, tuple[list[str], Path, str]]:
 
     data = work / "journal_scenes"
     assert (
-        invoke(["sample", str(GRAMMARS / "gmm.yaml"), "-n", "4", "-o", str(data), "-q"])[
-            0
-        ].exit_code
+        invoke(["sample", str(GRAMMARS / "gmm.yaml"), "-n", "4", "-o", str(data), "-q"]).exit_code
         == 0
     )
     runs = {
@@ -1302,7 +1297,7 @@ def journals(work: Path) -> dict[str, tuple[list[str], Path, str]]:
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(Journal, "delete", lambda self: None)
         for name, args in runs.items():
-            result, _ = invoke([*args, "-q"])
+            result = invoke([*args, "-q"])
             assert result.exit_code == 0, result.output
             journal = Path(args[args.index("-o") + 1] + ".partial.jsonl")
             found[name] = ([*args, "-q", "--resume"], journal, journal.read_text())
@@ -1336,9 +1331,9 @@ def test_fuzz_resume_journal(
     journal.write_bytes(content)
     out = Path(args[args.index("-o") + 1])
     out.unlink(missing_ok=True)
-    result, seconds = invoke(args)
+    result = invoke(args)
     files = [journal, out, Path(args[1]), GRAMMARS / "gmm.yaml"]
-    check(result, seconds, {0, 1, 2}, files, content)
+    check(result, {0, 1, 2}, files, content)
     if result.exit_code == 0 and command == "fit":
         compile_text(read_grammar_text(out), str(out))
     elif result.exit_code == 0:
@@ -1379,8 +1374,8 @@ def test_fuzz_compile_is_accepted_or_located(text: str) -> None:
 
 
 def run_ok(args: list[str], data: bytes, files: list[Path], codes: set[int]) -> Result:
-    result, seconds = invoke(args)
-    check(result, seconds, codes, files, data)
+    result = invoke(args)
+    check(result, codes, files, data)
     return result
 
 
@@ -1399,6 +1394,7 @@ def test_inspect_of_a_long_chain_of_types(work: Path) -> None:
     assert json.loads(result.stdout)["supertree_nodes"] == 3001
 
 
+@pytest.mark.timing
 def test_validate_of_many_types_is_not_slow(work: Path) -> None:
     """The recursion check copied paths (cubic time): 4000 types took 30 s, now ~1 s."""
     data = encode(chain(4000))
@@ -1704,8 +1700,8 @@ def test_every_command_on_generated_grammars(work: Path, spec: dict[str, Any]) -
     text = grammar_gen.to_yaml(spec).encode()
     d = Path(tempfile.mkdtemp(dir=work))
     g, scenes = write(d / "g.yaml", text), d / "scenes"
-    result, seconds = invoke(["sample", str(g), "-n", "3", "--seed", "1", "-o", str(scenes), "-q"])
-    check(result, seconds, {0}, [g, scenes], text)
+    result = invoke(["sample", str(g), "-n", "3", "--seed", "1", "-o", str(scenes), "-q"])
+    check(result, {0}, [g, scenes], text)
     runs: list[tuple[list[str], set[int]]] = [
         (["export", str(scenes), "-g", str(g), "-f", f, "-o", str(d / f), "-q"], {0})
         for f in ("dmd", "sdf", "mjcf", "glb", "usd")
@@ -1753,4 +1749,4 @@ def test_every_command_on_generated_grammars(work: Path, spec: dict[str, Any]) -
         ),
     ]
     for args, codes in runs:
-        check(*invoke(args), codes, [g, scenes], text)
+        check(invoke(args), codes, [g, scenes], text)
