@@ -72,6 +72,27 @@ class NodeType:
         whose every rule of positive weight is blocked makes nothing (docs/grammar.md 3.4)."""
         return self.kind in (Kind.OR, Kind.INDEPENDENT) and not self.probs[index] > 0
 
+    def can_hold_nothing(self, kids: list[tuple[int, bool]]) -> bool:
+        """Whether a node of this type can be in a tree with no observed node at or below it
+        (unseen: `ssgc.score`), given (rule index, whether its child can) for each rule that
+        fires here.  The one recurrence behind the parser's `supertree.hideable_nodes` (per
+        supertree node) and the scorer's `score._maybe_unseen` (per type).  AND: every child
+        can; OR: some child can, or no rule fires; `independent`: every rule of p = 1;
+        `repeat`: a count of 0 is possible, or its child can; a latent terminal always can."""
+        if self.observed:
+            return False
+        live = [(i, can) for i, can in kids if not self.never_fires(i)]
+        if self.kind == Kind.AND:
+            return all(can for _, can in live)
+        if self.kind == Kind.OR:
+            return not live or any(can for _, can in live)
+        if self.kind == Kind.INDEPENDENT:
+            return all(can for i, can in live if self.probs[i] >= 1.0)
+        if self.kind == Kind.REPEAT:
+            zero = self.count is None or bool(self.count.probs[0] > 0)
+            return zero or all(can for _, can in live)
+        return True
+
 
 @dataclass(frozen=True)
 class Tables:

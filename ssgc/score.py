@@ -90,19 +90,16 @@ def _maybe_unseen(grammar: Grammar) -> NDArray[np.bool_]:
     fixed point over the types, nesting bounds ignored: it may say yes too often, never no
     wrongly), under a rule with a translation or rotation that is not fixed."""
     can = ~grammar.tables.type_observed.copy()
-    while True:
-        new = can.copy()
-        for t in np.flatnonzero(can):
-            node = grammar.types[t]
-            kids = [(grammar.rules[r].child, grammar.rules[r].index) for r in node.rules]
-            if node.kind == Kind.AND:
-                new[t] = all(can[c] for c, _ in kids)
-            elif node.kind == Kind.OR:
-                new[t] = any(can[c] for c, i in kids if node.probs[i] > 0) or not kids
-            elif node.kind == Kind.INDEPENDENT:
-                new[t] = all(can[c] for c, i in kids if node.probs[i] >= 1.0)
-            elif node.kind == Kind.REPEAT and node.count is not None:
-                new[t] = bool(node.count.probs[0] > 0) or all(can[c] for c, _ in kids)
+    while True:  # from "every latent type can" down to the greatest fixed point
+        new = np.array(
+            [
+                t.can_hold_nothing(
+                    [(grammar.rules[r].index, bool(can[grammar.rules[r].child])) for r in t.rules]
+                )
+                for t in grammar.types
+            ],
+            bool,
+        )
         if np.array_equal(new, can):
             break
         can = new

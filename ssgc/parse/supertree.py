@@ -142,28 +142,20 @@ def _always_observed(
 ) -> NDArray[np.bool_]:
     """Whether every way of activating a set includes one of its observed nodes.
 
-    must(n): an active n forces an observed node of n's set to be active.  Observed: yes.  AND:
-    some in-set child must.  OR: every child is in the set and must.  A `repeat` whose count
-    cannot be 0, or an `independent` rule with p = 1, behaves like an AND child.  Anything else
-    may stop without an observed node.
+    must(n): an active n forces an observed node of n's set to be active: n cannot hold
+    nothing (`NodeType.can_hold_nothing`) when its children outside the set count as holding
+    nothing.  Observed: yes.  AND: some in-set child must.  OR: every child is in the set and
+    must.  A `repeat` whose count cannot be 0, or an `independent` rule with p = 1, behaves
+    like an AND child.  Anything else may stop without an observed node.
     """
     must = np.zeros(len(types), bool)
     for i in range(len(types) - 1, -1, -1):  # children before parents
-        node = grammar.types[types[i]]
-        if node.observed:
-            must[i] = True
-            continue
-        kids = children[i]
-        in_set = [c for c in kids if set_of[c] == set_of[i]]
-        if node.kind == Kind.AND:
-            must[i] = any(must[c] for c in in_set)
-        elif node.kind == Kind.OR:
-            must[i] = bool(kids) and len(in_set) == len(kids) and all(must[c] for c in in_set)
-        elif node.kind == Kind.INDEPENDENT:
-            sure = [c for c in in_set if node.probs[grammar.rules[rule[c]].index] >= 1.0]
-            must[i] = any(must[c] for c in sure)
-        elif node.kind == Kind.REPEAT and node.count is not None and kids:
-            must[i] = bool(node.count.probs[0] == 0 and in_set and must[in_set[0]])
+        # a child outside the set, or one that need not hold an observed node, may hold none
+        kids = [
+            (grammar.rules[rule[c]].index, not (set_of[c] == set_of[i] and must[c]))
+            for c in children[i]
+        ]
+        must[i] = not grammar.types[types[i]].can_hold_nothing(kids)
     return must[set_top]
 
 
@@ -172,28 +164,14 @@ def hideable_nodes(grammar: Grammar, st: Supertree) -> NDArray[np.bool_]:
 
     Such a node is unseen there: its pose is integrated out of the parse score
     (`ssgc.score`), so the parser lets it go unplaced (`ssgc.parse.posed`) and the bound never
-    counts its terms inside its parent's (`ssgc.parse.bound`).  AND: every rule's child can
-    be; OR: some child can, or none can fire; `independent`: every rule of p = 1; `repeat`:
-    a count of 0 is possible, or its child can be; a latent terminal always is.
+    counts its terms inside its parent's (`ssgc.parse.bound`).  The supertree holds only the
+    rules that can fire at each node (max_nesting, weights of 0), so this is exact where the
+    scorer's per-type `_maybe_unseen` may say yes too often (`NodeType.can_hold_nothing`).
     """
     hide = np.zeros(len(st), bool)
     for i in range(len(st) - 1, -1, -1):  # children before parents
-        node = grammar.types[st.type[i]]
-        if node.observed:
-            continue
-        kids = st.children[i]
-        if node.kind == Kind.AND:
-            hide[i] = all(hide[c] for c in kids)
-        elif node.kind == Kind.OR:
-            hide[i] = not kids or any(hide[c] for c in kids)
-        elif node.kind == Kind.INDEPENDENT:
-            sure = [c for c in kids if node.probs[grammar.rules[st.rule[c]].index] >= 1.0]
-            hide[i] = all(hide[c] for c in sure)
-        elif node.kind == Kind.REPEAT:
-            zero = node.count is None or node.count.probs[0] > 0
-            hide[i] = not kids or zero or all(hide[c] for c in kids)
-        else:
-            hide[i] = True
+        kids = [(grammar.rules[st.rule[c]].index, bool(hide[c])) for c in st.children[i]]
+        hide[i] = grammar.types[st.type[i]].can_hold_nothing(kids)
     return hide
 
 
