@@ -43,11 +43,12 @@ def check_recursion(types: list[NodeType], rules: list[Rule]) -> list[Finding]:
     return checks.findings
 
 
-def check_reachable(types: list[NodeType], rules: list[Rule], root: int) -> list[Finding]:
-    """Every type is reachable (only for a grammar with no other error: a rule dropped for an
-    error would make its children look unreachable)."""
+def check_reachable(types: list[NodeType], rules: list[Rule], starts: list[int]) -> list[Finding]:
+    """Every type is reachable from `starts` (the root, and the types an `observation`
+    section's clutter makes); only for a grammar with no other error: a rule dropped for an
+    error would make its children look unreachable."""
     checks = _Checks(types, None, False)
-    checks.check_reachable(types, rules, root)
+    checks.check_reachable(types, rules, starts)
     return checks.findings
 
 
@@ -175,8 +176,8 @@ class _Checks:
                     f"type '{t.name}' is not recursive, so `max_nesting` has no effect",
                 )
 
-    def check_reachable(self, types: list[NodeType], rules: list[Rule], root: int) -> None:
-        seen, stack = {root}, [root]
+    def check_reachable(self, types: list[NodeType], rules: list[Rule], starts: list[int]) -> None:
+        seen, stack = set(starts), list(starts)
         kids: dict[int, list[int]] = {}
         for r in rules:
             kids.setdefault(r.parent, []).append(r.child)

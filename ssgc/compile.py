@@ -462,7 +462,7 @@ class Compiler(Report):
         if root is not None:
             self.add(check_recursion(types, rules))
             if not self.errors:
-                self.add(check_reachable(types, rules, root))
+                self.add(self.reachable(types, rules, root))
         sound = not self.errors and not self.partial
         # The observation adds types (clutter, an observed root's node) after the user's: the
         # constraints are checked on the grammar as written but sized for every type.
@@ -494,6 +494,14 @@ class Compiler(Report):
             observation=self.doc.observation,
             required_root=self.required_root(root_spec, seen),
         )
+
+    def reachable(self, types: list[NodeType], rules: list[Rule], root: int) -> list[Finding]:
+        """Warnings for the types that neither the root nor the `observation` section's
+        clutter (which makes the types its rates name) can reach."""
+        spec = self.doc.observation
+        clutter = set() if spec is None or spec.clutter is None else set(spec.clutter.rates)
+        starts = [root, *(t.id for t in types if t.name in clutter)]
+        return check_reachable(types, rules, starts)
 
     def required_root(self, root_spec: dsl.Root, seen: observation.Observed) -> int | None:
         """The root type every scene must show: one declared `required`, or an observed

@@ -10,14 +10,17 @@ Two numbers per object, for two questions (docs/explain.md):
 * **share** — its exact part of −log p (thesis Eq. 2.1).  Every term of the score belongs to a
   node; a node's terms go to the observed objects of its *block* (the nodes joined to it by
   fixed rules, which share one pose), else to the observed objects of its subtree, else to its
-  parent's owners, split equally.  So an edge's placement density goes to the object it places,
-  a latent node's terms and count/choice terms to the objects below it, and the shares sum to
-  −log p exactly.
+  parent's owners, split equally (the clutter set's to the clutter objects below it, though it
+  shares the root's pose; an unseen node's pose is integrated out: its edge has no term).
+  So an edge's placement density goes to the object it places, a latent node's terms and
+  count/choice terms to the objects below it, and the shares sum to −log p exactly.
 * **unusual** — the ranking key: how much the score would improve if only this object were
   different.  For its pose, the best rigid move of its block (a shift, a turn), scored on every
   edge the block touches: the edge that places it and the edges to the objects it places.  A
   misplaced plate thus explains its misplaced-looking children (one move fixes all of them),
-  while a child's own move fixes only its edge.  Under the grammar this gain is about half a
+  while a child's own move fixes only its edge; the latent nodes between an object and its
+  nearest observed ancestor, whose poses no scene shows, may move with it (a cup whose latent
+  slot is misplaced gains the slot's move).  Under the grammar this gain is about half a
   χ² with 3 degrees of freedom per move (mean ≈ 1.5 nats) for any object, so objects compare.
   Discrete terms add their surprise over their expectation (−log P − entropy, when positive).
   Two other views of the same question can rank it higher: the *slot surprise* (an unusual
@@ -32,7 +35,7 @@ from __future__ import annotations
 
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -40,6 +43,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from ssgc.constraints.penetration import NonPenetration
+from ssgc.distributions.uniform import UNIFORM_SO3_LOG_DENSITY
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.geometry import quat_angle, quat_conjugate, quat_multiply, quat_rotate
 from ssgc.io.scene import Scene
@@ -54,7 +58,7 @@ from ssgc.rules import (
     translation_coordinates,
     translation_log_density,
 )
-from ssgc.score import node_terms, score_trees
+from ssgc.score import node_terms, score_trees, seen_nodes
 from ssgc.support import findings as support_findings
 from ssgc.support import nats as support_nats
 from ssgc.support import sentence as support_sentence
@@ -63,6 +67,10 @@ from ssgc.tree import Trees
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 MC_DRAWS = 4000  # draws per rule for expected log-densities and rotation percentiles
+# A rotation percentile from fewer of the law's own draws than this (P < 0.25%) is estimated
+# from uniform rotations instead (`_Expectations.percentile`): a handful of hits is no number.
+TAIL_HITS = 10
+UNIFORM_DRAWS = 20000  # uniform rotations for those: about 3% relative error at P = 1e-5
 # Seconds all of one explanation's re-parses may take together when no time limit is given
 # (docs/explain.md "Cost"): enough for every object of the real sink scenes.
 EXPLAIN_BUDGET_S = 30.0
@@ -85,8 +93,10 @@ class Reason:
     sigma: float | None  # Mahalanobis distance (Normal positions)
     percentile: float | None  # P(a draw of the law is no more likely than this)
     text: str
+    percentile_bound: bool = False  # the percentile is only an upper bound (a rare rotation)
 
     def to_json(self) -> dict[str, Any]:
+        bound = {"percentile_bound": True} if self.percentile_bound else {}
         return {
             "rule": self.rule,
             "kind": self.kind,
@@ -96,7 +106,7 @@ class Reason:
             "sigma": self.sigma,
             "percentile": self.percentile,
             "text": self.text,
-        }
+        } | bound
 
 
 @dataclass
@@ -354,6 +364,7 @@ def explain_tree(
                     term.get("sigma"),
                     term.get("percentile"),
                     text,
+                    term.get("percentile_bound", False),
                 )
             )
             if term["kind"] in ("count", "choice"):
@@ -517,10 +528,12 @@ def _reparsed_gain(
 
 
 def _terms(grammar: Grammar, tree: Trees) -> list[dict[str, Any]]:
-    """Every non-zero term of Eq. 2.1 for the tree: edges split into position and rotation."""
+    """Every non-zero term of the tree's score: edges split into position and rotation.  An
+    unseen node's edge has none: the scorer integrates its pose out (docs/conventions.md,
+    "Unseen nodes"), so an empty latent node with a pose law of its own says nothing."""
     nt = node_terms(grammar, tree)
     out: list[dict[str, Any]] = []
-    child = np.flatnonzero(tree.parent >= 0)
+    child = np.flatnonzero((tree.parent >= 0) & seen_nodes(grammar, tree))
     r, p = tree.rule[child], tree.parent[child]
     lt = translation_log_density(grammar, r, tree.xyz[p], tree.quat[p], tree.xyz[child])
     lr = rotation_log_density(grammar, r, tree.quat[p], tree.quat[child])
@@ -553,6 +566,7 @@ def _terms(grammar: Grammar, tree: Trees) -> list[dict[str, Any]]:
         out.append({"node": int(i), "kind": kind, "rule": t.name, "log_prob": float(nt.choice[i])})
     # the edge terms recomputed here must be the scorer's (one definition of the score)
     assert np.allclose(lt + lr, nt.edge[child], atol=1e-9, equal_nan=True)
+    assert np.allclose(np.sum(nt.edge), np.sum(nt.edge[child]), atol=1e-9, equal_nan=True)
     return out
 
 
@@ -630,7 +644,8 @@ def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -
     follows its choice (its terms go to the object it chose); an `or` node whose block holds
     an observed object keeps its placement: that object is what the placement places."""
     top = blocks(grammar, tree)
-    w, observed = _block_owners(tree, obj_of, n_objects, top)
+    clutter = np.array([grammar.types[t].synthetic == "clutter" for t in tree.type], bool)
+    w, observed = _block_owners(tree, obj_of, n_objects, top, clutter)
     choice = w.copy()
     is_or = np.array([grammar.types[t].kind == Kind.OR for t in tree.type])
     kids = np.flatnonzero((tree.parent >= 0) & is_or[np.maximum(tree.parent, 0)])
@@ -644,10 +659,13 @@ def ownership(grammar: Grammar, tree: Trees, obj_of: IntArray, n_objects: int) -
 
 
 def _block_owners(
-    tree: Trees, obj_of: IntArray, n_objects: int, top: IntArray
+    tree: Trees, obj_of: IntArray, n_objects: int, top: IntArray, clutter: NDArray[np.bool_]
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Rules 1-3 of docs/explain.md ("share"): each node's (nodes, objects) weights, and
-    whether its block holds an observed object (the `or` exception keeps such a placement)."""
+    whether its block holds an observed object (the `or` exception keeps such a placement).
+    The `clutter` nodes (the clutter set and its objects) go by rule 2 first: the clutter set
+    shares the root's pose, and with it an observed root's block when the root has no noise,
+    yet its count is about the clutter objects, not the root."""
     n = len(tree)
     w = np.zeros((n, n_objects))
     if n_objects == 0:
@@ -662,7 +680,7 @@ def _block_owners(
     in_block[top[np.flatnonzero(has)], obj_of[has]] = True
     for i in range(n):
         own = in_block[top[i]]
-        if not own.any():
+        if clutter[i] or not own.any():
             own = below[i]
         if own.any():
             w[i] = own / own.sum()
@@ -686,41 +704,88 @@ class Repair:
 
 
 def pose_gains(grammar: Grammar, tree: Trees, obj_of: IntArray) -> dict[int, Repair]:
-    """For each object: how much the tree's score rises when its block alone is moved rigidly
-    to the best of a few candidate poses (each puts one touched edge at its law's mode)."""
+    """For each object: how much the tree's score rises when it moves to the best of a few
+    candidate poses (`_object_moves`), the latent nodes between it and its nearest observed
+    ancestor allowed to move with it."""
     top = blocks(grammar, tree)
+    seen = seen_nodes(grammar, tree)
     out: dict[int, Repair] = {}
     for b in np.unique(top[obj_of >= 0]):
-        members = np.flatnonzero(top == b)
-        moves = _block_gain(grammar, tree, members, int(b))
-        x0 = tree.xyz[b]
-        for m in members:
-            if obj_of[m] < 0:
-                continue
-            poses = [
-                (
-                    x0 + quat_rotate(turn, tree.xyz[m] - x0) + shift,
-                    quat_multiply(turn, tree.quat[m]),
-                )
-                for shift, turn, _ in moves
-            ]
-            out[int(obj_of[m])] = Repair(moves[0][2] if moves else 0.0, poses)
+        moves = _object_moves(grammar, tree, obj_of, top, seen, int(b))
+        for m in np.flatnonzero((top == b) & (obj_of >= 0)):
+            poses = [(xyz[m], quat[m]) for _, xyz, quat in moves]
+            out[int(obj_of[m])] = Repair(moves[0][0] if moves else 0.0, poses)
     return out
 
 
+def _object_moves(
+    grammar: Grammar, tree: Trees, obj_of: IntArray, top: IntArray, seen: NDArray[np.bool_], b: int
+) -> list[tuple[float, FloatArray, FloatArray]]:
+    """Moves of block b that raise the score, best first: (gain, every node's pose after it).
+    The block moves rigidly (`_block_gain`); and, since no scene shows a latent node's pose,
+    the latent blocks above it up to its nearest observed ancestor (`_latent_ancestors`) may
+    move too: each such chain rigidly with the block (a slot that places its cup at its own
+    position: the cup alone cannot move), scored on every edge the chain touches (its own
+    placement, and the other children it carries, which stay), then the block re-placed on
+    the moved chain.  Each move is a pose of the tree, so its gain is a true rise of the
+    score: a lower bound of the best the object's move can give."""
+    members = np.flatnonzero(top == b)
+    moves = [
+        (gain, *_moved(tree, members, b, shift, turn))
+        for shift, turn, gain in _block_gain(grammar, tree, members, b, seen)
+    ]
+    carried = members
+    for a in _latent_ancestors(tree, obj_of, top, b):
+        carried = np.r_[carried, np.flatnonzero(top == a)]
+        for shift, turn, gain in _block_gain(grammar, tree, carried, a, seen)[:1]:
+            xyz, quat = _moved(tree, carried, a, shift, turn)
+            moves.append((gain, xyz, quat))
+            there = replace(tree, xyz=xyz, quat=quat)
+            for shift2, turn2, gain2 in _block_gain(grammar, there, members, b, seen)[:1]:
+                moves.append((gain + gain2, *_moved(there, members, b, shift2, turn2)))
+    return sorted(moves, key=lambda m: -m[0])
+
+
+def _latent_ancestors(tree: Trees, obj_of: IntArray, top: IntArray, b: int) -> list[int]:
+    """The tops of the latent blocks above block b, nearest first, up to its nearest observed
+    ancestor's block or the root's (whose pose the grammar fixes)."""
+    out = []
+    p = tree.parent[b]
+    while p >= 0:
+        a = int(top[p])
+        if tree.parent[a] < 0 or np.any(obj_of[top == a] >= 0):
+            break
+        out.append(a)
+        p = tree.parent[a]
+    return out
+
+
+def _moved(
+    tree: Trees, members: IntArray, top: int, shift: FloatArray, turn: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Every node's pose after `members` turn about the top node's position, then shift."""
+    xyz, quat = tree.xyz.copy(), tree.quat.copy()
+    x0 = tree.xyz[top]
+    for m in members:
+        xyz[m] = x0 + quat_rotate(turn, tree.xyz[m] - x0) + shift
+        quat[m] = quat_multiply(turn, tree.quat[m])
+    return xyz, quat
+
+
 def _block_gain(
-    grammar: Grammar, tree: Trees, members: IntArray, top: int
+    grammar: Grammar, tree: Trees, members: IntArray, top: int, seen: NDArray[np.bool_]
 ) -> list[tuple[FloatArray, FloatArray, float]]:
     """Rigid moves (shift, turn, gain) of a block that raise the score, best first.  None for
     the block of the tree's root: the grammar fixes the root's pose (docs/grammar.md, `root`),
     so moving it would make the tree impossible, however much its children's edges gain.  (An
     observed root with `observation: noise` is a noisy child of its own `~node`: it has a
-    parent, and its pose gain is its noise edge's.)"""
+    parent, and its pose gain is its noise edge's.)  The edges to unseen children, whose
+    poses the score integrates out, are not scored."""
     if tree.parent[top] < 0:
         return []
     inside = np.zeros(len(tree), bool)
     inside[members] = True
-    kids = np.flatnonzero((tree.parent >= 0) & ~inside & inside[np.maximum(tree.parent, 0)])
+    kids = np.flatnonzero((tree.parent >= 0) & ~inside & inside[np.maximum(tree.parent, 0)] & seen)
     edges = np.r_[[top], kids].astype(np.int64)
     shifts, turns = [np.zeros(3)], [IDENTITY]
     x0, q0 = tree.xyz[top], tree.quat[top]
@@ -994,6 +1059,7 @@ class _Expectations:
     def __init__(self, grammar: Grammar) -> None:
         self.g = grammar
         self.draws: dict[int, tuple[FloatArray, FloatArray]] = {}
+        self.uniform_draws: dict[int, FloatArray] = {}
 
     def rule(self, r: int) -> tuple[FloatArray, FloatArray]:
         if r not in self.draws:
@@ -1027,9 +1093,34 @@ class _Expectations:
                 expected -= p * float(np.mean(lt + lr))
         return expected
 
-    def percentile(self, r: int, log_prob: float) -> float:
-        _, lr = self.rule(r)
-        return float(np.mean(lr <= log_prob + 1e-12))
+    def uniform(self, r: int) -> FloatArray:
+        """Rule r's rotation log-density at UNIFORM_DRAWS uniform rotations (seeded)."""
+        if r not in self.uniform_draws:
+            rng = np.random.default_rng([11, r])
+            n = UNIFORM_DRAWS
+            quat = rng.normal(size=(n, 4))
+            quat /= np.linalg.norm(quat, axis=1)[:, None]
+            pq = np.tile(IDENTITY, (n, 1))
+            self.uniform_draws[r] = rotation_log_density(self.g, np.full(n, r), pq, quat)
+        return self.uniform_draws[r]
+
+    def percentile(self, r: int, log_prob: float) -> tuple[float, bool]:
+        """P(a draw of rule r's rotation law is no more likely than `log_prob`), and whether
+        the number is only an upper bound.  Where at least TAIL_HITS of the law's own draws
+        lie there, their share.  Rarer, uniform rotations weighted by the law's density
+        (importance sampling): in that tail each weight is at most exp(log_prob)·π², so the
+        estimate is good exactly where the plain one counts no draw.  Beyond every uniform
+        draw too (the law's least likely rotations), the bound exp(log_prob)·π²: the law's
+        density is at most exp(log_prob) there, on a set of volume at most π² (SO(3)'s)."""
+        hits = self.rule(r)[1] <= log_prob + 1e-12
+        if np.sum(hits) >= TAIL_HITS:
+            return float(np.mean(hits)), False
+        lu = self.uniform(r)
+        tail = lu <= log_prob + 1e-12
+        estimate = float(np.sum(np.exp(lu[tail] - UNIFORM_SO3_LOG_DENSITY))) / len(lu)
+        if estimate > 0:
+            return estimate, False
+        return float(min(1.0, np.exp(log_prob - UNIFORM_SO3_LOG_DENSITY))), True
 
 
 def _entropy(grammar: Grammar, type_name: str) -> float:
@@ -1049,10 +1140,13 @@ def _entropy(grammar: Grammar, type_name: str) -> float:
 
 
 def _name(grammar: Grammar, tree: Trees, obj_of: IntArray, node: int) -> str:
-    """A node as a user knows it: the object of its block, else its type."""
+    """A node as a user knows it: the object of its block, else its type (the clutter set by
+    its type too: it shares the root's pose, but the root does not place clutter objects)."""
     top = blocks(grammar, tree)
-    same = np.flatnonzero((top == top[node]) & (obj_of >= 0))
     t = grammar.types[tree.type[node]]
+    if t.synthetic == "clutter":
+        return t.name
+    same = np.flatnonzero((top == top[node]) & (obj_of >= 0))
     if not len(same) and t.synthetic == "node":  # an observed root's own node: that object
         twin = grammar.type_ids[t.name.split(":", 1)[1]]
         same = np.flatnonzero((tree.type == twin) & (obj_of >= 0))
@@ -1116,8 +1210,14 @@ def _rotation_words(
     i, r = term["node"], term["rid"]
     p = tree.parent[i]
     rel = rotation_coordinates(grammar, np.array([r]), tree.quat[p][None], tree.quat[i][None])[0]
-    ctx = Context(_name(grammar, tree, obj_of, int(p)), lambda lp: expect.percentile(r, lp))
-    return _worded(grammar.rules[r].rotation.describe_deviation(rel, term["log_prob"], ctx), term)
+    ctx = Context(_name(grammar, tree, obj_of, int(p)), lambda lp: expect.percentile(r, lp)[0])
+    d = grammar.rules[r].rotation.describe_deviation(rel, term["log_prob"], ctx)
+    if d.percentile is not None and expect.percentile(r, term["log_prob"])[1]:
+        term["percentile_bound"] = True  # say so: "< 3.7e-40% likely"
+        mark = percent(d.percentile)
+        text = d.text.replace(mark, f"< {mark}", 1) if mark in d.text else f"{d.text} (< {mark})"
+        d = replace(d, text=text)
+    return _worded(d, term)
 
 
 def _worded(d: Deviation, term: dict[str, Any]) -> str:
@@ -1204,17 +1304,22 @@ def diagnose(
             message += "; off the pose the grammar fixes: " + ", ".join(
                 f"{names[o]} ({why})" for o, why in off.items()
             )
+        few = _too_few(grammar, scene)
+        if few:
+            message += "; " + "; ".join(f"{names[o]}: {why}" for o, why in few.items())
         try:  # too many objects (of types it makes): any of them may go, so none is named
             parser.check_capacity(_without(scene, never))
         except SsgError as exc:
             message += "; " + "; ".join(d.message for d in exc.diagnostics)
         message += _hint(grammar, list(off.values()))
         reasons = {o: [why] for o, why in off.items()}
+        for o, why in few.items():
+            reasons.setdefault(o, []).append(why)
         return Diagnosis(scene.name, never, reasons, [], message)
     found.sort(key=lambda f: -f[0])
     _, drop, tree = found[0]
     kept = np.setdiff1d(np.arange(len(scene)), drop)
-    reasons = {o: _why_not(grammar, scene, o, tree, kept, parser) for o in drop}
+    reasons = {o: _why_not(grammar, scene, o, tree, kept, parser, drop) for o in drop}
     parts = [f"{names[o]} ({'; '.join(reasons[o][:3])})" for o in drop]
     message = (
         f"scene '{scene.name}': no tree of the grammar contains all its objects; without "
@@ -1259,6 +1364,66 @@ def _without_root(grammar: Grammar, scene: Scene, names: list[str]) -> Diagnosis
     return Diagnosis(scene.name, at, reasons, [], message)
 
 
+def _too_few(grammar: Grammar, scene: Scene) -> dict[int, str]:
+    """The objects whose count law needs more than the scene has: a `repeat` type whose
+    least count k > 0 needs k children that each make at least one object, while the scene's
+    other objects of the types a child can make are fewer (no removal can help then: the
+    diagnosis names the law instead)."""
+    least = _least_objects(grammar)
+    out = {}
+    for o, t in enumerate(scene.types):
+        node = grammar.types[t]
+        if node.kind != Kind.REPEAT or node.count is None or not node.rules:
+            continue
+        k = int(np.argmax(np.asarray(node.count.probs) > 0))
+        child = grammar.rules[node.rules[0]].child
+        makes = _made_types(grammar, child)
+        have = int(np.sum(np.isin(scene.types, makes))) - int(t in makes)
+        if k > 0 and least[child] > 0 and have < k * least[child]:
+            what = "none" if have == 0 else f"only {have} object(s) it could hold"
+            out[o] = (
+                f"{node.name} holds at least {k} {grammar.types[child].name} (its count law), "
+                f"and the scene has {what}"
+            )
+    return out
+
+
+def _least_objects(grammar: Grammar) -> IntArray:
+    """Per type, the fewest observed objects a node of it makes (itself included): a fixed
+    point from below, so a lower bound even for recursive types."""
+    observed = grammar.tables.type_observed.astype(np.int64)
+    least = observed.copy()
+    for _ in range(len(grammar.types)):
+        new = observed.copy()
+        for t in grammar.types:
+            kids = np.array([least[grammar.rules[r].child] for r in t.rules], np.int64)
+            probs = np.asarray(t.probs, float)
+            if t.kind == Kind.AND:
+                new[t.id] += int(kids.sum())
+            elif t.kind == Kind.OR and len(kids) and np.any(probs > 0):
+                new[t.id] += int(kids[probs > 0].min())
+            elif t.kind == Kind.INDEPENDENT:
+                new[t.id] += int(kids[probs >= 1.0].sum())
+            elif t.kind == Kind.REPEAT and t.count is not None and len(kids):
+                new[t.id] += int(np.argmax(np.asarray(t.count.probs) > 0)) * int(kids[0])
+        if np.array_equal(new, least):
+            break
+        least = new
+    return least
+
+
+def _made_types(grammar: Grammar, t: int) -> list[int]:
+    """The observed types a node of type t can make, itself included."""
+    seen, todo = {t}, [t]
+    while todo:
+        for r in grammar.types[todo.pop()].rules:
+            c = grammar.rules[r].child
+            if c not in seen:
+                seen.add(c)
+                todo.append(c)
+    return [c for c in seen if grammar.tables.type_observed[c]]
+
+
 def _hint(grammar: Grammar, reasons: list[str]) -> str:
     """What in the grammar language would let such a scene parse, when the grammar lacks it:
     sensor noise for small offsets from exact placements, clutter for unknown objects."""
@@ -1294,32 +1459,28 @@ def _without(scene: Scene, drop: list[int]) -> Scene:
 
 
 def _why_not(
-    grammar: Grammar, scene: Scene, o: int, tree: Trees, kept: IntArray, parser: Any
+    grammar: Grammar,
+    scene: Scene,
+    o: int,
+    tree: Trees,
+    kept: IntArray,
+    parser: Any,
+    drop: list[int],
 ) -> list[str]:
-    """Why each rule that could produce object o fails from each node of the other objects'
-    best tree that could have fired it, closest candidates first."""
+    """Why each rule that could produce object o fails from each node that could have fired
+    it, closest candidates first: the nodes of the other objects' best tree, and the other
+    removed objects (a plate removed with the spoon it lacks is the spoon's parent to try)."""
     tb = grammar.tables
     t = int(scene.types[o])
     if parser.capacity[t] == 0:
         return [f"the grammar never produces a {grammar.types[t].name}"]
     out: list[tuple[float, str]] = []
-    kept_names = {}
-    for i in range(len(tree)):
-        same = np.flatnonzero(
-            (scene.types[kept] == tree.type[i])
-            & (np.linalg.norm(scene.xyz[kept] - tree.xyz[i], axis=1) < 1e-6)
-        )
-        x, y, z = tree.xyz[i]
-        kept_names[i] = (
-            f"{grammar.types[tree.type[i]].name} #{kept[same[0]]}"
-            if len(same)
-            else f"{grammar.types[tree.type[i]].name} at ({x:.2f}, {y:.2f}, {z:.2f})"
-        )
+    nodes = _firing_nodes(grammar, scene, tree, kept, [d for d in drop if d != o])
     for vt, x, q in _fixed_ancestors(grammar, t, scene.xyz[o], scene.quat[o]):
         for r in np.flatnonzero(tb.rule_child == vt):
             if _rigid(grammar, int(r)):
                 continue
-            parents = np.flatnonzero(tree.type == tb.rule_parent[r])
+            parents = [n for n in nodes if n[0] == tb.rule_parent[r]]
             rule = grammar.rule_name(int(r))
             if len(parents) == 0:
                 out.append(
@@ -1331,21 +1492,49 @@ def _why_not(
                 )
                 continue
             rr = np.full(len(parents), r)
-            px, pq = tree.xyz[parents], tree.quat[parents]
+            px = np.array([n[1] for n in parents])
+            pq = np.array([n[2] for n in parents])
             xs, qs = np.tile(x, (len(parents), 1)), np.tile(q, (len(parents), 1))
             lt = translation_log_density(grammar, rr, px, pq, xs)
             lr = rotation_log_density(grammar, rr, pq, qs)
             u = translation_coordinates(grammar, rr, px, pq, xs)
             dist = np.linalg.norm(xs - px, axis=1)
             for k in np.argsort(dist)[:2]:
-                p = parents[k]
-                what = _failure(grammar, int(r), u[k], lt[k], lr[k], pq[k], q, tree, int(p))
-                out.append((float(dist[k]), f"{rule} from {kept_names[int(p)]}: {what}"))
+                _, _, _, name, held = parents[k]
+                what = _failure(grammar, int(r), u[k], lt[k], lr[k], pq[k], q, held)
+                out.append((float(dist[k]), f"{rule} from {name}: {what}"))
     out.sort(key=lambda x: x[0])
     fixed = _root_offset(grammar, scene, o)
     if fixed is not None:  # no rule can place it: the grammar fixes its pose at the root's
         return [fixed, *[s for _, s in out]]
     return [s for _, s in out] or [f"no rule produces a {grammar.types[t].name}"]
+
+
+def _firing_nodes(
+    grammar: Grammar, scene: Scene, tree: Trees, kept: IntArray, others: list[int]
+) -> list[tuple[int, FloatArray, FloatArray, str, int]]:
+    """(type, xyz, quat, name, children held) of each node that could fire a rule: the
+    nodes of the kept objects' tree (an object's node named as it, a latent one by its type
+    and position), then the other removed objects and the nodes fixed rules tie to them."""
+    out = []
+    for i in range(len(tree)):
+        same = np.flatnonzero(
+            (scene.types[kept] == tree.type[i])
+            & (np.linalg.norm(scene.xyz[kept] - tree.xyz[i], axis=1) < 1e-6)
+        )
+        x, y, z = tree.xyz[i]
+        name = (
+            f"{grammar.types[tree.type[i]].name} #{kept[same[0]]}"
+            if len(same)
+            else f"{grammar.types[tree.type[i]].name} at ({x:.2f}, {y:.2f}, {z:.2f})"
+        )
+        held = int(np.sum(tree.parent == i))
+        out.append((int(tree.type[i]), tree.xyz[i], tree.quat[i], name, held))
+    for d in others:
+        name = f"{grammar.types[scene.types[d]].name} #{d}"
+        for vt, x, q in _fixed_ancestors(grammar, int(scene.types[d]), scene.xyz[d], scene.quat[d]):
+            out.append((int(vt), x, q, name, 0))
+    return out
 
 
 def _off_root(grammar: Grammar, scene: Scene) -> dict[int, str]:
@@ -1426,17 +1615,17 @@ def _failure(
     lr: float,
     pq: FloatArray,
     q: FloatArray,
-    tree: Trees,
-    p: int,
+    held: int,
 ) -> str:
+    """Why rule r cannot place a child at rotation q from a parent (rotation pq, holding
+    `held` children) that puts it at u in the rule's coordinates."""
     rule = grammar.rules[r]
     if not np.isfinite(lt):
         return rule.translation.describe_violation(u)
     if not np.isfinite(lr):
         rel = rotation_coordinates(grammar, np.array([r]), pq[None], q[None])[0]
         return rule.rotation.describe_violation(rel)
-    t = grammar.types[tree.type[p]]
-    held = int(np.sum(tree.parent == p))
+    t = grammar.types[rule.parent]
     if t.kind == Kind.REPEAT and t.count is not None and held >= len(t.count.probs) - 1:
         return f"its pose is possible, but {t.name} already holds its maximum of {held}"
     return (
