@@ -277,3 +277,20 @@ def test_a_zero_pinned_variance_in_either_form_compiles():
         grammar("{world_normal: {covariance: [[1, 0, 0], [0, 1, 0], [0, 0, 0]], pin: [z]}}"), FILE
     )
     compile_text(grammar("{world_normal: {variance: [1, 1, 0], pin: [z]}}"), FILE)
+
+
+# ------------------------------------- a pinned axis's covariance coupling has no effect ---
+
+
+def test_a_covariance_coupling_a_pinned_axis_is_warned_about_at_its_entry():
+    """The rows and columns of pinned axes are dropped, not conditioned on (grammar.md 4.2):
+    a coupling written there silently did nothing."""
+    law = "{world_normal: {covariance: [[1, 0, 0.3], [0, 1, 0], [0.3, 0, 0]], pin: [z]}}"
+    text = grammar(translation=law)
+    g = compile_text(text, FILE)
+    warned = [w for w in g.warnings if "couples the pinned z axis with x" in w.message]
+    assert len(warned) == 1, g.warnings
+    line, col = place(text, "0.3, 0, 0]]")  # its row: the pinned axis z, column x
+    assert (warned[0].line, warned[0].column) == (line, col)
+    free = "{world_normal: {covariance: [[1, 0.2, 0], [0.2, 1, 0], [0, 0, 0]], pin: [z]}}"
+    assert not [w for w in compile_text(grammar(translation=free), FILE).warnings]

@@ -55,9 +55,12 @@ class Frame(IntEnum):
 
 
 class Lowering(Protocol):
-    """What a law's `lower` may ask of the compiler: report a located error, read a rotation."""
+    """What a law's `lower` may ask of the compiler: report a located error or warning, read
+    a rotation."""
 
     def error(self, loc: Loc, message: str) -> None: ...
+
+    def warn(self, loc: Loc, message: str) -> None: ...
 
     def orientation(self, o: dsl.Orientation, loc: Loc) -> FloatArray: ...
 

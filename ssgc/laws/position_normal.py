@@ -202,6 +202,15 @@ def _covariance(
         )
     if negative.size:
         return None
+    # the rows and columns of pinned axes are dropped, not conditioned on: a coupling written
+    # there has no effect, which the user should hear about
+    coupled = np.argwhere(~free[:, None] & (cov != 0) & ~np.eye(3, dtype=bool))
+    for i, j in coupled[:1]:
+        ctx.warn(
+            (*loc, "covariance", int(i), int(j)),
+            f"the covariance couples the pinned {'xyz'[i]} axis with {'xyz'[j]} "
+            f"({cov[i, j]:g}); a pinned axis's row and column are dropped, so this has no effect",
+        )
     sub = cov[np.ix_(free, free)]
     try:
         with np.errstate(all="ignore"):  # huge entries overflow: NaN fails below
