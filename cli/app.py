@@ -155,6 +155,24 @@ def finite(value: float | None) -> float | None:
     return value
 
 
+def finite_from(low: float, high: float = math.inf) -> Callable[[float | None], float | None]:
+    """The check of a number option with bounds, in place of typer's `min`/`max`: typer checks
+    those before the callback, and NaN fails them, so `--time-limit nan` said "Input should be
+    greater than or equal to 0.001" (and `--max-time -inf` passed to the command) instead of
+    "must be a finite number" (docs/robustness.md).  Finiteness first, then the bounds, in
+    typer's words; both are usage errors (exit 2)."""
+
+    def check(value: float | None) -> float | None:
+        finite(value)
+        if value is not None and value < low:
+            raise typer.BadParameter(f"Input should be greater than or equal to {low:g}")
+        if value is not None and value > high:
+            raise typer.BadParameter(f"Input should be less than or equal to {high:g}")
+        return value
+
+    return check
+
+
 GrammarArg = Annotated[Path, typer.Argument(help="Grammar YAML file.", show_default=False)]
 # Mesh and model files a grammar names must be in its directory unless the user allows others
 # (docs/robustness.md): a grammar from elsewhere cannot point ssg at arbitrary files.
@@ -184,7 +202,9 @@ def _note_discarded(journal: Any, quiet: bool) -> None:
 
 def _in_range(value: float, flag: str, low: float, high: float) -> float:
     """A positive bound of the M-step, checked here so that the message reads as numbers are
-    written (typer prints a range's 1e-300 with all its zeros); NaN fails every comparison."""
+    written (typer prints a range's 1e-300 with all its zeros); a number that is not finite is
+    said to be so first, as every number option says it (docs/robustness.md)."""
+    finite(value)
     if not (low < value <= high and math.isfinite(value)):
         upper = " and finite" if math.isinf(high) else f" and at most {high:g}"
         raise typer.BadParameter(f"must be above {low:g}{upper}, got {value:g}", param_hint=flag)

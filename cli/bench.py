@@ -16,7 +16,7 @@ from ssgc.cli.app import (
     _command,
     _in_range,
     bench_app,
-    finite,
+    finite_from,
     out,
 )
 from ssgc.compile import load_grammar
@@ -79,7 +79,9 @@ def bench_parse_cmd(
     top: Annotated[int, typer.Option("--top", min=1, help="Parse trees per scene.")] = 1,
     time_limit: Annotated[
         float | None,
-        typer.Option("--time-limit", min=0.001, callback=finite, help="Seconds per scene's parse."),
+        typer.Option(
+            "--time-limit", callback=finite_from(0.001), help="Seconds per scene's parse."
+        ),
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     allow_outside_files: AllowOutside = False,

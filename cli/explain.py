@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .app import AllowOutside, _command, app, err, finite, out
+from .app import AllowOutside, _command, app, err, finite_from, out
 
 
 @app.command(short_help="Which objects make a scene unusual, and why.")
@@ -30,8 +30,7 @@ def explain(
         float | None,
         typer.Option(
             "--time-limit",
-            min=0.001,
-            callback=finite,
+            callback=finite_from(0.001),
             help="Seconds per scene: the parse, then the per-object re-parses in what is "
             "left (without it the re-parses share 30 s).",
         ),

@@ -21,7 +21,7 @@ from ssgc.cli.app import (
     _warnings_about,
     app,
     err,
-    finite,
+    finite_from,
 )
 from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
@@ -97,8 +97,7 @@ def fit(
     pseudocount: Annotated[
         float,
         typer.Option(
-            min=0.0,
-            callback=finite,
+            callback=finite_from(0.0),
             help="Added to every possible outcome of a discrete law (0: plain MLE).",
         ),
     ] = DEFAULTS["pseudocount"],
@@ -120,8 +119,7 @@ def fit(
     tol: Annotated[
         float,
         typer.Option(
-            min=0.0,
-            callback=finite,
+            callback=finite_from(0.0),
             help="Stop when the log-evidence changes less (nats per scene).",
         ),
     ] = DEFAULTS["tol"],
@@ -129,8 +127,7 @@ def fit(
         float | None,
         typer.Option(
             "--time-limit",
-            min=0.001,
-            callback=finite,
+            callback=finite_from(0.001),
             help="Seconds for the EM loop (not loading, --mmd, --plot or writing); then the "
             "last finished iteration's grammar is written.",
         ),

@@ -15,7 +15,7 @@ from ssgc.cli.app import (
     _summary,
     app,
     err,
-    finite,
+    finite_from,
 )
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
@@ -46,7 +46,7 @@ def parse(
     top: Annotated[int, typer.Option("--top", min=1, help="Distinct parse trees per scene.")] = 1,
     time_limit: Annotated[
         float | None,
-        typer.Option("--time-limit", min=0.001, callback=finite, help="Seconds per scene."),
+        typer.Option("--time-limit", callback=finite_from(0.001), help="Seconds per scene."),
     ] = None,
     solver: Annotated[str, typer.Option(help="highs: the MILP solver of this build.")] = "highs",
     output: Annotated[

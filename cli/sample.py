@@ -18,7 +18,7 @@ from ssgc.cli.app import (
     _progress,
     app,
     err,
-    finite,
+    finite_from,
     out,
 )
 from ssgc.compile import load_grammar
@@ -69,14 +69,13 @@ def sample(
     time_limit: Annotated[
         float | None,
         typer.Option(
-            min=0.001, callback=finite, help="With --constraints: stop after these seconds."
+            callback=finite_from(0.001), help="With --constraints: stop after these seconds."
         ),
     ] = None,
     penalty_eps: Annotated[
         float | None,
         typer.Option(
-            min=1e-9,
-            callback=finite,
+            callback=finite_from(1e-9),
             help="With --constraints, hmc, rjmcmc: the penalty's ε in m (default 1e-3).",
         ),
     ] = None,

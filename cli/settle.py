@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
 from ssgc.assets import load_shapes
-from ssgc.cli.app import AllowOutside, _command, _progress, app, err, out
+from ssgc.cli.app import AllowOutside, _command, _progress, app, err, finite_from, out
 from ssgc.compile import load_grammar
 from ssgc.errors import SsgError
 from ssgc.export import scene_bodies
@@ -82,9 +83,7 @@ def _options(max_time: float) -> SettleOptions:
 
 
 def _line(r: dict[str, Any]) -> str:
-    state = "settled" if r["settled"] else "not settled: did not come to rest"
-    if r.get("unstable"):
-        state = "not settled: the simulation went unstable (MuJoCo reset it), poses kept"
+    state = "settled" if r["settled"] else f"not settled: {r['reason']}"
     return (
         f"{r['name']}: {state}; largest displacement {1000 * r['max_displacement']:.1f} mm; "
         "penetration "
@@ -113,7 +112,7 @@ def settle_cmd(
         float,
         typer.Option(
             "--max-time",
-            max=3600.0,
+            callback=finite_from(-math.inf, 3600.0),  # below 0.2: _options says why
             help="Simulated seconds per scene, at most: from 0.2 (the time every object must "
             "stay still) to 3600.",
         ),

@@ -5,7 +5,19 @@ a cup leans into a teapot.  Thesis ch. 4 simulates tables forward to static stab
 using them (objects then move a few centimetres).  The scene goes through the same MJCF
 exporter as `ssg export --format mjcf` (plus a floor at z = 0), headless and on the CPU.
 A scene is *settled* when every free body has been still (speed below `still_speed`, and
-angular speed times 0.1 m below it) for `still_time` seconds of simulated time.
+angular speed times 0.1 m below it, and no body's speed growing) for `still_time` seconds of
+simulated time, with its contacts seated (below), and its deepest contact is then within
+`max_penetration`.
+
+Seating: the exporter's contacts (impedance 0.95) leave an object at rest about 2 µm into
+its support (8 µm for a sphere's single contact point), more than the 1e-6 m within which a
+pinned coordinate must match (`ssgc.laws.base.POS_TOL`), so a settled scene failed `ssg parse`
+although nothing moved.  Resting penetration is (1 - d) / d * load / k for impedance d and
+contact stiffness k.  Once the scene is first still, the contacts' impedance is raised to
+`SEATED_IMPEDANCE` (0.999: 50 times less penetration, at the same time constant and so the
+same stability at a 1 ms step); from then on stillness is counted with these contacts.  The
+whole simulation is not run with them: their contacts rock a stack of trays for seconds that
+the softer ones bring to rest in a fraction of one.
 """
 
 from __future__ import annotations
@@ -27,6 +39,7 @@ from ssgc.io.scene import Scene, scene_to_json
 from ssgc.ir import Grammar
 
 LEVER = 0.1  # m: an angular speed counts as this lever arm times it
+SEATED_IMPEDANCE = 0.999  # MuJoCo solimp d (both ends) once the scene is first still
 
 
 @dataclass(frozen=True)
@@ -37,6 +50,8 @@ class SettleOptions:
     timestep: float = 0.001  # s
     separated: float = 0.0005  # m: deepest contact left by the separation phase
     separate_steps: int = 2000
+    growth_floor: float = 5e-5  # m/s: a body's speed growing beyond this is not stillness
+    max_penetration: float = 1e-5  # m: a settled scene's deepest contact, at most
 
     def __post_init__(self) -> None:
         """A scene settles only after `still_time` of stillness: a shorter `max_time` could
@@ -61,11 +76,13 @@ class Settled:
     sim_time: float  # s simulated
     wall_time: float  # s
     unstable: bool = False  # MuJoCo found the simulation unstable and reset it
+    reason: str = ""  # why it is not settled ("" when it is)
 
     def report(self) -> dict[str, Any]:
         return {
             "name": self.name,
             "settled": self.settled,
+            "reason": self.reason,
             "max_displacement": self.max_displacement,
             "penetration_before": self.penetration_before,
             "penetration_after": self.penetration_after,
@@ -132,24 +149,25 @@ def _settle(mujoco, scene: SceneBodies, options: SettleOptions) -> Settled:  # t
     free = model.jnt_type == mujoco.mjtJoint.mjJNT_FREE
     if not free.any():
         return _nothing_moves(scene, before, start)
-    dofs = model.jnt_dofadr[free]
-    lin = np.concatenate([dofs + k for k in range(3)])
-    ang = np.concatenate([dofs + k for k in range(3, 6)])
+    dofs = model.jnt_dofadr[free][:, None] + np.arange(6)  # (bodies, 6): linear, angular
     _separate(mujoco, model, data, options)
     data.time = 0.0
     chunk = max(1, round(0.05 / options.timestep))
     still = 0.0  # simulated time is counted here: MuJoCo resets data.time when unstable
     steps = max(1, round(options.max_time / options.timestep))  # --max-time is at most
     done = 0
+    speed = np.zeros(len(dofs))  # the separation phase leaves every body at rest
+    seated = False
     while done < steps and still < options.still_time:
         n = min(chunk, steps - done)
         mujoco.mj_step(model, data, nstep=n)
         done += n
-        speed = max(
-            float(np.max(np.abs(data.qvel[lin]), initial=0.0)),
-            LEVER * float(np.max(np.abs(data.qvel[ang]), initial=0.0)),
-        )
-        still = still + n * options.timestep if speed < options.still_speed else 0.0
+        previous, speed = speed, body_speeds(data.qvel[dofs])
+        calm = is_still(speed, previous, seated, options)
+        still = still + n * options.timestep if calm else 0.0
+        if calm and not seated:
+            seat_contacts(model)
+            seated = True
     simulated = done * options.timestep
     after = penetration(model, data)
     xyz = data.xpos[ids].copy()
@@ -161,9 +179,10 @@ def _settle(mujoco, scene: SceneBodies, options: SettleOptions) -> Settled:  # t
         # keep the scene as it was and say it did not settle.
         xyz, after, still = xyz0, before, 0.0
         quat = np.array([b.quat for b in scene.bodies]).reshape(-1, 4)
+    reason = _unsettled_reason(bad, still >= options.still_time, after, options)
     return Settled(
         scene.name,
-        bool(still >= options.still_time),
+        not reason,
         xyz,
         quat,
         float(np.max(np.linalg.norm(xyz - xyz0, axis=1), initial=0.0)),
@@ -172,7 +191,60 @@ def _settle(mujoco, scene: SceneBodies, options: SettleOptions) -> Settled:  # t
         simulated,
         time.perf_counter() - start,
         unstable=bad,
+        reason=reason,
     )
+
+
+def body_speeds(qvel: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each free body's speed from its (6,) velocities: the largest linear component, or the
+    largest angular one times `LEVER`, whichever is larger."""
+    return np.maximum(
+        np.max(np.abs(qvel[:, :3]), axis=1), LEVER * np.max(np.abs(qvel[:, 3:]), axis=1)
+    )
+
+
+def is_still(
+    speed: NDArray[np.float64],
+    previous: NDArray[np.float64],
+    seated: bool,
+    options: SettleOptions,
+) -> bool:
+    """Whether a chunk of simulation counts toward the still time: every body slower than
+    `still_speed` and, once the contacts are seated, none faster than in the chunk before
+    (beyond `growth_floor`).  Speed alone is not enough: the simulation starts from rest, so a
+    pole standing just past its balance point is slow for its first 0.2 s, and was reported
+    settled although it was starting to fall; a falling body speeds up, a body coming to rest
+    slows down.  Growth is judged only with seated contacts: the exporter's softer ones jitter
+    resting bodies at 0.1-0.2 mm/s, the seated ones at a few µm/s, well under the floor."""
+    slow = bool(np.all(speed < options.still_speed))
+    if not seated:
+        return slow
+    return slow and bool(np.all(speed <= np.maximum(previous, options.growth_floor)))
+
+
+def seat_contacts(model) -> None:  # type: ignore[no-untyped-def]
+    """Raise every contact's impedance to `SEATED_IMPEDANCE` (module docstring, "Seating"):
+    resting objects then sink 50 times less into their supports, well within the 1e-6 m of a
+    pinned coordinate.  Geoms without contacts (the visual ones) are unaffected."""
+    model.geom_solimp[:, :2] = SEATED_IMPEDANCE
+
+
+def _unsettled_reason(bad: bool, still: bool, after: float, options: SettleOptions) -> str:
+    """Why a scene is not settled, in the words of its report line ("" when it is).
+
+    A still scene can still be far from rest as the docs promise it: a 10 kg box on a 1 g
+    one stands still 3.9 mm inside it (a contact holds it only as deep as its load is large
+    against its own weight).  Such a scene is not settled."""
+    if bad:
+        return "the simulation went unstable (MuJoCo reset it), poses kept"
+    if not still:
+        return "did not come to rest"
+    if after > options.max_penetration:
+        return (
+            f"it came to rest {1000 * after:.3f} mm deep in a contact, deeper than the "
+            f"{1000 * options.max_penetration:g} mm a settled scene may be"
+        )
+    return ""
 
 
 def _nothing_moves(scene: SceneBodies, penetration: float, start: float) -> Settled:
@@ -208,13 +280,15 @@ def _separate(mujoco, model, data, options: SettleOptions) -> None:  # type: ign
 
 
 def provenance(result: Settled, source: dict[str, Any]) -> dict[str, Any]:
-    """What a settled scene file records about how it was made."""
+    """What a settled scene file records about how it was made: everything of the report but
+    the wall-clock time, which differs from run to run, so that the same command writes the
+    same files (docs/scenes.md; the time stays in `--report`)."""
     mujoco = require_mujoco()
     return {
         "engine": "mujoco",
         "engine_version": mujoco.__version__,
         **{k: v for k, v in source.items() if v is not None},
-        **{k: v for k, v in result.report().items() if k != "name"},
+        **{k: v for k, v in result.report().items() if k not in ("name", "wall_time")},
     }
 
 
