@@ -281,6 +281,7 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
     INDEPENDENT, no child or one candidate per rule; REPEAT, every set of at most `copies`
     candidates, in increasing order (copies are exchangeable)."""
     from itertools import combinations
+    from math import comb
 
     members: dict[int, list] = {}
     for g in groups:
@@ -317,9 +318,11 @@ def _member_rows(cand: Candidates, groups) -> tuple[list, list[IntArray]]:  # ty
             (_, _, r, e_c, kids, _), k = real[0], len(cand.xyz[real[0][3]])
             copies = len(kids)
             cols = [(v, r, e_c)] * copies
-            subsets = [s for j in range(min(copies, k) + 1) for s in combinations(range(k), j)]
-            if len(subsets) > MAX_ASSIGNMENTS:
+            # counted before they are listed: 30 candidates and 10 copies are 53 million
+            # subsets, which ran out of memory (exit 70) before this check was reached
+            if sum(comb(k, j) for j in range(min(copies, k) + 1)) > MAX_ASSIGNMENTS:
                 raise _TooMany
+            subsets = [s for j in range(min(copies, k) + 1) for s in combinations(range(k), j)]
             rows = np.full((len(subsets), copies), -1)
             for i, s in enumerate(subsets):
                 rows[i, : len(s)] = s
