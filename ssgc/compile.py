@@ -417,6 +417,10 @@ class Report:
         self.error(loc, f"{what} '{name}' is not a type of this grammar{hint}")
 
 
+# entries of the scorer's (types x widest rules) tables: 400 MB per table of 8-byte numbers
+MAX_TABLE_CELLS = 50_000_000
+
+
 class Compiler(Report):
     """Lowers one validated document, runs the whole-grammar checks on the result and
     assembles the IR; collects every diagnostic it finds."""
@@ -479,6 +483,9 @@ class Compiler(Report):
             raise GrammarError(self.errors + self.warnings)
         assert seen is not None
         types_t, rules_t = tuple(seen.types), tuple(seen.rules)
+        self.check_table_size(types_t)
+        if self.errors:
+            raise GrammarError(self.errors + self.warnings)
         return Grammar(
             name=self.doc.grammar,
             file=self.source.file,
@@ -494,6 +501,25 @@ class Compiler(Report):
             observation=self.doc.observation,
             required_root=self.required_root(root_spec, seen),
         )
+
+    def check_table_size(self, types: tuple[NodeType, ...]) -> None:
+        """The scorer's tables hold a row per type as wide as the widest type's rules (and
+        its longest count law): 20,000 types under one `or` of 20,000 rules asked for 3 GB per
+        table and stopped `ssg validate` with exit 70.  Past MAX_TABLE_CELLS the grammar is
+        refused at the type that makes the tables wide."""
+        widest = max(types, key=lambda t: len(t.rules))
+        longest = max(types, key=lambda t: 0 if t.count is None else t.count.max_count)
+        for t, what, k in (
+            (widest, "rules", len(widest.rules)),
+            (longest, "counts", 0 if longest.count is None else longest.count.max_count + 1),
+        ):
+            if len(types) * k > MAX_TABLE_CELLS:
+                self.error(
+                    t.path,
+                    f"type '{t.name}' has {k:,} {what} and the grammar {len(types):,} types: "
+                    f"its tables would hold {len(types) * k:,} entries, more than "
+                    f"{MAX_TABLE_CELLS:,}; split its {what} over intermediate types",
+                )
 
     def reachable(self, types: list[NodeType], rules: list[Rule], root: int) -> list[Finding]:
         """Warnings for the types that neither the root nor the `observation` section's
