@@ -86,15 +86,20 @@ def unseen_edges(grammar: Grammar, trees: Trees) -> FloatArray:
 
 def _maybe_unseen(grammar: Grammar) -> NDArray[np.bool_]:
     """(types, rules): whether a node of this type, made by this rule, might be unseen and
-    carry a density: a latent type that some expansion leaves with nothing observed (a
-    fixed point over the types, nesting bounds ignored: it may say yes too often, never no
-    wrongly), under a rule with a translation or rotation that is not fixed."""
+    carry a density: a latent type that some expansion leaves with nothing observed, under a
+    rule with a translation or rotation that is not fixed.  A fixed point over the types that
+    may say yes too often, never no wrongly: a rule to a type with `max_nesting` may be
+    blocked at some depth, and then makes nothing, so such a child counts as holding nothing
+    (an `and` whose one child was bounded said no, and sampled scenes kept the density of a
+    node they do not show in their `log_prob`)."""
+    bounded = np.array([t.max_nesting is not None for t in grammar.types], bool)
     can = ~grammar.tables.type_observed.copy()
     while True:  # from "every latent type can" down to the greatest fixed point
+        empty = can | bounded
         new = np.array(
             [
                 t.can_hold_nothing(
-                    [(grammar.rules[r].index, bool(can[grammar.rules[r].child])) for r in t.rules]
+                    [(grammar.rules[r].index, bool(empty[grammar.rules[r].child])) for r in t.rules]
                 )
                 for t in grammar.types
             ],

@@ -101,3 +101,35 @@ def test_the_score_of_a_tree_with_nothing_latent_is_unchanged() -> None:
     trees, logp = sample_trees(g, 50, 1)
     assert seen_nodes(g, trees)[trees.type != g.type_id("Table")].all()
     np.testing.assert_allclose(score_trees(g, trees, marginal=False), logp, rtol=0, atol=1e-9)
+
+
+NEST_UNSEEN = """
+grammar: nest_unseen
+root: R
+types:
+  R:
+    and:
+      - {child: A, translation: same, rotation: same}
+  A:
+    observed: true
+    max_nesting: 1
+    and:
+      - child: L
+        translation: {world_normal: {mean: [0, 0, 0], variance: 0.01}}
+  L:
+    and:
+      - {child: A, translation: same, rotation: same}
+"""
+
+
+def test_a_node_emptied_by_max_nesting_is_unseen_when_sampled() -> None:
+    """L's one rule, to A, is blocked by A's `max_nesting` below the first A: that L holds
+    nothing, and its pose is integrated out.  The sampler's shortcut (`score._maybe_unseen`)
+    ignored nesting bounds, took L as always holding an A, and the scenes' `log_prob` kept
+    L's density (3.93 here) while every tree of this grammar has probability 1 (session-35
+    parse hunt)."""
+    g = compile_text(NEST_UNSEEN)
+    trees, logp = sample_trees(g, 20, 0)
+    assert (~seen_nodes(g, trees)).sum() == 20  # one empty L per tree
+    np.testing.assert_allclose(logp, 0.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(score_trees(g, trees), logp, rtol=0, atol=1e-12)

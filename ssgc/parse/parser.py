@@ -475,8 +475,8 @@ class _Run:
             if tries >= 20 * top:  # each solve found another encoding of a tree found
                 self.message = (
                     f"only {len(self.parses)} distinct tree(s) found in {tries} solves "
-                    "(the others were the same trees with latent nodes at other poses); "
-                    "more may exist"
+                    "(the others were trees already found, their interchangeable objects or "
+                    "latent nodes in other places); more may exist"
                 )
                 return
             tries += 1
