@@ -4,7 +4,9 @@ The grammar names a primitive or a mesh file per type (`geometry:`) and how its 
 in a simulator (`body:`: static or free, a mass or a density, hull or convex decomposition).
 This module turns that into numbers once per grammar, so the exporters and the settler never
 read the grammar's YAML again.  Primitives have closed-form inertias; a mesh's mass properties
-come from trimesh (the mesh must be watertight for its volume to mean anything).
+come from trimesh (the mesh must be watertight for its volume to mean anything).  A `revolve`
+collides as convex pieces cut from its profile (`revolve_pieces`): its cavity stays empty
+without coacd.
 """
 
 from __future__ import annotations
@@ -26,6 +28,11 @@ from ssgc.ir import Grammar, NodeType
 DEFAULT_DENSITY = 1000.0  # kg/m³, water: a type's body without mass or density
 MAX_MESH_BYTES = 64 * 1024 * 1024
 PRIMITIVE_SECTIONS = 32  # facets of a cylinder's or sphere's triangle mesh (GLB, USD meshes)
+# A revolve's collision pieces: sectors around the axis, as few as keep every chord of its
+# widest circle within CHORD_ERROR of the arc (a bowl of radius 15 cm: 28 sectors), and at
+# least MIN_SECTORS so a small cup still rolls as a round one does.
+CHORD_ERROR = 0.001  # m
+MIN_SECTORS, MAX_SECTORS = 16, 64
 
 
 @dataclass(frozen=True)
@@ -36,16 +43,28 @@ class Shape:
     `kind` and `size` describe it about its own centre, which is at `origin`."""
 
     type: str
-    kind: str  # "box", "cylinder", "sphere" or "mesh"
+    kind: str  # "box", "cylinder", "sphere", "mesh" (a revolve too) or "tray"
     size: tuple[float, ...]  # box: full sides; cylinder: (radius, length); sphere: (radius,)
+    # tray: (x, y, z, wall)
     mesh: object  # trimesh.Trimesh: the visual surface (primitives too, as triangles)
-    collision: tuple[object, ...]  # meshes: convex pieces (trimesh); primitives: ()
+    collision: tuple[object, ...]  # meshes: convex pieces (trimesh); primitives, trays: ()
     mass: float
     com: NDArray[np.float64]  # (3,) centre of mass in the type's frame
     inertia: NDArray[np.float64]  # (3, 3) about the centre of mass, in the type's frame
     static: bool
     source: str = ""  # a mesh's file name as the grammar writes it
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the geometry's place in the frame
+    # The pieces are the solid itself (a revolve's, `revolve_pieces`), not an approximation a
+    # simulator may redo its own way (USD's `convexHull` / `convexDecomposition`).
+    exact_pieces: bool = False
+    # A tray's collision: (centre in the type's frame, full sides) of boxes that make it
+    boxes: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = ()
+
+    @property
+    def primitive(self) -> bool:
+        """A box, cylinder or sphere, which every format has; other kinds are drawn as `mesh`
+        (an OBJ file where a format names files)."""
+        return self.kind in ("box", "cylinder", "sphere")
 
 
 def _trimesh():  # type: ignore[no-untyped-def]
@@ -187,6 +206,7 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None
     body = t.body if t.body is not None else dsl.Body()
     g = t.geometry
     origin = np.asarray(g.origin, float)
+    boxes: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = ()
     if isinstance(g, dsl.MeshG | dsl.RevolveG):  # a revolve's surface is a mesh to exporters
         if isinstance(g, dsl.MeshG):
             mesh, source = loaded, g.mesh.file
@@ -194,14 +214,30 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None
             mesh, source = _revolve_mesh(trimesh, g), ""
         mesh.apply_translation(origin)  # type: ignore[attr-defined]
         volume, com, unit_inertia = _mesh_mass_properties(mesh, isinstance(g, dsl.RevolveG))
-        pieces = _collision_pieces(mesh, body.collision, t.name) if collision else ()
+        exact = isinstance(g, dsl.RevolveG) and body.collision is None
+        if not collision:
+            pieces: tuple[object, ...] = ()
+        elif exact:
+            pieces = tuple(p.apply_translation(origin) for p in revolve_pieces(g.revolve.profile))
+        else:
+            pieces = _collision_pieces(mesh, body.collision or "hull", t.name)
         kind, size = "mesh", ()
+    elif isinstance(g, dsl.TrayG):  # drawn as its mesh, colliding as its five boxes
+        kind, size = "tray", (*map(float, g.tray.size), float(g.tray.wall))
+        vertices, faces = g.tray.mesh()
+        mesh = trimesh.Trimesh(vertices + origin, faces, process=False)
+        boxes = tuple(
+            (tuple(map(float, np.add(centre, origin))), tuple(map(float, sides)))
+            for centre, sides in g.tray.boxes()
+        )
+        volume, com, unit_inertia = _boxes_mass_properties(boxes)
+        pieces, source, exact = (), "", False
     else:
         kind, size = _primitive(g)
         mesh = _primitive_mesh(trimesh, kind, size)
         mesh.apply_translation(origin)  # type: ignore[attr-defined]
         volume, unit_inertia = _primitive_mass_properties(kind, size)
-        com, pieces, source = origin.copy(), (), ""
+        com, pieces, source, exact = origin.copy(), (), "", False
     mass = body.mass if body.mass is not None else (body.density or DEFAULT_DENSITY) * volume
     with np.errstate(over="ignore", invalid="ignore"):  # told below, in our words
         inertia = mass * unit_inertia
@@ -223,6 +259,8 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None
         body.static,
         source,
         (float(origin[0]), float(origin[1]), float(origin[2])),
+        exact,
+        boxes,
     )
 
 
@@ -232,6 +270,109 @@ def _revolve_mesh(trimesh, g: dsl.RevolveG) -> object:  # type: ignore[no-untype
 
     vertices, faces = Revolved(g.revolve.profile).mesh(PRIMITIVE_SECTIONS)
     return trimesh.Trimesh(vertices, faces, process=True)
+
+
+def revolve_sectors(radius: float) -> int:
+    """How many sectors around the axis a revolve of largest radius `radius` is cut into: the
+    fewest whose chords stay within CHORD_ERROR of its widest circle (a chord of a sector of
+    angle a is r (1 - cos(a / 2)) from the arc), within [MIN_SECTORS, MAX_SECTORS]."""
+    half_angle = np.arccos(np.clip(1.0 - CHORD_ERROR / max(radius, 1e-300), -1.0, 1.0))
+    return int(np.clip(np.ceil(np.pi / max(half_angle, 1e-12)), MIN_SECTORS, MAX_SECTORS))
+
+
+def profile_trapezoids(profile: object) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """A revolve's profile polygon (the axis closes it) cut into convex trapezoids, exactly.
+
+    Cut at every vertex's height, each slab between two heights is crossed by straight edges
+    only, and the inside of the polygon is between the 1st and 2nd of them (sorted by r), the
+    3rd and 4th, ...; a trapezoid is one such pair.  The same pair of edges in the slab above
+    continues the same trapezoid, so a dish's wall is one trapezoid per straight stretch.
+    Returns (m, 6) [r_left_bottom, r_right_bottom, r_left_top, r_right_top, z_bottom, z_top]
+    and (m,) whether its left side is the axis (a full turn of it is convex: a cone's frustum).
+    Trapezoids of no width (a profile that touches itself) are dropped."""
+    a = np.asarray(profile, float)
+    b = np.roll(a, -1, axis=0)  # edge k from point k to k + 1; the last, back along the axis
+    axis_edge = len(a) - 1
+    levels = np.unique(a[:, 1])
+    z0, z1 = levels[:-1], levels[1:]
+    low, high = np.minimum(a[:, 1], b[:, 1]), np.maximum(a[:, 1], b[:, 1])
+    crosses = (low[:, None] <= z0) & (high[:, None] >= z1)  # (edges, slabs): never a flat edge
+    with np.errstate(divide="ignore", invalid="ignore"):  # flat edges' r: never used
+        slope = (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+        r0 = a[:, 0, None] + (z0 - a[:, 1, None]) * slope[:, None]
+        r1 = a[:, 0, None] + (z1 - a[:, 1, None]) * slope[:, None]
+    done: list[list[float]] = []
+    sides: list[bool] = []
+    growing: dict[tuple[int, int], list[float]] = {}
+    for s in range(len(z0)):
+        edges = np.flatnonzero(crosses[:, s])
+        edges = edges[np.argsort(r0[edges, s] + r1[edges, s], kind="stable")]
+        now = {}
+        for left, right in zip(edges[0::2].tolist(), edges[1::2].tolist(), strict=True):
+            t = growing.pop((left, right), None)
+            if t is None:
+                t = [r0[left, s], r0[right, s], 0.0, 0.0, z0[s], 0.0]
+            t[2], t[3], t[5] = r1[left, s], r1[right, s], z1[s]
+            now[(left, right)] = t
+        for (left, _), t in growing.items():
+            done.append(t)
+            sides.append(left == axis_edge)
+        growing = now
+    for (left, _), t in growing.items():
+        done.append(t)
+        sides.append(left == axis_edge)
+    out = np.array(done, dtype=float).reshape(-1, 6)
+    wide = np.maximum(out[:, 1] - out[:, 0], out[:, 3] - out[:, 2]) > 0
+    return out[wide], np.array(sides, dtype=bool)[wide]
+
+
+# The 6 faces of a piece (8 corners: a trapezoid's 4, bottom-left, bottom-right, top-left,
+# top-right, at the sector's first angle, then at its second), as outward triangles.
+_QUADS = np.array(
+    [[0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3], [0, 1, 3, 2], [4, 6, 7, 5]]
+)
+_PIECE_FACES = np.concatenate([_QUADS[:, [0, 1, 2]], _QUADS[:, [0, 2, 3]]])
+
+
+def revolve_pieces(profile: object, sectors: int | None = None) -> list[object]:
+    """A revolve's solid as convex triangle meshes (trimesh), about its own origin.
+
+    A convex hull fills a bowl's cavity (a cup resting in it is inside its collision solid,
+    and a simulator throws it out); coacd's pieces are approximate and slow.  These are exact
+    up to the chords around the axis: each trapezoid of the profile (`profile_trapezoids`)
+    turned through one of `sectors` equal sectors is the convex hull of its 8 corners, and the
+    pieces tile the solid with facets at the same chords as its mesh of that many sections
+    (within CHORD_ERROR of the round surface by default: `revolve_sectors`).  A trapezoid on
+    the axis is convex turned all the way round, so it is one piece (a dish's base)."""
+    trimesh = _trimesh()
+    rz = np.asarray(profile, float)
+    k = sectors or revolve_sectors(float(rz[:, 0].max()))
+    trapezoids, on_axis = profile_trapezoids(rz)
+    pieces = []
+    for r_bottom, r_top, z0, z1 in trapezoids[on_axis][:, [1, 3, 4, 5]]:
+        rim = [[r, z] for r, z in ((r_bottom, z0), (r_top, z1)) if r > 0]  # a cone's tip: none
+        ring = [[0.0, z0], *rim, [0.0, z1]]
+        pieces.append(_turned(trimesh, ring, k))
+    ring = trapezoids[~on_axis]
+    angle = 2 * np.pi * (np.arange(k)[:, None] + np.arange(2)) / k  # (k, 2) each sector's ends
+    r = ring[:, None, None, :4]  # (m, 1, 1, 4) its corners' radii and heights
+    z = np.broadcast_to(ring[:, None, None, [4, 4, 5, 5]], (len(ring), k, 2, 4))
+    corners = np.stack(
+        [r * np.cos(angle)[None, :, :, None], r * np.sin(angle)[None, :, :, None], z], axis=-1
+    ).reshape(-1, 8, 3)
+    pointed = np.repeat((ring[:, 0] == ring[:, 1]) | (ring[:, 2] == ring[:, 3]), k)
+    for v, point in zip(corners, pointed, strict=True):
+        # a side of no width (a pointed rim) doubles two corners: merged, its faces dropped
+        pieces.append(trimesh.Trimesh(v, _PIECE_FACES, process=bool(point), validate=bool(point)))
+    return pieces
+
+
+def _turned(trimesh, ring: list[list[float]], sectors: int) -> object:  # type: ignore[no-untyped-def]
+    """A profile on the axis turned all the way round (a frustum or a cone), as a mesh."""
+    from ssgc.constraints.revolved import Revolved
+
+    vertices, faces = Revolved(ring).mesh(sectors)
+    return trimesh.Trimesh(vertices, faces, process=False)
 
 
 def _primitive(g: object) -> tuple[str, tuple[float, ...]]:
@@ -269,6 +410,31 @@ def _primitive_mass_properties(
     return 4.0 / 3.0 * np.pi * r**3, np.eye(3) * (2.0 / 5.0 * r * r)
 
 
+def _boxes_mass_properties(
+    boxes: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...],
+) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """Volume, centre of mass and inertia per unit mass (about the centre of mass) of boxes
+    that do not overlap (a tray's), in closed form: each box's own, moved to the common centre
+    of mass (parallel axes)."""
+    centres = np.array([c for c, _ in boxes], float)
+    sides = np.array([s for _, s in boxes], float)
+    volumes = np.prod(sides, axis=1)
+    volume = float(volumes.sum())
+    com = volumes @ centres / volume
+    squares = sides**2
+    own = np.stack(
+        [squares[:, [1, 2]].sum(1), squares[:, [0, 2]].sum(1), squares[:, [0, 1]].sum(1)]
+    )
+    d = centres - com
+    shifted = np.einsum(
+        "b,bij->ij",
+        volumes,
+        np.eye(3) * (d * d).sum(1)[:, None, None] - d[:, :, None] * d[:, None, :],
+    )
+    inertia = np.diag(volumes @ own.T / 12.0) + shifted
+    return volume, com, inertia / volume
+
+
 def _mesh_mass_properties(
     mesh: object, closed: bool = False
 ) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
@@ -300,7 +466,8 @@ def _mesh_mass_properties(
 
 
 def _collision_pieces(mesh: object, how: str, name: str) -> tuple[object, ...]:
-    """Convex pieces that stand for the mesh in collisions."""
+    """Convex pieces that stand for the mesh in collisions: its hull (a revolve's too, when
+    the grammar asks for `hull`: cavity filled), or coacd's decomposition."""
     if how == "hull":
         return (mesh.convex_hull,)  # type: ignore[attr-defined]
     try:

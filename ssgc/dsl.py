@@ -374,6 +374,62 @@ class RevolveGeometry(Strict):
         return self
 
 
+class TrayGeometry(Strict):
+    """An open-topped box (a bin, a tray, a drawer): a floor and four walls, each `wall` thick,
+    open towards +z.  A box standing for it is solid: what rests in the bin is inside that
+    box, and a simulator throws it out.  Centred on the geometry's origin, as a box is: `size`
+    is its outside, so its floor's top is at z = wall - size_z / 2 and its rim at size_z / 2."""
+
+    size: Annotated[list[Positive], Field(min_length=3, max_length=3)] = Field(
+        description="Outside lengths along x, y, z, metres (the walls and floor inside them)."
+    )
+    wall: Positive = Field(description="Thickness of the floor and of each wall, metres.")
+
+    @model_validator(mode="after")
+    def _room_inside(self) -> TrayGeometry:
+        x, y, z = self.size
+        if not (2 * self.wall < min(x, y) and self.wall < z):
+            raise ValueError(
+                f"a tray's wall ({self.wall:g} m) leaves no room inside its size "
+                f"[{x:g}, {y:g}, {z:g}]: twice the wall must be less than x and y, and the wall "
+                "less than z"
+            )
+        return self
+
+    def boxes(self) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
+        """(centre, full sides) of the five boxes that make it, which do not overlap: the floor,
+        then the walls at -x, +x (full length in y), -y, +y (between those)."""
+        x, y, z = self.size
+        w = self.wall
+        up, high = w / 2, z - w  # the walls stand on the floor: centred w / 2 above the middle
+        return [
+            ((0.0, 0.0, (w - z) / 2), (x, y, w)),
+            ((-(x - w) / 2, 0.0, up), (w, y, high)),
+            (((x - w) / 2, 0.0, up), (w, y, high)),
+            ((0.0, -(y - w) / 2, up), (x - 2 * w, w, high)),
+            ((0.0, (y - w) / 2, up), (x - 2 * w, w, high)),
+        ]
+
+    def mesh(self) -> tuple[Any, Any]:
+        """(vertices (16, 3), triangles (28, 3)) of its closed surface, facing outwards: four
+        rectangles (outside bottom, outside top, inside top, floor top) joined in turn, the
+        outside bottom and the floor closed."""
+        import numpy as np
+
+        x, y, z = (v / 2 for v in self.size)
+        w = self.wall
+        corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float)  # counter-clockwise
+        rings = [(x, y, -z), (x, y, z), (x - w, y - w, z), (x - w, y - w, w - z)]
+        vertices = np.concatenate([np.c_[corners * (a, b), np.full(4, c)] for a, b, c in rings])
+        j, k = np.arange(4), (np.arange(4) + 1) % 4
+        quads = [
+            np.stack([4 * r + j, 4 * r + k, 4 * r + 4 + k, 4 * r + 4 + j], 1) for r in range(3)
+        ]
+        quads += [np.array([[0, 3, 2, 1], [12, 13, 14, 15]])]  # outside bottom down, floor up
+        q = np.concatenate(quads)
+        return vertices, np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+
+
 class PlacedGeometry(Strict):
     """Where a geometry sits in its object's frame: the data may put an object's frame at its
     base (a dish on a floor), while a primitive is centred on its own origin."""
@@ -405,7 +461,11 @@ class RevolveG(PlacedGeometry):
     revolve: RevolveGeometry
 
 
-GEOMETRY_KINDS = ("box", "cylinder", "sphere", "mesh", "revolve")
+class TrayG(PlacedGeometry):
+    tray: TrayGeometry
+
+
+GEOMETRY_KINDS = ("box", "cylinder", "sphere", "mesh", "revolve", "tray")
 
 
 def geometry_key(value: Any) -> str | None:
@@ -428,12 +488,13 @@ Geometry = Annotated[
         Annotated[SphereG, Tag("sphere-geometry")],
         Annotated[MeshG, Tag("mesh-geometry")],
         Annotated[RevolveG, Tag("revolve-geometry")],
+        Annotated[TrayG, Tag("tray-geometry")],
     ],
     Discriminator(
         geometry_key,
         custom_error_type="invalid_choice",
-        custom_error_message="expected a geometry: one of box, cylinder, sphere, mesh, revolve "
-        "(and optionally origin)",
+        custom_error_message="expected a geometry: one of box, cylinder, sphere, mesh, revolve, "
+        "tray (and optionally origin)",
     ),
 ]
 
@@ -444,8 +505,10 @@ class Body(Strict):
     static: bool = Field(False, description="Welded to the world in exports; never moved.")
     mass: Positive | None = Field(None, description="Mass in kg (else from density).")
     density: Positive | None = Field(None, description="kg/m^3; default 1000 (water).")
-    collision: Literal["hull", "decomposition"] = Field(
-        "hull", description="Mesh collision: convex hull, or convex pieces (coacd)."
+    collision: Literal["hull", "decomposition"] | None = Field(
+        None,
+        description="Collision of a mesh or revolve: its convex hull, or convex pieces by coacd. "
+        "Default: a revolve's exact convex pieces (its cavity stays empty), a mesh's hull.",
     )
 
     @model_validator(mode="after")

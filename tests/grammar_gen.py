@@ -162,7 +162,13 @@ def make_spec(pick: Pick, extras: bool = False, rare: bool = False) -> dict[str,
     spec = {"grammar": "generated", "root": latent[0], "types": types}
     if extras:
         types["A"]["geometry"] = {"sphere": {"radius": 0.02}}
-        types["B"]["geometry"] = {"cylinder": {"radius": 0.02, "length": 0.03}}
+        types["B"]["geometry"] = pick(
+            "geometry_b",
+            (
+                {"cylinder": {"radius": 0.02, "length": 0.03}},
+                {"tray": {"size": [0.06, 0.05, 0.03], "wall": 0.005}},  # an open box
+            ),
+        )
         spec["constraints"] = constraints(pick)
         seen = observation(pick)
         if seen is not None:

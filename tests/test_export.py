@@ -165,6 +165,17 @@ def test_mjcf_primitives_are_visible_in_mujocos_viewer_and_still_collide(tmp_pat
     assert len(contacts) > 0 and all(collides[g] for g in contacts.ravel())  # the ball's
 
 
+def scene_pose(scene, node: str) -> tuple[np.ndarray, object]:  # type: ignore[no-untyped-def]
+    """A glb node's world pose (glTF: +Y up) brought back to the scene's +Z up through the
+    root node that turns one into the other (docs/export.md, glTF axes), and its geometry."""
+    from ssgc.export.glb import ROOT_NAME, Z_UP_TO_Y_UP
+
+    root, _ = scene.graph.get(ROOT_NAME)
+    np.testing.assert_allclose(root, Z_UP_TO_Y_UP, atol=1e-12)
+    matrix, geometry = scene.graph.get(node)
+    return Z_UP_TO_Y_UP.T @ matrix, geometry
+
+
 def test_glb_nodes_are_named_by_object_id_with_their_poses(exported: Path) -> None:
     import trimesh
 
@@ -173,7 +184,7 @@ def test_glb_nodes_are_named_by_object_id_with_their_poses(exported: Path) -> No
         want = expected(exported, name)
         got = {}
         for node in want:
-            matrix, geometry = scene.graph.get(node)
+            matrix, geometry = scene_pose(scene, node)
             got[node] = (matrix[:3, 3], matrix[:3, :3])
             assert geometry in scene.geometry
         assert_same_poses(got, want)
@@ -417,7 +428,7 @@ def test_glb_of_a_scene_without_geometry_has_its_posed_nodes(tmp_path: Path, pro
     assert len(want) == (2 if probs == "0, 0, 1" else 0)
     got = {}
     for node in want:
-        matrix, geometry = scene.graph.get(node)
+        matrix, geometry = scene_pose(scene, node)
         assert geometry is None
         got[node] = (matrix[:3, 3], matrix[:3, :3])
     assert_same_poses(got, want)

@@ -433,6 +433,8 @@ shape = one_of_keys(
                 )
             }
         ),
+        # an open box: walls that may leave no room inside, or be missing
+        "tray": mapping({"size": vec(3)}, {"wall": numbers}),
     }
 )
 # a shape, sometimes with its `origin` in the object's frame beside it (or only the origin)

@@ -176,7 +176,9 @@ def test_a_revolve_exports_render_and_loads_as_a_mesh(tmp_path: Path):
     shapes = load_shapes(g, collision=True)
     bowl = shapes[g.type_ids["Bowl"]]
     assert bowl.kind == "mesh" and bowl.mesh.is_watertight and bowl.mass > 0
-    assert len(bowl.collision) == 1  # its convex hull (body: collision: hull)
+    # its exact convex pieces (the default for a revolve: one per profile trapezoid and
+    # sector, none filling the cavity); `collision: hull` would be one piece
+    assert bowl.exact_pieces and len(bowl.collision) > 1
 
 
 @given(

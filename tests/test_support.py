@@ -18,6 +18,7 @@ from ssgc.constraints.penetration import NonPenetration
 from ssgc.constraints.pose import InsideBox
 from ssgc.constraints.shapes import extents_of, frame_extents
 from ssgc.explain import explain_tree, match_objects
+from ssgc.export.glb import Z_UP_TO_Y_UP
 from ssgc.geometry import axis_angle_to_quat, quat_rotate, quat_to_matrix
 from ssgc.io.scene import Scene
 from ssgc.parse.parser import Parser
@@ -248,6 +249,7 @@ def test_usd_and_gltf_put_the_geometry_at_its_origin(tmp_path: Path) -> None:
     out, scene = export_one(tmp_path, "glb")
     glb = trimesh.load(str(next(out.glob("*.glb"))))
     matrix, name = glb.graph.get("Mug_1")
+    matrix = Z_UP_TO_Y_UP.T @ matrix  # glTF is +Y up: back to the scene's +Z up
     centre = matrix[:3, :3] @ glb.geometry[name].bounds.mean(axis=0) + matrix[:3, 3]
     np.testing.assert_allclose(centre, mug_centre(scene), atol=1e-6)
 

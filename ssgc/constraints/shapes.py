@@ -4,7 +4,9 @@ The one place constraints read a type's `geometry` (so a richer geometry descrip
 changes this file).  Primitives are centred on the geometry's `origin` (a point in the type's
 frame, default the frame's origin); a cylinder's axis is its z axis (as in SDF and FCL).  A
 `revolve` (a solid of revolution, ssgc/constraints/revolved.py) has its profile's z = 0 and
-axis at the origin.  Radii are about the type's frame, so they include the origin's offset.
+axis at the origin.  A `tray` (an open box) is centred as a box is and bounded by its outside
+box; FCL collides with its closed surface (a mesh), so what rests in it is apart.  Radii are
+about the type's frame, so they include the origin's offset.
 """
 
 from __future__ import annotations
@@ -57,8 +59,8 @@ def _footprint_radius(geometry: Any, base_dir: Path | None) -> float:
         return float(geometry.cylinder.radius)
     if isinstance(geometry, dsl.SphereG):
         return float(geometry.sphere.radius)
-    if isinstance(geometry, dsl.BoxG):
-        x, y, _ = geometry.box.size
+    if isinstance(geometry, dsl.BoxG | dsl.TrayG):
+        x, y, _ = _box_size(geometry)
         return float(np.hypot(x, y) / 2)
     if isinstance(geometry, dsl.RevolveG):
         return Revolved(geometry.revolve.profile).radius
@@ -79,12 +81,17 @@ def _own_radius(geometry: Any, base_dir: Path | None) -> float:
         return float(np.hypot(geometry.cylinder.radius, geometry.cylinder.length / 2))
     if isinstance(geometry, dsl.SphereG):
         return float(geometry.sphere.radius)
-    if isinstance(geometry, dsl.BoxG):
-        return float(np.linalg.norm(geometry.box.size) / 2)
+    if isinstance(geometry, dsl.BoxG | dsl.TrayG):
+        return float(np.linalg.norm(_box_size(geometry)) / 2)
     if isinstance(geometry, dsl.RevolveG):
         return Revolved(geometry.revolve.profile).bounding_radius
     v = _mesh_vertices(geometry.mesh, base_dir)
     return float(np.max(np.linalg.norm(v, axis=1), initial=0.0))
+
+
+def _box_size(geometry: dsl.BoxG | dsl.TrayG) -> list[float]:
+    """A box's sides, or a tray's outside sides."""
+    return list(geometry.box.size if isinstance(geometry, dsl.BoxG) else geometry.tray.size)
 
 
 def collision_shape(geometry: Any, base_dir: Path | None = None) -> Any:
@@ -107,6 +114,8 @@ def collision_shape(geometry: Any, base_dir: Path | None = None) -> Any:
         return fcl.Box(*geometry.box.size)
     if isinstance(geometry, dsl.RevolveG):
         v, faces = Revolved(geometry.revolve.profile).mesh()
+    elif isinstance(geometry, dsl.TrayG):
+        v, faces = geometry.tray.mesh()
     else:
         import trimesh
 
@@ -157,8 +166,8 @@ def extents_of(geometries: list[Any], base_dir: Path | None = None) -> Extents:
         if g is None:
             continue
         origin[t] = geometry_origin(g)
-        if isinstance(g, dsl.BoxG):
-            kind[t], half[t] = BOX, np.asarray(g.box.size, float) / 2
+        if isinstance(g, dsl.BoxG | dsl.TrayG):  # a tray reaches as far as its outside box
+            kind[t], half[t] = BOX, np.asarray(_box_size(g), float) / 2
         elif isinstance(g, dsl.CylinderG):
             kind[t], half[t] = CYLINDER, (g.cylinder.radius, g.cylinder.length / 2, 0.0)
         elif isinstance(g, dsl.SphereG):

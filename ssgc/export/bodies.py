@@ -83,15 +83,19 @@ def collision_piece(type_name: str, k: int) -> str:
     return f"{type_name}.collision.{k}"
 
 
-def mesh_files(scene: SceneBodies, folder: str = "meshes") -> dict[str, str]:
+def mesh_files(
+    scene: SceneBodies, folder: str = "meshes", collision: bool = False
+) -> dict[str, str]:
     """The OBJ files the formats that reference meshes need: `TYPE.obj` for the visual
-    surface of a mesh type and `TYPE.collision.K.obj` for its convex pieces."""
+    surface of a type that is not a primitive (a mesh, a revolve, a tray) and, with
+    `collision` (SDFormat names every convex piece by file; MJCF writes them inline),
+    `TYPE.collision.K.obj` for its convex pieces."""
     files = {}
     for shape in used_shapes(scene):
-        if shape.kind != "mesh":
+        if shape.primitive:
             continue
         files[f"{folder}/{shape.type}.obj"] = obj_text(shape.mesh)
-        for k, piece in enumerate(shape.collision):
+        for k, piece in enumerate(shape.collision if collision else ()):
             files[f"{folder}/{collision_piece(shape.type, k)}.obj"] = obj_text(piece)
     return files
 

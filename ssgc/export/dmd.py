@@ -85,5 +85,5 @@ def files(scene: SceneBodies) -> dict[str, str | bytes]:
         out[f"models/{shape.type}.sdf"] = _model_file(shape.type, link_xml(shape, "meshes", "    "))
     if any(b.shape is None for b in scene.bodies):
         out[f"models/{EMPTY}.sdf"] = _model_file("empty", link_xml(None, "meshes", "    "))
-    out.update(mesh_files(scene, "models/meshes"))
+    out.update(mesh_files(scene, "models/meshes", collision=True))
     return out

@@ -2,8 +2,10 @@
 
 Every body carries its type's `<inertial>` (MuJoCo does not recompute it: `inertiafromgeom`
 is off), a visual geom (group 1, no contacts) and its collision geoms (group 3): primitives
-as themselves, a mesh's convex pieces as mesh assets.  Fixed bodies have no joint, so they
-are welded to the world.  `floor=True` adds a ground plane at z = 0 (for settling).
+as themselves, a tray as its five boxes, a mesh's convex pieces as mesh assets written inline
+(a revolve has hundreds: one OBJ file each made `ssg settle` write them all for every scene).
+Fixed bodies have no joint, so they are welded to the world.  `floor=True` adds a ground plane
+at z = 0 (for settling).
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ def _primitive(shape: Shape) -> str:
 
 
 def _geoms(shape: Shape) -> list[str]:
-    if shape.kind != "mesh":  # centred on the geometry's origin (a mesh's OBJ is placed)
+    if shape.primitive:  # centred on the geometry's origin (a mesh's OBJ is placed)
         pos = f'pos="{_nums(shape.origin)}" ' if any(shape.origin) else ""
         geom = f"{_primitive(shape)} {pos}"
         return [  # group 3 alone is hidden by MuJoCo's viewer, which shows groups 0-2
@@ -56,6 +58,11 @@ def _geoms(shape: Shape) -> list[str]:
         f'<geom name="{{}}_collision_{k}" type="mesh" mesh="{collision_piece(shape.type, k)}" '
         f'group="3" {CONTACT}/>'
         for k in range(len(shape.collision))
+    ]
+    out += [  # a tray's boxes, each placed in the frame
+        f'<geom name="{{}}_collision_{k}" type="box" size="{_nums(np.asarray(sides) / 2)}" '
+        f'pos="{_nums(centre)}" group="3" {CONTACT}/>'
+        for k, (centre, sides) in enumerate(shape.boxes)
     ]
     return out
 
@@ -93,12 +100,19 @@ def body_xml(body: Body) -> str:
     return "\n".join(lines)
 
 
-def _mesh_asset(name: str) -> str:
+def _mesh_asset(name: str, piece: object | None = None) -> str:
     """A mesh asset whose own inertia is a shell's: MuJoCo computes every mesh's inertia even
     though none is used (`inertiafromgeom` is off), and refuses a mesh that encloses almost no
     volume (two crossed flat quads, which validation accepts: their hull has one), while a
-    shell needs only an area.  MuJoCo places the geom by the mesh's own frame either way."""
-    return f'    <mesh name="{name}" file="{name}.obj" inertia="shell"/>'
+    shell needs only an area.  MuJoCo places the geom by the mesh's own frame either way.
+    The visual surface is its OBJ file; a convex `piece` (trimesh) is written inline."""
+    if piece is None:
+        return f'    <mesh name="{name}" file="{name}.obj" inertia="shell"/>'
+    faces = " ".join(str(int(i)) for i in np.ravel(piece.faces))  # type: ignore[attr-defined]
+    return (
+        f'    <mesh name="{name}" vertex="{_nums(piece.vertices)}" face="{faces}" '  # type: ignore[attr-defined]
+        'inertia="shell"/>'
+    )
 
 
 def mjcf_text(
@@ -106,12 +120,12 @@ def mjcf_text(
 ) -> str:
     assets = []
     for shape in used_shapes(scene):
-        if shape.kind == "mesh":
-            names = [
-                shape.type,
-                *(collision_piece(shape.type, k) for k in range(len(shape.collision))),
+        if not shape.primitive:
+            assets.append(_mesh_asset(shape.type))
+            assets += [
+                _mesh_asset(collision_piece(shape.type, k), piece)
+                for k, piece in enumerate(shape.collision)
             ]
-            assets += [_mesh_asset(name) for name in names]
     ground = [f'    <geom name="floor" type="plane" size="0 0 1" {CONTACT}/>'] if floor else []
     return "\n".join(
         [
@@ -134,5 +148,5 @@ def mjcf_text(
 
 
 def files(scene: SceneBodies) -> dict[str, str | bytes]:
-    """`NAME.xml` and the OBJ files of its mesh assets (in `meshes/`)."""
+    """`NAME.xml` and the OBJ files of its visual meshes (in `meshes/`)."""
     return {f"{scene.name}{SUFFIX}": mjcf_text(scene), **mesh_files(scene, "meshes")}

@@ -1,8 +1,9 @@
 """SDFormat 1.9: one `<world>` with one `<model>` per object (Drake's Parser, Gazebo).
 
 Each model has one link, `body`, with the type's inertia, its visual geometry and its collision
-geometry (primitives as themselves; a mesh's convex pieces as OBJ files, marked
-`drake:declare_convex` so Drake uses them as convex shapes).  Fixed objects are `<static>`.
+geometry (primitives as themselves, a tray as its five boxes; a mesh's convex pieces as OBJ
+files, marked `drake:declare_convex` so Drake uses them as convex shapes).  Fixed objects are
+`<static>`.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ def link_xml(shape: Shape | None, meshes: str, indent: str = "      ") -> str:
     # a primitive is centred on the geometry's origin; a mesh's OBJ files are already placed
     placed = (
         f"<pose>{' '.join(num(v) for v in shape.origin)} 0 0 0</pose>"
-        if shape.kind != "mesh" and any(shape.origin)
+        if shape.primitive and any(shape.origin)
         else ""
     )
     lines = [
@@ -65,7 +66,7 @@ def link_xml(shape: Shape | None, meshes: str, indent: str = "      ") -> str:
         f'{indent}  <visual name="visual">{placed}<geometry>'
         f"{geometry_xml(shape, f'{meshes}/{shape.type}.obj')}</geometry></visual>",
     ]
-    if shape.kind != "mesh":
+    if shape.primitive:
         lines.append(
             f'{indent}  <collision name="collision">{placed}<geometry>'
             f"{geometry_xml(shape, '')}</geometry></collision>"
@@ -75,6 +76,12 @@ def link_xml(shape: Shape | None, meshes: str, indent: str = "      ") -> str:
         lines.append(
             f'{indent}  <collision name="collision_{k}"><geometry>'
             f"{geometry_xml(shape, uri, convex=True)}</geometry></collision>"
+        )
+    for k, (centre, sides) in enumerate(shape.boxes):  # a tray's, each placed in the frame
+        lines.append(
+            f'{indent}  <collision name="collision_{k}"><pose>{" ".join(map(num, centre))} 0 0 0'
+            f"</pose><geometry><box><size>{' '.join(map(num, sides))}</size></box></geometry>"
+            "</collision>"
         )
     lines.append(f"{indent}</link>")
     return "\n".join(lines)
@@ -113,4 +120,4 @@ def files(scene: SceneBodies) -> dict[str, str | bytes]:
             "",
         ]
     )
-    return {f"{scene.name}{SUFFIX}": text, **mesh_files(scene, meshes)}
+    return {f"{scene.name}{SUFFIX}": text, **mesh_files(scene, meshes, collision=True)}

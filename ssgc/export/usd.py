@@ -4,7 +4,11 @@ Each Xform, named by the object's id, has its pose as a translate and an orient 
 its geometry as a prim (`Cube` scaled to the box, `Cylinder`, `Sphere`, or a `Mesh` with the
 mesh's triangles).  UsdPhysics carries the rest: free objects are rigid bodies with their
 mass, centre of mass and principal inertia; geometry is a collider (a mesh's as its convex
-hull or convex decomposition); fixed objects are colliders without a rigid body (static).
+hull or convex decomposition); fixed objects are colliders without a rigid body (static).  A
+revolve's exact convex pieces (`Shape.exact_pieces`) are colliders of their own, `Mesh`es
+under `ID/collision` with purpose `guide` (not drawn), and its visual mesh collides with
+nothing: a simulator's own decomposition of the surface would be approximate.  A tray is drawn
+as its mesh and collides as its five boxes, `Cube`s under `ID/collision` likewise.
 """
 
 from __future__ import annotations
@@ -51,15 +55,47 @@ def _geometry(stage, path: str, shape: Shape):  # type: ignore[no-untyped-def]
         prim.CreateRadiusAttr(shape.size[0])
         _place(prim, shape)
     else:  # the mesh's points are already placed at the geometry's origin
-        prim = UsdGeom.Mesh.Define(stage, path)
-        mesh = shape.mesh
-        prim.CreatePointsAttr([Gf.Vec3f(*map(float, v)) for v in mesh.vertices])  # type: ignore[attr-defined]
-        prim.CreateFaceVertexCountsAttr([3] * len(mesh.faces))  # type: ignore[attr-defined]
-        prim.CreateFaceVertexIndicesAttr([int(i) for i in np.ravel(mesh.faces)])  # type: ignore[attr-defined]
-        prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        prim = _mesh(stage, path, shape.mesh)
+        if shape.exact_pieces or shape.boxes:  # its colliders are under ID/collision
+            return
         approx = "convexDecomposition" if len(shape.collision) > 1 else "convexHull"
         UsdPhysics.MeshCollisionAPI.Apply(prim.GetPrim()).CreateApproximationAttr(approx)
     UsdPhysics.CollisionAPI.Apply(prim.GetPrim())
+
+
+def _mesh(stage, path: str, mesh: object):  # type: ignore[no-untyped-def]
+    Gf, _, UsdGeom, _ = _pxr()
+    prim = UsdGeom.Mesh.Define(stage, path)
+    prim.CreatePointsAttr([Gf.Vec3f(*map(float, v)) for v in mesh.vertices])  # type: ignore[attr-defined]
+    prim.CreateFaceVertexCountsAttr([3] * len(mesh.faces))  # type: ignore[attr-defined]
+    prim.CreateFaceVertexIndicesAttr([int(i) for i in np.ravel(mesh.faces)])  # type: ignore[attr-defined]
+    prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    return prim
+
+
+def _exact_pieces(stage, path: str, shape: Shape) -> None:  # type: ignore[no-untyped-def]
+    """Each convex piece a collider of its own (its hull is itself), not drawn."""
+    _, _, UsdGeom, UsdPhysics = _pxr()
+    UsdGeom.Scope.Define(stage, path)
+    for k, piece in enumerate(shape.collision):
+        prim = _mesh(stage, f"{path}/piece_{k}", piece)
+        prim.CreatePurposeAttr(UsdGeom.Tokens.guide)
+        UsdPhysics.CollisionAPI.Apply(prim.GetPrim())
+        api = UsdPhysics.MeshCollisionAPI.Apply(prim.GetPrim())
+        api.CreateApproximationAttr("convexHull")
+
+
+def _boxes(stage, path: str, shape: Shape) -> None:  # type: ignore[no-untyped-def]
+    """A tray's boxes, each a collider `Cube` of its own, placed and scaled, not drawn."""
+    Gf, _, UsdGeom, UsdPhysics = _pxr()
+    UsdGeom.Scope.Define(stage, path)
+    for k, (centre, sides) in enumerate(shape.boxes):
+        prim = UsdGeom.Cube.Define(stage, f"{path}/box_{k}")
+        prim.CreateSizeAttr(1.0)
+        prim.CreatePurposeAttr(UsdGeom.Tokens.guide)
+        prim.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*centre))
+        prim.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*sides))
+        UsdPhysics.CollisionAPI.Apply(prim.GetPrim())
 
 
 def _place(prim, shape: Shape) -> None:  # type: ignore[no-untyped-def]
@@ -80,6 +116,10 @@ def _body(stage, body: Body) -> None:  # type: ignore[no-untyped-def]
     if shape is None:
         return
     _geometry(stage, f"/World/{body.name}/geometry", shape)
+    if shape.exact_pieces:
+        _exact_pieces(stage, f"/World/{body.name}/collision", shape)
+    if shape.boxes:
+        _boxes(stage, f"/World/{body.name}/collision", shape)
     if body.fixed:
         return
     prim = xform.GetPrim()

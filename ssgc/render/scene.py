@@ -2,7 +2,7 @@
 
 Everything is read from the input file alone: a scene's objects, a sampled scene's tree, or the
 best parse of each scene of an `ssg parse` result.  A grammar, when given, only adds each type's
-geometry (its box, cylinder, sphere or revolve); without one, or for a mesh type, an
+geometry (its box, cylinder, sphere, revolve or tray); without one, or for a mesh type, an
 object is a marker.  Each scene is drawn twice, in 3-D and from above, coloured by type, with
 the tree's edges between node poses; a parse's edges are coloured by the log-probability of the
 rule that produced the child, so the part of the scene the grammar finds unusual stands out
@@ -326,8 +326,8 @@ def geometry_of(grammar: Grammar | None) -> dict[str, tuple[FloatArray, list[lis
 
 
 def primitive_mesh(geometry: Any) -> tuple[FloatArray, list[list[int]]] | None:
-    """Vertices and polygon faces of a box, a cylinder (along z), a sphere or a revolve (its
-    surface about z, `ssgc.constraints.revolved`); else None."""
+    """Vertices and polygon faces of a box, a cylinder (along z), a sphere, a revolve (its
+    surface about z, `ssgc.constraints.revolved`) or a tray; else None."""
     if hasattr(geometry, "box"):
         signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
         faces = [[0, 1, 3, 2], [4, 5, 7, 6], [0, 1, 5, 4], [2, 3, 7, 6], [0, 2, 6, 4], [1, 3, 7, 5]]
@@ -354,6 +354,9 @@ def primitive_mesh(geometry: Any) -> tuple[FloatArray, list[list[int]]] | None:
         from ssgc.constraints.revolved import Revolved
 
         verts, tri = Revolved(geometry.revolve.profile).mesh(sections=20)
+        return verts, tri.tolist()
+    if hasattr(geometry, "tray"):  # its open box: floor and walls, outside and inside
+        verts, tri = geometry.tray.mesh()
         return verts, tri.tolist()
     return None
 
