@@ -8,8 +8,9 @@ constraints on level-major arrays without reordering them.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -18,6 +19,9 @@ from numpy.typing import NDArray
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
 Loc = tuple[str | int, ...]
+# Pairs formed at once by `pair_chunks` (a chunk may exceed it by one node's partners): each
+# array over them is 8 MB.  A batch of 1,024 trees of 700 objects has 250 million pairs.
+MAX_PAIRS = 1 << 20
 
 
 class NodeBatch(Protocol):
@@ -213,18 +217,7 @@ def lineal_few(
 
 def tree_pairs(nodes: IntArray, scene: IntArray) -> tuple[IntArray, IntArray]:
     """Every unordered pair (i, j) of `nodes` that lie in the same tree, as two index arrays."""
-    if len(nodes) < 2:
-        empty = np.zeros(0, np.int64)
-        return empty, empty
-    order = nodes[np.argsort(scene[nodes], kind="stable")]
-    s = scene[order]
-    start = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
-    size = np.diff(np.r_[start, len(order)])
-    pos = np.arange(len(order)) - np.repeat(start, size)  # position within its tree
-    partners = np.repeat(size, size) - 1 - pos  # later nodes of the same tree
-    first = np.repeat(np.arange(len(order)), partners)
-    offset = np.arange(len(first)) - np.repeat(np.cumsum(partners) - partners, partners)
-    return order[first], order[first + 1 + offset]
+    return _pairs_at(*_pair_plan(nodes, scene, None))
 
 
 def fresh_pairs(
@@ -233,22 +226,68 @@ def fresh_pairs(
     """The pairs of `tree_pairs` with at least one fresh node, each once, without
     enumerating the others: within a tree the old nodes come first, and each fresh node is
     paired with the nodes before it (trees with no fresh node are left out)."""
-    has = np.zeros(int(scene.max(initial=-1)) + 1, bool)
-    has[scene[nodes[fresh[nodes]]]] = True
-    nodes = nodes[has[scene[nodes]]]
+    return _pairs_at(*_pair_plan(nodes, scene, fresh))
+
+
+def pair_chunks(
+    nodes: IntArray,
+    scene: IntArray,
+    fresh: NDArray[np.bool_] | None = None,
+    limit: int | None = None,
+) -> Iterator[tuple[IntArray, IntArray]]:
+    """The pairs of `tree_pairs` (with `fresh`, of `fresh_pairs`), in the same order, in
+    chunks of about `limit` pairs (default `MAX_PAIRS`; a chunk ends after the node that
+    reaches it).  A pair constraint's memory is then bounded by the chunk, not by the batch
+    (candidates × objects² / 2 pairs), and its per-tree minimum is the minimum over chunks."""
+    limit = MAX_PAIRS if limit is None else limit
+    order, partners, base = _pair_plan(nodes, scene, fresh)
+    ends = np.cumsum(partners)
+    total = int(ends[-1]) if len(ends) else 0
+    cuts = np.searchsorted(ends, limit * np.arange(1, -(-total // limit)), side="left") + 1
+    bounds = np.unique(np.r_[0, cuts, len(order)])
+    for lo, hi in pairwise(bounds.tolist()):
+        yield _pairs_at(order, partners, base, lo, hi)
+
+
+def _pair_plan(
+    nodes: IntArray, scene: IntArray, fresh: NDArray[np.bool_] | None
+) -> tuple[IntArray, IntArray, IntArray]:
+    """(order, partners, base): the nodes grouped by tree, and the pairs of the node at
+    position a, (order[a], order[base[a] + m]) for m < partners[a].  Without `fresh`, each
+    node is paired with the later nodes of its tree; with it, within a tree the old nodes
+    come first and each fresh node is paired with the nodes before it (trees with no fresh
+    node are left out)."""
+    if fresh is not None:
+        has = np.zeros(int(scene.max(initial=-1)) + 1, bool)
+        has[scene[nodes[fresh[nodes]]]] = True
+        nodes = nodes[has[scene[nodes]]]
     if len(nodes) < 2:
         empty = np.zeros(0, np.int64)
-        return empty, empty
-    order = nodes[np.lexsort((fresh[nodes], scene[nodes]))]
+        return empty, empty, empty
+    if fresh is None:
+        order = nodes[np.argsort(scene[nodes], kind="stable")]
+    else:
+        order = nodes[np.lexsort((fresh[nodes], scene[nodes]))]
     s = scene[order]
     start = np.flatnonzero(np.r_[True, s[1:] != s[:-1]])
     size = np.diff(np.r_[start, len(order)])
     first_of = np.repeat(start, size)
     pos = np.arange(len(order)) - first_of  # position within its tree
-    partners = np.where(fresh[order], pos, 0)  # the nodes before it
-    later = np.repeat(np.arange(len(order)), partners)
-    offset = np.arange(len(later)) - np.repeat(np.cumsum(partners) - partners, partners)
-    return order[later], order[first_of[later] + offset]
+    if fresh is None:
+        partners = np.repeat(size, size) - 1 - pos  # the later nodes of its tree
+        return order, partners, np.arange(1, len(order) + 1)
+    return order, np.where(fresh[order], pos, 0), first_of  # the nodes before it
+
+
+def _pairs_at(
+    order: IntArray, partners: IntArray, base: IntArray, lo: int = 0, hi: int | None = None
+) -> tuple[IntArray, IntArray]:
+    """The pairs of the nodes at positions lo..hi of a `_pair_plan`."""
+    hi = len(order) if hi is None else hi
+    p = partners[lo:hi]
+    at = np.repeat(np.arange(lo, hi), p)
+    offset = np.arange(len(at)) - np.repeat(np.cumsum(p) - p, p)
+    return order[at], order[base[at] + offset]
 
 
 def type_mask(type_ids: list[int], n_types: int) -> NDArray[np.bool_]:

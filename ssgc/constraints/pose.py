@@ -19,6 +19,7 @@ from ssgc.constraints.base import (
     lineal,
     lineal_few,
     nearest_ancestor,
+    pair_chunks,
     per_scene_argmin,
     per_scene_min,
     tree_pairs,
@@ -168,8 +169,19 @@ class Clearance(Constraint):
         return i[keep], j[keep]
 
     def margin(self, batch: Any) -> FloatArray:
-        """Per tree, the smallest gap; with `batch.fresh`, over the pairs with a fresh node."""
-        i, j = self.typed_pairs(batch, getattr(batch, "fresh", None))
+        """Per tree, the smallest gap; with `batch.fresh`, over the pairs with a fresh node.
+        The pairs are formed and measured in chunks (`pair_chunks`): a batch of candidates
+        has candidates × objects² / 2 of them, 250 million for 1,024 trees of 700 objects."""
+        nodes = _selected(batch, self.types)
+        out = np.full(batch.n_scenes, np.inf)
+        for i, j in pair_chunks(nodes, batch.scene, getattr(batch, "fresh", None)):
+            keep = ~self.exempt[batch.type[i], batch.type[j]]
+            np.minimum(out, self._chunk_margin(batch, i[keep], j[keep]), out=out)
+        return out
+
+    def _chunk_margin(self, batch: Any, i: NDArray[np.int64], j: NDArray[np.int64]) -> FloatArray:
+        """Per tree, the smallest gap over the pairs (i, j) (with `exempt_ancestors`, over
+        those that are not lineal); +inf for a tree with none."""
         x, y = batch.xyz[:, 0], batch.xyz[:, 1]  # 1-D gathers are much cheaper than 2-D
         r = self.radius[batch.type]
         gap = np.hypot(x[i] - x[j], y[i] - y[j]) - r[i] - r[j]

@@ -4,7 +4,9 @@ Seeding: scenes are made in blocks of `BLOCK`; block b draws its candidates in a
 k = 0, 1, ... sized by the block's own draws so far (`attempt_size`), attempt k with the generator
 ``default_rng([seed, b, k + 1, TAG])``, and scene b*BLOCK + j is the j-th candidate of block
 b that satisfies the constraints.  So scene i depends only on the seed and i (and the
-method), never on how many scenes were asked for, or on any time or try limit.
+method), never on how many scenes were asked for, or on any time or try limit.  An attempt
+holds at most as many candidates as fit the node store (`ssgc.sample.staged.largest_batch`);
+one that overflows it anyway is drawn again, with the same generator and half the candidates.
 
 Methods are registered in `METHODS` by name; each is one function drawing one attempt:
 `rejection` (exact, `ssgc.sample.staged`), `rjmcmc` (exact in the limit of long chains,
@@ -30,12 +32,13 @@ from ssgc.constraints.base import Constraint
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.forked import ordered_map
 from ssgc.ir import Grammar
+from ssgc.sample.forward import TooLarge
 from ssgc.sample.hmc import SETTINGS as HMC_SETTINGS
 from ssgc.sample.hmc import hmc_batch
 from ssgc.sample.project import project_batch
 from ssgc.sample.rjmcmc import SETTINGS as RJ_SETTINGS
 from ssgc.sample.rjmcmc import rjmcmc_batch
-from ssgc.sample.staged import Outcome, OutOfTime, rejection_batch
+from ssgc.sample.staged import Outcome, OutOfTime, largest_batch, rejection_batch
 from ssgc.tree import Trees
 
 BLOCK = 256
@@ -244,7 +247,8 @@ def sample_blocks(
     todo = list(range((n + BLOCK - 1) // BLOCK) if blocks is None else blocks)
     shared = _counter(jobs > 1 and len(todo) > 1)
     limits = _Limits(max_tries, time_limit, deadline, shared, spelling)
-    work = _BlockWork(grammar, constraints, n, seed, method, limits, options or {})
+    batch = largest_batch(grammar)
+    work = _BlockWork(grammar, constraints, n, seed, method, limits, options or {}, batch)
     results = ordered_map(functools.partial(_draw_block, work), todo, jobs)
     for done in results:
         tally.merge(done.tally)
@@ -305,6 +309,7 @@ class _BlockWork:
     method: str
     limits: _Limits
     options: dict[str, Any]
+    batch: int | None = None  # the most candidates an attempt draws (None: no bound known)
 
 
 @dataclass
@@ -318,7 +323,13 @@ class _Done:
 
 
 def _draw_block(work: _BlockWork, b: int) -> _Done:
-    """Scenes b*BLOCK ... of the run, by attempts k = 0, 1, ... seeded by (seed, b, k)."""
+    """Scenes b*BLOCK ... of the run, by attempts k = 0, 1, ... seeded by (seed, b, k).
+
+    An attempt draws at most `work.batch` candidates, as many as the node store holds; an
+    attempt that overflows it anyway (`TooLarge`: sizes spread, the proposals of
+    `ssgc.sample.proposals` draw larger trees than P(T)) is drawn again with half as many,
+    and so are the block's later attempts.  What a block draws still depends only on the
+    seed and b.  Only a single candidate too large for the store is an error."""
     draw = functools.partial(METHODS[work.method], **work.options)
     first, largest = ATTEMPTS.get(work.method, (FIRST_ATTEMPT, LARGEST_ATTEMPT))
     limits = work.limits
@@ -328,18 +339,25 @@ def _draw_block(work: _BlockWork, b: int) -> _Done:
     have = 0
     k = 0
     limit = None
+    cap = work.batch
     while have < want:
         limit = limits.hit()
         if limit is not None:
             break
         rng = np.random.default_rng([int(work.seed) & 0xFFFFFFFFFFFFFFFF, b, k + 1, TAG])
+        size = attempt_size(k, tally.drawn, have, first, largest)
+        size = size if cap is None else min(size, cap)
         try:
-            size = attempt_size(k, tally.drawn, have, first, largest)
             o = draw(work.grammar, work.constraints, size, rng, limits.deadline)
         except OutOfTime:  # the attempt is abandoned: the scenes found before it stand
             limit = limits.out_of_time()
             tally.abandoned += 1
             break
+        except TooLarge:
+            if size == 1:
+                raise  # "one scene would hold more than ... nodes"
+            cap = size // 2  # attempt k again, with fewer candidates
+            continue
         with limits.drawn.get_lock():
             limits.drawn.value += o.drawn
         o = only_holding(o)

@@ -35,6 +35,12 @@ MAX_LEVELS = 10_000  # tree depth
 MAX_CHUNK_NODES = 4_000_000  # nodes of the trees drawn together (a chunk): ~320 MB of arrays
 
 
+class TooLarge(SsgError):
+    """The scenes drawn together would hold more than `MAX_CHUNK_NODES` nodes: a message for
+    the user, which a caller drawing several scenes at once may instead answer by drawing
+    fewer (`ssgc.sample.constrained`)."""
+
+
 def sample_trees(grammar: Grammar, n: int, seed: int) -> tuple[Trees, NDArray[np.float64]]:
     """Draw `n` scene trees; returns them and each tree's score (`ssgc.score.score_trees`)."""
     if n < 0:
@@ -116,6 +122,7 @@ def grow(
     0..F-1, the next level's nodes F, F+1, ...  `max_nodes` caps the nodes drawn in all."""
     tb = grammar.tables
     origin = ids = np.arange(len(f_type))
+    scenes = len(f_type)  # drawn together, one per frontier node (for the too-large message)
     cur_type, cur_xyz, cur_quat, nest = f_type, f_xyz, f_quat, f_nest
     total, depth = len(f_type), 0
     while len(cur_type):
@@ -127,7 +134,7 @@ def grow(
                 grammar.file,
             )
         budget = None if max_nodes is None else max_nodes - total
-        fires, logp_choice = _choose_rules(grammar, cur_type, nest, rng, budget)
+        fires, logp_choice = _choose_rules(grammar, cur_type, nest, rng, budget, scenes=scenes)
         new: dict[str, list[NDArray]] = {k: [] for k in LEVEL_KEYS}  # type: ignore[type-arg]
         for rid, where in fires:
             xyz, quat, lp = sample_children(grammar, rid, cur_xyz[where], cur_quat[where], rng)
@@ -164,10 +171,12 @@ def _choose_rules(
     forced: frozenset[int] = frozenset(),
     biased: frozenset[int] = frozenset(),
     must: tuple[NDArray[np.bool_], int, int] | None = None,
+    scenes: int = CHUNK,
 ) -> tuple[list[tuple[int, NDArray[np.int64]]], NDArray[np.float64]]:
     """Which rules fire at each frontier node: [(rule id, frontier positions)], log-probs.
 
-    More than `budget` children in all is an error, found before they take any memory.
+    More than `budget` children in all is an error (`TooLarge`, naming the `scenes` drawn
+    together), found before they take any memory.
     `counts_in` {type: (lo, hi)} draws the count of those `repeat` types from their law
     restricted to [lo, hi] (the constrained sampler's proposal, `ssgc.sample.staged`); the
     log-probabilities stay those of the unrestricted law.  Likewise the `independent` rules in
@@ -186,10 +195,11 @@ def _choose_rules(
         nonlocal produced
         produced += children
         if budget is not None and produced > budget:
-            raise SsgError.single(
-                f"grammar '{grammar.name}' makes scenes too large to sample: {CHUNK} scenes "
-                f"(drawn together) would hold more than {MAX_CHUNK_NODES:,} nodes; lower its "
-                "counts or `max_nesting` bounds",
+            what = "one scene" if scenes == 1 else f"{scenes:,} scenes (drawn together)"
+            raise TooLarge.single(
+                f"grammar '{grammar.name}' makes scenes too large to sample: {what} would "
+                f"hold more than {MAX_CHUNK_NODES:,} nodes; lower its counts or `max_nesting` "
+                "bounds",
                 grammar.file,
             )
 

@@ -48,10 +48,10 @@ from ssgc.ir import Grammar, Kind
 from ssgc.rules import sample_children
 from ssgc.sample.chains import ChainOutcome, Judge
 from ssgc.sample.diagnostics import Summary, summary
-from ssgc.sample.forward import grow, sample_chunk
+from ssgc.sample.forward import TooLarge, grow, sample_chunk
 from ssgc.sample.lawspace import Coords
 from ssgc.sample.poses import choose, local_poses, world_poses
-from ssgc.sample.staged import check_deadline, rejection_batch
+from ssgc.sample.staged import check_deadline, largest_batch, rejection_batch
 from ssgc.score import nesting_counts
 from ssgc.tree import Trees
 
@@ -169,11 +169,30 @@ def _starts(
 ) -> Trees:
     """Starting states: as many exact draws of P(T | C) as staged rejection finds within
     `budget` candidates (a chain started there is in its stationary law from the start), the
-    rest draws of P(T)."""
-    exact = rejection_batch(grammar, constraints, budget, rng, deadline).trees if budget else None
-    k = 0 if exact is None else min(size, exact.n_scenes)
-    prior, _ = sample_chunk(grammar, rng, size - k) if k < size else (None, None)
-    parts = ([exact.first(k)] if k else []) + ([prior] if prior is not None else [])
+    rest draws of P(T).  The candidates are drawn in batches the node store holds
+    (`largest_batch`; a batch that overflows it anyway is drawn again halved), until the
+    budget is spent or every chain has its start: scenes of 250 objects start from batches
+    of about 8,000 candidates, not one of 16,384 that no store holds."""
+    found: list[Trees] = []
+    have = spent = 0
+    largest = largest_batch(grammar)
+    batch = budget if largest is None else largest
+    while spent < budget and have < size:
+        part = min(batch, budget - spent)
+        try:
+            exact = rejection_batch(grammar, constraints, part, rng, deadline).trees
+        except TooLarge:
+            if part == 1:
+                raise
+            batch = part // 2
+            continue
+        spent += part
+        have += exact.n_scenes
+        found.append(exact)
+    k = min(size, have)
+    parts = [Trees.concatenate(found).first(k)] if k else []
+    if k < size:
+        parts.append(sample_chunk(grammar, rng, size - k)[0])
     return Trees.concatenate(parts)
 
 

@@ -56,6 +56,12 @@ SKIP_BELOW = 0.05
 # The pose stage compacts its store once fewer than this share of the candidates in it are
 # still alive.  (Cost only.)
 COMPACT_BELOW = 0.5
+# Candidates drawn together are as many as fill this share of `MAX_CHUNK_NODES` with their
+# expected nodes (`largest_batch`): the rest is headroom for the spread of their sizes.
+NODE_SHARE = 0.5
+# `expected_nodes` gives up beyond this many kinds of node (a type with nesting depths).
+MAX_NODE_KINDS = 100_000
+NodeKind = tuple[int, tuple[int, ...]]  # a type and the nesting depth of every bounded type
 
 
 @dataclass
@@ -125,6 +131,76 @@ def renumber(new: IntArray, ids: IntArray) -> IntArray:
     """The nodes `ids` that were kept, by their new numbers (`Nodes.keep`)."""
     ids = new[ids]
     return ids[ids >= 0]
+
+
+def expected_nodes(grammar: Grammar) -> float | None:
+    """The mean number of nodes of a tree of P(T), its root included: what a candidate costs
+    the node store when no constraint rejects it early.  Counted per kind of node (a type
+    with the nesting depths of the bounded types, as in `ssgc.supertree_size`): a rule
+    blocked by `max_nesting` never fires and an `or` renormalises over the others, as in
+    `ssgc.sample.forward._choose_rules`.  None when there are more than `MAX_NODE_KINDS`
+    kinds of node (the mean is then unknown, not infinite: every recursion is bounded)."""
+    tb = grammar.tables
+    start_nest = [0] * tb.nesting_max.shape[0]
+    if tb.nesting_slot[grammar.root] >= 0:
+        start_nest[tb.nesting_slot[grammar.root]] = 1
+    start: NodeKind = (grammar.root, tuple(start_nest))
+
+    def expand(state: NodeKind) -> list[tuple[float, NodeKind]]:
+        """(mean number of such children, child state) of every rule not blocked there."""
+        t, nest = state
+        node = grammar.types[t]
+        kids: list[NodeKind] = []
+        weights: list[float] = []
+        for k, rid in enumerate(node.rules):
+            child = int(tb.rule_child[rid])
+            slot = int(tb.nesting_slot[child])
+            if slot >= 0 and nest[slot] >= tb.nesting_max[slot]:
+                continue  # blocked by max_nesting
+            deeper = nest if slot < 0 else (*nest[:slot], nest[slot] + 1, *nest[slot + 1 :])
+            kids.append((child, deeper))
+            if node.kind == Kind.REPEAT:
+                assert node.count is not None
+                weights.append(node.count.mean)
+            elif node.kind in (Kind.OR, Kind.INDEPENDENT):
+                weights.append(float(node.probs[k]))
+            else:
+                weights.append(1.0)
+        if node.kind == Kind.OR and kids:
+            total = sum(weights)
+            weights = [w / total if total > 0 else 0.0 for w in weights]
+        return [(w, kid) for w, kid in zip(weights, kids, strict=True) if w > 0]
+
+    means: dict[NodeKind, float] = {}
+    frames = [(start, expand(start))]
+    totals = [1.0]
+    while frames:  # depth first, without recursion (a long chain of types is fine)
+        state, kids = frames[-1]
+        while kids and kids[-1][1] in means:
+            weight, child = kids.pop()
+            totals[-1] += weight * means[child]
+        if kids:
+            if len(means) + len(frames) > MAX_NODE_KINDS:
+                return None
+            child = kids[-1][1]
+            frames.append((child, expand(child)))
+            totals.append(1.0)
+            continue
+        means[state] = totals.pop()
+        frames.pop()
+    return means[start]
+
+
+def largest_batch(grammar: Grammar) -> int | None:
+    """The most candidates to draw together: as many as fill `NODE_SHARE` of
+    `MAX_CHUNK_NODES` with their expected nodes (`expected_nodes`), at least one.  The node
+    store holds every candidate of a batch, so a grammar of 300-object scenes is drawn in
+    batches of about 6,600 candidates rather than refused.  None: no bound is known (a
+    batch that overflows anyway raises `TooLarge`, and the caller draws fewer)."""
+    mean = expected_nodes(grammar)
+    if mean is None:
+        return None
+    return max(1, int(NODE_SHARE * MAX_CHUNK_NODES / mean))
 
 
 def roots(grammar: Grammar, size: int) -> Nodes:
@@ -197,7 +273,16 @@ def grow(
         must = None if chain is None else chain.must(f["force"])
         biased = frozenset() if chain is None else frozenset([chain.repeat])
         fires, lp = _choose_rules(
-            grammar, f["type"], f["nest"], rng, budget, counts_in, forced, biased, must
+            grammar,
+            f["type"],
+            f["nest"],
+            rng,
+            budget,
+            counts_in,
+            forced,
+            biased,
+            must,
+            scenes=nodes.n_scenes,
         )
         logp += np.bincount(f["scene"], lp, minlength=len(logp))
         if not fires:
