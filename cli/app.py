@@ -68,7 +68,25 @@ def _user_errors() -> Iterator[None]:
         _print_diagnostics(_environment_error(exc))
         raise typer.Exit(1) from None
     except Exception as exc:  # a bug in ssgc, not the user's mistake
+        if _CtrlC.pressed or _caused_by_interrupt(exc):
+            # a library turned the Ctrl-C into its own error: numpy, interrupted while it
+            # compared rows in `np.unique(axis=0)`, raises "Cannot compare structured arrays"
+            # (a resumed `ssg fit` stopped with exit 70 instead of 130 in a CI run)
+            err.print("ssg: interrupted")
+            raise typer.Exit(130) from None
         raise _internal_error(exc) from None
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is among the exceptions that led to `exc`."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 EXIT_PIPE = 141  # what a shell reports for a command ended by SIGPIPE (128 + 13)
