@@ -103,15 +103,24 @@ class PoseGroups:
 
 def pose_groups(xyz: FloatArray, quat: FloatArray) -> PoseGroups:
     """Group the poses; see `PoseGroups`."""
-    key = np.rint(np.hstack([xyz, quat_canonical(quat)]) / GROUP_GRID) + 0.0  # no -0.0
-    _, first, of = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)
-    renumber = np.empty_like(order)
-    renumber[order] = np.arange(len(order))
-    first = first[order]
+    key = np.rint(np.hstack([xyz, quat_canonical(quat)]) / GROUP_GRID)
+    # rows sorted by every column (stable: a run's first row is its earliest pose), runs
+    # numbered in sorted order, then renumbered by their first pose; no `np.unique(axis=0)`,
+    # whose structured-array comparison numpy turns a Ctrl-C into an error of its own in
+    order = np.lexsort(key.T[::-1])
+    starts = np.ones(len(key), bool)
+    starts[1:] = np.any(key[order][1:] != key[order][:-1], axis=1)
+    run = np.empty(len(key), np.int64)
+    run[order] = np.cumsum(starts) - 1
+    first = order[starts]  # each run's earliest pose, runs in sorted order
+    by_first = np.argsort(first)
+    renumber = np.empty_like(by_first)
+    renumber[by_first] = np.arange(len(by_first))
+    of = run
+    first = first[by_first]
     a, b = near_earlier(xyz[first], 0)
     near = quat_angle(quat[first[a]], quat[first[b]]) <= ROT_TOL
-    return PoseGroups(renumber[of.ravel()], first, a[near], b[near])
+    return PoseGroups(renumber[of], first, a[near], b[near])
 
 
 def cross_pairs(groups: PoseGroups) -> tuple[IntArray, IntArray]:
