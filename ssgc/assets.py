@@ -32,6 +32,8 @@ PRIMITIVE_SECTIONS = 32  # facets of a cylinder's or sphere's triangle mesh (GLB
 # widest circle within CHORD_ERROR of the arc (a bowl of radius 15 cm: 28 sectors), and at
 # least MIN_SECTORS so a small cup still rolls as a round one does.
 CHORD_ERROR = 0.001  # m
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)  # masses and inertias a USD file can hold
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 MIN_SECTORS, MAX_SECTORS = 16, 64
 
 
@@ -239,14 +241,9 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None
         volume, unit_inertia = _primitive_mass_properties(kind, size)
         com, pieces, source, exact = origin.copy(), (), "", False
     mass = body.mass if body.mass is not None else (body.density or DEFAULT_DENSITY) * volume
-    with np.errstate(over="ignore", invalid="ignore"):  # told below, in our words
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):  # told below
         inertia = mass * unit_inertia
-    if not (np.isfinite(mass) and np.all(np.isfinite(inertia))):
-        raise SsgError.single(
-            f"type '{t.name}': its mass ({mass:g} kg) or inertia is not a finite number; "
-            "give it a smaller density or mass",
-            grammar.file,
-        )
+    _check_storable(grammar, t.name, mass, inertia)
     return Shape(
         t.name,
         kind,
@@ -261,6 +258,23 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None
         (float(origin[0]), float(origin[1]), float(origin[2])),
         exact,
         boxes,
+    )
+
+
+def _check_storable(grammar: Grammar, name: str, mass: float, inertia: NDArray[np.float64]) -> None:
+    """Refuse a mass or inertia that a simulator's file cannot hold.  USD stores them as 32-bit
+    floats: 1e300 kg became inf there (and Drake refused its inertia as not physically valid),
+    and 1e-300 kg became 0, which USD reads as "no mass given"."""
+    with np.errstate(all="ignore"):
+        moments = np.linalg.eigvalsh(inertia) if np.all(np.isfinite(inertia)) else [np.inf]
+    values = np.abs(np.array([mass, *moments], float))
+    if np.all((values >= FLOAT32_TINY) & (values <= FLOAT32_MAX)):
+        return
+    raise SsgError.single(
+        f"type '{name}': its mass ({mass:.3g} kg) or its moments of inertia are outside what "
+        f"simulators' files hold (32-bit floats, {FLOAT32_TINY:.2g} to {FLOAT32_MAX:.2g}); "
+        "give it a mass, density or size in a physical range",
+        grammar.file,
     )
 
 

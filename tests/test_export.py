@@ -609,13 +609,47 @@ def test_a_cube_wound_both_ways_has_a_cubes_mass(tmp_path: Path) -> None:
     np.testing.assert_allclose(shape.com, 0, atol=1e-9)
 
 
-def test_a_mass_that_overflows_is_a_message(tmp_path: Path) -> None:
-    grammar = wrapped(tmp_path, "{box: {size: [10, 10, 10]}}", "{density: 1.0e306}")
+@pytest.mark.parametrize(
+    ("body", "fmt"),
+    [
+        ("{density: 1.0e306}", "sdf"),  # overflows float64: inf
+        ("{density: 1.0e300}", "usd"),  # float32 inf in USD; Drake: "not physically valid"
+        ("{density: 1.0e-300}", "usd"),  # float32 0 in USD: "no mass given"
+        ("{mass: 1.0e-40}", "mjcf"),
+    ],
+)
+def test_a_mass_simulators_cannot_hold_is_a_message(tmp_path: Path, body: str, fmt: str) -> None:
+    grammar = wrapped(tmp_path, "{box: {size: [10, 10, 10]}}", body)
     scenes = tmp_path / "s"
     assert run("sample", grammar, "-n", 1, "-o", scenes, "-q").exit_code == 0
-    result = run("export", scenes, "-g", grammar, "-f", "sdf", "-o", tmp_path / "e")
-    assert result.exit_code == 1 and "not a finite number" in result.output, result.output
+    result = run("export", scenes, "-g", grammar, "-f", fmt, "-o", tmp_path / "e")
+    assert result.exit_code == 1 and "32-bit floats" in result.output, result.output
     assert not (tmp_path / "e").exists()
+
+
+def test_extreme_but_storable_masses_load_in_drake_and_usd(tmp_path: Path) -> None:
+    """The edges of the range that `_check_storable` lets through are files the consumers read
+    with the mass written."""
+    from pxr import Usd, UsdPhysics
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    for density in (1.0e-30, 1.0e30):
+        grammar = wrapped(tmp_path, "{box: {size: [0.1, 0.1, 0.1]}}", f"{{density: {density}}}")
+        scenes, out = tmp_path / f"s{density}", tmp_path / f"e{density}"
+        assert run("sample", grammar, "-n", 1, "-o", scenes, "-q").exit_code == 0
+        for fmt in ("sdf", "usd"):
+            assert run("export", scenes, "-g", grammar, "-f", fmt, "-o", out / fmt).exit_code == 0
+        plant = MultibodyPlant(0.0)
+        Parser(plant).AddModels(str(next((out / "sdf").glob("*.sdf"))))
+        plant.Finalize()
+        stage = Usd.Stage.Open(str(next((out / "usd").glob("*.usd*"))))
+        masses = [
+            UsdPhysics.MassAPI(p).GetMassAttr().Get()
+            for p in stage.Traverse()
+            if p.HasAPI(UsdPhysics.MassAPI)
+        ]
+        assert masses and all(m == pytest.approx(density * 1e-3, rel=1e-6) for m in masses)
 
 
 def test_an_empty_scene_loads_as_drake_model_directives(tmp_path: Path) -> None:
