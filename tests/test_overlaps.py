@@ -105,3 +105,63 @@ class _batch:
         n = len(scene)
         self.xyz, self.quat, self.type = scene.xyz, scene.quat, scene.types
         self.scene, self.parent, self.n_scenes = np.zeros(n, np.int64), np.full(n, -1), 1
+
+
+TRAY_AND_MESH = """grammar: trayx
+root: {type: Floor, pose: {xyz: [0.0, 0.0, 0.0]}}
+types:
+  Floor:
+    and:
+      - {child: Tray, translation: {offset: [0, 0, 0.05]}}
+      - {child: Block, translation: {offset: [0.3, 0, 0.05]}}
+  Tray:
+    observed: true
+    geometry: GEOMETRY
+  Block:
+    observed: true
+    geometry: {box: {size: [0.1, 0.1, 0.1]}}
+constraints:
+  apart: {non_penetration: {types: [Tray, Block]}}
+"""
+
+
+class _Pair:
+    """A batch of one scene: the `Tray` at (0, 0, 0.05) and the `Block` at `xyz`."""
+
+    def __init__(self, g, xyz) -> None:
+        self.xyz = np.array([[0, 0, 0.05], xyz], float)
+        self.quat = np.tile([1.0, 0, 0, 0], (2, 1))
+        self.type = np.array([g.type_ids["Tray"], g.type_ids["Block"]])
+        self.scene, self.parent, self.n_scenes = np.zeros(2, np.int64), np.full(2, -1), 1
+
+
+@pytest.mark.parametrize("kind", ["tray", "mesh"])
+def test_explain_measures_a_tray_or_mesh_overlap_as_the_move_that_frees_it(tmp_path, kind):
+    """FCL's contact depth of a triangle mesh (how a tray or mesh goes to FCL) is the depth of
+    triangles, not of the solid: a block pushed 2 cm up through a tray's 1 cm floor read
+    4.4 cm, and one centred on a wall (5.5 cm from free) read 6.6 cm.  Explain's overlap is how
+    far the block must move, as for a revolve.  The tray's open box is written as a mesh file
+    for the `mesh` case."""
+    geometry = "{tray: {size: [0.4, 0.4, 0.1], wall: 0.01}}"
+    if kind == "mesh":
+        import trimesh
+
+        from ssgc import dsl
+
+        tray = dsl.TrayG.model_validate({"tray": {"size": [0.4, 0.4, 0.1], "wall": 0.01}})
+        vertices, faces = tray.tray.mesh()
+        trimesh.Trimesh(vertices, faces, process=False).export(tmp_path / "tray.obj")
+        geometry = "{mesh: {file: tray.obj}}"
+    (tmp_path / "g.yaml").write_text(TRAY_AND_MESH.replace("GEOMETRY", geometry))
+    g = load_grammar(tmp_path / "g.yaml")
+    (c,) = [c for c in g.constraints if isinstance(c, NonPenetration)]
+    cases = [  # block centre, how far it must move to be free
+        ([0.22, 0.0, 0.05], 0.03),  # 3 cm into the outside of a wall
+        ([0.0, 0.0, -0.03], 0.02),  # 2 cm up through the floor from below
+        ([0.195, 0.0, 0.05], 0.055),  # centred on a wall: out by half a block and half a wall
+    ]
+    for xyz, depth in cases:
+        _, _, dist = c.pair_distances(_Pair(g, xyz), separation=True)
+        assert -dist[0] == pytest.approx(depth, abs=1.5e-3), (xyz, dist)
+    _, _, dist = c.pair_distances(_Pair(g, [0.0, 0.0, 0.061]), separation=True)
+    assert dist[0] == pytest.approx(0.001, abs=1e-6)  # resting inside on the floor: free

@@ -376,7 +376,7 @@ class _Builder:
             try:
                 shapes[k] = collision_shape(geometry, self.c.base_dir)
                 solids[k] = solid_of(geometry)
-                hollow[k] = isinstance(geometry, dsl.RevolveG)
+                hollow[k] = isinstance(geometry, dsl.RevolveG | dsl.TrayG | dsl.MeshG)
                 origins[k] = tuple(geometry_origin(geometry).tolist())
                 r[k] = bounding_radius(geometry, self.c.base_dir)
             except ShapeError as exc:

@@ -11,7 +11,9 @@ two shapes touch but not how deeply: when one of a colliding pair is a revolve a
 solid of revolution too (revolve, cylinder, sphere), the depth is the deepest surface point of
 either inside the other, exact in its meridian plane (ssgc/constraints/revolved.py).  That
 depth is small for thin walls that cross; `ssg explain` asks instead for how far one of the
-pair must be moved to free it (`separation`), a search with FCL's collision test.
+pair must be moved to free it (`separation`), a search with FCL's collision test.  So it does
+for a `tray` and a `mesh`, also triangle meshes to FCL, whose contact depth is that of
+triangles, not of the solid (a block pushed 2 cm up through a tray's floor read 4.4 cm).
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ class NonPenetration(Constraint):
     shapes: tuple[Any, ...] = ()  # per type: FCL geometry or None
     origins: tuple[tuple[float, float, float], ...] = ()  # per type: geometry's place in frame
     solids: tuple[Revolved | None, ...] = ()  # per type: as a solid of revolution, or None
-    hollow: tuple[bool, ...] = ()  # per type: a revolve (its FCL mesh gives no depth)
+    hollow: tuple[bool, ...] = ()  # per type: a triangle mesh to FCL (revolve, tray, mesh)
     gap: float = 0.0
     # How rare overlapping is in real scenes (`ssg explain`, ssgc/overlaps.py): the grammar's
     # `tail:`, else the sink default.
