@@ -1391,21 +1391,17 @@ def _too_few(grammar: Grammar, scene: Scene) -> dict[int, str]:
 def _least_objects(grammar: Grammar) -> IntArray:
     """Per type, the fewest observed objects a node of it makes (itself included): a fixed
     point from below, so a lower bound even for recursive types."""
-    observed = grammar.tables.type_observed.astype(np.int64)
-    least = observed.copy()
+    least = grammar.tables.type_observed.astype(np.int64)
     for _ in range(len(grammar.types)):
-        new = observed.copy()
-        for t in grammar.types:
-            kids = np.array([least[grammar.rules[r].child] for r in t.rules], np.int64)
-            probs = np.asarray(t.probs, float)
-            if t.kind == Kind.AND:
-                new[t.id] += int(kids.sum())
-            elif t.kind == Kind.OR and len(kids) and np.any(probs > 0):
-                new[t.id] += int(kids[probs > 0].min())
-            elif t.kind == Kind.INDEPENDENT:
-                new[t.id] += int(kids[probs >= 1.0].sum())
-            elif t.kind == Kind.REPEAT and t.count is not None and len(kids):
-                new[t.id] += int(np.argmax(np.asarray(t.count.probs) > 0)) * int(kids[0])
+        new = np.array(
+            [
+                t.least_observed(
+                    [(i, int(least[grammar.rules[r].child])) for i, r in enumerate(t.rules)]
+                )
+                for t in grammar.types
+            ],
+            np.int64,
+        )
         if np.array_equal(new, least):
             break
         least = new

@@ -76,22 +76,30 @@ class NodeType:
         """Whether a node of this type can be in a tree with no observed node at or below it
         (unseen: `ssgc.score`), given (rule index, whether its child can) for each rule that
         fires here.  The one recurrence behind the parser's `supertree.hideable_nodes` (per
-        supertree node) and the scorer's `score._maybe_unseen` (per type).  AND: every child
-        can; OR: some child can, or no rule fires; `independent`: every rule of p = 1;
-        `repeat`: a count of 0 is possible, or its child can; a latent terminal always can."""
-        if self.observed:
-            return False
-        live = [(i, can) for i, can in kids if not self.never_fires(i)]
+        supertree node) and the scorer's `score._maybe_unseen` (per type): `least_observed`
+        with children that hold 0 or at least 1."""
+        return self.least_observed([(i, 0 if can else 1) for i, can in kids]) == 0
+
+    def least_observed(self, kids: list[tuple[int, int]]) -> int:
+        """The fewest observed nodes a node of this type holds, itself included, given (rule
+        index, the fewest its child holds) for each rule that fires here.  AND: every child's;
+        OR: the least child's (0 when no rule fires); `independent`: the rules of p = 1;
+        `repeat`: the least possible count times its child's; a latent terminal holds none.
+        `explain` iterates it over types for the count a law demands."""
+        live = [least for i, least in kids if not self.never_fires(i)]
         if self.kind == Kind.AND:
-            return all(can for _, can in live)
-        if self.kind == Kind.OR:
-            return not live or any(can for _, can in live)
-        if self.kind == Kind.INDEPENDENT:
-            return all(can for i, can in live if self.probs[i] >= 1.0)
-        if self.kind == Kind.REPEAT:
-            zero = self.count is None or bool(self.count.probs[0] > 0)
-            return zero or all(can for _, can in live)
-        return True
+            below = sum(live)
+        elif self.kind == Kind.OR:
+            below = min(live, default=0)
+        elif self.kind == Kind.INDEPENDENT:
+            below = sum(
+                least for i, least in kids if not self.never_fires(i) and self.probs[i] >= 1.0
+            )
+        elif self.kind == Kind.REPEAT and self.count is not None:
+            below = int(np.argmax(np.asarray(self.count.probs) > 0)) * min(live, default=0)
+        else:  # a terminal, or a repeat without a count law (it may make none)
+            below = 0
+        return int(self.observed) + below
 
 
 @dataclass(frozen=True)
