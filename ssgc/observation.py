@@ -219,7 +219,7 @@ def _widen(g: Observed, noise: dict[int, Noise], root: int, report: Report) -> N
     # A fixed rule into a noisy observed child keeps the child's pose tied to its parent's
     # unless the parent's pose is always an observed pose already: then two observed poses
     # are joined, and the noise must be on that rule.
-    tied = _tied_types(g, {r.id for r in into_noisy})
+    tied = _tied_types(g, {r.id for r in into_noisy}, root)
     loose = {r.id for r in into_noisy if tied[r.parent]}
     comp = _components(n_types, [r for r in fixed if r.id not in loose])
     members: dict[int, list[Noise]] = {}
@@ -240,11 +240,13 @@ def _widen(g: Observed, noise: dict[int, Noise], root: int, report: Report) -> N
             )
 
 
-def _tied_types(g: Observed, loose_candidates: set[int]) -> list[bool]:
-    """Which types always share their pose with an observed node: observed types, and types
-    that every rule producing them places by a fixed rule from such a type (rules in
-    `loose_candidates` do not count: they may get noise).  Type-level and sound: an `or`
-    above two kinds of object does not make either kind tied to the other."""
+def _tied_types(g: Observed, loose_candidates: set[int], root: int) -> list[bool]:
+    """Which types always share their pose with an observed node or the root's (exact) pose:
+    observed types, and types that every rule producing them places by a fixed rule from such
+    a type (rules in `loose_candidates` do not count: they may get noise); the root type's
+    own node needs no rule.  Type-level and sound: an `or` above two kinds of object does not
+    make either kind tied to the other.  A latent root counted as untied lost the noise of an
+    observed child at a fixed offset from it, and gave that noise to its other rules."""
     into: dict[int, list[Rule]] = {}
     for r in g.rules:
         into.setdefault(r.child, []).append(r)
@@ -256,7 +258,7 @@ def _tied_types(g: Observed, loose_candidates: set[int]) -> list[bool]:
         state[t] = False  # a cycle does not tie anything
         rules = into.get(t, [])
         state[t] = g.types[t].observed or (
-            bool(rules)
+            (bool(rules) or t == root)
             and all(_is_fixed(r) and r.id not in loose_candidates and tied(r.parent) for r in rules)
         )
         return state[t]

@@ -100,6 +100,43 @@ def test_a_fixed_offset_with_noise_is_a_normal_about_it(sigma, deg):
     assert np.allclose(np.sort(conc)[1:], min(2.0 / np.deg2rad(deg) ** 2, 1e4))
 
 
+ROOMS = """grammar: room
+root: {type: Room, pose: {xyz: [0, 0, 0], rpy_deg: [0, 0, 90]}}
+types:
+  Room:
+    and:
+      - {child: Table, translation: {offset: [1, 0, 0.4]}}
+      - child: Chair
+        translation:
+          parent_normal_offset: {mean: [0, 1, 0], variance: [0.01, 0.02, 0], pin: [z]}
+  Table: {observed: true}
+  Chair: {observed: true}
+observation:
+  noise:
+    default: {position: 0.01, rotation_deg: 2}
+"""
+
+
+def test_an_object_fixed_to_a_latent_root_gets_its_noise_and_only_it():
+    """The latent root's pose is exact.  Counted as not tied to an observed pose, the root
+    joined the table's block: the table's noise went nowhere (sampled sd 0 per axis; a table
+    5 mm off was infeasible) and onto the chair's rule as the parent's (z variance doubled,
+    plus the 2° lever on 1 m, and the Bingham's concentration halved)."""
+    g = compile_text(ROOMS)
+    table, chair = g.rules
+    assert np.allclose(table.translation.normal.cov, 0.01**2 * np.eye(3))
+    assert np.allclose(np.diag(chair.translation.normal.cov), [0.0101, 0.0201, 0.0001])
+    k = 2.0 / np.deg2rad(2.0) ** 2
+    assert np.allclose(np.sort(chair.rotation.bingham.concentration)[1:], k)
+    trees, _ = sample_trees(g, 4000, 0)
+    tables = trees.xyz[trees.type == g.type_ids["Table"]]
+    assert np.allclose(tables.std(axis=0), 0.01, rtol=0.1)
+    types = np.array([g.type_ids["Table"], g.type_ids["Chair"]])
+    off = np.array([[0.0, 1.0, 0.405], [-1.0, 0.0, 0.0]])  # the table 5 mm above its place
+    scene = Scene("off", types, off, np.tile([1.0, 0, 0, 0], (2, 1)))
+    assert Parser(g).parse(scene).status == "optimal"
+
+
 def test_a_lifted_mug_parses_with_noise_and_keeps_its_tree():
     exact, noisy = compile_text(DINNER), with_section(NOISE)
     scene = dinner_scene(exact)
