@@ -42,8 +42,19 @@ app.add_typer(bench_app, name="bench")
 
 # Text is printed as it is: no emoji codes (rich would print `g.yaml:100:3` as `g.yaml💯3`)
 # and no markup (a grammar named "[/]" in an `inspect` table title would be an error).
-out = Console(soft_wrap=True, emoji=False, markup=False)
-err = Console(stderr=True, soft_wrap=True, emoji=False, markup=False)
+
+
+class _Console(Console):
+    def on_broken_pipe(self) -> None:
+        """rich ends the program itself with exit 1 when the reader of a pipe is gone; ours
+        is the `BrokenPipeError` that `_user_errors` ends quietly with EXIT_PIPE, as Unix
+        tools do (`ssg inspect g.yaml | head -c 10` exited 1)."""
+        self.quiet = True
+        raise BrokenPipeError
+
+
+out = _Console(soft_wrap=True, emoji=False, markup=False)
+err = _Console(stderr=True, soft_wrap=True, emoji=False, markup=False)
 MAX_SHOWN_DIAGNOSTICS = 30
 
 

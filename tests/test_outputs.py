@@ -230,11 +230,17 @@ def test_a_full_stdout_is_exit_1_not_a_bug(command: str, scene: Path) -> None:
     assert stderr == "<stdout>: error: cannot write standard output: No space left on device\n"
 
 
-@pytest.mark.parametrize("command", ["parse", "inspect"])
+@pytest.mark.parametrize("command", ["parse", "inspect", "inspect-table", "bench"])
 def test_a_closed_pipe_ends_quietly(command: str, scene: Path) -> None:
+    """Tables are printed by rich, which ended the program with exit 1 itself."""
     read, write = os.pipe()
     os.close(read)  # the reader is gone before the first byte: `ssg ... | head -c 0`
-    args = ("parse", scene, "-g", GMM) if command == "parse" else ("inspect", GMM, "--json")
+    args = {
+        "parse": ("parse", scene, "-g", GMM),
+        "inspect": ("inspect", GMM, "--json"),
+        "inspect-table": ("inspect", GMM),
+        "bench": ("bench", "parse", GMM, "--scenes", 1),
+    }[command]
     try:
         done = ssg(*args, stdout=write, stderr=subprocess.PIPE)
     finally:
