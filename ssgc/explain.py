@@ -1622,7 +1622,7 @@ def _failure(
         rel = rotation_coordinates(grammar, np.array([r]), pq[None], q[None])[0]
         return rule.rotation.describe_violation(rel)
     t = grammar.types[rule.parent]
-    if t.kind == Kind.REPEAT and t.count is not None and held >= len(t.count.probs) - 1:
+    if t.kind == Kind.REPEAT and t.count is not None and held >= t.count.largest:
         return f"its pose is possible, but {t.name} already holds its maximum of {held}"
     return (
         f"its pose is possible (log p {lt + lr:.3g}); the grammar's counts or structure "

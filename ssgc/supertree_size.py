@@ -35,7 +35,7 @@ def supertree_size(grammar: Grammar) -> int | None:
         """(copies, child state) of every rule not blocked by `max_nesting`."""
         type_id, nesting = state
         node = grammar.types[type_id]
-        copies = node.count.max_count if node.kind == Kind.REPEAT and node.count else 1
+        copies = node.count.largest if node.kind == Kind.REPEAT and node.count else 1
         out = []
         for rid in node.rules:
             child = grammar.rules[rid].child

@@ -618,3 +618,42 @@ def test_any_count_law_scores_its_sampler_logp(count: str, seed: int) -> None:
     trees, logp = sample_trees(g, 300, seed)
     assert np.all(np.isfinite(logp))
     np.testing.assert_allclose(score_trees(g, trees), logp, rtol=0, atol=LOGP_ATOL)
+
+
+TRAILING = """grammar: trailing
+root: R
+types:
+  R:
+    and: [{child: P}, {child: Q}]
+  P:
+    repeat:
+      count: COUNT
+      rule: {child: A}
+  Q:
+    repeat:
+      count: {geometric: {p: 1.0, max: 4}}
+      rule: {child: A}
+  A: {observed: true}
+"""
+
+
+@pytest.mark.parametrize(
+    ("count", "copies"), [("{probs: [0.5, 0.5, 0, 0]}", 1), ("{probs: [0, 0, 1, 0, 0]}", 2)]
+)
+def test_the_supertree_holds_no_copies_a_count_law_cannot_make(count: str, copies: int) -> None:
+    """A count of probability 0 at the end of a law (written, or geometric with p = 1) is never
+    made: the supertree held 3 copies for `probs: [0.5, 0.5, 0, 0]` and 4 for the geometric one
+    of p = 1 that always makes none, which only enlarged the parser's model."""
+    from ssgc.io.scene import Scene
+    from ssgc.parse.parser import Parser
+    from ssgc.parse.supertree import build_supertree
+    from ssgc.supertree_size import supertree_size
+
+    g = compile_text(TRAILING.replace("COUNT", count))
+    st = build_supertree(g)
+    a = g.type_ids["A"]
+    assert int(np.sum(st.type == a)) == copies
+    assert supertree_size(g) == len(st.type) == 3 + copies  # R, P, Q and the copies
+    for n, status in ((copies, "optimal"), (copies + 1, "infeasible")):
+        scene = Scene("s", np.full(n, a), np.zeros((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)))
+        assert Parser(g).parse(scene).status == status

@@ -284,6 +284,12 @@ class CountLaw:
         return int(self.probs.size - 1)
 
     @property
+    def largest(self) -> int:
+        """The largest count of positive probability: a law written `probs: [0.5, 0.5, 0, 0]`
+        (or geometric with p = 1) never makes more, so the supertree holds no more copies."""
+        return int(np.flatnonzero(self.probs > 0)[-1])
+
+    @property
     def log_probs(self) -> FloatArray:
         return self._categorical.log_probs
 

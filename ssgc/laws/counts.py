@@ -47,6 +47,10 @@ class RepeatCount:
         return self.law.max_count
 
     @property
+    def largest(self) -> int:
+        return self.law.largest
+
+    @property
     def mean(self) -> float:
         return self.law.mean
 

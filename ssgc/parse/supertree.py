@@ -68,7 +68,7 @@ def build_supertree(grammar: Grammar) -> Supertree:
                 continue  # blocked by max_nesting
             if node.never_fires(int(tb.rule_index[rid])):
                 continue
-            copies_n = node.count.max_count if node.kind == Kind.REPEAT and node.count else 1
+            copies_n = node.count.largest if node.kind == Kind.REPEAT and node.count else 1
             for k in range(copies_n):
                 child_nest = nest[i].copy()
                 if slot >= 0:
