@@ -23,20 +23,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ssgc.ir import Grammar, Kind, NodeType
+from ssgc.node_states import child_states, root_state
 from ssgc.tree import Trees
 
 # Reachable (type, depths) states beyond which nesting is ignored: the analysis then only
 # adds paths, so it may call a rule observable that is not (and fit it, as before).
 MAX_STATES = 100_000
 
-State = tuple[int, tuple[int, ...]]  # a type and the nesting depth of every bounded type
-
 
 def observable_rules(grammar: Grammar) -> NDArray[np.bool_]:
     """(rules,) whether some tree holds an observed node at or below the rule's child."""
-    edges = _state_edges(grammar, _bounded(grammar))
+    edges = _state_edges(grammar, nesting=True)
     if edges is None:  # too many nesting states: the type graph alone
-        edges = _state_edges(grammar, {})
+        edges = _state_edges(grammar, nesting=False)
     assert edges is not None
     parent, rule, child, observed = edges
     holds = observed.copy()
@@ -51,25 +50,21 @@ def observable_rules(grammar: Grammar) -> NDArray[np.bool_]:
     return out
 
 
-def _bounded(grammar: Grammar) -> dict[int, tuple[int, int]]:
-    """Type -> (its slot in a state's depths, its `max_nesting`), for the bounded types."""
-    bounded = [t for t in grammar.types if t.max_nesting is not None]
-    return {t.id: (i, int(t.max_nesting or 0)) for i, t in enumerate(bounded)}
-
-
 def _state_edges(
-    grammar: Grammar, bounded: dict[int, tuple[int, int]]
+    grammar: Grammar, nesting: bool
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]] | None:
-    """(parent state, rule, child state) of every rule that can fire in a reachable state,
-    and whether each state's type is observed; None past `MAX_STATES`.  Depths count the
-    node itself, as `ssgc.score.nesting_counts` does."""
-    start: State = (grammar.root, tuple(int(t == grammar.root) for t in bounded))
+    """(parent state, rule, child state) of every rule that can fire in a reachable state
+    (`ssgc.node_states`; a `repeat` whose count is 0 for sure fires none), and whether each
+    state's type is observed; None past `MAX_STATES`."""
+    start = root_state(grammar, nesting)
     index = {start: 0}
     queue = [start]
     edges: list[tuple[int, int, int]] = []
     while queue:
         state = queue.pop()
-        for rid, next_state in _children(grammar, state, bounded):
+        if not _can_fire(grammar.types[state[0]]):
+            continue
+        for rid, next_state in child_states(grammar, state):
             if next_state not in index:
                 if len(index) >= MAX_STATES:
                     return None
@@ -79,27 +74,6 @@ def _state_edges(
     table = np.array(edges, np.int64).reshape(-1, 3)
     observed = np.array([grammar.types[t].observed for t, _ in index], bool)
     return table[:, 0], table[:, 1], table[:, 2], observed
-
-
-def _children(
-    grammar: Grammar, state: State, bounded: dict[int, tuple[int, int]]
-) -> list[tuple[int, State]]:
-    """(rule, child state) of every rule that can fire at a node in `state`."""
-    type_id, depth = state
-    node = grammar.types[type_id]
-    out = []
-    for rid in node.rules if _can_fire(node) else ():
-        rule = grammar.rules[rid]
-        if node.never_fires(rule.index):
-            continue
-        child_depth = depth
-        if rule.child in bounded:
-            i, limit = bounded[rule.child]
-            if depth[i] >= limit:
-                continue  # blocked by max_nesting
-            child_depth = (*depth[:i], depth[i] + 1, *depth[i + 1 :])
-        out.append((rid, (rule.child, child_depth)))
-    return out
 
 
 def _can_fire(node: NodeType) -> bool:

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from ssgc.errors import SsgError
 from ssgc.geometry import quat_multiply, quat_rotate
 from ssgc.ir import Grammar, Kind
+from ssgc.node_states import child_states, root_state
 
 IntArray = NDArray[np.int64]
 MAX_SUPERTREE_NODES = 200_000
@@ -51,34 +52,21 @@ class Supertree:
 
 
 def build_supertree(grammar: Grammar) -> Supertree:
-    tb = grammar.tables
     types, parents, rules, copies = [grammar.root], [-1], [-1], [0]
-    n_bounded = tb.nesting_max.shape[0]
-    nest = [np.zeros(n_bounded, np.int64)]
-    if tb.nesting_slot[grammar.root] >= 0:
-        nest[0][tb.nesting_slot[grammar.root]] = 1
+    states = [root_state(grammar)]
     children: list[list[int]] = [[]]
     i = 0
     while i < len(types):  # breadth first, so parents precede children
         node = grammar.types[types[i]]
-        for rid in node.rules:
-            child = int(tb.rule_child[rid])
-            slot = tb.nesting_slot[child]
-            if slot >= 0 and nest[i][slot] >= tb.nesting_max[slot]:
-                continue  # blocked by max_nesting
-            if node.never_fires(int(tb.rule_index[rid])):
-                continue
-            copies_n = node.count.largest if node.kind == Kind.REPEAT and node.count else 1
-            for k in range(copies_n):
-                child_nest = nest[i].copy()
-                if slot >= 0:
-                    child_nest[slot] += 1
+        n_copies = node.count.largest if node.kind == Kind.REPEAT and node.count else 1
+        for rid, state in child_states(grammar, states[i]):
+            for k in range(n_copies):
                 children[i].append(len(types))
-                types.append(child)
+                types.append(state[0])
                 parents.append(i)
                 rules.append(rid)
                 copies.append(k)
-                nest.append(child_nest)
+                states.append(state)
                 children.append([])
         if len(types) > MAX_SUPERTREE_NODES:
             raise SsgError.single(

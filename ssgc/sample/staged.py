@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from ssgc.constraints.base import Constraint
 from ssgc.constraints.structural import chain_runs
 from ssgc.ir import Grammar, Kind
+from ssgc.node_states import State, child_states, root_state, subtree_total
 from ssgc.rules import sample_children
 from ssgc.sample.forward import MAX_CHUNK_NODES, MAX_LEVELS, _choose_rules
 from ssgc.sample.proposals import ChainProposal, chain_proposal, count_proposals, forced_rules
@@ -61,7 +62,6 @@ COMPACT_BELOW = 0.5
 NODE_SHARE = 0.5
 # `expected_nodes` gives up beyond this many kinds of node (a type with nesting depths).
 MAX_NODE_KINDS = 100_000
-NodeKind = tuple[int, tuple[int, ...]]  # a type and the nesting depth of every bounded type
 
 
 @dataclass
@@ -140,55 +140,24 @@ def expected_nodes(grammar: Grammar) -> float | None:
     blocked by `max_nesting` never fires and an `or` renormalises over the others, as in
     `ssgc.sample.forward._choose_rules`.  None when there are more than `MAX_NODE_KINDS`
     kinds of node (the mean is then unknown, not infinite: every recursion is bounded)."""
-    tb = grammar.tables
-    start_nest = [0] * tb.nesting_max.shape[0]
-    if tb.nesting_slot[grammar.root] >= 0:
-        start_nest[tb.nesting_slot[grammar.root]] = 1
-    start: NodeKind = (grammar.root, tuple(start_nest))
 
-    def expand(state: NodeKind) -> list[tuple[float, NodeKind]]:
-        """(mean number of such children, child state) of every rule not blocked there."""
-        t, nest = state
-        node = grammar.types[t]
-        kids: list[NodeKind] = []
-        weights: list[float] = []
-        for k, rid in enumerate(node.rules):
-            child = int(tb.rule_child[rid])
-            slot = int(tb.nesting_slot[child])
-            if slot >= 0 and nest[slot] >= tb.nesting_max[slot]:
-                continue  # blocked by max_nesting
-            deeper = nest if slot < 0 else (*nest[:slot], nest[slot] + 1, *nest[slot + 1 :])
-            kids.append((child, deeper))
-            if node.kind == Kind.REPEAT:
-                assert node.count is not None
-                weights.append(node.count.mean)
-            elif node.kind in (Kind.OR, Kind.INDEPENDENT):
-                weights.append(float(node.probs[k]))
-            else:
-                weights.append(1.0)
-        if node.kind == Kind.OR and kids:
+    def mean_children(state: State) -> list[tuple[float, State]]:
+        """(mean number of such children, child state) of every rule that can fire there."""
+        node = grammar.types[state[0]]
+        kids = child_states(grammar, state)
+        if node.kind == Kind.REPEAT:
+            assert node.count is not None
+            weights = [node.count.mean] * len(kids)
+        elif node.kind in (Kind.OR, Kind.INDEPENDENT):
+            weights = [float(node.probs[grammar.rules[rid].index]) for rid, _ in kids]
+        else:
+            weights = [1.0] * len(kids)
+        if node.kind == Kind.OR and kids:  # renormalised over the rules not blocked
             total = sum(weights)
-            weights = [w / total if total > 0 else 0.0 for w in weights]
-        return [(w, kid) for w, kid in zip(weights, kids, strict=True) if w > 0]
+            weights = [w / total for w in weights]
+        return [(w, kid) for w, (_, kid) in zip(weights, kids, strict=True)]
 
-    means: dict[NodeKind, float] = {}
-    frames = [(start, expand(start))]
-    totals = [1.0]
-    while frames:  # depth first, without recursion (a long chain of types is fine)
-        state, kids = frames[-1]
-        while kids and kids[-1][1] in means:
-            weight, child = kids.pop()
-            totals[-1] += weight * means[child]
-        if kids:
-            if len(means) + len(frames) > MAX_NODE_KINDS:
-                return None
-            child = kids[-1][1]
-            frames.append((child, expand(child)))
-            totals.append(1.0)
-            continue
-        means[state] = totals.pop()
-        frames.pop()
-    return means[start]
+    return subtree_total(root_state(grammar), mean_children, MAX_NODE_KINDS)
 
 
 def largest_batch(grammar: Grammar) -> int | None:
