@@ -12,7 +12,7 @@ from test_fit import run_fit, scenes_of
 
 from ssgc.compile import compile_text
 from ssgc.fit.mstep import FitSettings, m_step
-from ssgc.fit.observable import observable_rules
+from ssgc.fit.observable import observable_rules, pose_observable_rules
 from ssgc.sample.forward import sample_trees
 
 # Repro A of the report: a Marker nobody observes, nothing below it.
@@ -208,3 +208,49 @@ def test_or_weights_keep_the_split_among_unobservable_options():
     assert abs(p[0] - 0.5) < 0.1 and p[0] != 0.5
     assert p[2] / p[1] == pytest.approx(4.0, rel=1e-12)
     assert sum(p) == pytest.approx(1.0, rel=1e-12)
+
+
+# The fit hunt of session 36: a latent Group whose Cup is placed in world coordinates.
+GROUP = """\
+grammar: latpin
+root: Table
+types:
+  Table:
+    observed: true
+    and:
+      - child: Group
+        translation: {world_normal_offset: {mean: [0.3, 0, 0], variance: 0.05, pin: [z]}}
+        rotation: {world_bingham: {concentration: 10}}
+  Group:
+    and:
+      - child: Cup
+        translation: {world_normal: {mean: [0.5, 0, 0], variance: 0.01}}
+        rotation: ROTATION
+  Cup: {observed: true}
+"""
+GROUP_LAWS = (
+    "        translation: {world_normal_offset: {mean: [0.3, 0, 0], variance: 0.05, pin: [z]}}\n"
+    "        rotation: {world_bingham: {concentration: 10}}\n"
+)
+
+
+def test_a_latent_pose_that_moves_nothing_observed_keeps_its_laws(tmp_path):
+    """The Cup's position is in world coordinates and its rotation too, so where the Group is
+    and how it is turned change nothing observed.  With its z pinned (no Laplace spread), its
+    variance went from 0.05 to 1e-6 in two iterations, and its concentration to the cap."""
+    text = GROUP.replace("ROTATION", "{world_bingham: {concentration: 50}}")
+    _, scenes = scenes_of(text, 50, seed=1)
+    result = run_fit(tmp_path, text, scenes, iterations=2, top=1, tol=0.0)
+    assert GROUP_LAWS in result.text
+    assert "variance: 0.01}" not in result.text and "concentration: 50}" not in result.text
+
+
+def test_which_poses_move_an_observed_pose():
+    """A parent-frame rotation of the Cup reads the Group's rotation, not its position; a
+    rotation in world coordinates reads neither."""
+    g = compile_text(GROUP.replace("ROTATION", "{parent_bingham: {concentration: 50}}"))
+    position, rotation = pose_observable_rules(g)
+    assert position.tolist() == [False, True] and rotation.tolist() == [True, True]
+    g = compile_text(GROUP.replace("ROTATION", "{world_bingham: {concentration: 50}}"))
+    position, rotation = pose_observable_rules(g)
+    assert position.tolist() == [False, True] and rotation.tolist() == [False, True]

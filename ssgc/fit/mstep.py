@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from ssgc.errors import SsgError
 from ssgc.fit.laplace import latent_spread
-from ssgc.fit.observable import observable_rules, unobserved_nodes
+from ssgc.fit.observable import observable_rules, pose_observable_rules, unobserved_nodes
 from ssgc.fit.writeback import Update
 from ssgc.ir import Grammar, Kind, NodeType
 from ssgc.laws.position_normal import NormalTranslation
@@ -163,10 +163,14 @@ def m_step(
     edges = _edges(grammar, trees, edge_weight, (hidden | ~shown) if map_latents else None)
     by_translation = _groups(ties.translation[edges.rule], len(grammar.rules))
     by_rotation = _groups(ties.rotation[edges.rule], len(grammar.rules))
+    # a pose that moves no observed pose says nothing about its law (`pose_observable_rules`)
+    moves_position, moves_rotation = pose_observable_rules(grammar)
     for rule in grammar.rules:
-        parts = [(rule.translation, by_translation[rule.id], edges.u)]
+        take_t = by_translation[rule.id]
+        parts = [(rule.translation, take_t[moves_position[edges.rule[take_t]]], edges.u)]
         if rotations:
-            parts.append((rule.rotation, by_rotation[rule.id], edges.q))
+            take_r = by_rotation[rule.id]
+            parts.append((rule.rotation, take_r[moves_rotation[edges.rule[take_r]]], edges.q))
         for law, take, local in parts:
             if law.fits and take.size:
                 x, w = local[take], edges.weight[take]
