@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ssgc.api import fit_defaults, fit_options
+from ssgc.api import POSTERIOR_SAMPLES, fit_defaults, fit_options
 from ssgc.cli.app import (
     AllowOutside,
     _check_method,
@@ -90,7 +90,7 @@ def fit(
         typer.Option(
             min=1,
             show_default=False,
-            help=f"--estep mcmc: rounds kept per scene, {DEFAULTS['samples']} unless given "
+            help=f"--estep mcmc: rounds kept per scene, {POSTERIOR_SAMPLES} unless given "
             "(after S/2 of burn-in).",
         ),
     ] = None,
@@ -172,8 +172,19 @@ def fit(
     from ssgc.io.scene import load_scenes
 
     _check_method(method, "highs")
-    if samples is not None and estep is not EStep.mcmc:  # it was accepted and ignored
-        raise SsgError.single("--samples needs --estep mcmc (the top-N E-step draws none)")
+    options = fit_options(  # told before any work
+        iterations=iterations,
+        top=top,
+        method=method,
+        seed=seed,
+        tol=tol,
+        estep=estep.value,
+        samples=samples,
+        pseudocount=pseudocount,
+        min_variance=min_variance,
+        max_concentration=max_concentration,
+        jobs=jobs,
+    )
     # `-o` may be the grammar itself (an in-place update), never the dataset.
     dest = check_output(output, inputs=[grammar, scenes], in_place=[grammar])
     report_dest = None
@@ -189,19 +200,6 @@ def fit(
         raise SsgError.single("--resume needs -o FILE: the journal is kept next to it", dest.name)
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_scenes(scenes, g.ir)
-    options = fit_options(
-        iterations=iterations,
-        top=top,
-        method=method,
-        seed=seed,
-        tol=tol,
-        estep=estep.value,
-        samples=DEFAULTS["samples"] if samples is None else samples,
-        pseudocount=pseudocount,
-        min_variance=min_variance,
-        max_concentration=max_concentration,
-        jobs=jobs,
-    )
     with (
         lock_outputs([dest, report_dest, *(plots or [])]),
         open_fit(g, items, scenes, options, None if dest.stream else dest.target, resume) as run,

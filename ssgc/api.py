@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from ssgc import ir
 from ssgc.compile import compile_text, read_grammar_text
-from ssgc.errors import SceneError
+from ssgc.errors import SceneError, SsgError
 from ssgc.io import scene as scene_io
 from ssgc.tree import Trees
 
@@ -141,7 +141,7 @@ def fit(
     seed: int = 0,
     tol: float = 1e-4,
     estep: str = "topn",
-    samples: int = 100,
+    samples: int | None = None,
     pseudocount: float = 0.01,
     min_variance: float = 1e-6,
     max_concentration: float = 1e4,
@@ -165,7 +165,7 @@ def fit(
         seed=_seed(seed),
         tol=_real("tol", tol),
         estep=estep,
-        samples=_count("samples", samples),
+        samples=None if samples is None else _count("samples", samples),
         pseudocount=_real("pseudocount", pseudocount),
         min_variance=_real("min_variance", min_variance),
         max_concentration=_real("max_concentration", max_concentration),
@@ -302,6 +302,11 @@ def _scene_data(grammar: Grammar, scene: Any) -> scene_io.Scene:
     return grammar.scene(objects, scene.name).data
 
 
+# `fit`'s samples per scene chain of the posterior E-step when none are given (the fitter's
+# own default, `FitOptions.samples`: tests/test_api.py checks they agree)
+POSTERIOR_SAMPLES = 100
+
+
 def fit_defaults() -> dict[str, Any]:
     """The defaults of `fit`'s options by name: `ssg fit`'s flags take theirs from here, so the
     command and the API cannot drift apart."""
@@ -320,15 +325,25 @@ def fit_options(
     seed: int,
     tol: float,
     estep: str,
-    samples: int,
+    samples: int | None,
     pseudocount: float,
     min_variance: float,
     max_concentration: float,
     jobs: int,
 ) -> FitOptions:
-    """`fit`'s options (and `ssg fit`'s flags) as the fitter (`ssgc.fit.em`) takes them."""
+    """`fit`'s options (and `ssg fit`'s flags) as the fitter (`ssgc.fit.em`) takes them.
+    `samples` is for the posterior E-step only: None is its default, and a number given with
+    the top-N E-step is refused (it was accepted and ignored)."""
     from ssgc.fit.em import FitOptions
     from ssgc.fit.mstep import FitSettings
+
+    if samples is not None and estep != "mcmc":
+        raise SsgError.single(
+            "samples (ssg fit --samples) needs the posterior E-step, estep 'mcmc' "
+            "(--estep mcmc): the top-N E-step draws none"
+        )
+    if samples is None:
+        samples = POSTERIOR_SAMPLES
 
     return FitOptions(
         iterations=iterations,
@@ -363,7 +378,6 @@ def open_fit(
     `fit_options`.  The journal lies next to `journal_next_to` (the fitted grammar's file,
     so that `resume` finds it), or in a temporary directory removed at the end; the caller
     decides when to delete a finished run's journal, after writing its results."""
-    from ssgc.errors import SsgError
     from ssgc.fit.em import FitJournal, FitOptions, fit_header, fit_journal_file
 
     data = _fit_scenes(_checked(grammar), scenes, "scenes")

@@ -338,3 +338,13 @@ def test_the_callable_modules_show_their_functions_signatures():
     assert "iterations" in inspect.signature(ssgc.fit).parameters
     assert "time_limit" in inspect.signature(ssgc.explain).parameters
     assert "ssgc.parse(grammar, scene" in ssgc.parse.__doc__
+
+
+def test_fit_refuses_samples_without_the_posterior_e_step():
+    """`ssg fit --samples 5` without `--estep mcmc` is refused; `ssgc.fit(..., samples=5)` ran
+    and ignored it, its default of 100 looking given."""
+    from ssgc.errors import SsgError
+
+    g = load_grammar(GRAMMARS / "gmm.yaml")
+    with pytest.raises(SsgError, match="needs the posterior E-step"):
+        ssgc.fit(g, g.sample(2, seed=0), iterations=1, top=1, samples=5)
