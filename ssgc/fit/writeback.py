@@ -29,6 +29,7 @@ from ruamel.yaml import YAML
 from ruamel.yaml.anchor import Anchor
 from ruamel.yaml.comments import CommentedMap, CommentedSeq, merge_attrib
 from ruamel.yaml.representer import RoundTripRepresenter
+from ruamel.yaml.scalarbool import ScalarBoolean
 from ruamel.yaml.scalarstring import DoubleQuotedScalarString
 
 from ssgc.geometry import quat_to_rpy
@@ -112,7 +113,7 @@ def _number(value: Any, digits: int, where: str) -> int | _Rounded:
     while 0 < x < 1 and not 0 < rounded < 1:  # 17 digits always read back as x itself
         digits += 1
         rounded = float(f"{x:.{digits}g}")
-    return _Rounded(rounded)
+    return _Rounded(rounded + 0.0)  # -0.0 (a concentration of 0 negated) is written 0.0
 
 
 def _plain(value: Any, digits: int, where: str) -> Any:
@@ -246,6 +247,7 @@ def _apply(text: str, updates: list[Update], file: str, digits: int) -> str:
     yaml = _loader(body)
     tree = load_quietly(yaml, body)
     written: dict[Any, tuple[str, Any]] = {}  # what each node got, to catch broken ties
+    quoted = isinstance(tree, CommentedMap) and _quotes_keys(tree, False)
     for update in updates:
         node = _resolve(tree, update.path, file)
         for key, value in update.values.items():
@@ -254,7 +256,7 @@ def _apply(text: str, updates: list[Update], file: str, digits: int) -> str:
             owner, new = _owner(node, key), _plain(value, places, where)
             _claim(written, owner, key, new, _where(update.path, key))
             try:
-                _set(owner, key, new, digits)
+                _set(owner, key, new, digits, _quotes_keys(owner, quoted))
             except ValueError as exc:
                 raise ValueError(f"{where}: {exc}") from None
     if not isinstance(tree, (CommentedMap, CommentedSeq)):  # ruamel would add `...`
@@ -425,41 +427,63 @@ def _position(container: CommentedMap | CommentedSeq, key: Any) -> tuple[int | N
     return (None, None) if line is None else (line + 1, column + 1)
 
 
-def _set(mapping: CommentedMap, key: str, value: Any, digits: int) -> None:
-    """Write `value` (rounded) at `key`: in place where a node exists, else as a new key."""
+def _set(mapping: CommentedMap, key: str, value: Any, digits: int, quoted: bool) -> None:
+    """Write `value` (rounded) at `key`: in place where a node exists, else as a new key.
+    `quoted`: whether keys added in a mapping without keys yet are written quoted (JSON)."""
     if isinstance(value, Orientation):  # in the form (rpy, rpy_deg, quat_wxyz) used there
         holder = mapping.get(key)
         if not isinstance(holder, CommentedMap):  # none yet: a new `{rpy_deg: [...]}`
-            holder = _node({})
-            _set(mapping, key, holder, digits)
+            holder = _node({}, quoted)
+            _set(mapping, key, holder, digits, quoted)
         if not holder:  # `mode: {}`: ruamel does not mark an empty mapping as flow
             holder.fa.set_flow_style()
         form = next((f for f in _FORMS if f in holder), "rpy_deg")
         value = _orientation_numbers(value.quat_wxyz, form, holder.get(form), digits)
         mapping, key = holder, form
     if key in mapping:
-        _assign(mapping, key, value)
+        _assign(mapping, key, value, quoted)
     elif value is not None:
-        _insert(mapping, key, _node(value))
+        _insert(mapping, key, _node(value, quoted), quoted)
 
 
-def _assign(container: Any, key: Any, value: Any) -> None:
+def _assign(container: Any, key: Any, value: Any, quoted: bool) -> None:
     """Replace a value; a list of the same length is edited element by element, as a new list
-    object would lose its flow/block style and its comments."""
+    object would lose its flow/block style and its comments.  A number equal to the one
+    written keeps its text (`0` stays `0`, not `0.0`), so a diff shows only changed numbers."""
     old = container[key]
-    if value is None:
+    if value is None or _same_number(old, value):
         return
     if isinstance(value, list) and isinstance(old, CommentedSeq) and len(old) == len(value):
         for i, item in enumerate(value):
-            _assign(old, i, item)
+            _assign(old, i, item, quoted)
     elif isinstance(value, dict) and isinstance(old, CommentedMap):  # its keys, in place
+        inner = _quotes_keys(old, quoted)
         for k, item in value.items():
             if k in old:
-                _assign(old, k, item)
+                _assign(old, k, item, inner)
             else:
-                _insert(old, k, _node(item))
+                _insert(old, k, _node(item, inner), inner)
     else:
-        container[key] = _keep_anchor(_node(value), old)
+        container[key] = _keep_anchor(_node(value, quoted), old)
+
+
+def _same_number(old: Any, new: Any) -> bool:
+    """Whether `new` is the number written as `old`, as the grammar reads it (`0` and `0.0`
+    are one value; compared exactly as floats).  Booleans are not numbers here."""
+    numbers = (old, new)
+    if not all(isinstance(x, Real) and not isinstance(x, (bool, ScalarBoolean)) for x in numbers):
+        return False
+    return float(old) == float(new)
+
+
+def _quotes_keys(mapping: CommentedMap, default: bool) -> bool:
+    """Whether a key added to `mapping` is written "quoted": as all its keys are (a JSON
+    grammar stays JSON), or, for a mapping without keys yet (a new `mode` or `tail`, which
+    has no neighbours to copy), as `default`: what the mapping around it does."""
+    keys = [k for k, _ in mapping.non_merged_items()]
+    if not keys:
+        return default
+    return all(isinstance(k, DoubleQuotedScalarString) for k in keys)
 
 
 def _keep_anchor(new: Any, old: Any) -> Any:
@@ -472,16 +496,17 @@ def _keep_anchor(new: Any, old: Any) -> Any:
     return anchored
 
 
-def _node(value: Any) -> Any:
-    """A new YAML value; lists and mappings in flow style, the way grammars write numbers."""
+def _node(value: Any, quoted: bool) -> Any:
+    """A new YAML value; lists and mappings in flow style, the way grammars write numbers.
+    `quoted`: the keys of a new mapping are written "quoted" (in a JSON grammar)."""
     if isinstance(value, (CommentedMap, CommentedSeq)):
         return value
     if value is None:
         raise ValueError("None (keep the value written) where no value of that shape is written")
     if isinstance(value, dict):
-        node: Any = CommentedMap((k, _node(v)) for k, v in value.items())
+        node: Any = CommentedMap((_key(k, quoted), _node(v, quoted)) for k, v in value.items())
     elif isinstance(value, list):
-        node = CommentedSeq(_node(v) for v in value)
+        node = CommentedSeq(_node(v, quoted) for v in value)
     else:
         return value
     node.fa.set_flow_style()
@@ -500,16 +525,21 @@ def _orientation_numbers(quat: Any, form: str, previous: Any, digits: int) -> li
     return [_Rounded(f"{0.0 if abs(v) < _NOISE else float(v):.{digits}g}") for v in values]
 
 
-def _insert(mapping: CommentedMap, key: str, value: Any) -> None:
+def _key(key: str, quoted: bool) -> str:
+    """`key` as a new key is written: "quoted" where the keys around it are (JSON)."""
+    return DoubleQuotedScalarString(key) if quoted else key
+
+
+def _insert(mapping: CommentedMap, key: str, value: Any, quoted: bool) -> None:
     """Add a key where a reader expects it: `p` after `child`, `mode` first, else last.  In a
     block mapping, the comment and blank lines after the previous entry introduce what follows
-    it, so they move below the new line."""
+    it, so they move below the new line.  The key is quoted as `_quotes_keys` says (`quoted`:
+    for a mapping that has no keys yet)."""
     keys = [k for k, _ in mapping.non_merged_items()]
     pos = keys.index("child") + 1 if key == "p" and "child" in keys else len(keys)
     pos = 0 if key == "mode" else pos
     moved = None if pos == 0 or mapping.fa.flow_style() else _split_tail(mapping, keys[pos - 1])
-    if keys and all(isinstance(k, DoubleQuotedScalarString) for k in keys):
-        key = DoubleQuotedScalarString(key)  # quoted like its neighbours: JSON stays JSON
+    key = _key(key, _quotes_keys(mapping, quoted))
     mapping.insert(pos, key, value)
     if moved is not None:
         mapping.ca.items[key] = [None, None, moved, None]
