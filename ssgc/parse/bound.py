@@ -487,6 +487,7 @@ def _revolute_search(grammar, terms, edges, xyz, quat, deadline=None):  # type: 
             # ~1e-7 m of the child's place), and else also the best position so far
             t_best = _h_and_gradient(part, np.einsum("na,nb->nab", q, q))[2]
             for t in (t_best,) if part.t_complete else (t_best, best_x):
+                t = part.onto_planes(t)
                 t = np.clip(t, part.lo + SNAP_MARGIN, np.maximum(part.hi - SNAP_MARGIN, part.lo))
                 v = _owned_values(grammar, sub, sub_owner, t, q)
                 better = v > best_v
@@ -535,6 +536,7 @@ def _snap(terms: _Terms, xyz: FloatArray, quat: FloatArray, t0: FloatArray, q0: 
     quat = np.where(terms.pinned[:, None], np.nan_to_num(terms.pin), quat)
     if terms.t_complete:
         xyz = best_position(terms, quat)
+    xyz = terms.onto_planes(xyz)  # a pinned Normal axis holds exactly (its plane)
     lo, hi = terms.lo + SNAP_MARGIN, terms.hi - SNAP_MARGIN
     with np.errstate(invalid="ignore"):  # -inf + inf on an unbounded axis: never used
         mid = 0.5 * (terms.lo + terms.hi)

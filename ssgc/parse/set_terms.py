@@ -88,10 +88,26 @@ class _Terms:
     arc: FloatArray  # (A, 2): half the law's angle range
     revolute: NDArray[np.bool_]  # (A,): rows whose rotation is held to such a family
     hard: NDArray[np.bool_] | None = None  # (K,): terms standing in for a fixed translation
+    # the planes of pinned Normal axes, t = Q t + t0 (`_LocalBounds.plane`); None: no planes
+    Q: FloatArray | None = None  # (A, 3, 3): the projector onto the directions t may move in
+    t0: FloatArray | None = None  # (A, 3): the point of the planes nearest the origin
 
     @property
     def pinned(self) -> NDArray[np.bool_]:
         return ~np.isnan(self.pin[:, 0])
+
+    @property
+    def planed(self) -> NDArray[np.bool_]:
+        """Rows whose position is held to planes (pinned axes of Normal laws)."""
+        if self.Q is None:
+            return np.zeros(len(self.c), bool)
+        return np.abs(self.Q - np.eye(3)).max(axis=(1, 2), initial=0.0) > 1e-12
+
+    def onto_planes(self, t: FloatArray) -> FloatArray:
+        """Positions moved onto their rows' planes (orthogonally); unchanged without."""
+        if self.Q is None:
+            return t
+        return np.einsum("nij,nj->ni", self.Q, t) + self.t0
 
     @cached_property
     def inverse(self) -> FloatArray:
@@ -99,12 +115,29 @@ class _Terms:
         return np.linalg.pinv(self.P.sum(axis=1))
 
     @cached_property
+    def affine(self) -> tuple[FloatArray, FloatArray]:
+        """(L, a): the best t on the rows' planes of Σ -½ (e_k - t)ᵀ P_k (e_k - t) is
+        L Σ P_k e_k + a (t = t0 + Q s, s eliminated in closed form); without planes L is the
+        inverse and a is 0."""
+        if self.Q is None:
+            return self.inverse, np.zeros((len(self.c), 3))
+        H = self.P.sum(axis=1)
+        L = np.linalg.pinv(self.Q @ H @ self.Q) @ self.Q
+        return L, self.t0 - np.einsum("nij,njk,nk->ni", L, H, self.t0)
+
+    @cached_property
     def diagonal(self) -> NDArray[np.bool_]:
-        """Where the total precision is diagonal: clipping the free optimum to the box is then
-        the best t in the box (the problem separates by axis)."""
+        """Where the total precision is diagonal (on the axes the planes leave free, which
+        must be world axes): clipping the best t to the box is then the best t in the box
+        (the problem separates by axis)."""
         P = self.P.sum(axis=1)
+        if self.Q is not None:
+            P = self.Q @ P @ self.Q
         off = np.abs(P - P * np.eye(3)).max(axis=(1, 2), initial=0.0)
-        return off <= 1e-12 * (1.0 + np.abs(P).max(axis=(1, 2), initial=0.0))
+        out = off <= 1e-12 * (1.0 + np.abs(P).max(axis=(1, 2), initial=0.0))
+        if self.Q is not None:  # a plane across the axes does not separate
+            out &= np.abs(self.Q - self.Q * np.eye(3)).max(axis=(1, 2), initial=0.0) <= 1e-12
+        return out
 
 
 def _plane(base: FloatArray, axis: FloatArray, post: FloatArray) -> FloatArray:
@@ -197,6 +230,7 @@ class _LocalBounds:
         self.rot_terms: list[tuple] = []  # rotating precisions (bound_rotation.Rotating)
         self.rot_lift = np.zeros(n)
         self.hard: list[bool] = []  # per term: a steep quadratic standing in for a pin
+        self.planes: list[tuple[FloatArray, FloatArray, NDArray[np.bool_]]] = []  # (n, d, on)
 
     # ---------------------------------------------------------------- building blocks ---
 
@@ -222,6 +256,30 @@ class _LocalBounds:
 
     def add(self, values: FloatArray, on: NDArray[np.bool_]) -> None:
         self.const += np.where(on, values, 0.0)
+
+    def plane(self, normal: FloatArray, value: FloatArray, on: NDArray[np.bool_]) -> None:
+        """n·t = d on the rows `on` (n a unit vector): a pinned axis of a Normal law, exact (its
+        point mass holds there; `_on_planes`)."""
+        normal = _rows(normal, self.n, 3).copy()
+        value = np.broadcast_to(np.asarray(value, float), (self.n,)).copy()
+        self.planes.append((normal, value, on.copy()))
+
+    def law_planes(self, law, origin: FloatArray, turn: FloatArray, on) -> None:  # type: ignore[no-untyped-def]
+        """The planes of a Normal law's pinned axes: the law's frame has its origin at
+        `origin` (per row or one) and its axes the columns of `turn` ((3, 3) or per row);
+        axis i holds the value `law.offset[i]` there."""
+        free = getattr(law, "free", None)
+        if free is None or np.all(free):
+            return
+        turn = np.broadcast_to(np.asarray(turn, float), (self.n, 3, 3))
+        origin = _rows(origin, self.n, 3)
+        for i in np.flatnonzero(~np.asarray(free, bool)):
+            normal = turn[:, :, i]
+            self.plane(normal, np.sum(normal * origin, axis=1) + law.offset[i], on)
+
+    def _partial_pins(self, law) -> bool:  # type: ignore[no-untyped-def]
+        free = getattr(law, "free", None)
+        return free is not None and not np.all(free)
 
     def pin_rotation(self, q: FloatArray, on: NDArray[np.bool_]) -> None:
         """X = q qᵀ on the rows `on`; two pins further apart than twice ROT_TOL exclude each
@@ -336,12 +394,14 @@ class _LocalBounds:
         law, form = rule.translation, rule.translation.concave_form()
         if form is not None:
             mean, P, c = form
+            origin, Rp = np.zeros(3), np.eye(3)
             if law.frame == Frame.WORLD_OFFSET:
-                mean = px + mean
+                origin, mean = px, px + mean
             elif law.frame == Frame.PARENT:
-                Rp = quat_to_matrix(pq)
+                origin, Rp = px, quat_to_matrix(pq)
                 mean, P = px + Rp @ mean, Rp @ P @ Rp.T
             self.quadratic(mean, np.zeros(3), P, every)
+            self.law_planes(law, origin, Rp, every)  # its pinned axes hold exactly
             self.const += c
         elif isinstance(law, BoxTranslation):
             shift = px if law.frame == Frame.WORLD_OFFSET else np.zeros(3)
@@ -364,6 +424,7 @@ class _LocalBounds:
         law, form = rule.translation, rule.translation.concave_form()
         if world_part(law) and form is not None:
             self.quadratic(form[0], np.zeros(3), form[1], every)
+            self.law_planes(law, np.zeros(3), np.eye(3), every)
             self.const += form[2]
         elif world_part(law):
             self.box(law.box.lo, law.box.hi, every)
@@ -502,6 +563,12 @@ class _LocalBounds:
             mean, P, c = form
             self.quadratic(cx - mean, off_t, P, on)
             self.add(np.full(n, c), on)
+            if self._partial_pins(law):
+                # t = cx - R off_t - u, u_i the mean on a pinned axis i: a plane on t where
+                # R is known (pinned, or no offset to turn); elsewhere left out (a bound)
+                held = on & (pinned | bool(np.allclose(off_t, 0.0)))
+                self.law_planes(law, cx - R0 @ off_t, -np.eye(3), held)
+                self._translation_exact(bool(np.all(held == on)))
         elif form is not None and law.frame == Frame.PARENT:
             mean, P, c = form
             m = off_t + quat_rotate(off_q, mean)
@@ -512,6 +579,10 @@ class _LocalBounds:
             # an anisotropic precision turns with the set: exact only where the rotation is
             Rc = R0 @ quat_to_matrix(off_q)
             self.quadratic(cx - R0 @ m, np.zeros(3), Rc @ P @ np.swapaxes(Rc, 1, 2), pinned)
+            if self._partial_pins(law):  # the child's pinned axes, in its member's frame
+                # t = cx - R off_t - Rc u, u_i the mean on a pinned axis i: planes on t
+                # where R is pinned
+                self.law_planes(law, cx - R0 @ off_t, -Rc, pinned)
             self.add(np.full(n, law.supremum() - c), on & ~pinned)
             self._rotating(cx, m, quat_to_matrix(off_q) @ P @ quat_to_matrix(off_q).T, on & ~pinned)
             self.rot_lift += np.where(on & ~pinned, law.supremum() - c, 0.0)
@@ -592,14 +663,15 @@ class _LocalBounds:
         axis_q = np.hstack([np.zeros((n, 1)), self.fam_axis])
         u = quat_multiply(base, self.fam_post)
         w = quat_multiply(quat_multiply(base, axis_q), self.fam_post)
+        Q, t0, _, lo, hi = self._on_planes()
         return _Terms(
             c,
             m,
             P,
             self.B,
             self.const,
-            self.lo,
-            self.hi,
+            lo,
+            hi,
             self.pin,
             self.complete,
             self.t_complete,
@@ -607,11 +679,44 @@ class _LocalBounds:
             0.5 * self.fam_range,
             revolute,
             np.array(self.hard, bool),
+            Q,
+            t0,
         )
 
+    def _on_planes(self):  # type: ignore[no-untyped-def]
+        """(Q, t0, apart, lo, hi): the rows' planes as t = Q t + t0 (Q the projector onto
+        their common directions, t0 their point nearest the origin), the rows whose planes do
+        not meet (within BOX_MARGIN, as boxes meet), and the box with each plane along a
+        world axis added (what the position's clipping and the exact polish see).
+
+        Rows with a steep stand-in term (a fixed child translation under a rotation not
+        pinned) keep their planes out (a bound still: a constraint left out): the steep term
+        holds t to the child's place for each rotation, and a plane then holds the rotation
+        too, which Frank–Wolfe over the rotations' hull does not reach (a revolute shelf
+        pinned in x and y, its book at a fixed offset: a bound of 4e5 for a tree of -3.5)."""
+        if not self.planes:
+            return None, None, np.zeros(self.n, bool), self.lo, self.hi
+        steep = np.zeros(self.n, bool)
+        for P, hard in zip(self.P, self.hard, strict=True):
+            steep |= hard & np.any(P != 0.0, axis=(1, 2))
+        N = np.stack([np.where((on & ~steep)[:, None], nv, 0.0) for nv, _, on in self.planes], 1)
+        d = np.stack([np.where(on & ~steep, dv, 0.0) for _, dv, on in self.planes], axis=1)
+        Ninv = np.linalg.pinv(N)  # (n, 3, K)
+        t0 = np.einsum("nik,nk->ni", Ninv, d)
+        apart = np.abs(np.einsum("nki,ni->nk", N, t0) - d).max(axis=1) > BOX_MARGIN
+        Q = np.eye(3) - Ninv @ N
+        # a plane along a world axis k: t_k = t0_k there, a box widened by BOX_MARGIN
+        along = np.abs(Q).max(axis=1) <= 1e-12  # (n, 3): axes the planes fix
+        lo = np.where(along, np.maximum(self.lo, t0 - BOX_MARGIN), self.lo)
+        hi = np.where(along, np.minimum(self.hi, t0 + BOX_MARGIN), self.hi)
+        return Q, t0, apart, lo, hi
+
     def feasible(self) -> NDArray[np.bool_]:
-        """Rows whose constraints can all hold: pins agree, boxes meet, no -inf term."""
-        return ~self.clash & np.all(self.lo <= self.hi, axis=1) & (self.const > -np.inf)
+        """Rows whose constraints can all hold: pins agree, boxes and planes meet, no -inf
+        term."""
+        _, _, apart, lo, hi = self._on_planes()
+        meet = ~self.clash & ~apart & np.all(lo <= hi, axis=1)
+        return meet & (self.const > -np.inf)
 
 
 BOX_MARGIN = 1e-9  # metres: rounding allowed on a box constraint in the bound
@@ -622,9 +727,11 @@ STEEP = 1e8  # precision standing in for a fixed child translation under a free 
 
 
 def _best_t(terms: _Terms, e: FloatArray, clip: NDArray[np.bool_]) -> FloatArray:
-    """The best t of Σ -½ (e_k - t)ᵀ P_k (e_k - t), clipped to the box on the rows `clip`."""
+    """The best t of Σ -½ (e_k - t)ᵀ P_k (e_k - t) on the rows' planes (exact: a pinned
+    Normal axis holds), clipped to the box on the rows `clip`."""
     rhs = np.einsum("nkij,nkj->ni", terms.P, e)
-    t = np.einsum("nij,nj->ni", terms.inverse, rhs)
+    L, a = terms.affine
+    t = np.einsum("nij,nj->ni", L, rhs) + a
     inside = np.clip(t, terms.lo, terms.hi)
     return np.where(clip[:, None], inside, t)
 
@@ -764,7 +871,7 @@ def _isotropic_rows(terms: _Terms) -> NDArray[np.bool_]:
     (`_isotropic_bound`)."""
     P = terms.P
     iso = np.all(np.abs(P - P[..., :1, :1] * np.eye(3)) <= 1e-12 * (1 + np.abs(P)), axis=(1, 2, 3))
-    unboxed = np.all(np.isinf(terms.lo) & np.isinf(terms.hi), axis=1)
+    unboxed = np.all(np.isinf(terms.lo) & np.isinf(terms.hi), axis=1) & ~terms.planed
     return iso & (unboxed | _placed(terms))
 
 
@@ -924,6 +1031,8 @@ def _subset(terms: _Terms, rows: NDArray[np.bool_]) -> _Terms:
         terms.arc[rows],
         terms.revolute[rows],
         terms.hard,
+        None if terms.Q is None else terms.Q[rows],
+        None if terms.t0 is None else terms.t0[rows],
     )
 
 
