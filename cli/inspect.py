@@ -37,12 +37,11 @@ def inspect(
         print(json.dumps(summary, indent=1))
         return
     types = Table(title=f"grammar '{g.name}': node types")
-    for col in ("type", "kind", "observed", "rules", "choice"):
+    for col in ("type", "kind", "observed", "rules", "choice", "added by observation"):
         types.add_column(col)
     for t in summary["types"]:
-        types.add_row(
-            t["name"], t["kind"], "yes" if t["observed"] else "", str(len(t["rules"])), t["choice"]
-        )
+        observed, added = "yes" if t["observed"] else "", t["synthetic"] or ""
+        types.add_row(t["name"], t["kind"], observed, str(len(t["rules"])), t["choice"], added)
     rules = Table(title="rules")
     for col in ("id", "parent[i] -> child", "translation", "rotation"):
         rules.add_column(col)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 from ssgc.ir import Grammar, Kind, NodeType, Rule
 from ssgc.supertree_size import supertree_size
 
@@ -31,16 +29,31 @@ def _type_row(grammar: Grammar, t: NodeType) -> dict[str, Any]:
         "choice": _choice(t),
         "max_nesting": t.max_nesting,
         "model": t.model,
+        # what the `observation` section added this type for (docs/grammar.md 9), else None
+        "synthetic": t.synthetic or None,
     }
 
 
 def _choice(t: NodeType) -> str:
     if t.kind in (Kind.OR, Kind.INDEPENDENT):
-        return "p = " + ", ".join(f"{p:.3g}" for p in t.probs)
+        return "p = " + ", ".join(format_prob(float(p)) for p in t.probs)
     if t.kind == Kind.REPEAT and t.count is not None:
-        probs = np.round(t.count.probs, 3)
-        return f"count 0..{t.count.max_count}: " + ", ".join(f"{p:g}" for p in probs)
+        probs = t.count.probs
+        return f"count 0..{t.count.max_count}: " + ", ".join(format_prob(float(p)) for p in probs)
     return ""
+
+
+def format_prob(p: float, digits: int = 3) -> str:
+    """A probability with `digits` significant digits, more if fewer would print one strictly
+    between 0 and 1 as "1" (0.999 at 2 digits) or "0": only a rule that always (never) fires
+    reads "1" ("0").  Beyond 8 digits it prints ">0.99999999"."""
+    if not 0.0 < p < 1.0:
+        return f"{p:.{digits}g}"
+    for d in range(digits, 9):
+        text = f"{p:.{d}g}"
+        if 0.0 < float(text) < 1.0:
+            return text
+    return ">0.99999999"
 
 
 def _rule_row(grammar: Grammar, r: Rule) -> dict[str, Any]:

@@ -5,8 +5,11 @@ probabilities, laid out in layers by the longest path from the root.
 The layout is computed here (no graphviz): recursive rules are found by a depth-first search
 and drawn as curved arrows back up; the rest is a DAG whose longest-path layering puts every
 type below all of its parents.  Within a layer, types are ordered by the mean position of their
-parents (two barycentre sweeps); an arrow that skips layers passes through a waypoint in each
-layer between, so it never runs through a box.
+parents (two barycentre sweeps); an arrow that skips layers passes each layer between through
+a slot of its own (a waypoint), straight down, and runs slanted only in the gaps between
+layers, where there are no boxes: so it never runs through a box.  Labels go at the first of
+several places along their arrow that is clear of boxes, of other labels and, if it can be, of
+other arrows.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from ssgc.inspect import format_prob
 from ssgc.ir import Grammar, HoldsGrammar, Kind, NodeType, Rule, as_ir
 from ssgc.render.scene import check_output, plain, require_matplotlib, save_figure
 
@@ -24,15 +28,26 @@ LAYER_GAP = 1.3  # inches between layer centres
 BOX_GAP = 0.35  # inches between boxes of a layer
 BOX_HEIGHT = 0.5
 CHAR = 0.062  # inches per character at the name's font size
+LABEL_PAD = 0.03  # inches kept free round a label
+FORWARD_AT = 0.7  # a label's favourite place: this far along its arrow
+BACK_COLOUR = "#a0522d"
 
 
 @dataclass(frozen=True)
 class Layout:
-    layer: dict[int, int]  # type id -> layer (0: the root)
-    x: dict[int, float]  # type id -> box centre (inches)
+    layer: dict[int, int]  # type or waypoint id -> layer (0: the root)
+    x: dict[int, float]  # type or waypoint id -> box centre (inches)
     width: dict[int, float]
     back: frozenset[int]  # rule ids that point back up (recursion)
     route: dict[int, list[int]]  # rule id -> the waypoints of an arrow that skips layers
+    n_types: int  # ids below this are types, the rest waypoints
+
+    def y(self, t: int) -> float:
+        return -self.layer[t] * LAYER_GAP
+
+    def boxes(self) -> np.ndarray:
+        """Every type's box as a row (left, bottom, right, top), in type id order."""
+        return np.array([_box(self, t) for t in range(self.n_types)]).reshape(-1, 4)
 
 
 def render_diagram(grammar: Grammar | HoldsGrammar, output: str | Path) -> None:
@@ -60,15 +75,20 @@ def layout(grammar: Grammar) -> Layout:
     }
     parents: dict[int, list[int]] = {t.id: [] for t in grammar.types}
     route: dict[int, list[int]] = {}
+    first: dict[tuple[int, int], int] = {}  # rules between the same two types share one arrow
     for r in grammar.rules:  # an arrow that skips layers gets a waypoint in each layer between
         if r.id in back:
             continue
-        above = r.parent
+        if (r.parent, r.child) in first:
+            route[r.id] = route[first[r.parent, r.child]]
+            continue
+        first[r.parent, r.child] = r.id
+        above, route[r.id] = r.parent, []
         for k in range(layer[r.parent] + 1, layer[r.child]):
             way = len(width)
             layer[way], width[way], parents[way] = k, 0.2, [above]
             rows[k].append(way)
-            route.setdefault(r.id, []).append(way)
+            route[r.id].append(way)
             above = way
         parents[r.child].append(above)
     x = _place(rows, width)
@@ -76,7 +96,46 @@ def layout(grammar: Grammar) -> Layout:
         for row in rows[1:]:
             row.sort(key=lambda t: _mean([x[p] for p in parents[t]], x[t]))
         x = _place(rows, width)
-    return Layout(layer, x, width, frozenset(back), route)
+    return Layout(layer, x, width, frozenset(back), route, len(grammar.types))
+
+
+def arrow_points(lay: Layout, r: Rule) -> np.ndarray:
+    """The corners of a forward rule's arrow, top to bottom: the parent's bottom, the top and
+    bottom of each waypoint's slot, the child's top.  Slanted stretches lie between two layers'
+    rows, where no box is; the arrow crosses a row only straight down through its own slot."""
+    h = BOX_HEIGHT / 2
+    points = [(lay.x[r.parent], lay.y(r.parent) - h)]
+    for w in lay.route.get(r.id, []):
+        points += [(lay.x[w], lay.y(w) + h), (lay.x[w], lay.y(w) - h)]
+    points.append((lay.x[r.child], lay.y(r.child) + h))
+    return np.array(points)
+
+
+def back_ends(lay: Layout, r: Rule) -> tuple[np.ndarray, np.ndarray, float]:
+    """A recursive rule's arrow: from the parent's right side (a little above its middle) round
+    to the child's (a little below), an arc of matplotlib's `arc3` with this `rad`; a small loop
+    (from below the middle to above it) when the type is its own child."""
+    loop = r.parent == r.child
+    right_p = lay.x[r.parent] + lay.width[r.parent] / 2
+    right_c = lay.x[r.child] + lay.width[r.child] / 2
+    lift = 0.12 if loop else -0.06  # a loop and the arcs up that meet at one box stay apart
+    start = np.array([right_p, lay.y(r.parent) - lift])
+    end = np.array([right_c, lay.y(r.child) + lift])
+    return start, end, 1.6 if loop else 0.5
+
+
+def arc_points(start: np.ndarray, end: np.ndarray, rad: float, n: int = 41) -> np.ndarray:
+    """Points of matplotlib's `arc3` curve (a quadratic Bezier): the axes are as many inches
+    as the figure, so data and display coordinates differ only by a scale."""
+    d = end - start
+    ctrl = (start + end) / 2 + rad * np.array([d[1], -d[0]])
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    return (1 - t) ** 2 * start + 2 * t * (1 - t) * ctrl + t**2 * end
+
+
+def _box(lay: Layout, t: int) -> tuple[float, float, float, float]:
+    w, h = lay.width[t] / 2, BOX_HEIGHT / 2
+    return lay.x[t] - w, lay.y(t) - h, lay.x[t] + w, lay.y(t) + h
 
 
 def _mean(values: list[float], default: float) -> float:
@@ -120,126 +179,232 @@ def _place(rows: list[list[int]], width: dict[int, float]) -> dict[int, float]:
     return x
 
 
+def count_range(t: NodeType) -> tuple[int, int]:
+    """The smallest and largest count of positive probability of a `repeat`: `probs: [0.5,
+    0.5, 0, 0]` makes 0..1 copies, not 0..3."""
+    assert t.count is not None
+    positive = np.flatnonzero(np.asarray(t.count.probs) > 0)
+    return int(positive[0]), int(t.count.largest)
+
+
 def _kind_line(grammar: Grammar, t: NodeType) -> str:
     kind = t.kind.name.lower()
     if t.kind == Kind.REPEAT and t.count is not None:
         probs = t.count.probs
         mean = float(np.dot(np.arange(len(probs)), probs))
-        kind += f" ×{int(np.flatnonzero(probs)[0])}..{len(probs) - 1}, mean {mean:.2g}"
+        low, high = count_range(t)
+        kind += f" ×{low}..{high}, mean {mean:.2g}"
     observed = "observed" if t.observed else "latent"
     root = ", root" if t.id == grammar.root else ""
-    return f"{kind} · {observed}{root}"
+    added = f" · added by observation ({t.synthetic})" if t.synthetic else ""
+    return f"{kind} · {observed}{root}{added}"
 
 
 def _rule_label(grammar: Grammar, r: Rule) -> str:
     parent = grammar.types[r.parent]
     if parent.kind in (Kind.OR, Kind.INDEPENDENT):
-        return f"{parent.probs[r.index]:.2g}"
+        return format_prob(float(parent.probs[r.index]), 2)
     if parent.kind == Kind.REPEAT:
         return "×n"
     return "1"
 
 
-def draw_diagram(grammar: Grammar, lay: Layout) -> Any:
-    from matplotlib.figure import Figure
-    from matplotlib.patches import FancyBboxPatch
+def _pair_label(grammar: Grammar, rules: list[Rule]) -> str:
+    """Several rules between two types are one arrow with all their probabilities."""
+    labels = [_rule_label(grammar, r) for r in rules]
+    if len(rules) > 1 and len(set(labels)) == 1:
+        return f"{labels[0]} ({len(rules)} rules)"
+    return ", ".join(labels)
 
-    lefts = [lay.x[t] - lay.width[t] / 2 for t in lay.x]
-    rights = [lay.x[t] + lay.width[t] / 2 for t in lay.x]
-    x0, x1 = min(lefts) - 0.6, max(rights) + 0.6
+
+def draw_diagram(grammar: Grammar, lay: Layout) -> Any:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    boxes = lay.boxes()
+    x0, x1 = boxes[:, 0].min() - 0.6, boxes[:, 2].max() + 0.6
     n_layers = max(lay.layer.values()) + 1
     y0, y1 = -(n_layers - 1) * LAYER_GAP - 0.6, 0.9
     fig = Figure(figsize=(x1 - x0, y1 - y0))
+    FigureCanvasAgg(fig)  # a renderer to measure the labels with
     ax = fig.add_axes((0, 0, 1, 1))
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_axis_off()
-    ax.text(
+    title = ax.text(
         x0 + 0.2, y1 - 0.2, plain(f"grammar '{grammar.name}'"), fontsize=9, va="top", weight="bold"
     )
-    y = {t: -lay.layer[t] * LAYER_GAP for t in lay.x}
     for t in grammar.types:
-        w = lay.width[t.id]
-        ax.add_patch(
-            FancyBboxPatch(
-                (lay.x[t.id] - w / 2, y[t.id] - BOX_HEIGHT / 2),
-                w,
-                BOX_HEIGHT,
-                boxstyle="round,pad=0,rounding_size=0.08",
-                fc="#cfe3f7" if t.observed else "white",
-                ec="black",
-                lw=1.6 if t.id == grammar.root else 0.8,
-                ls="-" if t.observed else "--",
-                zorder=2,
-            )
-        )
-        ax.text(
-            lay.x[t.id],
-            y[t.id] + 0.08,
-            plain(t.name),
-            ha="center",
-            va="center",
-            fontsize=8,
-            zorder=3,
-        )
-        ax.text(
-            lay.x[t.id],
-            y[t.id] - 0.12,
-            _kind_line(grammar, t),
-            ha="center",
-            va="center",
-            fontsize=6,
-            color="0.3",
-            zorder=3,
-        )
+        _draw_box(ax, grammar, lay, t)
     pairs: dict[tuple[int, int], list[Rule]] = {}
     for r in grammar.rules:  # several rules between two types: one arrow, their labels together
         pairs.setdefault((r.parent, r.child), []).append(r)
-    for rules in pairs.values():
-        labels = [_rule_label(grammar, r) for r in rules]
-        if len(rules) > 1:
-            same = len(set(labels)) == 1
-            labels = [f"{labels[0]} ({len(rules)} rules)"] if same else [", ".join(labels)]
-        _arrow(ax, lay, rules[0], y, labels[0])
+    arrows = [_draw_arrow(ax, lay, rules[0]) for rules in pairs.values()]
+    kinds = [_arrow_kind(lay, rules[0]) for rules in pairs.values()]
+    placer = _LabelPlacer(ax, [*boxes, _extent(ax, title)], arrows, kinds)
+    for i, rules in enumerate(pairs.values()):
+        back = rules[0].id in lay.back
+        placer.place(i, _pair_label(grammar, rules), BACK_COLOUR if back else "black")
     return fig
 
 
-def _arrow(ax: Any, lay: Layout, r: Rule, y: dict[int, float], label: str) -> None:
-    style = {"arrowstyle": "-|>", "lw": 0.7, "color": "0.25", "shrinkA": 0, "shrinkB": 0}
-    px, cx = lay.x[r.parent], lay.x[r.child]
-    if r.id in lay.back:  # recursion: from the parent's right side round to the child's
-        start = (px + lay.width[r.parent] / 2, y[r.parent])
-        end = (cx + lay.width[r.child] / 2, y[r.child] + (0.12 if r.parent == r.child else 0))
-        rad = 1.6 if r.parent == r.child else 0.5
-        style.update(color="#a0522d", connectionstyle=f"arc3,rad={rad}")
-        if r.parent == r.child:
-            start = (start[0], start[1] - 0.12)
-        ax.annotate("", xy=end, xytext=start, arrowprops=style, zorder=1)
-        mid = (max(start[0], end[0]) + 0.22, (start[1] + end[1]) / 2)
-        if r.parent == r.child:  # above the loop, clear of a neighbouring box
-            mid = (end[0] + 0.05, end[1] + 0.25)
-        ax.text(*mid, label, fontsize=6, color="#a0522d", ha="left", va="center", zorder=4)
-        return
-    start = np.array([px, y[r.parent] - BOX_HEIGHT / 2])
-    end = np.array([cx, y[r.child] + BOX_HEIGHT / 2])
-    ways = [np.array([lay.x[w], -lay.layer[w] * LAYER_GAP]) for w in lay.route.get(r.id, [])]
-    if ways:  # through its waypoints, the arrow head on the last stretch
-        line = np.array([start, *ways])
-        ax.plot(line[:, 0], line[:, 1], color="0.25", lw=0.7, zorder=1)
-        start = ways[-1]
-    rad = 0.0
-    ax.annotate("", xy=tuple(end), xytext=tuple(start), arrowprops=style, zorder=1)
-    # the label on the arrow, 70% of the way down: a point of matplotlib's arc3 Bezier curve
-    d = end - start
-    ctrl = (start + end) / 2 + rad * np.array([d[1], -d[0]])
-    t = 0.7
-    at = (1 - t) ** 2 * start + 2 * t * (1 - t) * ctrl + t**2 * end
+def _draw_box(ax: Any, grammar: Grammar, lay: Layout, t: NodeType) -> None:
+    """A type's box: filled if observed, dashed if latent, thick for the root, grey for a type
+    the observation model added (its kind line says so too)."""
+    from matplotlib.patches import FancyBboxPatch
+
+    left, bottom, _, _ = _box(lay, t.id)
+    ax.add_patch(
+        FancyBboxPatch(
+            (left, bottom),
+            lay.width[t.id],
+            BOX_HEIGHT,
+            boxstyle="round,pad=0,rounding_size=0.08",
+            fc="#cfe3f7" if t.observed else ("0.93" if t.synthetic else "white"),
+            ec="0.45" if t.synthetic else "black",
+            lw=1.6 if t.id == grammar.root else 0.8,
+            ls="-" if t.observed else "--",
+            zorder=2,
+        )
+    )
+    y = lay.y(t.id)
+    ax.text(lay.x[t.id], y + 0.08, plain(t.name), ha="center", va="center", fontsize=8, zorder=3)
     ax.text(
-        *at,
-        label,
-        fontsize=6,
+        lay.x[t.id],
+        y - 0.12,
+        _kind_line(grammar, t),
         ha="center",
         va="center",
-        zorder=4,
-        bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.85},
+        fontsize=6,
+        color="0.3",
+        zorder=3,
     )
+
+
+def _arrow_kind(lay: Layout, r: Rule) -> str:
+    if r.id not in lay.back:
+        return "forward"
+    return "loop" if r.parent == r.child else "back"
+
+
+def _draw_arrow(ax: Any, lay: Layout, r: Rule) -> np.ndarray:
+    """Draws one rule's arrow and returns points along it (for placing the labels)."""
+    style = {"arrowstyle": "-|>", "lw": 0.7, "color": "0.25", "shrinkA": 0, "shrinkB": 0}
+    if r.id in lay.back:  # recursion: from the parent's right side round to the child's
+        start, end, rad = back_ends(lay, r)
+        style.update(color=BACK_COLOUR, connectionstyle=f"arc3,rad={rad}")
+        ax.annotate("", xy=tuple(end), xytext=tuple(start), arrowprops=style, zorder=1)
+        return arc_points(start, end, rad)
+    points = arrow_points(lay, r)
+    if len(points) > 2:  # through its waypoints, the arrow head on the last stretch
+        ax.plot(points[:-1, 0], points[:-1, 1], color="0.25", lw=0.7, zorder=1)
+    ax.annotate("", xy=tuple(points[-1]), xytext=tuple(points[-2]), arrowprops=style, zorder=1)
+    return points
+
+
+def _extent(ax: Any, text: Any) -> np.ndarray:
+    """A text's box (left, bottom, right, top) in data inches, by the renderer's measure."""
+    bbox = text.get_window_extent(ax.figure.canvas.get_renderer())
+    corners = ax.transData.inverted().transform([[bbox.x0, bbox.y0], [bbox.x1, bbox.y1]])
+    return np.array([*corners[0], *corners[1]])
+
+
+class _LabelPlacer:
+    """Puts each arrow's label at the first of its candidate places that is clear of every box,
+    every label placed before and every other arrow; failing that, clear of boxes and labels
+    only; failing that, the favourite place.  Without this, labels 70% along arrows that meet
+    at one child ran into each other ("0.2!×n")."""
+
+    def __init__(
+        self, ax: Any, obstacles: list[np.ndarray], arrows: list[np.ndarray], kinds: list[str]
+    ) -> None:
+        self.ax = ax
+        self.kinds = kinds
+        self.taken = [np.asarray(o, dtype=float) for o in obstacles]
+        self.arrows = arrows
+        # every arrow's straight stretches, and whose each is
+        self.starts = np.vstack([a[:-1] for a in arrows])
+        self.ends = np.vstack([a[1:] for a in arrows])
+        self.owner = np.repeat(np.arange(len(arrows)), [len(a) - 1 for a in arrows])
+        self.low = np.minimum(self.starts, self.ends)  # each stretch's bounding box
+        self.high = np.maximum(self.starts, self.ends)
+
+    def place(self, i: int, label: str, colour: str) -> None:
+        text = self.ax.text(
+            0.0,
+            0.0,
+            label,
+            fontsize=6,
+            color=colour,
+            ha="center",
+            va="center",
+            zorder=4,
+            gid="rule-label",
+            bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.85},
+        )
+        size = np.ptp(_extent(self.ax, text).reshape(2, 2), axis=0) / 2 + LABEL_PAD
+        centres = _candidates(self.arrows[i], size, self.kinds[i])
+        boxes = np.hstack([centres - size, centres + size])
+        best = self._best(i, boxes)
+        text.set_position(tuple(centres[best]))
+        self.taken.append(boxes[best])
+
+    def _best(self, i: int, boxes: np.ndarray) -> int:
+        taken = np.array(self.taken)
+        hits = (
+            (boxes[:, None, 0] < taken[None, :, 2])
+            & (taken[None, :, 0] < boxes[:, None, 2])
+            & (boxes[:, None, 1] < taken[None, :, 3])
+            & (taken[None, :, 1] < boxes[:, None, 3])
+        ).any(axis=1)
+        lo, hi = boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)  # round all the places
+        near = np.all((self.low < hi) & (self.high > lo), axis=1)
+        others = near & (self.owner != i)
+        crossed = _segments_cross(self.starts[others], self.ends[others], boxes).any(axis=1)
+        for ok in (~hits & ~crossed, ~hits):
+            if ok.any():
+                return int(np.argmax(ok))
+        return 0
+
+
+def _candidates(points: np.ndarray, size: np.ndarray, kind: str) -> np.ndarray:
+    """Places for a label's centre, best first.  On a forward arrow: along it, nearest to 70%
+    of its length first.  On a back arc (brown, on the right): along it from its middle, then
+    beside it; a loop's label beside the loop, above it or below it, then on it."""
+    if kind == "forward":
+        at = np.linspace(0.05, 0.95, 37)
+        return _along(points, at[np.argsort(np.abs(at - FORWARD_AT), kind="stable")])
+    at = np.linspace(0.1, 0.9, 33)
+    on_arc = _along(points, at[np.argsort(np.abs(at - 0.5), kind="stable")])
+    right = points[:, 0].max() + size[0] + 0.01
+    top, bottom = points[:, 1].max(), points[:, 1].min()
+    beside = np.array(
+        [
+            [right, (top + bottom) / 2],
+            [points[-1, 0] + size[0], top + size[1] + 0.02],
+            [points[0, 0] + size[0], bottom - size[1] - 0.02],
+        ]
+    )
+    return np.vstack([beside, on_arc]) if kind == "loop" else np.vstack([on_arc, beside])
+
+
+def _along(points: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """The points at fractions `at` of a polyline's length."""
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    length = np.concatenate([[0.0], np.cumsum(steps)])
+    s = at * length[-1]
+    return np.column_stack([np.interp(s, length, points[:, 0]), np.interp(s, length, points[:, 1])])
+
+
+def _segments_cross(a: np.ndarray, b: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Whether each box (rows left, bottom, right, top) meets each segment a-b: a (boxes,
+    segments) array, by Liang-Barsky clipping of every segment to every box at once."""
+    d = (b - a)[None]  # (1, segments, 2)
+    lo, hi = boxes[:, None, :2], boxes[:, None, 2:]  # (boxes, 1, 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_lo, t_hi = (lo - a[None]) / d, (hi - a[None]) / d
+    flat = d == 0  # a segment parallel to an axis: inside the slab or never
+    inside = (lo < a[None]) & (a[None] < hi)
+    t_in = np.where(flat, np.where(inside, -np.inf, np.inf), np.minimum(t_lo, t_hi))
+    t_out = np.where(flat, np.where(inside, np.inf, -np.inf), np.maximum(t_lo, t_hi))
+    return np.maximum(t_in.max(axis=2), 0.0) < np.minimum(t_out.min(axis=2), 1.0)
