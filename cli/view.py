@@ -73,27 +73,33 @@ def view(
         where = dest.name if dest is not None else "the page"
         err.print(f"{count} scene(s) of {source} on {where}", markup=False, highlight=False)
     if open_it:
-        _open(html, None if dest is None or dest.stream else dest.target)
+        _open(html, None if dest is None or dest.stream else dest.target, output)
     if serve:
         _serve(html.encode("utf-8"), 8000 if port is None else port)
 
 
-def _open(html: str, page: Path | None) -> None:
-    """The written page, or (without -o) a temporary copy that lives until the browser has
-    read it."""
+def _open(html: str, page: Path | None, given: Path | None) -> None:
+    """The written page `page`, or (without one) a temporary copy that lives until the browser
+    has read it.  No browser is an error only for that copy: a written page is there, and the
+    user is told where (`given`, as typed), with a warning and exit 0 (docs/view.md)."""
     import time
     import webbrowser
 
     with tempfile.TemporaryDirectory(prefix="ssg-view-") as tmp:
+        temporary = page is None
         if page is None:
             page = Path(tmp) / "view.html"
             page.write_text(html, encoding="utf-8")
-            linger = 3.0
-        else:
-            linger = 0.0
-        if not webbrowser.open(page.resolve().as_uri()):
+        if webbrowser.open(page.resolve().as_uri()):
+            time.sleep(3.0 if temporary else 0.0)
+        elif temporary:
             raise SsgError.single("no browser found to open the page: write it with -o PAGE.html")
-        time.sleep(linger)
+        else:
+            err.print(
+                f"{given}: warning: no browser found to open the page; it is written there",
+                markup=False,
+                highlight=False,
+            )
 
 
 def _serve(body: bytes, port: int) -> None:

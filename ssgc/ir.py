@@ -239,5 +239,13 @@ class HoldsGrammar(Protocol):
 
 def as_ir(grammar: Grammar | HoldsGrammar) -> Grammar:
     """The compiled grammar of either form a user holds, so that the library's functions that
-    draw or show scenes take the `ssgc.load_grammar` result as well as its `.ir`."""
-    return grammar if isinstance(grammar, Grammar) else grammar.ir
+    draw or show scenes take the `ssgc.load_grammar` result as well as its `.ir`.  Anything
+    else (a path, say) is the TypeError `ssgc.parse` gives, not an AttributeError deep in."""
+    if isinstance(grammar, Grammar):
+        return grammar
+    held = getattr(grammar, "ir", None)
+    if not isinstance(held, Grammar):
+        raise TypeError(
+            f"expected a Grammar (ssgc.load_grammar) as grammar, got {type(grammar).__name__}"
+        )
+    return held

@@ -10,6 +10,8 @@ mistakes located at their place in the file (``scenes[k].parses[0].tree.nodes[j]
 
 from __future__ import annotations
 
+import json
+import math
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict
@@ -21,6 +23,7 @@ from ssgc.io.scene import (
     Scene,
     SceneName,
     TreeDoc,
+    lazy_source,
     read_tree,
     scene_from_tree,
     trees_of,
@@ -59,8 +62,44 @@ class ParseDoc(_Loose):
 
 
 def read_parse_doc(data: Any, text: str, file: str) -> ParseDoc:
-    """A decoded parse output checked against its schema (mistakes located in `text`)."""
-    return validated(ParseDoc, data, text, file)  # type: ignore[no-any-return]
+    """A decoded parse output checked against its schema and its scores (mistakes located in
+    `text`)."""
+    doc: ParseDoc = validated(ParseDoc, data, text, file)
+    errors = _score_errors(doc, lazy_source(text, file))
+    if errors:
+        raise SceneError(errors)
+    return doc
+
+
+def _score_errors(doc: ParseDoc, source: Locator) -> list[Diagnostic]:
+    """Each parse's score and rule log-probabilities are numbers or −∞ (a rule that could
+    not have made the child, drawn in the lowest colour): JSON's reader takes `1e999` as +∞
+    and `NaN` too, which no parse writes, and which would be drawn as the best rule there is
+    and shown as `log p = Infinity`."""
+    errors: list[Diagnostic] = []
+    for k, scene in enumerate(doc.scenes):
+        for j, parse in enumerate(scene.parses):
+            at = ("scenes", k, "parses", j)
+            if _bad_log(parse.score):
+                errors.append(source.diagnostic((*at, "score"), _said(parse.score)))
+            for i, rule in enumerate(parse.rules):
+                if _bad_log(rule.log_prob):
+                    errors.append(
+                        source.diagnostic((*at, "rules", i, "log_prob"), _said(rule.log_prob))
+                    )
+    return errors
+
+
+def _bad_log(value: float | None) -> bool:
+    """A log-probability that is neither a finite number nor −∞ (+∞, NaN)."""
+    return value is not None and not (math.isfinite(value) or value == -math.inf)
+
+
+def _said(value: float | None) -> str:
+    return (
+        "a log-probability must be a finite number or -Infinity (a rule that could not have "
+        f"made the child), got {json.dumps(value)}"
+    )
 
 
 def best_tree(doc: ParseDoc, k: int, grammar: Grammar | None, source: Locator) -> NodeTable | None:

@@ -763,11 +763,18 @@ def _sink_scene(
     )
 
 
+def json_files(directory: Path) -> list[Path]:
+    """The `*.json` files of a directory of scenes or parse results, sorted by name: regular
+    files only (or links to them).  A subdirectory named `x.json` is no scene, and a FIFO or
+    a device so named would block the reader for ever."""
+    return sorted(p for p in directory.glob("*.json") if p.is_file())
+
+
 def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
     """A JSON scene, a directory of them, or a sink-format YAML dataset."""
     path = Path(path)
     if path.is_dir():
-        files = sorted(path.glob("*.json"))
+        files = json_files(path)
         if not files:
             raise SceneError.single("no *.json scene files in this directory", str(path))
         return [read_scene_file(f, grammar) for f in files]

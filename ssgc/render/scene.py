@@ -37,6 +37,7 @@ from ssgc.io.scene import (
     SceneDoc,
     SceneRead,
     is_parse_result,
+    json_files,
     lazy_source,
     load_scenes,
     loads_json,
@@ -48,7 +49,6 @@ from ssgc.io.scene import (
 from ssgc.ir import Grammar, HoldsGrammar, as_ir
 
 FloatArray = NDArray[np.float64]
-MAX_COORD = 1000.0  # meters
 MAX_GRID = 64  # scenes in one picture; more would be unreadable
 FORMATS = (".png", ".svg")
 MIN_ASPECT = 0.35  # in 3-D, no axis is drawn shorter than this share of the longest
@@ -57,6 +57,19 @@ LEGEND_CHARS = 40  # a type's name in the legend is cut to this many characters 
 LEGEND_ENTRY_PT = 10.5  # the height of a legend entry at font size 7 (points)
 HELD_TOL = 0.002  # m: an object resting on its container's floor may reach this far below it
 SMALLER = 0.9  # what a container holds covers less than this share of its area from above
+PANEL_PT = 200.0  # the longer side of a panel's drawing area, at most about this (points)
+MIN_SHAPE_PT = 4.0  # a shape drawn smaller than this (points) also gets a dot, to be seen
+OFFSET_SHARE = 1000  # a panel counts from a round number near a scene this far off (in sizes)
+DOT_AREA = 30  # the dot of an object without a shape, or with one too small (points²)
+# The colours of the observed types, `ssg render`'s and `ssg view`'s: matplotlib's "tab20",
+# its ten dark colours first (tab10's, in its order), then the ten light ones, so that up to
+# ten types get ten strong colours and two alphabetical neighbours never share a hue.
+PALETTE = (
+    "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd",
+    "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf",
+    "#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5",
+    "#c49c94", "#f7b6d2", "#c7c7c7", "#dbdb8d", "#9edae5",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -109,7 +122,8 @@ def render_file(
 ) -> int:
     """Draw the first `n` scenes of `source` (or only those named `scene`) into `output`
     (.png or .svg); returns how many were drawn."""
-    output, grammar = Path(output), None if grammar is None else as_ir(grammar)
+    output, grammar = Path(output), grammar_ir(grammar)
+    _check_count(n)
     out, fmt = check_output(output, inputs=(source,))
     require_matplotlib()
     if not 1 <= n <= MAX_GRID:
@@ -126,6 +140,19 @@ def render_file(
     return len(views)
 
 
+def grammar_ir(grammar: Any) -> Grammar | None:
+    """The compiled grammar of what a Python caller passed as `grammar`: None, or either form
+    `as_ir` takes (a path is its TypeError, not an AttributeError deep inside)."""
+    return None if grammar is None else as_ir(grammar)
+
+
+def _check_count(n: Any) -> None:
+    """`n` of the Python API: a whole number (a string such as '3' raised a TypeError of
+    comparison, which named no argument); its range is checked as `-n`'s."""
+    if isinstance(n, bool) or not isinstance(n, int | np.integer):
+        raise TypeError(f"n must be a whole number from 1 to {MAX_GRID}, got {n!r}")
+
+
 def _no_scene(source: Path, scene: str) -> SsgError:
     """`--scene NAME` drew nothing: a parse result's scene of that name that has no parse
     (infeasible, timed out) is there, and the user is told so, with its status."""
@@ -140,7 +167,7 @@ def _no_scene(source: Path, scene: str) -> SsgError:
 def _statuses(source: Path, scene: str) -> Iterator[str]:
     """The status of each unparsed scene named `scene` in the parse results of `source` (a
     file, or a directory's `*.json`), which `load_views` has already read and checked."""
-    for path in sorted(source.glob("*.json")) if source.is_dir() else [source]:
+    for path in json_files(source) if source.is_dir() else [source]:
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, ValueError):
@@ -155,6 +182,7 @@ def render_document(data: Any, output: str | Path, grammar: Grammar | None = Non
     """Draw a scene or parse-result document held in memory (the Python API's `.render`, whose
     `.to_json()` is the document `ssg render` would read from a file); returns how many scenes
     were drawn."""
+    grammar = grammar_ir(grammar)
     out, fmt = check_output(Path(output))
     require_matplotlib()
     views = document_views(data, grammar, Path("<memory>"))[:MAX_GRID]
@@ -169,7 +197,7 @@ def load_views(path: Path, n: int, grammar: Grammar | None) -> list[View]:
     """A scene or parse-result JSON file, a directory of them, or (with a grammar) a sink
     dataset; the first `n` scenes."""
     if path.is_dir():
-        files = sorted(path.glob("*.json"))
+        files = json_files(path)
         if not files:
             raise SsgError.single("no *.json files in this directory", str(path))
         views: list[View] = []
@@ -184,7 +212,7 @@ def load_views(path: Path, n: int, grammar: Grammar | None) -> list[View]:
                 "a YAML dataset names no types: give its grammar with -g", str(path)
             )
         return [
-            _drawable(_scene_view(s.name, grammar, s.types, s.xyz, s.quat), path)
+            _scene_view(s.name, grammar, s.types, s.xyz, s.quat)
             for s in load_scenes(path, grammar)[:n]
         ]
     return _file_views(path, grammar)[:n]
@@ -192,7 +220,7 @@ def load_views(path: Path, n: int, grammar: Grammar | None) -> list[View]:
 
 def _file_views(path: Path, grammar: Grammar | None) -> list[View]:
     """A file read as `ssg parse` reads a scene: strict JSON, every mistake located."""
-    text = read_scene_text(path, "input file")
+    text = read_scene_text(path, "scene or parse result file")
     data = loads_json(text, str(path), "not JSON (expected a scene or an `ssg parse` result)")
     return document_views(data, grammar, path, text)
 
@@ -207,12 +235,11 @@ def document_views(
     text = json.dumps(data) if text is None else text
     file, source = str(path), lazy_source(text, str(path))
     if is_parse_result(data):
-        views = _parse_views(read_parse_doc(data, text, file), grammar, source, file)
-        return [_drawable(v, path) for v in views]
+        return _parse_views(read_parse_doc(data, text, file), grammar, source, file)
     if isinstance(data, dict) and "objects" in data:
         doc = validated(SceneDoc, data, text, file)
         view = _doc_view(doc, read_scene_doc(doc, grammar, source), grammar, one_line(path.stem))
-        return [_drawable(view, path)]
+        return [view]
     raise SceneError.single(
         "not a scene (a JSON object with `objects`) or an `ssg parse` result (with `scenes`)",
         file,
@@ -274,16 +301,6 @@ def _scene_view(name: str, grammar: Grammar, types: Any, xyz: Any, quat: Any) ->
         observed=np.ones(len(types), bool),
         parent=np.full(len(types), -1, np.int64),
     )
-
-
-def _drawable(view: View, path: Path) -> View:
-    """Coordinates a picture can hold: finite, within a kilometre of the origin."""
-    if view.xyz.size and not np.all(np.abs(view.xyz) <= MAX_COORD):
-        raise SceneError.single(
-            f"'{shown(view.name)}': a position is beyond {MAX_COORD:g} m, too far to draw",
-            str(path),
-        )
-    return view
 
 
 def _parse_views(doc: ParseDoc, grammar: Grammar | None, source: Locator, file: str) -> list[View]:
@@ -367,15 +384,19 @@ def plain(text: str) -> str:
 
 
 def _colours(views: list[View]) -> dict[str, Any]:
-    """A colour per observed type: matplotlib's tab10 or tab20 while they suffice, else as
-    many distinct colours as there are types (`many_colours`): never one colour for two."""
-    from matplotlib import colormaps
-
+    """A colour per observed type, by name: `type_colours`."""
     names = sorted({t for v in views for t, o in zip(v.types, v.observed, strict=True) if o})
-    if len(names) > 20:
-        return dict(zip(names, many_colours(len(names)), strict=True))
-    cmap = colormaps["tab10" if len(names) <= 10 else "tab20"]
-    return {name: cmap(i) for i, name in enumerate(names)}
+    return type_colours(names)
+
+
+def type_colours(names: list[str]) -> dict[str, str]:
+    """A colour ("#rrggbb") per type of `names`, in their order: the PALETTE while it
+    suffices, else as many distinct colours as types (`many_colours`), never one colour for
+    two.  `ssg view` takes its colours from here too, so a type looks the same in both."""
+    if len(names) <= len(PALETTE):
+        return dict(zip(names, PALETTE, strict=False))
+    rgb = np.rint(np.array(many_colours(len(names))) * 255).astype(int)
+    return {n: "#{:02x}{:02x}{:02x}".format(*c) for n, c in zip(names, rgb, strict=True)}
 
 
 def many_colours(n: int) -> list[tuple[float, float, float]]:
@@ -424,10 +445,13 @@ def _legend_width(labels: list[str], height: float) -> float:
 
     columns = math.ceil(len(labels) / _legend_rows(height))
     font, measure = FontProperties(size=7), TextToPath()
-    text = max(
-        (measure.get_text_width_height_descent(t, font, ismath=False)[0] for t in labels), default=0
-    )
-    return (columns * (34 + text) + 10) / 72
+    with warnings.catch_warnings():
+        # A character the font lacks: matplotlib warns here, in its words and with our source
+        # line.  The same labels are drawn when the figure is saved, where `save_figure` says
+        # it once, in ssgc's words (docs/render.md).
+        warnings.simplefilter("ignore")
+        widths = [measure.get_text_width_height_descent(t, font, ismath=False)[0] for t in labels]
+    return (columns * (34 + max(widths, default=0)) + 10) / 72
 
 
 def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[int]]]]) -> Any:
@@ -505,34 +529,83 @@ def _draw_view(
     norm: Any,
     cmap: Any,
 ) -> None:
-    from matplotlib.collections import LineCollection
+    """A scene's two panels.  The limits come first, so that a shape too small to be seen at
+    the panel's scale (a 40 cm box in a scene a kilometre wide) also gets a dot."""
+    shapes = _world_shapes(view, geoms)
+    centre, half = _extent(np.vstack([view.xyz, *shapes.values()]))
+    origin = _origin(centre, half)
+    view, centre = replace(view, xyz=view.xyz - origin), centre - origin
+    shapes = {i: verts - origin for i, verts in shapes.items()}
+    faint = holders(view, {i: geoms[view.types[i]][0] for i in shapes})
+    for i in np.flatnonzero(view.observed):
+        colour, verts = colours[view.types[i]], shapes.get(int(i))
+        if verts is not None:
+            _draw_shape(ax3, ax2, verts, geoms[view.types[i]][1], colour, faint[i])
+        if verts is None or _tiny(np.ptp(verts, axis=0), half, 3):
+            ax3.scatter(*view.xyz[i], color=colour, s=DOT_AREA, depthshade=False)
+        if verts is None or _tiny(np.ptp(verts[:, :2], axis=0), _top_half(half), 2):
+            ax2.scatter(*view.xyz[i, :2], color=colour, s=DOT_AREA, zorder=3)
+    _draw_marks(ax3, ax2, view, norm, cmap)
+    _limits(ax3, ax2, centre, half, origin)
+    ax3.set_title(plain(view.title), fontsize=8)
+    ax2.set_title("from above (x, y)", fontsize=8)
+
+
+def _world_shapes(view: View, geoms: dict[str, Any]) -> dict[int, FloatArray]:
+    """Each observed object's shape (when its type has one) placed at its pose, by node."""
+    rot = quat_to_matrix(view.quat) if len(view.types) else np.zeros((0, 3, 3))
+    return {
+        int(i): geoms[view.types[i]][0] @ rot[i].T + view.xyz[i]
+        for i in np.flatnonzero(view.observed)
+        if view.types[i] in geoms
+    }
+
+
+def _tiny(size: FloatArray, half: FloatArray, axes: int) -> bool:
+    """Whether a shape of this extent (metres, per axis) is drawn smaller than MIN_SHAPE_PT
+    in a panel whose longer side (PANEL_PT at most) spans the largest of the limits `half`
+    on its first `axes` axes: then a dot shows it, as `ssg view` never draws an object
+    smaller than 8 pixels."""
+    span = 2 * float(np.max(half[:axes]))
+    return float(np.max(size)) < MIN_SHAPE_PT / PANEL_PT * span
+
+
+def _draw_shape(
+    ax3: Any, ax2: Any, verts: FloatArray, faces: list[list[int]], colour: Any, faint: bool
+) -> None:
+    """A shape in 3-D (its faces) and from above (its outline's convex hull)."""
     from matplotlib.patches import Polygon
-    from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
     from scipy.spatial import ConvexHull, QhullError
 
-    points = [view.xyz]
-    rot = quat_to_matrix(view.quat) if len(view.types) else np.zeros((0, 3, 3))
-    shaped = [i for i in np.flatnonzero(view.observed) if view.types[i] in geoms]
-    faint = holders(view, {int(i): geoms[view.types[i]][0] for i in shaped})
-    for i in np.flatnonzero(view.observed):
-        colour, mesh = colours[view.types[i]], geoms.get(view.types[i])
-        if mesh is None:
-            ax3.scatter(*view.xyz[i], color=colour, s=30, depthshade=False)
-            ax2.scatter(*view.xyz[i, :2], color=colour, s=30, zorder=3)
-            continue
-        verts = mesh[0] @ rot[i].T + view.xyz[i]
-        points.append(verts)
-        polys = [verts[f] for f in mesh[1]]
-        alpha = 0.15 if faint[i] else 0.45
-        ax3.add_collection3d(
-            Poly3DCollection(polys, facecolor=colour, edgecolor=colour, alpha=alpha, linewidth=0.4),
-            autolim=False,  # limits are set once, equal on every axis (`_limits`)
-        )
-        try:
-            hull = verts[ConvexHull(verts[:, :2]).vertices, :2]
-        except QhullError:  # a shape seen exactly edge-on from above
-            hull = verts[:, :2]
-        ax2.add_patch(Polygon(hull, closed=True, fc=colour, ec=colour, alpha=alpha, lw=0.8))
+    alpha = 0.15 if faint else 0.45
+    ax3.add_collection3d(
+        Poly3DCollection(
+            _face_array(verts, faces), facecolor=colour, edgecolor=colour, alpha=alpha, lw=0.4
+        ),
+        autolim=False,  # limits are set once, equal on every axis (`_limits`)
+    )
+    try:
+        hull = verts[ConvexHull(verts[:, :2]).vertices, :2]
+    except QhullError:  # a shape seen exactly edge-on from above
+        hull = verts[:, :2]
+    ax2.add_patch(Polygon(hull, closed=True, fc=colour, ec=colour, alpha=alpha, lw=0.8))
+
+
+def _face_array(verts: FloatArray, faces: list[list[int]]) -> FloatArray:
+    """The faces' corners as one (faces, corners, 3) array, a short face (a cylinder's side
+    beside its 20-cornered caps) padded with its own last corner, which draws the same.
+    Given faces of different lengths, matplotlib pads them with uninitialised memory, whose
+    huge values overflow in its projection: a RuntimeWarning, said as a drawing trouble."""
+    width = max(len(f) for f in faces)
+    return np.stack([verts[list(f) + [f[-1]] * (width - len(f))] for f in faces])
+
+
+def _draw_marks(ax3: Any, ax2: Any, view: View, norm: Any, cmap: Any) -> None:
+    """What is drawn over the objects: clutter crosses, latent nodes, the tree's edges."""
+    from matplotlib.collections import LineCollection
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
     clutter = unexplained(view)
     if np.any(clutter):
         ax3.scatter(*view.xyz[clutter].T, color="red", marker="x", s=60, depthshade=False)
@@ -554,9 +627,6 @@ def _draw_view(
         ax2.add_collection(
             LineCollection(segs[:, :, :2], colors=colour, linewidths=width, zorder=5)
         )
-    _limits(ax3, ax2, np.vstack(points))
-    ax3.set_title(plain(view.title), fontsize=8)
-    ax2.set_title("from above (x, y)", fontsize=8)
 
 
 def unexplained(view: View) -> NDArray[np.bool_]:
@@ -605,27 +675,61 @@ def _held(
     return inside & above & (area < SMALLER * area[k])
 
 
-def _limits(ax3: Any, ax2: Any, pts: FloatArray) -> None:
-    """Equal scales on x and y from above, so shapes and distances look as they are; in 3-D
-    too, but an axis shorter than MIN_ASPECT of the longest is stretched to it, so that a flat
-    scene (all on a tabletop) or a long thin one is not drawn as a sheet or a line."""
+def _extent(pts: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The centre of the box holding `pts` and its half-sizes, 10% larger, at least 5 cm."""
     if len(pts) == 0:
         pts = np.zeros((1, 3))
     lo, hi = pts.min(axis=0), pts.max(axis=0)
-    centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2 * 1.1, 0.05)
+    return (lo + hi) / 2, np.maximum((hi - lo) / 2 * 1.1, 0.05)
+
+
+def _origin(centre: FloatArray, half: FloatArray) -> FloatArray:
+    """Per axis, the round number the panels count from: 0, or for a scene far from the
+    origin for its size (0.5 m across at x = 1500 m) a round number near its centre, which
+    the axis's label states (`x − 1,500 (m)`).  Its ticks then read 0.1, 0.2, not 1500.1,
+    1500.2 crowded together, nor matplotlib's offset printed over a tick label."""
+    origin = np.zeros(3)
+    for k in range(3):
+        if abs(centre[k]) >= OFFSET_SHARE * half[k]:
+            step = 10.0 ** math.ceil(math.log10(2 * half[k]))
+            origin[k] = round(centre[k] / step) * step
+    return origin
+
+
+def _axis_label(axis: str, origin: float) -> str:
+    """An axis's label, with the number its ticks count from (`_origin`) when not 0."""
+    if origin == 0:
+        return f"{axis} (m)"
+    number = f"{abs(origin):,.0f}" if abs(origin) >= 1 else f"{abs(origin):g}"
+    return f"{axis} {'−' if origin > 0 else '+'} {number} (m)"
+
+
+def _top_half(half: FloatArray) -> FloatArray:
+    """The view from above's half-sizes on x and y: the shorter one padded to MIN_ASPECT of
+    the longer, so that objects in a line a kilometre long do not make a panel a few points
+    tall, its y tick labels printed over each other (the scale stays equal on both axes)."""
+    return np.maximum(half[:2], MIN_ASPECT * half[:2].max())
+
+
+def _limits(ax3: Any, ax2: Any, centre: FloatArray, half: FloatArray, origin: FloatArray) -> None:
+    """Equal scales on x and y from above, so shapes and distances look as they are; in 3-D
+    too, but an axis shorter than MIN_ASPECT of the longest is stretched to it, so that a flat
+    scene (all on a tabletop) or a long thin one is not drawn as a sheet or a line."""
     for k, setter in enumerate((ax3.set_xlim, ax3.set_ylim, ax3.set_zlim)):
         setter(centre[k] - half[k], centre[k] + half[k])
     ax3.set_box_aspect(tuple(np.maximum(half, MIN_ASPECT * half.max())), zoom=0.9)
     ax3.tick_params(labelsize=6)
-    ax3.set_xlabel("x (m)", fontsize=7)
-    ax3.set_ylabel("y (m)", fontsize=7)
-    ax3.set_zlabel("z (m)", fontsize=7)
-    ax2.set_xlim(centre[0] - half[0], centre[0] + half[0])
-    ax2.set_ylim(centre[1] - half[1], centre[1] + half[1])
+    x, y, z = (_axis_label(a, float(o)) for a, o in zip("xyz", origin, strict=True))
+    ax3.set_xlabel(x, fontsize=7)
+    ax3.set_ylabel(y, fontsize=7)
+    ax3.set_zlabel(z, fontsize=7)
+    top = _top_half(half)
+    ax2.set_xlim(centre[0] - top[0], centre[0] + top[0])
+    ax2.set_ylim(centre[1] - top[1], centre[1] + top[1])
     ax2.set_aspect("equal")
     ax2.tick_params(labelsize=6)
-    ax2.set_xlabel("x (m)", fontsize=7)
-    ax2.set_ylabel("y (m)", fontsize=7)
+    ax2.set_xlabel(x, fontsize=7)
+    ax2.set_ylabel(y, fontsize=7)
 
 
 def save_figure(fig: Any, output: Output, fmt: str) -> None:

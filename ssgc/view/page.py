@@ -25,20 +25,12 @@ import numpy as np
 from ssgc.errors import SsgError, SsgWarning
 from ssgc.geometry import quat_to_matrix
 from ssgc.io.outputs import Output, check_output, write_output_text
-from ssgc.ir import Grammar, HoldsGrammar, as_ir
-from ssgc.render.scene import View, holders, load_views, many_colours
+from ssgc.ir import Grammar, HoldsGrammar
+from ssgc.render.scene import View, grammar_ir, holders, load_views, type_colours
 
 MAX_SCENES = 1000  # one page; more would make a page too heavy to open
 MAX_FACES = 4000  # a mesh with more triangles is shown as its convex hull
 MARKER = 0.03  # m: the side of the cube marking an object without geometry
-# Twenty colours for the observed types, dark and light in pairs (matplotlib's "tab20"
-# order): the ten dark ones first, so that up to ten types get ten distinct strong colours.
-PALETTE = (
-    "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd",
-    "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf",
-    "#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5",
-    "#c49c94", "#f7b6d2", "#c7c7c7", "#dbdb8d", "#9edae5",
-)  # fmt: skip
 LATENT = "#555555"
 # A rule's log-probability as a colour: red (low, unusual), yellow, green (high).
 SCORE_STOPS = np.array([[215, 48, 39], [254, 224, 139], [26, 152, 80]], float)
@@ -47,7 +39,7 @@ SCORE_STOPS = np.array([[215, 48, 39], [254, 224, 139], [26, 152, 80]], float)
 def view_page(source: str | Path, grammar: Grammar | HoldsGrammar | None = None) -> tuple[str, int]:
     """The viewer page of `source` (a scene, a directory of scenes, a sink dataset with its
     grammar, or an `ssg parse` result) and the number of scenes on it."""
-    grammar = None if grammar is None else as_ir(grammar)
+    grammar = grammar_ir(grammar)
     views = load_views(Path(source), MAX_SCENES + 1, grammar)
     if len(views) > MAX_SCENES:  # one more was read only to know that there are more
         views = views[:MAX_SCENES]
@@ -62,8 +54,8 @@ def write_view(
 ) -> int:
     """Write the viewer page of `source` to `output` (checked first, written atomically);
     returns the number of scenes on it."""
-    file = None if grammar is None else as_ir(grammar).file
-    out = check_page(output, source, file)
+    grammar = grammar_ir(grammar)
+    out = check_page(output, source, None if grammar is None else grammar.file)
     html, count = view_page(source, grammar)
     write_output_text(out, html)
     return count
@@ -92,7 +84,7 @@ def page_data(views: list[View], grammar: Grammar | None, title: str) -> dict[st
     """What the page draws, as plain JSON: types (colour, shape), scenes (nodes, objects)."""
     names = sorted({t for v in views for t in v.types})
     seen = {t for v in views for t, o in zip(v.types, v.observed, strict=True) if o}
-    colour = _type_colours(sorted(seen))
+    colour = type_colours(sorted(seen))
     shapes = _shapes(grammar, sorted(seen))
     scores = [v.score[np.isfinite(v.score)] for v in views if v.score is not None]
     finite = np.concatenate(scores) if scores else np.zeros(0)
@@ -114,15 +106,6 @@ def page_data(views: list[View], grammar: Grammar | None, title: str) -> dict[st
         "scores": None if bounds is None else {"low": bounds[0], "high": bounds[1]},
         "scenes": [_scene(v, index, shapes, bounds) for v in views],
     }
-
-
-def _type_colours(names: list[str]) -> dict[str, str]:
-    """A colour per observed type: the palette while it suffices, else as many distinct
-    colours as types (`ssg render`'s, `many_colours`): never one colour for two types."""
-    if len(names) <= len(PALETTE):
-        return dict(zip(names, PALETTE, strict=False))
-    rgb = np.rint(np.array(many_colours(len(names))) * 255).astype(int)
-    return {n: "#{:02x}{:02x}{:02x}".format(*c) for n, c in zip(names, rgb, strict=True)}
 
 
 def _scene(

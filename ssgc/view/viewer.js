@@ -169,12 +169,25 @@
       line(cam, [c[0] + x, c[1] - half, state.floor], [c[0] + x, c[1] + half, state.floor]);
       line(cam, [c[0] - half, c[1] + x, state.floor], [c[0] + half, c[1] + x, state.floor]);
     }
-    const o = [c[0] - half, c[1] - half, state.floor];
+    const o = farCorner(cam, c, half);
     [[1, 0, 0, "#c0392b"], [0, 1, 0, "#27ae60"], [0, 0, 1, "#2e5fb3"]].forEach((a) => {
       ctx.strokeStyle = a[3];
       ctx.lineWidth = 2;
       line(cam, o, add(o, scale([a[0], a[1], a[2]], step * 3)));
     });
+  }
+
+  function farCorner(cam, c, half) {
+    // The grid corner farthest from the camera, where the x/y/z marker goes: the camera
+    // looks down across the grid at it, whereas the nearest corner is below the canvas or
+    // behind the camera (the default view's, at yaw -2.2).
+    let best = null, far = -1;
+    [[-1, -1], [1, -1], [-1, 1], [1, 1]].forEach(([sx, sy]) => {
+      const p = [c[0] + sx * half, c[1] + sy * half, state.floor];
+      const d = sub(p, cam.eye);
+      if (dot(d, d) > far) { far = dot(d, d); best = p; }
+    });
+    return best;
   }
 
   function line(cam, a, b) {
