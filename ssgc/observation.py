@@ -220,7 +220,9 @@ def _widen(g: Observed, noise: dict[int, Noise], root: int, report: Report) -> N
     # unless the parent's pose is always an observed pose already: then two observed poses
     # are joined, and the noise must be on that rule.
     tied = _tied_types(g, {r.id for r in into_noisy}, root)
-    loose = {r.id for r in into_noisy if tied[r.parent]}
+    loose = _inexact_blocks(
+        g, fixed, into_noisy, {r.id for r in into_noisy if tied[r.parent]}, noise
+    )
     comp = _components(n_types, [r for r in fixed if r.id not in loose])
     members: dict[int, list[Noise]] = {}
     for t, n in noise.items():
@@ -246,24 +248,81 @@ def _tied_types(g: Observed, loose_candidates: set[int], root: int) -> list[bool
     a type (rules in `loose_candidates` do not count: they may get noise); the root type's
     own node needs no rule.  Type-level and sound: an `or` above two kinds of object does not
     make either kind tied to the other.  A latent root counted as untied lost the noise of an
-    observed child at a fixed offset from it, and gave that noise to its other rules."""
+    observed child at a fixed offset from it, and gave that noise to its other rules.
+
+    The largest such set (start from every type and drop those that fail, until none does):
+    a fixed rule from a type to itself keeps it tied, since every node of it is entered from
+    a tied one first (a fixed `L -> L` made L untied, and its observed child lost its noise)."""
     into: dict[int, list[Rule]] = {}
     for r in g.rules:
         into.setdefault(r.child, []).append(r)
-    state: dict[int, bool] = {}
+    tied = [True] * len(g.types)
+    changed = True
+    while changed:
+        changed = False
+        for t in range(len(g.types)):
+            rules = into.get(t, [])
+            now = g.types[t].observed or (
+                (bool(rules) or t == root)
+                and all(
+                    _is_fixed(r) and r.id not in loose_candidates and tied[r.parent] for r in rules
+                )
+            )
+            if tied[t] and not now:
+                tied[t], changed = False, True
+    return tied
 
-    def tied(t: int) -> bool:
-        if t in state:
-            return state[t]
-        state[t] = False  # a cycle does not tie anything
-        rules = into.get(t, [])
-        state[t] = g.types[t].observed or (
-            (bool(rules) or t == root)
-            and all(_is_fixed(r) and r.id not in loose_candidates and tied(r.parent) for r in rules)
-        )
-        return state[t]
 
-    return [tied(t) for t in range(len(g.types))]
+def _inexact_blocks(
+    g: Observed, fixed: list[Rule], into_noisy: list[Rule], loose: set[int], noise: dict[int, Noise]
+) -> set[int]:
+    """`loose` and the fixed rules into noisy observed children that must carry the noise
+    themselves, though their parent is not tied, because their block would not be exact: it
+    holds two observed nodes at once (their poses would stay exactly related: a lamp fixed on
+    a latent base fixed on a table was infeasible 3 mm off), or an observed member with
+    rotation noise lies at an offset within it (the noise on the rule that places the block
+    swung the member on that lever: 8.7σ for 10° on 0.5 m).  Their parents become latent
+    poses the parser places.  The alternatives of an `or` are one at a time: the three plate
+    models under `TerminalPlate` in `sink` stay one block."""
+    loose = set(loose)
+    while True:
+        joins = [r for r in fixed if r.id not in loose]
+        comp = _components(len(g.types), joins)
+        many = {comp[t] for t, n in enumerate(_observed_at_once(g, joins)) if n > 1}
+        turned = {comp[t] for t, n in noise.items() if n.rotation > 0}
+        lever = {comp[r.child] for r in joins if np.any(np.asarray(r.translation.point) != 0)}
+        bad = many | (turned & lever)
+        more = {r.id for r in into_noisy if r.id not in loose and comp[r.child] in bad}
+        if not more:
+            return loose
+        loose |= more
+
+
+def _observed_at_once(g: Observed, joins: list[Rule]) -> list[int]:
+    """Per type, how many observed nodes a node of it holds together with the nodes `joins`
+    (fixed rules) tie to it, capped at 2: itself if observed, plus its tied children's: all of
+    an `and`'s and `independent`'s, the most of an `or`'s, and a `repeat`'s child times its
+    largest count.  The least fixed point from 0, so a tied `or` that loops to itself counts
+    what it ends in."""
+    tied: dict[int, list[Rule]] = {}
+    for r in joins:
+        tied.setdefault(r.parent, []).append(r)
+    count = [0] * len(g.types)
+    changed = True
+    while changed:
+        changed = False
+        for t, node in enumerate(g.types):
+            kids = [count[r.child] for r in tied.get(t, [])]
+            if node.kind == Kind.OR:
+                below = max(kids, default=0)
+            elif node.kind == Kind.REPEAT and node.count is not None:
+                below = max(kids, default=0) * node.count.largest
+            else:
+                below = sum(kids)
+            now = min(2, int(node.observed) + below)
+            if now > count[t]:
+                count[t], changed = now, True
+    return count
 
 
 def _position_variance(law: PoseLaw, child: Noise, parent: Noise) -> float:
@@ -313,10 +372,19 @@ def _warn_kept_sharp(g: Observed, r: Rule, child: Noise, parent: Noise, report: 
     them = "them" if len(parts) > 1 else "it"
     report.warn(
         at,
-        f"noise does not widen this rule's {' and '.join(parts)}: it places an observed "
-        f"{g.types[r.child].name} only within {them} (to 1e-6 m, 1e-6 rad), as without noise "
-        "(docs/grammar.md, section 9)",
+        f"noise does not widen this rule's {' and '.join(parts)}: it places {_placed(g, r)} "
+        f"only within {them} (to 1e-6 m, 1e-6 rad), as without noise (docs/grammar.md, "
+        "section 9)",
     )
+
+
+def _placed(g: Observed, r: Rule) -> str:
+    """What rule `r` places, in a warning's words: a latent child is named as such (it was
+    called "an observed Slot"), since the noise reaches it from the observed nodes it holds."""
+    child = g.types[r.child]
+    if child.observed:
+        return f"an observed {child.name}"
+    return f"a {child.name}, whose observed nodes are noisy,"
 
 
 def _noisy_translation(law: PoseLaw, child: Noise, parent: Noise) -> PoseLaw:
