@@ -306,3 +306,49 @@ def test_render_and_view_draw_the_geometry_at_its_origin(tub) -> None:
     np.testing.assert_allclose([vertices[:, 2].min(), vertices[:, 2].max()], [0.0, 0.1])
     drawn = np.array(_shapes(tub, ["Mug"])["Mug"]["vertices"])
     np.testing.assert_allclose([drawn[:, 2].min(), drawn[:, 2].max()], [0.0, 0.1], atol=1e-5)
+
+
+PILE = """
+grammar: pile
+root: Bin
+types:
+  Bin:
+    observed: true
+    geometry: {tray: {size: [0.6, 0.6, 0.2], wall: 0.01}, origin: [0, 0, 0.1]}
+    repeat:
+      count: {probs: [1, 1, 1, 1, 1]}
+      rule:
+        child: Cyl
+        translation: {world_box_offset: {min: [-0.3, -0.3, 0.0], max: [0.3, 0.3, 0.3]}}
+        rotation: uniform
+  Cyl:
+    observed: true
+    geometry: {cylinder: {radius: 0.05, length: 0.1}, origin: [0, 0, 0.05]}
+constraints:
+  apart: {non_penetration: {types: [Cyl]}}
+  inbox:
+    inside_box:
+      types: [Cyl]
+      frame: Bin
+      min: [-0.29, -0.29, 0.01]
+      max: [0.29, 0.29, null]
+      geometry: true
+"""
+
+
+def test_a_float_over_a_far_object_is_its_true_distance() -> None:
+    """A cylinder standing above one lying on the floor (the constraint hunt's scene): beyond
+    the constraint's screen its bounding-sphere gap, a lower bound, was taken for the
+    distance, so lifting it from 0.22 to 0.25 m turned a float of 16.1 cm into 5.7 cm."""
+    g = compile_text(PILE, "pile.yaml")
+    lying = axis_angle_to_quat(np.array([0.0, 1.0, 0.0]), np.pi / 2)
+    floats = []
+    for z in (0.2, 0.25, 0.3):
+        xyz = np.array([[0, 0, 0], [0, 0, 0.04], [0.15, -0.15, z]], float)
+        quat = np.array([UP, lying, UP])
+        types = np.array([g.type_ids[n] for n in ("Bin", "Cyl", "Cyl")])
+        e, _, _ = explained(g, Scene("pile", types, xyz, quat))
+        reasons = next(x for x in e.objects if x.index == 2).reasons
+        (reason,) = [r for r in reasons if r.kind == "floats"]
+        floats.append(float(reason.text.split()[1]))
+    assert floats == pytest.approx([14.4, 18.7, 23.2], abs=0.06)

@@ -74,9 +74,16 @@ class NonPenetration(Constraint):
         return i, j, self.distances_of(batch, i, j, separation)
 
     def distances_of(
-        self, batch: Any, i: NDArray[np.int64], j: NDArray[np.int64], separation: bool = False
+        self,
+        batch: Any,
+        i: NDArray[np.int64],
+        j: NDArray[np.int64],
+        separation: bool = False,
+        exact: bool = False,
     ) -> FloatArray:
-        """The distances of `pair_distances` for the given pairs only (nodes i[k], j[k])."""
+        """The distances of `pair_distances` for the given pairs only (nodes i[k], j[k]);
+        `exact`: FCL's for every pair, also those the bounding spheres put far apart (whose
+        sphere gap is only a lower bound: how far an object floats above another is not)."""
         assert self.pairs_of is not None
         r = self.pairs_of.radius
         dist = (
@@ -84,7 +91,7 @@ class NonPenetration(Constraint):
             - r[batch.type[i]]
             - r[batch.type[j]]
         )
-        near = np.flatnonzero(dist < self.gap + SCREEN)
+        near = np.arange(len(dist)) if exact else np.flatnonzero(dist < self.gap + SCREEN)
         self.screened[0] += len(i)
         self.screened[1] += len(near)
         if len(near):
