@@ -619,3 +619,39 @@ def test_a_judgement_that_leaves_no_node_to_pose_ends_the_stage(tmp_path: Path) 
     args = ["sample", str(never), "-n", "1", "--constraints", "near", "-o", str(tmp_path / "n")]
     result = CliRunner().invoke(app, [*args, "--max-tries", "100"])
     assert result.exit_code == 2 and "found 0 of the 1" in result.output, result.output
+
+
+TOGETHER = """grammar: together
+root: Root
+types:
+  Root:
+    repeat:
+      count: {probs: [0.2, 0.3, 0.3, 0.2]}
+      rule: {child: A, translation: {world_normal: {mean: [0, 0, 0], variance: 1.0}}}
+  A: {observed: true}
+constraints:
+  c: FIRST
+  d: SECOND
+"""
+
+
+@pytest.mark.parametrize(
+    ("first", "second", "meet"),
+    [
+        ("{count: {type: A, min: 3}}", "{count: {type: A, max: 2}}", False),
+        ("{children: {of: Root, min: 3}}", "{children: {of: Root, max: 2}}", False),
+        ("{count: {type: A, min: 2}}", "{count: {type: A, max: 2}}", True),
+        ("{count: {type: A, min: 3}}", "{children: {of: Root, max: 2}}", True),  # two numbers
+    ],
+)
+def test_ranges_of_one_number_that_never_meet_are_refused(first, second, meet):
+    """Each range alone can hold, together they cannot: `ssg sample --constraints all` ran
+    rejection sampling for ever without a word, and `ssg validate` said ok."""
+    text = TOGETHER.replace("FIRST", first).replace("SECOND", second)
+    if meet:
+        compile_text(text, "together.yaml")
+        return
+    with pytest.raises(GrammarError) as info:
+        compile_text(text, "together.yaml")
+    (d,) = info.value.diagnostics
+    assert "can never hold together with 'c'" in str(d) and str(d).startswith("together.yaml:11:")

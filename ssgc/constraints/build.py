@@ -59,7 +59,37 @@ def build_constraints(
         c = b.build(name, spec, ("constraints", name))
         if c is not None:
             out.append(c)
+    _check_together(compiler, out)
     return tuple(out)
+
+
+def _check_together(compiler: Any, constraints: list[Constraint]) -> None:
+    """Two range constraints on one number (the count of a type, the children of a type, the
+    longest chain of a type) whose ranges do not meet can never hold together: rejection
+    sampling then ran for ever without a word (`count: {min: 3}` with `count: {max: 2}`)."""
+    seen: dict[tuple[Any, ...], tuple[str, int, int | None]] = {}
+    for c in constraints:
+        if isinstance(c, Count | LongestChain):
+            key: tuple[Any, ...] = (c.word, c.type_id)
+        elif isinstance(c, Children):
+            key = (c.word, c.of, c.child)
+        else:
+            continue
+        lo, hi = c.lo, c.hi  # type: ignore[attr-defined]
+        if key in seen:
+            first, first_lo, first_hi = seen[key]
+            lo, hi = max(lo, first_lo), _least(hi, first_hi)
+            if hi is not None and lo > hi:
+                compiler.error(
+                    c.path,
+                    f"can never hold together with '{first}': their ranges of the same "
+                    f"{c.word} meet nowhere (together, at least {lo} and at most {hi})",
+                )
+        seen[key] = (c.name if key not in seen else seen[key][0], lo, hi)
+
+
+def _least(a: int | None, b: int | None) -> int | None:
+    return b if a is None else a if b is None else min(a, b)
 
 
 def _tail(spec: dsl.TailC | None, default: Tail) -> Tail:
