@@ -655,3 +655,29 @@ def test_ranges_of_one_number_that_never_meet_are_refused(first, second, meet):
         compile_text(text, "together.yaml")
     (d,) = info.value.diagnostics
     assert "can never hold together with 'c'" in str(d) and str(d).startswith("together.yaml:11:")
+
+
+CLUTTERED = """grammar: clut
+root: R
+types:
+  R:
+    repeat:
+      count: {probs: [0.5, 0.5]}
+      rule: {child: B, translation: {world_box: {min: [-1, -1, 0], max: [1, 1, 0]}}}
+  B: {observed: true}
+observation:
+  clutter: {region: {min: [-1, -1, 0], max: [1, 1, 1]}, rates: {B: 0.7}, max: 2}
+constraints:
+  c: {count: {type: B, min: MIN}}
+"""
+
+
+def test_a_count_bound_counts_the_clutter_objects_sampling_counts():
+    """The rules make at most one B, clutter up to two more, and sampling counts both: a
+    `min: 2` was refused as 'at most 1 in any tree'."""
+    g = compile_text(CLUTTERED.replace("MIN", "2"), "clut.yaml")
+    (block,) = sample_blocks(g, select(g, "all"), 3, 0)
+    counts = np.bincount(block.trees.scene[block.trees.type == g.type_ids["B"]], minlength=3)
+    assert len(counts) == 3 and np.all(counts >= 2)
+    with pytest.raises(GrammarError, match="at most 3 in any tree, min is 4"):
+        compile_text(CLUTTERED.replace("MIN", "4"), "clut.yaml")

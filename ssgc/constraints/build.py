@@ -211,9 +211,19 @@ class _Builder:
         if t is None:
             return None
         possible = self.count_range(lambda tt: int(tt == t))
+        if possible is not None:  # clutter objects of the type count too, as sampling does
+            possible = (possible[0], possible[1] + self.clutter_most(s.type))
         if not self.bounds(s, loc, possible, f"the number of '{s.type}' nodes"):
             return None
         return Count(name, loc, type_id=self.node(t), lo=s.min, hi=s.max)
+
+    def clutter_most(self, name: str) -> int:
+        """The most clutter objects of type `name` a scene holds (the observation's `max`
+        when `name` has a clutter rate): the grammar's rules never make them, yet a `count`
+        counts them (a `count: {min: 2}` that clutter could meet was refused)."""
+        observation = self.c.doc.observation
+        clutter = None if observation is None else observation.clutter
+        return clutter.max if clutter is not None and name in clutter.rates else 0
 
     def chain(self, name: str, s: dsl.ChainC, loc: Loc) -> Constraint | None:
         t = self.type_id(s.type, (*loc, "type"))
