@@ -180,11 +180,3 @@ def test_a_comment_keeps_its_column_where_there_is_room() -> None:
         assert column(out, comment) == column(text, comment), out
     assert "  q: 0.39879257 # longer\n" in out
     assert "  p: 0.39           # shorter\n" in out
-
-
-def test_a_negative_zero_is_written_as_zero():
-    """The sink fit wrote a concentration of `-0.0` (a 0 the M-step negated)."""
-    from ssgc.fit.writeback import Update, apply_updates
-
-    out = apply_updates("a: {c: [1.0, 2.0, 3.0]}\n", [Update(("a",), {"c": [1.5, 2.0, -0.0]})])
-    assert out == "a: {c: [1.5, 2.0, 0.0]}\n"

@@ -113,7 +113,7 @@ def _number(value: Any, digits: int, where: str) -> int | _Rounded:
     while 0 < x < 1 and not 0 < rounded < 1:  # 17 digits always read back as x itself
         digits += 1
         rounded = float(f"{x:.{digits}g}")
-    return _Rounded(rounded + 0.0)  # -0.0 (a concentration of 0 negated) is written 0.0
+    return _Rounded(rounded)
 
 
 def _plain(value: Any, digits: int, where: str) -> Any:
