@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import test_pictures
 from conftest import GRAMMARS
 from typer.testing import CliRunner
 
@@ -31,7 +32,6 @@ from ssgc.ir import as_ir
 pytest.importorskip("matplotlib")
 runner = CliRunner()
 ROOT = Path(__file__).parent.parent
-CHROMIUM = "/usr/bin/chromium"
 SHAPES = """grammar: shapes
 root: Root
 types:
@@ -372,17 +372,16 @@ def test_the_docs_list_the_tray_and_the_page_s_measured_size(monkeypatch):
 # ------------------------------------------------------------- in Chromium ---
 
 
-@pytest.fixture(scope="module")
-def chromium():
-    sync = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"no Chromium browser at {CHROMIUM}")
-    with sync.sync_playwright() as p:
-        browser = p.chromium.launch(
-            executable_path=CHROMIUM, args=["--headless", "--no-sandbox", "--disable-gpu"]
-        )
-        yield browser
-        browser.close()
+chromium = test_pictures.chromium  # the module-wide browser fixture, shared
+
+
+def click_each(page, box, names: str) -> None:
+    """Click object k of the page's scene for each name, and check that it is selected."""
+    for k, name in enumerate(names):
+        point = page.evaluate(f"ssgView.screenPoint({k})")
+        assert point is not None, name
+        page.mouse.click(box["x"] + point[0], box["y"] + point[1])
+        assert page.locator("#path li").last.get_attribute("data-type") == name
 
 
 def open_view(chromium, source: Path, page_file: Path, width: int = 1100, height: int = 650):
@@ -420,11 +419,7 @@ def test_a_narrow_window_still_draws_the_scene_and_answers_clicks(chromium, tmp_
     assert box["width"] >= 200 and box["height"] >= 100
     pixels = canvas_pixels(page)
     assert np.any(pixels != pixels[0, 0], axis=-1).mean() > 0.01
-    for k, name in enumerate("AB"):
-        point = page.evaluate(f"ssgView.screenPoint({k})")
-        assert point is not None, name
-        page.mouse.click(box["x"] + point[0], box["y"] + point[1])
-        assert page.locator("#path li").last.get_attribute("data-type") == name
+    click_each(page, box, "AB")
     page.close()
     assert errors == []
 
@@ -434,10 +429,6 @@ def test_a_scene_far_from_the_origin_is_seen_and_clicked_in_the_viewer(chromium,
     src = write(tmp_path / "o.json", scene("o", ("A", [x, 0, 0]), ("B", [x - 0.5, 0, 0])))
     page, errors = open_view(chromium, src, tmp_path / "o.html")
     box = page.locator("#canvas").bounding_box()
-    for k, name in enumerate("AB"):
-        point = page.evaluate(f"ssgView.screenPoint({k})")
-        assert point is not None, name
-        page.mouse.click(box["x"] + point[0], box["y"] + point[1])
-        assert page.locator("#path li").last.get_attribute("data-type") == name
+    click_each(page, box, "AB")
     page.close()
     assert errors == []
