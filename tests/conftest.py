@@ -36,3 +36,25 @@ SINK_DATA = ROOT / "ssgc" / "data" / "sink" / "saved_scenes.yaml"
 @pytest.fixture(scope="session")
 def sink() -> Grammar:
     return load_grammar(GRAMMARS / "sink.yaml")
+
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def chromium():
+    """One headless Chromium per test module, for the viewer's pages. Skipped, saying why,
+    where playwright or the browser is missing (`.ci/run` installs both)."""
+    playwright = pytest.importorskip(
+        "playwright.sync_api", reason="playwright is not installed: pip install 'ssgc[test]'"
+    )
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"no Chromium browser at {CHROMIUM}: apt-get install chromium")
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield browser
+        browser.close()

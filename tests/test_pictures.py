@@ -288,7 +288,6 @@ def test_the_docs_say_what_the_3d_panel_does_to_a_long_thin_scene(tmp_path):
 
 # ------------------------------------------------------------ viewer scale ---
 
-CHROMIUM = "/usr/bin/chromium"
 FAR = scene("far", ("A", [0, 0, 0]), ("B", [1000, 0, 0]), ("C", [0, 600, 0]))
 
 
@@ -304,19 +303,6 @@ def test_the_grid_step_follows_the_scene_s_extent():
         "step": 0.1,
         "label": "10 cm",
     }
-
-
-@pytest.fixture(scope="module")
-def chromium():
-    sync = pytest.importorskip("playwright.sync_api", reason="playwright is not installed")
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"no Chromium browser at {CHROMIUM}")
-    with sync.sync_playwright() as p:
-        browser = p.chromium.launch(
-            executable_path=CHROMIUM, args=["--headless", "--no-sandbox", "--disable-gpu"]
-        )
-        yield browser
-        browser.close()
 
 
 def open_view(chromium, source: Path, page_file: Path, *options: object):

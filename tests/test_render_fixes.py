@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import test_pictures
 from conftest import GRAMMARS
 from typer.testing import CliRunner
 
@@ -370,9 +369,6 @@ def test_the_docs_list_the_tray_and_the_page_s_measured_size(monkeypatch):
 
 
 # ------------------------------------------------------------- in Chromium ---
-
-
-chromium = test_pictures.chromium  # the module-wide browser fixture, shared
 
 
 def click_each(page, box, names: str) -> None:

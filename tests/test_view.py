@@ -28,11 +28,6 @@ from ssgc.view.page import _score_colours, view_page
 
 runner = CliRunner()
 SINK = GRAMMARS / "sink.yaml"
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-]  # fmt: skip
 
 
 def run(*args: object):
@@ -185,25 +180,12 @@ def test_serve_gives_the_page_on_this_machine_only(scenes, tmp_path):
 # ------------------------------------------------------------------ in Chromium ---
 
 
-@pytest.fixture(scope="module")
-def browser():
-    playwright = pytest.importorskip(
-        "playwright.sync_api", reason="playwright is not installed: pip install 'ssgc[test]'"
-    )
-    if not Path(CHROMIUM).exists() and shutil.which("chromium") is None:
-        pytest.skip(f"no Chromium browser at {CHROMIUM}: apt-get install chromium")
-    with playwright.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
-
-
 @pytest.fixture
-def open_page(browser):
+def open_page(chromium):
     pages = []
 
     def opener(path: Path):
-        page = browser.new_page(viewport={"width": 1100, "height": 650})
+        page = chromium.new_page(viewport={"width": 1100, "height": 650})
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
