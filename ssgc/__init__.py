@@ -30,6 +30,8 @@ __version__ = "0.1.0"
 _API = ("load_grammar", "load_scenes", "Grammar", "Scene", "Tree", "Parse", "ParseResult")
 _CALLABLE_MODULES = ("parse", "fit", "explain")  # a module of ssgc, and an API function
 _MODULES = ("api", "errors")  # named by docs/api.md as `ssgc.api.X`, `ssgc.errors.X`
+# `from ssgc import *`: the API (a star import reads each name, so they load then)
+__all__ = [*_API, *_CALLABLE_MODULES]
 
 
 def __getattr__(name: str) -> Any:

@@ -63,11 +63,17 @@ __all__ = [
 def load_grammar(path: str | Path, allow_outside: bool = False) -> Grammar:
     """Read and compile a grammar file; a mistake raises `ssgc.errors.GrammarError`, whose
     message lists every problem as FILE:LINE:COL (as `ssg validate` prints them).  Mesh and
-    model files must lie in the grammar's directory unless `allow_outside`."""
+    model files must lie in the grammar's directory unless `allow_outside`.  The grammar
+    keeps its file's absolute path: after a change of directory (a notebook's `%cd`) its mesh
+    files, a pickled copy and `Scene.save`'s refusal to overwrite it still find that file."""
+    if not isinstance(path, str | Path):
+        raise TypeError(f"path must be a str or Path of a grammar file, got {type(path).__name__}")
+    if not isinstance(allow_outside, bool):
+        raise TypeError(f"allow_outside must be True or False, got {_shown(allow_outside)}")
     path = Path(path)
     text = read_grammar_text(path)
     compiled = compile_text(text, str(path), base_dir=path.parent, allow_outside=allow_outside)
-    return Grammar(compiled, text, path, allow_outside)
+    return Grammar(compiled, text, path.absolute(), allow_outside)
 
 
 def _compiled_again(text: str, path: str | None, allow_outside: bool) -> Grammar:
@@ -157,19 +163,19 @@ def fit(
     if isinstance(dataset, str | Path):
         where, scenes = Path(dataset), load_scenes(dataset, grammar)
     else:
-        where, scenes = Path("<scenes>"), _fit_scenes(grammar, dataset, "dataset")
+        where, scenes = Path("<scenes>"), _fit_scenes(grammar, dataset, "dataset", api_only=True)
     options = fit_options(
-        iterations=_count("iterations", iterations),
-        top=_count("top", top),
+        iterations=iterations,
+        top=top,
         method=method,
-        seed=_seed(seed),
-        tol=_real("tol", tol),
+        seed=seed,
+        tol=tol,
         estep=estep,
-        samples=None if samples is None else _count("samples", samples),
-        pseudocount=_real("pseudocount", pseudocount),
-        min_variance=_real("min_variance", min_variance),
-        max_concentration=_real("max_concentration", max_concentration),
-        jobs=_count("jobs", jobs),
+        samples=samples,
+        pseudocount=pseudocount,
+        min_variance=min_variance,
+        max_concentration=max_concentration,
+        jobs=jobs,
     )
     time_limit = _time_limit(time_limit)
     with open_fit(grammar, scenes, where, options) as run:
@@ -295,7 +301,7 @@ def _scene_data(grammar: Grammar, scene: Any) -> scene_io.Scene:
     grammar (sampled from `sink.yaml`, parsed with `sink_detailed.yaml`) is read again by its
     types' names, checked as a scene file is: its numbers are the other grammar's."""
     if not isinstance(scene, Scene):
-        raise TypeError(f"expected a Scene (of ssgc.api), got {type(scene).__name__}")
+        raise TypeError(f"expected a Scene (of ssgc.api), got {_kind(scene)}")
     if scene.grammar.ir is grammar.ir:
         return scene.data
     objects = zip(scene.types, scene.xyz.tolist(), scene.quat.tolist(), strict=True)
@@ -331,9 +337,11 @@ def fit_options(
     max_concentration: float,
     jobs: int,
 ) -> FitOptions:
-    """`fit`'s options (and `ssg fit`'s flags) as the fitter (`ssgc.fit.em`) takes them.
-    `samples` is for the posterior E-step only: None is its default, and a number given with
-    the top-N E-step is refused (it was accepted and ignored)."""
+    """`fit`'s options (and `ssg fit`'s flags) as the fitter (`ssgc.fit.em`) takes them,
+    each checked in the argument's name: numpy's numbers are taken, a fraction of an
+    iteration or a string is not (open_fit's run used them as they came).  `samples` is for
+    the posterior E-step only: None is its default, and a number given with the top-N E-step
+    is refused (it was accepted and ignored)."""
     from ssgc.fit.em import FitOptions
     from ssgc.fit.mstep import FitSettings
 
@@ -342,22 +350,19 @@ def fit_options(
             "samples (ssg fit --samples) needs the posterior E-step, estep 'mcmc' "
             "(--estep mcmc): the top-N E-step draws none"
         )
-    if samples is None:
-        samples = POSTERIOR_SAMPLES
-
     return FitOptions(
-        iterations=iterations,
-        top=top,
+        iterations=_count("iterations", iterations),
+        top=_count("top", top),
         method=method,
-        seed=seed,
-        tol=tol,
-        jobs=jobs,
+        seed=_seed(seed),
+        tol=_real("tol", tol),
+        jobs=_count("jobs", jobs),
         estep=estep,
-        samples=samples,
+        samples=POSTERIOR_SAMPLES if samples is None else _count("samples", samples),
         settings=FitSettings(
-            pseudocount=pseudocount,
-            min_variance=min_variance,
-            max_concentration=max_concentration,
+            pseudocount=_real("pseudocount", pseudocount),
+            min_variance=_real("min_variance", min_variance),
+            max_concentration=_real("max_concentration", max_concentration),
         ),
     )
 
@@ -395,11 +400,14 @@ def open_fit(
         yield FitRun(grammar, data, options, source, journal)
 
 
-def _fit_scenes(grammar: Grammar, scenes: Any, name: str) -> list[scene_io.Scene]:
+def _fit_scenes(
+    grammar: Grammar, scenes: Any, name: str, api_only: bool = False
+) -> list[scene_io.Scene]:
     """The scenes to fit (the argument `name`), as the fitter reads them: the API's in
-    `grammar`'s type numbers (`_scene_data`), the library's as they are.  A path here is a
-    mistake (`fit` reads one before; `open_fit` wants scenes), as is anything that is not a
-    scene: they raised AttributeError from the fitter."""
+    `grammar`'s type numbers (`_scene_data`), the library's (`ssg fit` reads its files with
+    `grammar.ir`) as they are, once their type numbers are checked; `fit` takes the API's
+    only.  A path here is a mistake (`fit` reads one before; `open_fit` wants scenes), as is
+    anything that is not a scene: they raised AttributeError from the fitter."""
     if isinstance(scenes, str | bytes | Path) or not isinstance(scenes, Iterable):
         raise TypeError(
             f"{name} must be a list of scenes (ssgc.load_scenes, Grammar.sample), "
@@ -407,13 +415,36 @@ def _fit_scenes(grammar: Grammar, scenes: Any, name: str) -> list[scene_io.Scene
         )
     data = []
     for k, scene in enumerate(scenes):
-        if isinstance(scene, scene_io.Scene):
-            data.append(scene)
+        if isinstance(scene, scene_io.Scene) and not api_only:
+            data.append(_library_scene(grammar, scene, f"{name}[{k}]"))
         elif isinstance(scene, Scene):
             data.append(_scene_data(grammar, scene))
         else:
-            raise TypeError(f"{name}[{k}] must be a Scene, got {type(scene).__name__}")
+            raise TypeError(f"{name}[{k}] must be a Scene, got {_kind(scene)}")
     return data
+
+
+def _library_scene(grammar: Grammar, scene: scene_io.Scene, name: str) -> scene_io.Scene:
+    """A library scene, whose type numbers carry no grammar: numbers beyond `grammar`'s types
+    or of types it does not observe are another grammar's (they broke the parser's arrays)."""
+    table = grammar.ir.tables.type_observed
+    types = scene.types
+    if types.size and (types.min() < 0 or types.max() >= len(table) or not table[types].all()):
+        raise SceneError.single(
+            f"{name} holds type numbers that are not observed types of grammar "
+            f"'{grammar.name}': a scene read with another grammar (read it with this one: "
+            "ssgc.load_scenes, Grammar.scene)",
+            scene.name,
+        )
+    return scene
+
+
+def _kind(value: Any) -> str:
+    """What was passed, as a message says it: the library's Scene (`Scene.data`) has the
+    API's class name, so "must be a Scene, got Scene" would name neither."""
+    if isinstance(value, scene_io.Scene):
+        return "the library's scene (ssgc.io.scene.Scene, a Scene's .data): pass the Scene"
+    return type(value).__name__
 
 
 @dataclass(frozen=True, eq=False)
@@ -426,6 +457,11 @@ class FitRun:
     options: FitOptions
     source: GrammarSource
     journal: FitJournal
+
+    def __repr__(self) -> str:
+        """One line, as every API object's: the dataclass's own printed every scene's arrays
+        (120,000 characters for the sink dataset)."""
+        return f"<FitRun of '{self.grammar.name}': {len(self.scenes)} scenes>"
 
     def fit(
         self,
@@ -445,7 +481,7 @@ class FitRun:
             self.scenes,
             self.options,
             self.journal,
-            time_limit=time_limit,
+            time_limit=_time_limit(time_limit),
             on_scene=on_scene,
             on_iteration=on_iteration,
             on_tails=on_tails,
@@ -520,6 +556,13 @@ class Grammar:
         """A scene from Python data: `(type, xyz)` or `(type, xyz, quat_wxyz)` per object,
         checked as a scene file is (types the grammar observes, finite poses, unit
         quaternions); a mistake raises `ssgc.errors.SceneError`."""
+        if not isinstance(objects, Iterable):  # None gave "object is not iterable"
+            raise SceneError.single(
+                f"objects must be a list of (type, xyz) or (type, xyz, quat_wxyz), "
+                f"got {type(objects).__name__}",
+                "<python>",
+            )
+        _scene_name(name)
         objs = []
         for k, o in enumerate(objects):
             if not isinstance(o, Sequence) or isinstance(o, str | bytes) or len(o) not in (2, 3):
@@ -548,9 +591,9 @@ class Grammar:
         """`ssgc.explain(self, scene, ...)`."""
         return explain(self, scene, time_limit)
 
-    def fit(self, dataset: Sequence[Scene] | str | Path, **options: Any) -> FitResult:
-        """`ssgc.fit(self, dataset, ...)`."""
-        return fit(self, dataset, **options)
+    def fit(self, dataset: Sequence[Scene] | str | Path, *args: Any, **options: Any) -> FitResult:
+        """`ssgc.fit(self, dataset, ...)`, its options in the same order."""
+        return fit(self, dataset, *args, **options)
 
     def parser(self, method: str = "auto") -> Parser:
         """The grammar's parser for `method`, built once (its supertree is reused)."""
@@ -564,7 +607,7 @@ class Grammar:
         """Where the text came from, so that a fit compiles each iteration like the original."""
         from ssgc.fit.em import GrammarSource
 
-        file = str(self.path) if self.path is not None else self.ir.file
+        file = self.ir.file  # the path as given, for messages; the directory is absolute
         base = self.path.parent if self.path is not None else None
         return GrammarSource(file, base, self.allow_outside, dataset)
 
@@ -602,10 +645,7 @@ class Tree:
 
     def scene(self, name: str = "scene") -> Scene:
         """The tree's observed nodes as a scene (which keeps the tree)."""
-        if not isinstance(name, str):
-            raise ValueError(f"a name is text (got {name!r})")
-        if problem := scene_io.name_problem(name):
-            raise ValueError(problem)
+        _scene_name(name)
         data = scene_io.scene_from_tree(self.grammar.ir, self.trees, name, self.log_prob)
         return Scene(self.grammar, data)
 
@@ -632,6 +672,14 @@ class Tree:
                 f"those of '{mine.name}': trees of different grammars cannot be compared"
             )
         return tree_signature(mine, self.trees) == tree_signature(theirs, other.trees)
+
+
+def _scene_name(name: Any) -> None:
+    """A scene's name is one line of text (None made a scene named None, written as null)."""
+    if not isinstance(name, str):
+        raise ValueError(f"a name is text (got {name!r})")
+    if problem := scene_io.name_problem(name):
+        raise ValueError(problem)
 
 
 def _structure(grammar: ir.Grammar) -> tuple[list[str], list[str]]:
@@ -816,6 +864,7 @@ def _json_text(doc: dict[str, Any], file: str) -> str:
     JSON cannot (NaN or infinity, which the reader refuses; a set; a huge integer)."""
     try:
         json.dumps(doc, allow_nan=False)
+        _text_keys(doc)
     except (ValueError, TypeError) as exc:
         raise SceneError.single(
             "the scene's metadata must hold only what JSON holds (finite numbers, text, "
@@ -825,9 +874,23 @@ def _json_text(doc: dict[str, Any], file: str) -> str:
     return scene_io.dumps_json(doc)
 
 
+def _text_keys(value: Any) -> None:
+    """JSON's keys are text: `json.dumps` wrote {1: 2} as {"1": 2}, another dict read back."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise TypeError(f"the key {key!r} is not text")
+            _text_keys(item)
+    elif isinstance(value, list | tuple):
+        for item in value:
+            _text_keys(item)
+
+
 def _render(doc: dict[str, Any], path: str | Path, grammar: Grammar) -> Path:
     from ssgc.render.scene import render_document
 
+    if not isinstance(path, str | Path):
+        raise TypeError(f"the picture's path must be a str or Path, got {type(path).__name__}")
     with np.errstate(all="ignore"):  # as in `ssg`: matplotlib's 3-D projection overflows harmlessly
         render_document(doc, path, grammar.ir)
     return Path(path)

@@ -90,6 +90,18 @@ class SsgError(Exception):
     def __str__(self) -> str:
         return "\n".join(str(d) for d in self.diagnostics)
 
+    def __reduce__(self) -> tuple[object, tuple[type[SsgError], dict[str, object]]]:
+        """Pickled as its fields: an exception is rebuilt from its `args`, here the message,
+        which `__post_init__` then read as a list of diagnostics (one per character)."""
+        return _unpickled, (type(self), dict(self.__dict__))
+
+
+def _unpickled(cls: type[SsgError], state: dict[str, object]) -> SsgError:
+    error = cls.__new__(cls)
+    error.__dict__.update(state)
+    Exception.__init__(error, str(error))
+    return error
+
 
 class GrammarError(SsgError):
     """The grammar file is invalid (syntax, schema or semantics)."""

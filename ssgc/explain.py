@@ -238,6 +238,11 @@ class Explanation:
         )
 
     def text(self, limit: int | None = None) -> str:
+        """The explanation in words: the `limit` most unusual objects and rules (all: None)."""
+        if limit is not None and (
+            isinstance(limit, bool) or not isinstance(limit, int | np.integer) or limit < 0
+        ):
+            raise ValueError(f"limit must be a whole number >= 0 or None, got {limit!r}")
         per = self.nats_per_object
         per_text = "no objects" if per is None else f"{per:.3f} per object"
         lines = [
@@ -292,16 +297,23 @@ class UnexplainedScene(SsgError):
     the objects and rules to blame) or `no_parse` (none found, e.g. within the time limit).
     An `SsgError`, with `ssg explain`'s exit code for that status."""
 
-    def __init__(self, message: str, status: str, diagnosis: Diagnosis | None = None) -> None:
-        super().__init__([Diagnostic(message)], 2 if status == "infeasible" else 3)
+    def __init__(
+        self, message: str, status: str, diagnosis: Diagnosis | None = None, phase: str = ""
+    ) -> None:
+        from ssgc.parse.parser import exit_code
+
+        # the exit code `ssg explain` gives the scene: a no_parse the time limit caused is 4
+        code = exit_code([{"status": status, "phase": phase}])
+        super().__init__([Diagnostic(message)], code)
         self.message = message
         self.status = status
         self.diagnosis = diagnosis
+        self.phase = phase  # for no_parse: the step that gave up (SceneParses.phase)
 
-    def __reduce__(self) -> tuple[type[UnexplainedScene], tuple[str, str, Diagnosis | None]]:
+    def __reduce__(self) -> tuple[type[UnexplainedScene], tuple[str, str, Diagnosis | None, str]]:
         """Pickled (and copied) as its own arguments: an exception is rebuilt from its `args`,
         one string here, so explaining in a process pool broke the pool."""
-        return type(self), (self.message, self.status, self.diagnosis)
+        return type(self), (self.message, self.status, self.diagnosis, self.phase)
 
 
 def best_tree(grammar: Grammar, scene: Scene, parser: Any = None, **parse: Any) -> Trees:
@@ -320,7 +332,7 @@ def best_parse(
     if result.parses:
         return result.parses[0].tree, result.status
     if result.status != "infeasible":
-        raise UnexplainedScene(result.message, result.status)
+        raise UnexplainedScene(result.message, result.status, phase=result.phase)
     d = diagnose(grammar, scene, parser, time_limit=parse.get("time_limit") or 30.0)
     raise UnexplainedScene(d.message, result.status, d)
 

@@ -66,7 +66,8 @@ class Output:
         return "<stdout>" if self.stdout and str(self.path) == "-" else str(self.path)
 
     def fail(self, exc: OSError, note: str = "") -> SsgError:
-        return SsgError.single(f"cannot write the {self.what}: {exc.strerror}{note}", self.name)
+        reason = exc.strerror or str(exc)  # an OSError raised with a message only has no strerror
+        return SsgError.single(f"cannot write the {self.what}: {reason}{note}", self.name)
 
 
 def check_output(
@@ -83,6 +84,8 @@ def check_output(
     except those in `in_place`, which the command updates on purpose.  `others` are the
     command's outputs checked before this one: two outputs must be two files.
     """
+    if not isinstance(path, str | Path):  # the API's callers (Scene.save, .render)
+        raise TypeError(f"the {what}'s path must be a str or Path, got {type(path).__name__}")
     _refuse_slash_on_file(path)
     path = _usable_name(path, what)
     if str(path) in STDOUT_NAMES:
@@ -241,13 +244,26 @@ def write_output(out: Output, kept: Path | None = None) -> Iterator[TextSink | A
         raise out.fail(exc, note) from None
 
 
+def _stdout_descriptor(out: Output) -> int:
+    """Standard output's file descriptor, for bytes; a notebook's or a test's captured output
+    has none (it failed with "cannot write the picture: None")."""
+    try:
+        return sys.stdout.fileno()
+    except (OSError, ValueError, AttributeError):
+        raise SsgError.single(
+            f"cannot write the {out.what} to standard output here: it is not a file (a "
+            "notebook's or captured output); give a file path",
+            out.name,
+        ) from None
+
+
 def write_output_bytes(out: Output, data: bytes) -> None:
     """`write_output` for binary content (pictures): streams written in place, regular files
     replaced atomically, a failed write `SsgError` naming the output."""
     try:
         if out.stdout:
             sys.stdout.flush()
-            write_all(sys.stdout.fileno(), data)
+            write_all(_stdout_descriptor(out), data)
         elif out.stream:
             fd = os.open(out.target, os.O_WRONLY | os.O_CLOEXEC)
             try:
