@@ -113,12 +113,15 @@ def _looks_utf16(data: bytes) -> bool:
 
 
 def read_text(path: Path, limit: int, what: str) -> str:
-    """Read a UTF-8 text file with a size limit and a clear message for every failure."""
+    """Read a UTF-8 text file with a size limit and a clear message for every failure.  The
+    size of a regular file is checked before reading; a device, a FIFO or a pipe (`<(...)`)
+    has none, so at most one byte past the limit is read (`/dev/zero` never ends)."""
     name = str(path)
     try:
         size = path.stat().st_size
     except FileNotFoundError:
-        raise SsgError.single(f"{what} not found", name) from None
+        dangling = " (a symbolic link to a missing file)" if path.is_symlink() else ""
+        raise SsgError.single(f"{what} not found{dangling}", name) from None
     except OSError as exc:
         raise SsgError.single(f"cannot read {what}: {exc.strerror}", name) from None
     if path.is_dir():
@@ -126,9 +129,14 @@ def read_text(path: Path, limit: int, what: str) -> str:
     if size > limit:
         raise SsgError.single(f"{what} is {size:,} bytes, over the limit of {_bytes(limit)}", name)
     try:
-        data = path.read_bytes()
+        with path.open("rb") as stream:
+            data = stream.read(limit + 1)
     except OSError as exc:
         raise SsgError.single(f"cannot read {what}: {exc.strerror}", name) from None
+    if len(data) > limit:
+        raise SsgError.single(
+            f"{what} is more than {limit:,} bytes, over the limit of {_bytes(limit)}", name
+        )
     if _looks_utf16(data):
         raise SsgError.single(
             f"{what} looks like UTF-16 text (a UTF-16 byte-order mark or every other byte "
@@ -463,14 +471,23 @@ def _expanded_size(node: Any, sizes: dict[int, int], open_: set[int], depth: int
     return size
 
 
-def validation_diagnostics(exc: ValidationError, source: SourceMap) -> list[Diagnostic]:
+def validation_diagnostics(
+    exc: ValidationError, source: SourceMap, said: set[tuple[Any, ...]] | None = None
+) -> list[Diagnostic]:
     """Turn pydantic errors into located diagnostics, one per place, the most useful first.
 
     When a value fails every member of a union, pydantic reports one error per member.  One
     that only says "wrong type" is dropped when another member got further (an error at the
     same place or inside the value); when all of them say "wrong type", they become a single
     "expected a number or a list, got '0.5'".
+
+    A part shared through a YAML alias (`*r`) is validated at each use, under a different
+    path but at one place: its mistake is said once, with the first path (docs/grammar.md
+    section 6), not once per use (34 uses filled the message cap).  `said` holds the
+    mistakes already said (place, the path's steps past it — a missing key's name — and the
+    message without its path), for a caller that validates again.
     """
+    said = set() if said is None else said
     entries: list[tuple[tuple[Any, ...], tuple[int, int], dict[str, Any]]] = []
     for err in exc.errors(include_url=False):
         loc, kind, value = tuple(err["loc"]), err["type"], err.get("input")
@@ -503,8 +520,11 @@ def validation_diagnostics(exc: ValidationError, source: SourceMap) -> list[Diag
         if any(wrong_type(e) for e in errs):
             texts.append(_expected([e for e in errs if wrong_type(e)], path))
         for text in texts:
-            if text not in seen:
+            beyond = tuple(path[len(source.walk(path)[0]) :])
+            mistake = (line, col, beyond, text.removeprefix(_with_path(path, "")))
+            if text not in seen and mistake not in said:
                 seen.add(text)
+                said.add(mistake)
                 diagnostics.append(Diagnostic(text, source.file, line, col))
     return diagnostics
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import signal
@@ -14,6 +15,23 @@ from pathlib import Path
 # mkstemp names: PREFIX + 8 characters of [a-z0-9_] + SUFFIX.  A process killed with SIGKILL (or a
 # power cut) cannot remove its temporary file, so `--resume` recognises and removes them.
 _TEMP_NAME = re.compile(r"\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp")
+TEMP_EXTRA = len("..12345678.tmp")  # bytes a temporary file's name adds to its target's
+NAME_MAX = 255  # bytes in one file name (Linux, macOS)
+_DIGEST = 16  # hex digits of the hash that ends a shortened name
+
+
+def fitted_name(name: str, extra: int) -> str:
+    """`name`, or, when `extra` more bytes would make a file name over NAME_MAX, its start
+    and a hash of all of it.  ssgc's own files beside an output (`.NAME.lock`, a temporary
+    file, a journal) add to a name the user may have made as long as the system allows; the
+    hash keeps the auxiliary files of two long names that share their start apart, and gives
+    a resumed run the same names again."""
+    raw = os.fsencode(name)
+    if len(raw) + extra <= NAME_MAX:
+        return name
+    digest = hashlib.sha256(raw).hexdigest()[:_DIGEST]
+    start = raw[: NAME_MAX - extra - _DIGEST - 1].decode("utf-8", "ignore")  # whole characters
+    return f"{start}-{digest}"
 
 
 BLOCK = 1 << 16  # bytes gathered before one write: streamed outputs are not kept in memory
@@ -85,7 +103,9 @@ def atomic_writer(path: str | Path) -> Iterator[TextSink]:
     tmp = None
     try:
         with _ctrl_c_deferred():  # no Ctrl-C between creating the file and knowing its name
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            fd, tmp = tempfile.mkstemp(
+                prefix=f".{temp_part(path.name)}.", suffix=".tmp", dir=path.parent
+            )
         try:
             sink = TextSink(fd)
             yield sink
@@ -128,8 +148,15 @@ def _ctrl_c_deferred() -> Iterator[None]:
         signal.raise_signal(signal.SIGINT)  # to the handler of before: it raises here
 
 
+def temp_part(name: str) -> str:
+    """What a temporary file of `atomic_writer` for the file `name` holds of that name: all
+    of it, or, for a name too long to take the temporary file's additions, a shortened one."""
+    return fitted_name(name, TEMP_EXTRA)
+
+
 def temp_target(filename: str) -> str | None:
-    """The name of the file that a temporary file of `atomic_writer` was going to become."""
+    """The name of the file that a temporary file of `atomic_writer` was going to become (its
+    `temp_part`, for a name too long to be held whole)."""
     m = _TEMP_NAME.fullmatch(filename)
     return m["target"] if m else None
 

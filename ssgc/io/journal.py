@@ -34,7 +34,7 @@ from typing import Any, TextIO
 
 from ssgc.errors import Diagnostic, SsgError
 from ssgc.io import atomic
-from ssgc.io.atomic import remove_stale_temps, write_text_atomic
+from ssgc.io.atomic import fitted_name, remove_stale_temps, temp_part, write_text_atomic
 from ssgc.io.scene import Scene, dumps_json
 
 # /3: statuses are optimal (certified) / feasible / infeasible (proven) / no_parse / error;
@@ -43,10 +43,14 @@ JOURNAL_FORMAT = "ssgc.parse-journal/3"
 FAILED = ("infeasible", "no_parse", "error")  # scenes without a parse
 
 
+JOURNAL_SUFFIX = ".partial.jsonl"
+
+
 def journal_path(output: Path) -> Path:
     """Where the journal of a run writing `output` lives: next to it, so it is on the same
-    filesystem and found again by a resumed run."""
-    return output.with_name(output.name + ".partial.jsonl")
+    filesystem and found again by a resumed run.  An output name too long to take the suffix
+    is shortened first (`fitted_name`: the same name on every run)."""
+    return output.with_name(fitted_name(output.name, len(JOURNAL_SUFFIX)) + JOURNAL_SUFFIX)
 
 
 def run_header(
@@ -107,7 +111,9 @@ class Journal:
         self.path = path
         self.discarded = False  # a journal was there but this run does not resume it
         self.entries = 0
-        ours = {path.name, path.name.removesuffix(".partial.jsonl")}
+        # the temporary files of the journal and of the output: for a long output name,
+        # `journal_path` and `temp_part` shorten it alike (their suffixes are as long)
+        ours = {temp_part(path.name), temp_part(path.name.removesuffix(JOURNAL_SUFFIX))}
         try:
             remove_stale_temps(path.parent, ours.__contains__)
             if resume and path.exists():

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from ssgc.errors import SsgError, one_line
-from ssgc.io.atomic import TextSink, atomic_writer, write_all, write_bytes_atomic
+from ssgc.io.atomic import TextSink, atomic_writer, fitted_name, write_all, write_bytes_atomic
 
 STDOUT_NAMES = frozenset({"-", "/dev/stdout", "/dev/fd/1", "/proc/self/fd/1"})
 
@@ -345,13 +345,19 @@ def lock_outputs(outputs: Iterable[Output | None]) -> Iterator[None]:
         yield
 
 
+def lock_part(name: str) -> str:
+    """The output's name as its lock file `.NAME.lock` holds it: shortened (`fitted_name`)
+    when the whole name and the lock's 6 more bytes would not fit in a file name."""
+    return fitted_name(name, len("..lock"))
+
+
 @contextmanager
 def _locks(files: list[Output]) -> Iterator[None]:
     if not files:
         yield
         return
     first = files[0]
-    lock = first.target.with_name(f".{first.target.name}.lock")
+    lock = first.target.with_name(f".{lock_part(first.target.name)}.lock")
     with output_lock(lock, first.what, str(first.path)), _locks(files[1:]):
         yield
 

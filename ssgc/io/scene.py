@@ -183,7 +183,10 @@ def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, An
     return out
 
 
-_NUMBER_LIST = re.compile(r"\[\s*(-?[0-9][^\[\]{}\"]*?)\s*\]")
+# A JSON string literal, or a list of numbers (a list that starts with one and holds no string,
+# list or object).  Strings are matched first so that text inside them that looks like a list
+# ("mug[1,   2]") is passed over, never rewritten.
+_STRING_OR_NUMBER_LIST = re.compile(r'"(?:[^"\\]|\\.)*"|\[\s*(-?[0-9][^\[\]{}"]*?)\s*\]')
 
 
 def tree_to_json(grammar: Grammar, tree: Trees) -> dict[str, Any]:
@@ -238,12 +241,17 @@ def distinct_stems(names: list[str], suffix: str, source: str | None = None) -> 
 
 
 def dumps_json(doc: Any) -> str:
-    """Indented JSON with number lists (poses) kept on one line, for readable files."""
-    text = json.dumps(doc, indent=1)
-    return (
-        _NUMBER_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m[1].split(",")) + "]", text)
-        + "\n"
-    )
+    """Indented JSON with number lists (poses) kept on one line, for readable files.  The
+    lists are found in the serialised text, skipping its string literals: a name or a
+    metadata value is written exactly as it was read."""
+    return _STRING_OR_NUMBER_LIST.sub(_one_line_list, json.dumps(doc, indent=1)) + "\n"
+
+
+def _one_line_list(match: re.Match[str]) -> str:
+    """A number list on one line; a string literal as it is."""
+    if match[1] is None:
+        return match[0]
+    return "[" + ", ".join(v.strip() for v in match[1].split(",")) + "]"
 
 
 def dumps_scene(grammar: Grammar, scene: Scene, **header: Any) -> str:
@@ -765,9 +773,16 @@ def _sink_scene(
 
 def json_files(directory: Path) -> list[Path]:
     """The `*.json` files of a directory of scenes or parse results, sorted by name: regular
-    files only (or links to them).  A subdirectory named `x.json` is no scene, and a FIFO or
-    a device so named would block the reader for ever."""
-    return sorted(p for p in directory.glob("*.json") if p.is_file())
+    files, links to them, and links to nothing.  A subdirectory named `x.json` is no scene,
+    and a FIFO or a device so named would block the reader for ever, so they are skipped;
+    a dangling link is kept, so that reading it says the file is missing (skipped, a
+    dataset would silently lose a scene)."""
+    return sorted(p for p in directory.glob("*.json") if p.is_file() or _dangling(p))
+
+
+def _dangling(path: Path) -> bool:
+    """A symbolic link to nothing (or to a loop of links)."""
+    return path.is_symlink() and not path.exists()
 
 
 def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
@@ -777,7 +792,23 @@ def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
         files = json_files(path)
         if not files:
             raise SceneError.single("no *.json scene files in this directory", str(path))
-        return [read_scene_file(f, grammar) for f in files]
+        return _read_scene_files(files, grammar)
     if path.suffix.lower() in (".yaml", ".yml"):
         return read_sink_yaml(path, grammar)
     return [read_scene_file(path, grammar)]
+
+
+def _read_scene_files(files: list[Path], grammar: Grammar) -> list[Scene]:
+    """Every file's scene, or one `SceneError` with every file's mistakes: a directory's
+    mistakes are all said at once, as a single file's and a dataset's are (the command line
+    prints the first 30 of them)."""
+    scenes: list[Scene] = []
+    errors: list[Diagnostic] = []
+    for file in files:
+        try:
+            scenes.append(read_scene_file(file, grammar))
+        except SsgError as exc:
+            errors += exc.diagnostics
+    if errors:
+        raise SceneError(errors)
+    return scenes
