@@ -18,7 +18,7 @@ from __future__ import annotations
 import copy
 import difflib
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -114,8 +114,12 @@ def _shape_errors(
     the unknown keys are taken out and the document checked again, a few times at most, adding
     what the next pass finds: one run reports a type's unknown key and its wrong values
     together.  The locations are those of the errors still in the returned document (an
-    unknown key taken out is none)."""
-    diagnostics = validation_diagnostics(exc, source)
+    unknown key taken out is none).  What only follows from taking out a misspelt key (the
+    key it meant is now missing) is not said again: the unknown key's "did you mean" names
+    the fix (`_follow_on`)."""
+    said: set[tuple[Any, ...]] = set()  # an aliased part's mistake, said once (yamlio)
+    diagnostics = validation_diagnostics(exc, source, said)
+    meant: set[tuple[tuple, str]] = set()  # (mapping, the key a dropped one was meant to be)
     seen = {str(d) for d in diagnostics}
     errors = exc.errors(include_url=False)
     locs: list[tuple] = []
@@ -126,11 +130,13 @@ def _shape_errors(
         if not unknown:
             break
         hidden = _hidden_unknown_keys(current, unknown)
-        for d in validation_diagnostics(ValidationError.from_exception_data("doc", hidden), source):
+        hidden_error = ValidationError.from_exception_data("doc", hidden)
+        for d in validation_diagnostics(hidden_error, source, said):
             if str(d) not in seen:
                 seen.add(str(d))
                 diagnostics.append(d)
         unknown += hidden
+        meant |= {_meant(e) for e in unknown}
         dropped = copy.deepcopy(current)
         if not all(_drop_key(dropped, e["loc"], e["ctx"]["key"]) for e in unknown):
             locs += [tuple(e["loc"]) for e in unknown]  # still there: its type is left out
@@ -141,13 +147,45 @@ def _shape_errors(
             break
         except ValidationError as again:
             errors = again.errors(include_url=False)
-            for d in validation_diagnostics(again, source):
+            kept = _Errors([e for e in errors if not _follow_on(e, meant)])
+            for d in validation_diagnostics(cast(ValidationError, kept), source, said):
                 if str(d) not in seen:
                     seen.add(str(d))
                     diagnostics.append(d)
     else:  # passes used up: the last one's errors all stay
         locs += [tuple(e["loc"]) for e in errors]
     return diagnostics, locs, current
+
+
+def _meant(unknown: dict[str, Any]) -> tuple[tuple, str]:
+    """The mapping of an unknown-key error and the allowed key it is closest to ('' if none),
+    as `dsl.unknown_key_error` suggests it."""
+    allowed = unknown["ctx"]["allowed"].split(", ")
+    close = difflib.get_close_matches(unknown["ctx"]["key"], allowed, n=1)
+    return tuple(unknown["loc"]), close[0] if close else ""
+
+
+def _follow_on(e: Any, meant: set[tuple[tuple, str]]) -> bool:
+    """Whether error `e` only follows from a misspelt key taken out: the key it meant is
+    missing (`lenght` → `length: missing required key`), or a one-of that wants it is unmet
+    (`varience` → "give exactly one of `variance` or `covariance`")."""
+    loc = tuple(e["loc"])
+    if e["type"] == "missing":
+        return (loc[:-1], str(loc[-1])) in meant
+    if e["type"].startswith("value_error"):
+        return any(at == loc and f"`{key}`" in e["msg"] for at, key in meant if key)
+    return False
+
+
+class _Errors:
+    """Some of a `ValidationError`'s errors, read as one by `validation_diagnostics` (which
+    asks only for `errors()`): the follow-ons of a misspelt key left out."""
+
+    def __init__(self, errors: list[Any]) -> None:
+        self.kept = errors
+
+    def errors(self, include_url: bool = False) -> list[Any]:
+        return self.kept
 
 
 def _hidden_unknown_keys(data: Any, unknown: list[Any]) -> list[Any]:
@@ -201,13 +239,16 @@ def _errors_beyond_shape(
     list with a shape error elsewhere is left out, and the type's other rules are still
     checked (their messages keep their places: `_Renumbered`).  A type with a shape error
     elsewhere is checked as a terminal stub: its name stays known, so the rest gets no
-    follow-on "unknown type" errors.  The `observation` section gets stand-ins too
-    (`_observation_stand_in`).  Warnings (which a stub or a missing rule could cause) are
+    follow-on "unknown type" errors.  A type whose name itself is misshapen is left out: what
+    names it (a rule's `child`, a noise entry, a clutter rate) has the same shape error and is
+    left out too, so no follow-on error comes of it.  The `observation` section gets stand-ins
+    too (`_observation_stand_in`).  Warnings (which a stub or a missing rule could cause) are
     dropped.  A shape error elsewhere (root, grammar name) leaves nothing sound to check.
     """
     in_observation = [loc for loc in locs if loc[:1] == ("observation",)]
     locs = [loc for loc in locs if loc[:1] != ("observation",)]
     bad: set[str] = set()
+    misnamed: set[str] = set()  # types whose name breaks the pattern: left out
     bad_rules: dict[tuple, set[int]] = {}
     # type -> (path, stand-in) of the rule parts (placements, a count law) to check in place
     # of misshapen ones
@@ -216,7 +257,8 @@ def _errors_beyond_shape(
         if len(loc) < 2 or loc[0] != "types" or not isinstance(loc[1], str):
             return []
         if len(loc) >= 3 and loc[2] == "[key]":  # a type's name itself
-            return []
+            misnamed.add(loc[1])
+            continue
         part = _rule_part(loc)
         if part is not None:
             stand_ins.setdefault(loc[1], []).append(part)
@@ -230,6 +272,8 @@ def _errors_beyond_shape(
     kept: dict[tuple, list[int]] = {}
     fixed = {}
     for name, original in types.items():
+        if name in misnamed:
+            continue
         if name in bad:
             fixed[name] = _stub(original, [loc for loc in locs if loc[1] == name])
             continue
@@ -254,6 +298,9 @@ def _errors_beyond_shape(
     try:
         renumbered = _Renumbered(source, kept)
         compiler = Compiler(doc, renumbered, base_dir, allow_outside, True, frozenset(kept))  # type: ignore[arg-type]
+        compiler.misshapen = frozenset(
+            loc[1] for loc in locs if len(loc) >= 3 and loc[2] == "geometry"
+        )
         compiler.run()
     except GrammarError as later:
         return [d for d in later.diagnostics if d.severity != "warning"]
@@ -273,17 +320,23 @@ OBSERVATION_STAND_INS = {
 def _observation_stand_in(section: Any, locs: list[tuple]) -> Any:
     """The `observation` section with stand-ins (`OBSERVATION_STAND_INS`) for its misshapen
     parts, so that the types its noise entries and clutter rates name are still checked;
-    without the clutter, or the whole section, when a stand-in does not make it valid."""
+    without the clutter, or the whole section, when a stand-in does not make it valid.  A rate
+    under a misshapen type name is left out (as a noise entry is), after the other stand-ins
+    (one of which could put it back), so the other rates and the region are still checked."""
+    bad_rates: set[Any] = set()
     for loc in locs:
         path = loc[1:]
         if path[:1] == ("noise",):
             section = _noise_stand_in(section, path)
+        elif path[:2] == ("clutter", "rates") and len(path) >= 4 and path[3] == "[key]":
+            bad_rates.add(path[2])
         elif path[:2] == ("clutter", "rates") and len(path) >= 3:
             section = _with_value(section, path[:3], OBSERVATION_STAND_INS["rates"])
         elif path[:1] == ("clutter",) and path[1:2] in (("region",), ("max",)):
             section = _with_value(section, path[:2], OBSERVATION_STAND_INS[path[1]])
         elif isinstance(section, dict):
             section = {**section, "clutter": None}
+    section = _without_rates(section, bad_rates)
     for candidate in (section, {**section, "clutter": None} if isinstance(section, dict) else None):
         try:
             dsl.ObservationSpec.model_validate(candidate)
@@ -291,6 +344,16 @@ def _observation_stand_in(section: Any, locs: list[tuple]) -> Any:
         except ValidationError:
             continue
     return None
+
+
+def _without_rates(section: Any, names: set[Any]) -> Any:
+    """`section` without the clutter rates of the types `names` (misshapen names)."""
+    clutter = section.get("clutter") if isinstance(section, dict) else None
+    rates = clutter.get("rates") if isinstance(clutter, dict) else None
+    if not names or not isinstance(rates, dict):
+        return section
+    kept = {k: v for k, v in rates.items() if k not in names}
+    return {**section, "clutter": {**clutter, "rates": kept}}
 
 
 def _noise_stand_in(section: Any, path: tuple) -> Any:
@@ -443,6 +506,9 @@ class Compiler(Report):
         self.partial = partial
         # The rule lists (`("types", name, "or")`) that lost misshapen rules in such a document.
         self.shortened = shortened
+        # The types whose `geometry` has a shape error (said already): a constraint that needs
+        # their shape gives up on it without a follow-on "it has no geometry".
+        self.misshapen: frozenset[str] = frozenset()
         self.ids = {name: i for i, name in enumerate(self.names)}
 
     def run(self) -> Grammar:

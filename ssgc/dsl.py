@@ -63,6 +63,32 @@ def _near_parent(xyz: list[float]) -> list[float]:
     return _within_limit(xyz, "a position or offset")
 
 
+def _within(limit: float, what: str) -> Any:
+    """A check that a geometry's number is at most `limit` (in size): a shape is bounded as a
+    mesh is (`ssgc.assets`), to the 2,000 km that poses may span.  Sizes of 1e200 reached FCL
+    (`non_penetration`), which printed Eigen's "too many iterations" hundreds of times and
+    let the grammar pass; the limit is checked before any library sees the number."""
+
+    def check(v: float) -> float:
+        if abs(v) > limit:
+            raise ValueError(
+                f"{what} must be at most {limit / 1000:,.0f} km ({limit:g} m), got {v:g} m: "
+                f"poses span {2 * MAX_COORDINATE / 1000:,.0f} km (each axis within "
+                f"{MAX_COORDINATE / 1000:,.0f} km of the origin)"
+            )
+        return v
+
+    return check
+
+
+# m: a geometry's side or length (a box, a tray, a cylinder) is at most the span of poses, a
+# radius half of it, a `revolve` profile's coordinate (r, z) at most MAX_COORDINATE either way
+Length = Annotated[Positive, AfterValidator(_within(2 * MAX_COORDINATE, "a geometry's size"))]
+Radius = Annotated[Positive, AfterValidator(_within(MAX_COORDINATE, "a radius"))]
+ProfileCoordinate = Annotated[
+    Finite, AfterValidator(_within(MAX_COORDINATE, "a profile coordinate"))
+]
+
 Position = Annotated[Vec3, AfterValidator(_near_origin)]
 # a position or offset written in a rule (an `offset`, a Normal's `mean`, a box corner)
 RulePosition = Annotated[Vec3, AfterValidator(_near_parent)]
@@ -339,16 +365,16 @@ class Repeat(Strict):
 
 
 class BoxGeometry(Strict):
-    size: Annotated[list[Positive], Field(min_length=3, max_length=3)]
+    size: Annotated[list[Length], Field(min_length=3, max_length=3)]
 
 
 class CylinderGeometry(Strict):
-    radius: Positive
-    length: Positive
+    radius: Radius
+    length: Length
 
 
 class SphereGeometry(Strict):
-    radius: Positive
+    radius: Radius
 
 
 class MeshGeometry(Strict):
@@ -359,7 +385,7 @@ class MeshGeometry(Strict):
 class RevolveGeometry(Strict):
     """A solid of revolution (a dish): its cross-section, turned about the geometry's z axis."""
 
-    profile: list[Annotated[list[Finite], Field(min_length=2, max_length=2)]] = Field(
+    profile: list[Annotated[list[ProfileCoordinate], Field(min_length=2, max_length=2)]] = Field(
         description="[r, z] points in metres from a point on the axis (r = 0), around the "
         "material, back to the axis; the axis closes it."
     )
@@ -380,10 +406,10 @@ class TrayGeometry(Strict):
     box, and a simulator throws it out.  Centred on the geometry's origin, as a box is: `size`
     is its outside, so its floor's top is at z = wall - size_z / 2 and its rim at size_z / 2."""
 
-    size: Annotated[list[Positive], Field(min_length=3, max_length=3)] = Field(
+    size: Annotated[list[Length], Field(min_length=3, max_length=3)] = Field(
         description="Outside lengths along x, y, z, metres (the walls and floor inside them)."
     )
-    wall: Positive = Field(description="Thickness of the floor and of each wall, metres.")
+    wall: Length = Field(description="Thickness of the floor and of each wall, metres.")
 
     @model_validator(mode="after")
     def _room_inside(self) -> TrayGeometry:

@@ -22,6 +22,7 @@ from ssgc.constraints.shapes import (
     Extents,
     ShapeError,
     bounding_radius,
+    closed_surface,
     collision_shape,
     extents_of,
     geometry_origin,
@@ -134,8 +135,26 @@ class _Builder:
         return tid
 
     def type_ids(self, names: list[str], loc: Loc) -> list[int] | None:
+        known, ok = self.known_ids(names, loc)
+        return known if ok else None
+
+    def known_ids(self, names: list[str], loc: Loc) -> tuple[list[int], bool]:
+        """The ids of the names that are types, and whether all are: a constraint with an
+        unknown name is still checked on its known ones, so one run reports its other
+        mistakes too (its frame, its box, its radii)."""
         ids = [self.type_id(n, (*loc, i)) for i, n in enumerate(names)]
-        return None if any(i is None for i in ids) else [int(i) for i in ids]  # type: ignore[arg-type]
+        return [int(i) for i in ids if i is not None], all(i is not None for i in ids)
+
+    def misshapen(self, t: int) -> bool:
+        """Whether type `t`'s geometry has a shape error, said already: a check of its shape
+        gives up without a follow-on error (`Compiler.misshapen`)."""
+        return self.types[t].name in self.c.misshapen
+
+    def at(self, loc: Loc, names: list[str], t: int) -> Loc:
+        """Where type `t` is written in the constraint's list `names` at `loc`: a message
+        about one type points at its name, not at the list."""
+        name = self.types[t].name
+        return (*loc, names.index(name)) if name in names else loc
 
     def frame(self, name: str, loc: Loc, listed: list[int]) -> int | bool | None:
         """None for the world, a type id, or False after an error."""
@@ -258,7 +277,9 @@ class _Builder:
 
     # ---------------------------------------------------------------- radii ---
 
-    def radii(self, ids: list[int], given: dict[str, float], loc: Loc, needed: bool) -> Any:
+    def radii(
+        self, ids: list[int], given: dict[str, float], loc: Loc, needed: bool, names: list[str]
+    ) -> Any:
         r = np.zeros(self.n)
         ok = True
         for key, value in given.items():
@@ -277,58 +298,57 @@ class _Builder:
                 tname = self.types[t].name
                 if tname in given:
                     continue
+                if self.misshapen(t):
+                    ok = False
+                    continue
                 try:
                     r[self.node(t)] = keep_out_radius(self.types[t].geometry, self.c.base_dir)
                 except ShapeError as exc:
                     self.c.error(
-                        (*loc, "types"),
+                        self.at((*loc, "types"), names, t),
                         f"no keep-out radius for '{tname}': {exc}; give it under `radius`",
                     )
                     ok = False
         return r if ok else None
 
     def exempt(self, pairs: list[list[str]], loc: Loc) -> Any:
+        """The table of exempt pairs; None after reporting every unknown name in them."""
         ids = []
+        ok = True
         for k, (a, b) in enumerate(pairs):
             ta = self.type_id(a, (*loc, "exempt", k, 0))
             tb = self.type_id(b, (*loc, "exempt", k, 1))
             if ta is None or tb is None:
-                return None
+                ok = False
+                continue
             ids.append((self.node(ta), self.node(tb)))
-        return pair_table(ids, self.n)
+        return pair_table(ids, self.n) if ok else None
 
     # ----------------------------------------------------------------- pose ---
 
     def inside_box(self, name: str, s: dsl.InsideBoxC, loc: Loc) -> Constraint | None:
-        ids = self.type_ids(s.types, (*loc, "types"))
-        if ids is None:
-            return None
+        """Every independent mistake of the entry is reported (its names, frame, radii, box,
+        geometry, tails) before it is given up; only the keep-out width, which needs both a
+        sound box and sound radii, waits for them."""
+        ids, known = self.known_ids(s.types, (*loc, "types"))
         frame = self.frame(s.frame, (*loc, "frame"), ids)
-        r = self.radii(ids, s.radius, loc, s.keep_out)
-        if frame is False or r is None:
-            return None
+        r = self.radii(ids, s.radius, loc, s.keep_out, s.types)
         lo = np.array([np.nan if v is None else v for v in s.min])
         hi = np.array([np.nan if v is None else v for v in s.max])
+        box = True
         for axis in range(3):
             if s.min[axis] is not None and s.max[axis] is not None and lo[axis] > hi[axis]:
-                self.c.error((*loc, "max"), f"box max is below min on the {'xyz'[axis]} axis")
-                return None
-        if s.keep_out:
-            width = np.nanmin(np.where(np.isnan(hi - lo), np.inf, hi - lo)[:2])
-            for t in ids:
-                across = 2 * r[self.node(t)]
-                if across > width:
-                    self.c.error(
-                        (*loc, "types"),
-                        f"can never hold: the box is {width:g} m wide, narrower than the "
-                        f"keep-out disc of '{self.types[t].name}' ({across:g} m across)",
-                    )
-                    return None
+                self.c.error((*loc, "max", axis), f"box max is below min on the {'xyz'[axis]} axis")
+                box = False
+        ok = known and frame is not False and r is not None and box
+        fits = s.keep_out and r is not None and box
+        if fits and not self.keep_out_fits(ids, r, lo, hi, loc, s.types):
+            ok = False
         if not s.keep_out:
             r = np.zeros(self.n)
-        shapes = self.extents(ids, loc) if s.geometry else None
+        shapes = self.extents(ids, loc, s.types) if s.geometry else None
         if s.geometry and shapes is None:
-            return None
+            ok = False
         for key in ("floating", "outside"):
             if getattr(s, key) is not None and not s.geometry:
                 self.c.error(
@@ -336,7 +356,9 @@ class _Builder:
                     f"`{key}` calibrates the floor and walls that only `geometry: true` "
                     "declares; add `geometry: true` or remove it",
                 )
-                return None
+                ok = False
+        if not ok:
+            return None
         return InsideBox(
             name,
             loc,
@@ -350,14 +372,35 @@ class _Builder:
             outside=_tail(s.outside, OUTSIDE),
         )
 
-    def extents(self, ids: list[int], loc: Loc) -> Extents | None:
-        """The `Extents` of the types' geometries; every listed type must have one."""
+    def keep_out_fits(
+        self, ids: list[int], r: Any, lo: Any, hi: Any, loc: Loc, names: list[str]
+    ) -> bool:
+        """Whether every type's keep-out disc fits in the box's narrowest horizontal width;
+        each type that does not is named."""
+        width = np.nanmin(np.where(np.isnan(hi - lo), np.inf, hi - lo)[:2])
+        fits = True
         for t in ids:
-            if self.types[t].geometry is None:
+            across = 2 * r[self.node(t)]
+            if across > width:
                 self.c.error(
-                    (*loc, "types"), f"'{self.types[t].name}' has no geometry to keep inside"
+                    self.at((*loc, "types"), names, t),
+                    f"can never hold: the box is {width:g} m wide, narrower than the "
+                    f"keep-out disc of '{self.types[t].name}' ({across:g} m across)",
                 )
-                return None
+                fits = False
+        return fits
+
+    def extents(self, ids: list[int], loc: Loc, names: list[str]) -> Extents | None:
+        """The `Extents` of the types' geometries; every listed type must have one (each
+        that has none is named)."""
+        if any(self.misshapen(t) for t in ids):
+            return None
+        missing = [t for t in ids if self.types[t].geometry is None]
+        for t in missing:
+            where = self.at((*loc, "types"), names, t)
+            self.c.error(where, f"'{self.types[t].name}' has no geometry to keep inside")
+        if missing:
+            return None
         try:
             geometries: list[Any] = [None] * self.n
             for t in ids:
@@ -371,7 +414,7 @@ class _Builder:
         ids = self.type_ids(s.types, (*loc, "types"))
         if ids is None:
             return None
-        r = self.radii(ids, s.radius, loc, True)
+        r = self.radii(ids, s.radius, loc, True, s.types)
         ex = self.exempt(s.exempt, loc)
         if r is None or ex is None:
             return None
@@ -385,11 +428,9 @@ class _Builder:
         )
 
     def upright(self, name: str, s: dsl.UprightC, loc: Loc) -> Constraint | None:
-        ids = self.type_ids(s.types, (*loc, "types"))
-        if ids is None:
-            return None
-        frame = self.frame(s.frame, (*loc, "frame"), ids)
-        if frame is False:
+        ids, known = self.known_ids(s.types, (*loc, "types"))
+        frame = self.frame(s.frame, (*loc, "frame"), ids)  # checked even after a bad name
+        if not known or frame is False:
             return None
         return Upright(
             name,
@@ -402,26 +443,34 @@ class _Builder:
         )
 
     def non_penetration(self, name: str, s: dsl.NonPenetrationC, loc: Loc) -> Constraint | None:
-        ids = self.type_ids(s.types, (*loc, "types"))
+        """Every unknown name and every type without a shape is reported before giving up."""
+        ids, known = self.known_ids(s.types, (*loc, "types"))
         ex = self.exempt(s.exempt, loc)
-        if ids is None or ex is None:
-            return None
+        ok = known and ex is not None
         shapes: list[Any] = [None] * self.n
         origins = [(0.0, 0.0, 0.0)] * self.n
         solids: list[Any] = [None] * self.n
         hollow = [False] * self.n
+        surfaces: list[Any] = [None] * self.n
         r = np.zeros(self.n)
         for t in ids:
             k, geometry = self.node(t), self.types[t].geometry
+            if self.misshapen(t):
+                ok = False
+                continue
             try:
                 shapes[k] = collision_shape(geometry, self.c.base_dir)
                 solids[k] = solid_of(geometry)
                 hollow[k] = isinstance(geometry, dsl.RevolveG | dsl.TrayG | dsl.MeshG)
+                surfaces[k] = closed_surface(geometry, self.c.base_dir)
                 origins[k] = tuple(geometry_origin(geometry).tolist())
                 r[k] = bounding_radius(geometry, self.c.base_dir)
             except ShapeError as exc:
-                self.c.error((*loc, "types"), f"cannot check '{self.types[t].name}': {exc}")
-                return None
+                where = self.at((*loc, "types"), s.types, t)
+                self.c.error(where, f"cannot check '{self.types[t].name}': {exc}")
+                ok = False
+        if not ok:
+            return None
         sel = Clearance(
             name,
             loc,
@@ -438,6 +487,7 @@ class _Builder:
             origins=tuple(origins),
             solids=tuple(solids),
             hollow=tuple(hollow),
+            surfaces=tuple(surfaces),
             gap=s.margin,
             tail=_tail(s.tail, OVERLAP),
         )

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from ssgc.constraints.base import Constraint, FloatArray, per_scene_argmin, per_scene_min
 from ssgc.constraints.pose import Clearance
 from ssgc.constraints.revolved import Revolved, penetration_depth
+from ssgc.constraints.shapes import ClosedSurface
 from ssgc.geometry import quat_rotate, quat_to_matrix
 from ssgc.tails import OVERLAP, Tail
 
@@ -47,6 +48,8 @@ class NonPenetration(Constraint):
     origins: tuple[tuple[float, float, float], ...] = ()  # per type: geometry's place in frame
     solids: tuple[Revolved | None, ...] = ()  # per type: as a solid of revolution, or None
     hollow: tuple[bool, ...] = ()  # per type: a triangle mesh to FCL (revolve, tray, mesh)
+    # per type: the closed surface of a hollow type, for what FCL misses (`_buried`), or None
+    surfaces: tuple[ClosedSurface | None, ...] = ()
     gap: float = 0.0
     # How rare overlapping is in real scenes (`ssg explain`, ssgc/overlaps.py): the grammar's
     # `tail:`, else the sink default.
@@ -129,8 +132,48 @@ class NonPenetration(Constraint):
                 depth = [c.penetration_depth for c in cres.contacts]
                 out[k] = -(max(depth, default=0.0) if profiled is None else profiled)
             else:
-                out[k] = fcl.distance(oa, ob, request, fcl.DistanceResult())
+                apart = fcl.distance(oa, ob, request, fcl.DistanceResult())
+                buried = self._is_hollow(batch, int(a), int(b)) and self._buried(batch, a, b)
+                out[k] = -max(MIN_DEPTH, apart) if buried else apart
         return out
+
+    def _buried(self, batch: Any, a: int, b: int) -> bool:
+        """Whether one of a pair that touches no triangle of the other lies inside the solid
+        the other's closed surface bounds (FCL reads a sphere inside a revolve's puck as
+        apart).  A point of each is tested in the other: a primitive's centre, a point of a
+        surface; with no surface crossing, where one point is, the whole object is.  Its
+        margin is then minus its distance to the surface around it, the least it is buried."""
+        if not self.surfaces:
+            return False
+        for inner, outer in ((b, a), (a, b)):
+            surface = self.surfaces[int(batch.type[outer])]
+            if surface is not None and surface.inside(self._local(batch, inner, outer)):
+                return True
+        return False
+
+    def _local(self, batch: Any, node: int, frame: int) -> FloatArray:
+        """A point of `node`'s geometry in the frame of `frame`'s geometry (about its origin)."""
+        point = self._point_of(batch, int(node))
+        rot = quat_to_matrix(np.asarray(batch.quat[frame], float)[None])[0]
+        return rot.T @ (point - self._placed(batch, int(frame)))
+
+    def _point_of(self, batch: Any, node: int) -> FloatArray:
+        """A point inside a primitive (its centre) or on a closed surface (a vertex)."""
+        at = self._placed(batch, node)
+        surface = self.surfaces[int(batch.type[node])] if self.surfaces else None
+        if surface is None:
+            return at
+        return at + quat_rotate(np.asarray(batch.quat[node], float), surface.v0[0])
+
+    def _placed(self, batch: Any, node: int) -> FloatArray:
+        """Where the geometry's origin is in the world (it may sit off the object's frame)."""
+        t = int(batch.type[node])
+        at = np.asarray(batch.xyz[node], float)
+        if self.origins and any(self.origins[t]):
+            at = at + quat_rotate(
+                np.asarray(batch.quat[node], float), np.asarray(self.origins[t], float)
+            )
+        return at
 
     def _is_hollow(self, batch: Any, a: int, b: int) -> bool:
         return bool(self.hollow) and (
@@ -193,7 +236,4 @@ class NonPenetration(Constraint):
 
         t = int(batch.type[node])
         quat = np.asarray(batch.quat[node], float)
-        at = np.asarray(batch.xyz[node], float)
-        if self.origins and any(self.origins[t]):  # the geometry sits off the object's frame
-            at = at + quat_rotate(quat, np.asarray(self.origins[t], float))
-        return fcl.CollisionObject(self.shapes[t], fcl.Transform(quat, at))
+        return fcl.CollisionObject(self.shapes[t], fcl.Transform(quat, self._placed(batch, node)))

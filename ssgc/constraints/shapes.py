@@ -112,20 +112,70 @@ def collision_shape(geometry: Any, base_dir: Path | None = None) -> Any:
         return fcl.Sphere(geometry.sphere.radius)
     if isinstance(geometry, dsl.BoxG):
         return fcl.Box(*geometry.box.size)
-    if isinstance(geometry, dsl.RevolveG):
-        v, faces = Revolved(geometry.revolve.profile).mesh()
-    elif isinstance(geometry, dsl.TrayG):
-        v, faces = geometry.tray.mesh()
-    else:
-        import trimesh
-
-        v = _mesh_vertices(geometry.mesh, base_dir)
-        faces = np.asarray(trimesh.load(base_dir / geometry.mesh.file, force="mesh").faces)  # type: ignore[operator]
+    v, faces = surface_mesh(geometry, base_dir)
     model = fcl.BVHModel()
     model.beginModel(len(v), len(faces))
     model.addSubModel(v, faces)
     model.endModel()
     return model
+
+
+def surface_mesh(geometry: Any, base_dir: Path | None = None) -> tuple[Any, Any]:
+    """(vertices, triangles) of a revolve's, a tray's or a mesh's surface, about the
+    geometry's origin: what FCL gets for them (triangles, not a solid)."""
+    if isinstance(geometry, dsl.RevolveG):
+        return Revolved(geometry.revolve.profile).mesh()
+    if isinstance(geometry, dsl.TrayG):
+        return geometry.tray.mesh()
+    import trimesh
+
+    v = _mesh_vertices(geometry.mesh, base_dir)
+    faces = np.asarray(trimesh.load(base_dir / geometry.mesh.file, force="mesh").faces)  # type: ignore[operator]
+    return v, faces
+
+
+def closed_surface(geometry: Any, base_dir: Path | None = None) -> ClosedSurface | None:
+    """The geometry's surface when FCL gets it as triangles and it closes a solid (every edge
+    shared by exactly two triangles), else None: a point inside it is inside the solid."""
+    if not isinstance(geometry, dsl.RevolveG | dsl.TrayG | dsl.MeshG):
+        return None
+    v, faces = surface_mesh(geometry, base_dir)
+    faces = np.asarray(faces, np.int64)
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, uses = np.unique(edges, axis=0, return_counts=True)
+    if not np.all(uses == 2):
+        return None
+    return ClosedSurface(np.asarray(v, float)[faces])
+
+
+# A ray in no axis plane and along no diagonal: the facets of revolves, trays and meshes are
+# axis-aligned or regular, so it does not graze their edges.
+_RAY = np.array([0.5349, 0.6195, 0.5745]) / np.linalg.norm([0.5349, 0.6195, 0.5745])
+
+
+class ClosedSurface:
+    """A closed triangle surface, about its geometry's origin: `inside(point)` by the parity
+    of the surface's crossings along a ray (Möller–Trumbore, all triangles at once).  FCL sees
+    such a surface as triangles only, so an object buried in the solid it bounds, touching no
+    triangle, is apart for FCL; this says it is inside."""
+
+    def __init__(self, triangles: NDArray[np.float64]) -> None:
+        self.v0 = triangles[:, 0]
+        self.e1 = triangles[:, 1] - self.v0
+        self.e2 = triangles[:, 2] - self.v0
+        self.p = np.cross(_RAY, self.e2)
+        self.det = np.einsum("ij,ij->i", self.e1, self.p)
+
+    def inside(self, point: NDArray[np.float64]) -> bool:
+        ok = np.abs(self.det) > 1e-30
+        det = np.where(ok, self.det, 1.0)
+        s = point - self.v0
+        u = np.einsum("ij,ij->i", s, self.p) / det
+        q = np.cross(s, self.e1)
+        w = (q @ _RAY) / det
+        t = np.einsum("ij,ij->i", self.e2, q) / det
+        hits = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0)
+        return bool(np.count_nonzero(hits) % 2)
 
 
 def solid_of(geometry: Any) -> Revolved | None:

@@ -54,20 +54,19 @@ class BoxTranslation(TranslationLaw):
 
     @classmethod
     def lower(cls, p: dsl.BoxParams, key: str, loc: Loc, ctx: Lowering) -> BoxTranslation | None:
+        """Each axis is checked on its own, so one run names every bad axis."""
         lo, hi = np.asarray(p.min, float), np.asarray(p.max, float)
-        if np.any(hi < lo):
-            i = int(np.flatnonzero(hi < lo)[0])
-            ctx.error((*loc, "max", i), f"box max must be >= min, got {hi[i]:g} < {lo[i]:g}")
-            return None
+        inverted = np.flatnonzero(hi < lo)
+        for i in inverted:
+            ctx.error((*loc, "max", int(i)), f"box max must be >= min, got {hi[i]:g} < {lo[i]:g}")
         with np.errstate(over="ignore"):
             too_wide = not np.all(np.isfinite(hi - lo))
         if too_wide:  # the density 1/volume would be 0
             ctx.error((*loc, "max"), "box is too large (its width overflows)")
-            return None
         narrow = np.flatnonzero((hi > lo) & (hi - lo < MIN_WIDTH))
         for i in narrow:  # `density` would give it more than 1.02 of mass on that axis
             ctx.error((*loc, "max", int(i)), narrow_box(float(hi[i] - lo[i]), "xyz"[i]))
-        if narrow.size:
+        if inverted.size or too_wide or narrow.size:
             return None
         return cls(key=key, frame=cls.keys[key], path=loc, fixed=p.fixed, box=UniformBox(lo, hi))
 

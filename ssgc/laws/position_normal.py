@@ -187,10 +187,12 @@ class NormalTranslation(TranslationLaw):
 def _covariance(
     p: dsl.NormalParams, free: FloatArray, loc: Loc, ctx: Lowering
 ) -> FloatArray | None:
+    """The free axes' block of the covariance; None after reporting every independent
+    mistake (asymmetry, a negative pinned variance, no positive definiteness)."""
     cov = np.asarray(p.covariance, float)
-    if not np.allclose(cov, cov.T, rtol=0, atol=1e-12 * max(1.0, np.abs(cov).max())):
+    symmetric = np.allclose(cov, cov.T, rtol=0, atol=1e-12 * max(1.0, np.abs(cov).max()))
+    if not symmetric:
         ctx.error((*loc, "covariance"), "covariance must be symmetric")
-        return None
     # a pinned axis's row and column are dropped, but its variance may be 0, not negative,
     # as in the `variance` form (docs/grammar.md 4.2)
     negative = np.flatnonzero(~free & (np.diag(cov) < 0))
@@ -200,6 +202,12 @@ def _covariance(
             f"the variance of a pinned axis may be 0 but not negative, got {cov[i, i]:g} "
             f"({'xyz'[i]} axis)",
         )
+    if not symmetric:
+        # Which triangle was meant is unknown, so positive definiteness is judged only where
+        # every symmetric reading agrees: a free axis's variance <= 0 fails it in all of them.
+        if np.any(free & ~(np.diag(cov) > 0)):
+            ctx.error((*loc, "covariance"), "covariance must be positive definite")
+        return None
     if negative.size:
         return None
     # the rows and columns of pinned axes are dropped, not conditioned on: a coupling written

@@ -144,31 +144,38 @@ class BinghamRotation(RotationLaw):
 
 
 def _raw(p: dsl.BinghamParams, loc: Loc, ctx: Lowering) -> Bingham | None:
+    """`M` and `Z` are checked apart, so one run reports a mistake in each."""
     m = np.asarray(p.M, float)
     with np.errstate(all="ignore"):
         err = np.abs(m.T @ m - np.eye(4)).max()
-    if not err <= ORTHOGONALITY_TOL:  # NaN (overflow) is not orthogonal either
+    orthogonal = bool(err <= ORTHOGONALITY_TOL)  # NaN (overflow) is not orthogonal either
+    if not orthogonal:
         ctx.error((*loc, "M"), f"Bingham M must be orthogonal (max |MᵀM - I| = {err:.2g})")
-        return None
     z = np.asarray(p.Z, float)
     spread = z.max() - z.min()
     if spread > MAX_CONCENTRATION:
         ctx.error(
             (*loc, "Z"), f"Bingham Z spans {spread:g}, over the supported {MAX_CONCENTRATION:g}"
         )
+    if not orthogonal or spread > MAX_CONCENTRATION:
         return None
     return _checked(lambda: Bingham(m, z), (*loc, "M"), ctx)
 
 
 def _moded(p: dsl.BinghamParams, loc: Loc, ctx: Lowering) -> Bingham | None:
+    """The concentrations and the mode are checked apart, so one run reports both; each
+    concentration over the limit is named at its own number."""
     conc = np.broadcast_to(np.asarray(p.concentration, float), (3,))
-    if np.any(conc > MAX_CONCENTRATION):
+    over = np.flatnonzero(conc > MAX_CONCENTRATION)
+    listed = isinstance(p.concentration, list)
+    for i in over if listed else over[:1]:
         ctx.error(
-            (*loc, "concentration"),
-            f"concentration must be at most {MAX_CONCENTRATION:g}, got {conc.max():.10g}",
+            (*loc, "concentration", int(i)) if listed else (*loc, "concentration"),
+            f"concentration must be at most {MAX_CONCENTRATION:g}, got {conc[i]:.10g}",
         )
-        return None
     mode = ctx.orientation(p.mode, (*loc, "mode")) if p.mode else IDENTITY_QUAT
+    if over.size:
+        return None
     return _checked(lambda: Bingham.from_mode(mode, conc), loc, ctx)
 
 

@@ -48,28 +48,15 @@ class RevoluteRotation(RotationLaw):
     def lower(
         cls, p: dsl.RevoluteParams, key: str, loc: Loc, ctx: Lowering
     ) -> RevoluteRotation | None:
+        """The axis and the range are independent: both are checked before giving up."""
         axis = np.asarray(p.axis, float)
         scale = np.abs(axis).max()
-        if scale == 0:
+        if scale == 0:  # the whole vector is wrong: at its key, as every list is (SourceMap)
             ctx.error((*loc, "axis"), "revolute axis must be nonzero")
+        ranged = _range_ok(p, loc, ctx)
+        if scale == 0 or not ranged:
             return None
         axis = axis / scale  # so that the norm neither overflows nor underflows
-        if not p.max > p.min:
-            ctx.error((*loc, "max"), f"revolute max must be > min, got [{p.min:g}, {p.max:g}]")
-            return None
-        if p.max - p.min > 2 * np.pi + 1e-9:
-            ctx.error((*loc, "max"), f"revolute range exceeds 2π ({p.max - p.min:g} rad)")
-            return None
-        width = p.max - p.min
-        if width < MIN_WIDTH:  # `density` would give it more than 1.02 of mass
-            ctx.error(
-                (*loc, "max"),
-                f"revolute range is {width:g} rad wide, narrower than {MIN_WIDTH:g} rad: angles "
-                f"within {ROT_TOL:g} rad beyond its ends count as inside, which would give it a "
-                f"mass of {(width + 2 * ROT_TOL) / width:.3g}, not 1; use a fixed rotation "
-                "`offset`, or widen it",
-            )
-            return None
         return cls(
             key=key,
             frame=Frame.PARENT,
@@ -117,3 +104,25 @@ class RevoluteRotation(RotationLaw):
             f"revolute axis {np.round(self.axis, 3).tolist()} "
             f"[{self.revolute.lo:.3g}, {self.revolute.hi:.3g}]"
         )
+
+
+def _range_ok(p: dsl.RevoluteParams, loc: Loc, ctx: Lowering) -> bool:
+    """Whether [min, max] is a range the density can hold: ordered, at most 2π, and not
+    narrower than `MIN_WIDTH` (each failure reported)."""
+    width = p.max - p.min
+    if not p.max > p.min:
+        ctx.error((*loc, "max"), f"revolute max must be > min, got [{p.min:g}, {p.max:g}]")
+        return False
+    if width > 2 * np.pi + 1e-9:
+        ctx.error((*loc, "max"), f"revolute range exceeds 2π ({width:g} rad)")
+        return False
+    if width < MIN_WIDTH:  # `density` would give it more than 1.02 of mass
+        ctx.error(
+            (*loc, "max"),
+            f"revolute range is {width:g} rad wide, narrower than {MIN_WIDTH:g} rad: angles "
+            f"within {ROT_TOL:g} rad beyond its ends count as inside, which would give it a "
+            f"mass of {(width + 2 * ROT_TOL) / width:.3g}, not 1; use a fixed rotation "
+            "`offset`, or widen it",
+        )
+        return False
+    return True
