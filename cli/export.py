@@ -15,7 +15,14 @@ from ssgc.cli.app import AllowOutside, _command, _progress, app, out
 from ssgc.compile import load_grammar
 from ssgc.export import SUFFIXES, check_format, scene_bodies
 from ssgc.export.bodies import load_export_scenes
-from ssgc.export.write import every_type_scene, export_scene, refuse_changed_shared_files
+from ssgc.export.write import (
+    check_export_outputs,
+    every_type_scene,
+    export_scene,
+    grammar_inputs,
+    main_names,
+    shared_files,
+)
 from ssgc.io.atomic import write_text_atomic
 from ssgc.io.outputs import check_directory
 from ssgc.io.scene import Scene, distinct_stems, dumps_json, dumps_scene
@@ -51,8 +58,11 @@ def export_cmd(
     g = load_grammar(grammar, allow_outside=allow_outside_files)
     items = load_export_scenes(scenes, g)
     distinct_stems([s.name for s in items], SUFFIXES[fmt], str(scenes))
-    shapes = load_shapes(g, collision=fmt != "glb")  # glTF carries no collision geometry
-    refuse_changed_shared_files(g, items, shapes, fmt, output)
+    # glTF carries no collision geometry, and no masses
+    shapes = load_shapes(g, collision=fmt != "glb", masses=fmt != "glb")
+    shared = shared_files(g, items, shapes, fmt)
+    inputs = [*grammar_inputs(g), scenes]  # never written over (as `ssg settle` refuses it)
+    check_export_outputs(output, shared, main_names(items, fmt), fmt, inputs)
     written = []
     with _progress(quiet) as progress:
         task = progress.add_task(f"exporting ({fmt})", total=len(items))
@@ -79,14 +89,17 @@ class SampleExtras:
             from ssgc.simulate.settle import require_mujoco
 
             require_mujoco()
-        self.shapes = load_shapes(g, collision=self.needs_collision()) if export or settle else {}
+        needs = self.needs_collision()
+        self.shapes = load_shapes(g, collision=needs, masses=needs) if export or settle else {}
         self.unsettled = 0
         for fmt in self.formats:  # as `ssg export` does, before anything is written
-            refuse_changed_shared_files(g, [every_type_scene(g)], self.shapes, fmt, output / fmt)
+            shared = shared_files(g, [every_type_scene(g)], self.shapes, fmt)
+            check_export_outputs(output / fmt, shared, [], fmt, grammar_inputs(g))
 
     def needs_collision(self) -> bool:
-        """Whether some output carries collision geometry: glTF has none, so `--export glb`
-        alone neither decomposes meshes (slow) nor needs coacd, as `ssg export -f glb`."""
+        """Whether some output carries collision geometry (and masses): glTF has neither, so
+        `--export glb` alone neither decomposes meshes (slow) nor needs coacd, nor refuses a
+        mass no simulator's file holds, as `ssg export -f glb`."""
         return self.settle or any(f != "glb" for f in self.formats)
 
     def write(

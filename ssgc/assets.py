@@ -186,20 +186,25 @@ def _meshes(
     return meshes, [source.diagnostic(loc, message) for loc, message in problems]
 
 
-def load_shapes(grammar: Grammar, collision: bool = True) -> dict[int, Shape]:
+def load_shapes(grammar: Grammar, collision: bool = True, masses: bool = True) -> dict[int, Shape]:
     """The shape of every observed type with geometry, by type id.
 
     `collision=False` skips the convex decomposition (slow) for exports that carry no
-    collision geometry.  A bad mesh is a located `GrammarError`.
+    collision geometry; `masses=False` skips the check that every mass and inertia fits a
+    simulator's file, for exports that hold none (glTF).  A bad mesh, or with `masses` a mass
+    out of range, is a located `GrammarError` naming every type at fault.
     """
     meshes, errors = _meshes(grammar)
     if errors:
         raise GrammarError(errors)
-    return {
+    shapes = {
         t.id: _shape(grammar, t, collision, meshes.get(t.id))
         for t in grammar.types
         if t.observed and t.geometry is not None
     }
+    if masses:
+        _check_storable(grammar, shapes)
+    return shapes
 
 
 def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None) -> Shape:
@@ -243,7 +248,6 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None
     mass = body.mass if body.mass is not None else (body.density or DEFAULT_DENSITY) * volume
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):  # told below
         inertia = mass * unit_inertia
-    _check_storable(grammar, t.name, mass, inertia)
     return Shape(
         t.name,
         kind,
@@ -261,21 +265,47 @@ def _shape(grammar: Grammar, t: NodeType, collision: bool, loaded: object | None
     )
 
 
-def _check_storable(grammar: Grammar, name: str, mass: float, inertia: NDArray[np.float64]) -> None:
-    """Refuse a mass or inertia that a simulator's file cannot hold.  USD stores them as 32-bit
-    floats: 1e300 kg became inf there (and Drake refused its inertia as not physically valid),
-    and 1e-300 kg became 0, which USD reads as "no mass given"."""
+def _check_storable(grammar: Grammar, shapes: dict[int, Shape]) -> None:
+    """Refuse masses or inertias that a simulator's file cannot hold, every type at fault in
+    one error, each at its `body` (or its `geometry`, whose size made the mass).  USD stores
+    them as 32-bit floats: 1e300 kg became inf there (and Drake refused its inertia as not
+    physically valid), and 1e-300 kg became 0, which USD reads as "no mass given"."""
+    problems = []
+    for type_id, shape in shapes.items():
+        if _storable(shape.mass, shape.inertia):
+            continue
+        t = grammar.types[type_id]
+        loc = (*t.path, "body" if t.body is not None else "geometry")
+        problems.append(
+            (
+                loc,
+                f"type '{t.name}': its mass ({shape.mass:.3g} kg) or its moments of inertia "
+                f"are outside what simulators' files hold (32-bit floats, {FLOAT32_TINY:.2g} "
+                f"to {FLOAT32_MAX:.2g}); give it a mass, density or size in a physical range",
+            )
+        )
+    if problems:
+        raise GrammarError(_located(grammar, problems))
+
+
+def _storable(mass: float, inertia: NDArray[np.float64]) -> bool:
     with np.errstate(all="ignore"):
         moments = np.linalg.eigvalsh(inertia) if np.all(np.isfinite(inertia)) else [np.inf]
     values = np.abs(np.array([mass, *moments], float))
-    if np.all((values >= FLOAT32_TINY) & (values <= FLOAT32_MAX)):
-        return
-    raise SsgError.single(
-        f"type '{name}': its mass ({mass:.3g} kg) or its moments of inertia are outside what "
-        f"simulators' files hold (32-bit floats, {FLOAT32_TINY:.2g} to {FLOAT32_MAX:.2g}); "
-        "give it a mass, density or size in a physical range",
-        grammar.file,
-    )
+    return bool(np.all((values >= FLOAT32_TINY) & (values <= FLOAT32_MAX)))
+
+
+def _located(grammar: Grammar, problems: list[tuple[tuple, str]]) -> list[Diagnostic]:
+    """Diagnostics at places of the grammar file, read again only when there is something to
+    report; at the file alone when it cannot be read back."""
+    from ssgc.yamlio import load_located
+
+    try:
+        text = Path(grammar.file).read_text(encoding="utf-8")
+        _, source = load_located(text, grammar.file)
+    except Exception:  # the file changed or went since it was compiled
+        return [Diagnostic(message, grammar.file) for _, message in problems]
+    return [source.diagnostic(loc, message) for loc, message in problems]
 
 
 def _revolve_mesh(trimesh, g: dsl.RevolveG) -> object:  # type: ignore[no-untyped-def]
@@ -483,7 +513,7 @@ def _collision_pieces(mesh: object, how: str, name: str) -> tuple[object, ...]:
     """Convex pieces that stand for the mesh in collisions: its hull (a revolve's too, when
     the grammar asks for `hull`: cavity filled), or coacd's decomposition."""
     if how == "hull":
-        return (mesh.convex_hull,)  # type: ignore[attr-defined]
+        return (_hull(mesh),)
     try:
         import coacd  # type: ignore[import-not-found]
     except ImportError:
@@ -492,6 +522,19 @@ def _collision_pieces(mesh: object, how: str, name: str) -> tuple[object, ...]:
             "pip install 'ssgc[sim]'"
         ) from None
     return _decompose(coacd, mesh)
+
+
+def _hull(mesh: object) -> object:
+    """The mesh's convex hull, found on the mesh brought to unit size and scaled back: trimesh
+    merges points closer than 1e-8, so a teacup scaled by 1e-5 had a hull of no triangle (and
+    its objects no collision geometry)."""
+    unit = _unit_sized(mesh)
+    if unit is None:  # `_load_mesh` refuses such meshes; a revolve always has a size
+        return mesh.convex_hull  # type: ignore[attr-defined]
+    shape, centre, size = unit
+    hull = shape.convex_hull.copy()  # type: ignore[attr-defined]
+    hull.vertices = np.asarray(hull.vertices) * size + centre
+    return hull
 
 
 COACD_OPTIONS = {  # few pieces, quickly: dishes, not precision parts

@@ -30,6 +30,15 @@ SUFFIXES = {
     "glb": glb.SUFFIX,
     "usd": usd.SUFFIX,
 }
+# How each format's main file begins: a file there that does not is not an earlier export's
+# scene (another format's shared `package.xml`, the user's own file), and is not written over.
+MAIN_STARTS = {
+    "dmd": dmd.MAIN_START,
+    "sdf": sdf.MAIN_START,
+    "mjcf": mjcf.MAIN_START,
+    "glb": glb.MAIN_START,
+    "usd": usd.MAIN_START,
+}
 REQUIRES: dict[str, Callable[[], None]] = {"usd": usd.require}  # optional packages, checked first
 
 
@@ -53,6 +62,7 @@ def main_file(out_dir: Path, scene: SceneBodies, fmt: str) -> Path:
 
 __all__ = [
     "FORMATS",
+    "MAIN_STARTS",
     "SUFFIXES",
     "SceneBodies",
     "check_format",

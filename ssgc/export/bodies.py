@@ -8,6 +8,7 @@ reaches back into the grammar or the scene tree.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,15 +66,28 @@ def used_shapes(scene: SceneBodies) -> list[Shape]:
     return list(seen.values())
 
 
-def obj_text(mesh: object) -> str:
-    """A triangle mesh as Wavefront OBJ text (every consumer here reads OBJ)."""
-    import trimesh
+def flushed(value: float) -> float:
+    """`value`, or 0 when it is subnormal (below 2.2e-308 in size, not 0): Drake's SDFormat
+    reader refused such a number ("Out of range. Unable to set value [2e-310]"), and no shape
+    or pose is that fine.  Every format writes its numbers through this."""
+    v = float(value)
+    return 0.0 if abs(v) < sys.float_info.min else v
 
-    return str(
-        trimesh.exchange.obj.export_obj(
-            mesh, include_normals=False, include_texture=False, digits=9, header=None
-        )
-    )
+
+def num(value: float) -> str:
+    """A number as the exporters write it: exact (`repr`), subnormals as 0."""
+    return repr(flushed(value))
+
+
+def obj_text(mesh: object) -> str:
+    """A triangle mesh as Wavefront OBJ text (every consumer here reads OBJ), its coordinates
+    exact: a fixed number of decimal places (trimesh's `digits=9`) rounded a mesh scaled by
+    1e-6 to the nanometre, and MuJoCo refused its collapsed faces."""
+    vertices = np.asarray(mesh.vertices, dtype=float)  # type: ignore[attr-defined]
+    faces = np.asarray(mesh.faces, dtype=np.int64) + 1  # type: ignore[attr-defined]
+    lines = [f"v {num(x)} {num(y)} {num(z)}" for x, y, z in vertices]
+    lines += [f"f {a} {b} {c}" for a, b, c in faces]
+    return "\n".join(lines) + "\n"
 
 
 def collision_piece(type_name: str, k: int) -> str:

@@ -15,11 +15,12 @@ import json
 
 import numpy as np
 
-from ssgc.export.bodies import Body, SceneBodies, mesh_files, used_shapes
+from ssgc.export.bodies import Body, SceneBodies, flushed, mesh_files, used_shapes
 from ssgc.export.sdf import DRAKE_NS, link_xml
 from ssgc.geometry import quat_to_rpy
 
 SUFFIX = ".dmd.yaml"
+MAIN_START = b"# Drake model directives of scene "  # how every main file begins
 PACKAGE = "ssgc_export"
 # The model of an object without geometry: a name no type can have (type names have no "-").
 EMPTY = "no-geometry"
@@ -35,7 +36,7 @@ PACKAGE_XML = f"""<?xml version="1.0"?>
 
 
 def _list(values: np.ndarray) -> str:
-    return json.dumps([float(v) for v in values])
+    return json.dumps([flushed(v) for v in values])
 
 
 def _transform(xyz: np.ndarray, quat: np.ndarray) -> str:

@@ -21,6 +21,7 @@ from ssgc.export.bodies import SceneBodies
 from ssgc.geometry import quat_to_matrix
 
 SUFFIX = ".glb"
+MAIN_START = b"glTF"  # how every main file begins (the binary header's magic)
 ROOT_NAME = "Z_UP"
 # -90 degrees about x: the scene's +z (up) becomes glTF's +y (up), its +y becomes -z.
 Z_UP_TO_Y_UP = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])

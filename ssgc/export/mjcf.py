@@ -15,23 +15,26 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from ssgc.assets import Shape
+from ssgc.errors import SsgError
 from ssgc.export.bodies import (
     Body,
     SceneBodies,
     collision_piece,
     mesh_files,
+    num,
     principal_axes,
     used_shapes,
 )
 from ssgc.geometry import matrix_to_quat
 
 SUFFIX = ".xml"
+MAIN_START = b"<mujoco model="  # how every main file begins
 # Stiff, critically damped contacts: objects at rest sink less than 1 mm into each other.
 CONTACT = 'solref="0.004 1" solimp="0.95 0.99 0.0005"'
 
 
 def _nums(values: object) -> str:
-    return " ".join(repr(float(v)) for v in np.ravel(values))
+    return " ".join(num(v) for v in np.ravel(values))
 
 
 def _primitive(shape: Shape) -> str:
@@ -84,7 +87,7 @@ def _inertial(shape: Shape) -> str:
     moments = _triangle_inequality(moments)
     return (
         f'<inertial pos="{_nums(shape.com)}" quat="{_nums(matrix_to_quat(axes))}" '
-        f'mass="{shape.mass!r}" diaginertia="{_nums(moments)}"/>'
+        f'mass="{num(shape.mass)}" diaginertia="{_nums(moments)}"/>'
     )
 
 
@@ -115,9 +118,38 @@ def _mesh_asset(name: str, piece: object | None = None) -> str:
     )
 
 
+MUJOCO_MINVAL = 1e-15  # mjMINVAL: MuJoCo counts a triangle whose |cross product| is below it as 0
+
+
+def _mujoco_area(mesh: object) -> float:
+    """A mesh's surface area as MuJoCo measures it: triangles with |(b - a) x (c - a)| below
+    `MUJOCO_MINVAL` count as none, so a teacup scaled by 1e-6 (edges of 1e-8 m) has none."""
+    v = np.asarray(mesh.vertices, dtype=float)[np.asarray(mesh.faces)]  # type: ignore[attr-defined]
+    cross = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    return float(0.5 * np.sum(cross[cross >= MUJOCO_MINVAL]))
+
+
+def refuse_meshes_too_small(scene: SceneBodies) -> None:
+    """Refuse, naming every type at fault, meshes MuJoCo refuses to load ("mesh surface area is
+    too small"): their triangles are each below its smallest area, whatever their sum."""
+    small = [
+        shape.type
+        for shape in used_shapes(scene)
+        if not shape.primitive
+        and any(_mujoco_area(m) < MUJOCO_MINVAL for m in (shape.mesh, *shape.collision))
+    ]
+    if small:
+        raise SsgError.single(
+            f"type(s) {', '.join(repr(s) for s in small)}: a mesh too small for MuJoCo, whose "
+            f"triangles are each below the {MUJOCO_MINVAL:g} its area counts (edges of about "
+            "3e-8 m); scale the mesh up, or use a primitive for so small a thing"
+        )
+
+
 def mjcf_text(
     scene: SceneBodies, meshdir: str = "meshes", floor: bool = False, timestep: float = 0.001
 ) -> str:
+    refuse_meshes_too_small(scene)
     assets = []
     for shape in used_shapes(scene):
         if not shape.primitive:

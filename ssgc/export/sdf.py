@@ -13,15 +13,15 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 
 from ssgc.assets import Shape
-from ssgc.export.bodies import Body, SceneBodies, collision_piece, mesh_files
+from ssgc.export.bodies import Body, SceneBodies, collision_piece, mesh_files, num
 from ssgc.geometry import quat_to_rpy
 
 SUFFIX = ".sdf"
 DRAKE_NS = "http://drake.mit.edu"
-
-
-def num(v: float) -> str:
-    return repr(float(v))
+# How every main file begins (a dmd model file, also SDFormat, has no <world>)
+MAIN_START = (
+    f'<?xml version="1.0"?>\n<sdf version="1.9" xmlns:drake="{DRAKE_NS}">\n  <world '.encode()
+)
 
 
 def pose_text(xyz: np.ndarray, quat: np.ndarray) -> str:

@@ -20,6 +20,7 @@ from ssgc.export.bodies import Body, SceneBodies, principal_axes
 from ssgc.geometry import matrix_to_quat
 
 SUFFIX = ".usda"
+MAIN_START = b"#usda "  # how every main file begins
 
 
 def require() -> None:

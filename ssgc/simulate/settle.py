@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ssgc.dsl import MAX_COORDINATE
 from ssgc.errors import SsgError
 from ssgc.export.bodies import SceneBodies, mesh_files
 from ssgc.export.mjcf import mjcf_text
@@ -185,12 +186,20 @@ def _settle(mujoco, scene: SceneBodies, options: SettleOptions) -> Settled:  # t
     quat = quat_canonical(data.xquat[ids].copy())
     bad = int(data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number) > 0
     bad |= not (np.isfinite(xyz).all() and np.isfinite(quat).all())
+    far = not bad and not np.all(np.abs(xyz) <= MAX_COORDINATE)  # beyond every scene reader
+    bad |= far
     if bad:
-        # MuJoCo reset an unstable simulation (objects far apart in scale, absurd poses):
-        # keep the scene as it was and say it did not settle.
+        # MuJoCo reset an unstable simulation (objects far apart in scale, absurd poses), or
+        # it flung an object beyond the 1,000 km a scene file may hold (a box 100 km wide
+        # on the floor): keep the scene as it was and say it did not settle.
         xyz, after, still = xyz0, before, 0.0
         quat = np.array([b.quat for b in scene.bodies]).reshape(-1, 4)
     reason = _unsettled_reason(bad, still >= options.still_time, after, options)
+    if far:
+        reason = (
+            f"an object left the {MAX_COORDINATE / 1000:,.0f} km from the origin that scene "
+            "files hold (the simulation went unstable), poses kept"
+        )
     return Settled(
         scene.name,
         not reason,
