@@ -65,6 +65,135 @@ def is_fixed(grammar: Grammar, rules: IntArray) -> NDArray[np.bool_]:
     return grammar.tables.point[rules]
 
 
+@dataclass(frozen=True)
+class Links:
+    """Blocks whose position follows from a neighbour's pose through a fixed-offset edge
+    (`same`, `offset`) whose rotation is free: block[k] is placed by edge[k], as that edge's
+    child when as_child[k], else as its parent, after every block of a lower level[k]; arm[k]
+    is the child end's position in the parent block's frame (the parent end's offset plus
+    the rule's offset turned by it).  group and rank (per block, -1 outside a linked group)
+    number the groups and each group's blocks, for the Jacobian (`_placed_jacobian`).
+
+    Why: such an edge is a hard equality between two blocks (or a block and a fixed pose).
+    Moving either block alone leaves the law's support, so L-BFGS never moved them and the
+    pose stayed where rule inversion put it (a chain L1 -same-> L2 -offset-> observed B,
+    both rotations uniform, kept L1 150 nats below its best).  A placed block keeps its
+    rotation as a variable and takes its position from the link, so the chain moves as one.
+    """
+
+    block: IntArray
+    edge: IntArray
+    as_child: NDArray[np.bool_]
+    arm: FloatArray
+    level: IntArray
+    group: IntArray
+    rank: IntArray
+
+
+def no_links(n_blocks: int) -> Links:
+    empty = np.zeros(0, np.int64)
+    none = np.full(n_blocks, -1, np.int64)
+    return Links(empty, empty, np.zeros(0, bool), np.zeros((0, 3)), empty, none, none)
+
+
+NO_LINKS = no_links(0)
+
+
+def tied_links(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> Links:
+    """The links of `Links` for the blocks of `edges`.
+
+    The edges whose translation is a fixed offset join blocks into groups (a forest: blocks
+    partition a tree).  A group with one such edge to a fixed pose is placed from it; a
+    group with none from its first block, whose position stays a variable; a group with
+    two or more is over-determined and left as it was (no block of it placed)."""
+    law = [grammar.rules[int(r)].translation for r in edges.rule]
+    tied = np.flatnonzero([t.point is not None for t in law])
+    tied = tied[(edges.p_block[tied] >= 0) | (edges.c_block[tied] >= 0)]
+    if len(tied) == 0:
+        return no_links(n_blocks)
+    group = np.arange(n_blocks)
+
+    def find(b: int) -> int:
+        while group[b] != b:
+            b = int(group[b])
+        return b
+
+    for m in tied:
+        pb, cb = int(edges.p_block[m]), int(edges.c_block[m])
+        if pb >= 0 and cb >= 0:
+            group[find(pb)] = find(cb)
+    roots = np.array([find(b) for b in range(n_blocks)], np.int64)
+    return _placement(grammar, edges, tied, roots)
+
+
+def _placement(grammar: Grammar, edges: PoseEdges, tied: IntArray, roots: IntArray) -> Links:
+    """Each group's blocks in the order a breadth-first walk from its anchor reaches them,
+    with their depth in the walk (the anchor 0, placed from its fixed pose or not at all)."""
+    own = np.where(edges.p_block >= 0, edges.p_block, edges.c_block)  # an edge's block end
+    fixed_end = (edges.p_block[tied] < 0) | (edges.c_block[tied] < 0)
+    anchors, between = tied[fixed_end], tied[~fixed_end]
+    n_fixed = np.bincount(roots[own[anchors]], minlength=len(roots))
+    order: list[tuple[int, int, int]] = []  # (block, edge that places it, depth)
+    group, rank = np.full(len(roots), -1, np.int64), np.full(len(roots), -1, np.int64)
+    n_groups = 0
+    for root in np.unique(roots):
+        if n_fixed[root] > 1:
+            continue
+        start = int(root)
+        if n_fixed[root] == 1:
+            m = int(anchors[roots[own[anchors]] == root][0])
+            start = int(own[m])
+            order.append((start, m, 0))
+        walked = _walk(edges, between, start)
+        if not walked and n_fixed[root] == 0:
+            continue  # a lone block: nothing to place
+        members = [start] + [b for b, _, _ in walked]
+        group[members], rank[members] = n_groups, np.arange(len(members))
+        n_groups += 1
+        order += walked
+    order.sort(key=lambda o: o[2])  # stable: within a level, any order
+    block = np.array([o[0] for o in order], np.int64)
+    edge = np.array([o[1] for o in order], np.int64)
+    offset = [grammar.rules[int(r)].translation.point for r in edges.rule[edge]]
+    arm = edges.p_xyz[edge] + quat_rotate(edges.p_quat[edge], np.reshape(offset, (-1, 3)))
+    level = np.array([o[2] for o in order], np.int64)
+    as_child = edges.c_block[edge] == block
+    return Links(block, edge, as_child, arm.reshape(-1, 3), level, group, rank)
+
+
+def _walk(edges: PoseEdges, between: IntArray, start: int) -> list[tuple[int, int, int]]:
+    """(block, edge, depth) for the blocks reached from `start` over the edges `between`,
+    breadth first: each is placed by the edge that reached it."""
+    seen, frontier, out = {start}, [(start, 0)], []
+    for b, depth in frontier:  # grows while walked
+        for m in between[(edges.p_block[between] == b) | (edges.c_block[between] == b)]:
+            other = int(edges.c_block[m] if edges.p_block[m] == b else edges.p_block[m])
+            if other not in seen:
+                seen.add(other)
+                frontier.append((other, depth + 1))
+                out.append((other, int(m), depth + 1))
+    return out
+
+
+def placed(edges: PoseEdges, links: Links, bx: FloatArray, bq: FloatArray) -> FloatArray:
+    """Block positions (..., B, 3) with the linked blocks moved to where their links put
+    them, at rotations bq (..., B, 4): level by level, each level at once."""
+    x = bx.copy()
+    for level in np.unique(links.level):
+        k = np.flatnonzero(links.level == level)
+        d, m = links.block[k], links.edge[k]
+        pb, cb = np.maximum(edges.p_block[m], 0), np.maximum(edges.c_block[m], 0)
+        turned_c = quat_rotate(bq[..., d, :], edges.c_xyz[m])
+        # as a child: x_d + R_d c = x_p + R_p arm
+        from_parent = x[..., pb, :] + quat_rotate(bq[..., pb, :], links.arm[k]) - turned_c
+        # as a parent: the child end, fixed or a block, sits at x_d + R_d arm
+        child_end = x[..., cb, :] + quat_rotate(bq[..., cb, :], edges.c_xyz[m])
+        child_end = np.where((edges.c_block[m] >= 0)[:, None], child_end, edges.c_xyz[m])
+        from_child = child_end - quat_rotate(bq[..., d, :], links.arm[k])
+        x[..., d, :] = np.where(links.as_child[k][:, None], from_parent, from_child)
+    return x
+
+
 def exp_quat(w: FloatArray) -> FloatArray:
     """The unit quaternion of rotation vector w (angle |w| about w / |w|)."""
     angle = np.linalg.norm(w, axis=-1, keepdims=True)
@@ -252,12 +381,14 @@ def maximize(
     q0: FloatArray,
     max_iter: int = 200,
     deadline: float | None = None,
+    links: Links = NO_LINKS,
 ) -> tuple[FloatArray, FloatArray]:
     """Block poses that locally maximise the summed edge log-densities, starting at (x0, q0).
 
-    Never worse than the start: if the optimiser ends lower (it can, on a flat or
-    discontinuous law), the start is returned.  At the deadline (a `time.perf_counter()`
-    value) it stops with the best point so far.
+    Linked blocks (`Links`) take their positions from their links, at every step.  Never
+    worse than the start: if the optimiser ends lower (it can, on a flat or discontinuous
+    law), the start is returned.  At the deadline (a `time.perf_counter()` value) it stops
+    with the best point so far.
     """
     n_blocks = len(x0)
     if n_blocks == 0 or len(edges.rule) == 0:
@@ -266,7 +397,11 @@ def maximize(
     tiled = _tiled(edges, n_blocks, N_VARIANTS)
 
     def cost(flat: FloatArray) -> tuple[float, FloatArray]:
-        value, grad = _value_and_gradient(grammar, tiled, edges, x0, q0, flat.reshape(n_blocks, 6))
+        theta = flat.reshape(n_blocks, 6)
+        if len(links.block):
+            value, grad = _linked_value_and_gradient(grammar, tiled, edges, links, x0, q0, theta)
+        else:
+            value, grad = _value_and_gradient(grammar, tiled, edges, x0, q0, theta)
         total = float(value.sum())
         if not np.isfinite(total):
             return PENALTY, np.zeros_like(flat)
@@ -282,14 +417,69 @@ def maximize(
         np.zeros(6 * n_blocks),
         jac=True,
         method="L-BFGS-B",
-        bounds=_theta_bounds(grammar, edges, x0, q0),
+        bounds=_theta_bounds(grammar, edges, x0, q0, links),
         callback=stop_at_deadline,
         options={"maxiter": max_iter, "ftol": 1e-12, "gtol": 1e-7},
     )
     if not np.isfinite(res.fun) or res.fun > start:
-        return x0, q0
+        if len(links.block) == 0:
+            return x0, q0
+        res.x = np.zeros(6 * n_blocks)  # the start, with its links closed
     bx, bq = _moved(x0, q0, res.x.reshape(n_blocks, 6))
-    return bx, quat_normalize(bq)
+    bq = quat_normalize(bq)
+    return placed(edges, links, bx, bq), bq
+
+
+def _linked_value_and_gradient(
+    grammar: Grammar,
+    tiled: PoseEdges,
+    edges: PoseEdges,
+    links: Links,
+    x0: FloatArray,
+    q0: FloatArray,
+    theta: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """`_value_and_gradient` with the linked blocks placed: the gradient with every position
+    held, plus, by the chain rule, what each variable moves through the placed positions."""
+    x, q = _moved(x0, q0, theta)
+    x = placed(edges, links, x, q)
+    rotations_only = np.hstack([np.zeros((len(x0), 3)), theta[:, 3:]])
+    value, grad = _value_and_gradient(grammar, tiled, edges, x, q0, rotations_only)
+    var, dx = _placed_jacobian(edges, links, x0, q0, theta)
+    moved = links.block
+    pull = np.einsum("pkj,kj->pk", dx, grad[moved, :3])  # (perturbation, placed block)
+    ok = var[0] >= 0
+    np.add.at(grad, (var[0][ok], var[1][ok]), pull[ok])
+    grad[moved, :3] = 0.0  # their own positions are not variables
+    return value, grad
+
+
+def _placed_jacobian(
+    edges: PoseEdges, links: Links, x0: FloatArray, q0: FloatArray, theta: FloatArray
+) -> tuple[tuple[IntArray, IntArray], FloatArray]:
+    """How the placed positions move with each variable, by central differences (placing is
+    cheap and smooth): ((block, coordinate) of the variable per perturbation and placed
+    block, -1 where none), and d(position)/d(variable), (perturbations, placed blocks, 3).
+
+    Groups are independent, so coordinate c of the r-th block of every group is perturbed
+    at once: 12 placements per rank, however many groups there are."""
+    n_blocks, in_group = len(x0), links.group >= 0
+    n_rank = int(links.rank.max(initial=-1)) + 1
+    member = np.full((int(links.group.max(initial=-1)) + 1, n_rank), -1, np.int64)
+    member[links.group[in_group], links.rank[in_group]] = np.flatnonzero(in_group)
+    rank, coord = np.repeat(np.arange(n_rank), 6), np.tile(np.arange(6), n_rank)
+    n_pert = len(rank)
+    step = np.zeros((n_pert, n_blocks, 6))
+    hit = in_group[None, :] & (links.rank[None, :] == rank[:, None])
+    step[hit, np.broadcast_to(coord[:, None], hit.shape)[hit]] = STEP
+    thetas = np.concatenate([theta + step, theta - step]).reshape(-1, 6)
+    sx, sq = _moved(np.tile(x0, (2 * n_pert, 1)), np.tile(q0, (2 * n_pert, 1)), thetas)
+    sq = sq.reshape(2 * n_pert, n_blocks, 4)
+    sx = placed(edges, links, sx.reshape(2 * n_pert, n_blocks, 3), sq)
+    moved = links.block
+    dx = (sx[:n_pert, moved] - sx[n_pert:, moved]) / (2 * STEP)
+    var_block = member[links.group[moved][None, :], rank[:, None]]  # (perturbation, placed)
+    return (var_block, np.broadcast_to(coord[:, None], var_block.shape)), dx
 
 
 def rigid_rotation(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> NDArray[np.bool_]:
@@ -312,12 +502,14 @@ def rigid_rotation(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> NDArray
 
 
 def _theta_bounds(
-    grammar: Grammar, edges: PoseEdges, x0: FloatArray, q0: FloatArray
+    grammar: Grammar, edges: PoseEdges, x0: FloatArray, q0: FloatArray, links: Links = NO_LINKS
 ) -> list[tuple[float | None, float | None]]:
     """L-BFGS-B's bounds on the blocks' moves: box laws on the positions (`box_limits`, never
-    excluding the start); a rigid block's rotation (`rigid_rotation`) stays."""
+    excluding the start); a rigid block's rotation (`rigid_rotation`) stays, and so does a
+    linked block's position variable (`Links`: its link places it)."""
     lo, hi = box_limits(grammar, edges, x0, q0)
     lo, hi = np.minimum(lo - x0, 0.0), np.maximum(hi - x0, 0.0)
+    lo[links.block], hi[links.block] = 0.0, 0.0
     turn = np.where(rigid_rotation(grammar, edges, len(x0))[:, None], 0.0, np.inf)
     theta_lo = np.hstack([lo, np.broadcast_to(-turn, (len(x0), 3))]).ravel()
     theta_hi = np.hstack([hi, np.broadcast_to(turn, (len(x0), 3))]).ravel()
@@ -547,7 +739,8 @@ def refine_tree(
         c_xyz=off_t[child],
         c_quat=off_q[child],
     )
-    bx, bq = maximize(grammar, edges, tree.xyz[tops], tree.quat[tops], max_iter, deadline)
+    links = tied_links(grammar, edges, len(tops))
+    bx, bq = maximize(grammar, edges, tree.xyz[tops], tree.quat[tops], max_iter, deadline, links)
     bx = snap_fixed_offsets(grammar, edges, bx, bq)
     xyz, quat = tree.xyz.copy(), tree.quat.copy()
     xyz[member], quat[member] = _end(block[member], off_t[member], off_q[member], bx, bq)

@@ -323,6 +323,7 @@ class _SetProposer:
         self.arc = own_arc if known else None  # the own rule's arc about a known parent
         self.pinned_xyz, self.pinned_quat = self._pinned() if known else (None, None)
         self.pins = self._own_pins()
+        self.target = self._aim_target()
 
     def _slots(self) -> list[tuple[int, int, int, int]]:
         """(member node, rule, child set, copies) for each rule leaving the set."""
@@ -401,6 +402,53 @@ class _SetProposer:
             q_v = quat_multiply(q_top, self.st.offset_quat[v])
         t_top, q_top = self._translation(slot, child_xyz, q_v, default_xyz)
         if self.pins is not None and self.pinned_quat is None and self.arc is None:
+            t_top, q_top = self._onto_pins(child_xyz, t_top, q_top)
+        return t_top, q_top
+
+    def _aim_target(self) -> FloatArray | None:
+        """Where the rules above expect the set's position: the mode of the first rule up
+        the chain of fixed translations (`same`, `offset`) that is not one, at its parent's
+        pose where that is known (or in the world); None where no such mode is known.  The
+        chain's offsets are left out: a guess to aim at, not a pose."""
+        st, g, cand = self.st, self.g, self.cand
+        e, root = self.e, int(st.set_of[0])
+        while e != root:
+            r = int(st.rule[st.set_top[e]])
+            law = g.rules[r].translation
+            parent = known_parent(g, st, cand, e)
+            if law.point is None and law.frame == Frame.WORLD:
+                return law.mode()
+            if parent not in (None, False):
+                return child_mode(g, r, parent[0][None], parent[1][None])[0][0]
+            if law.point is None:
+                return None
+            e = int(st.set_of[st.parent[st.set_top[e]]])
+        return cand.xyz[root][0] if len(cand.xyz[root]) == 1 else None
+
+    def aimed(
+        self, slot: tuple[int, int, int, int], child_xyz: FloatArray
+    ) -> tuple[FloatArray, FloatArray] | None:
+        """Set-top poses that put each child at the slot's fixed offset, the set turned so
+        that it sits as near to `_aim_target` as the offset allows (then onto its own pins);
+        None where the slot's rule is not a fixed offset under a free rotation.
+
+        Why: such a child holds the set on a sphere about it, and rule inversion at the
+        default rotation put it at an arbitrary point of that sphere, often metres from where
+        the rules above want it (a chain L1 -same-> L2 -offset-> B under uniform rotations:
+        150 nats below the sampled tree).  Refinement cannot walk the sphere from a tree the
+        model did not pick (`no_parse`, or a shallower tree whose rotation is held)."""
+        v, r, _, _ = slot
+        law = self.g.rules[r].translation
+        if self.target is None or self.pinned_quat is not None or self.arc is not None:
+            return None
+        if law.point is None or law.frame != Frame.PARENT or rotation_mode(self.g, r) is not None:
+            return None
+        arm = self.st.offset_xyz[v] + quat_rotate(self.st.offset_quat[v], law.point)
+        if np.linalg.norm(arm) <= POS_TOL or not len(child_xyz):
+            return None
+        q_top = quat_between(np.broadcast_to(arm, child_xyz.shape), child_xyz - self.target)
+        t_top = child_xyz - quat_rotate(q_top, arm)
+        if self.pins is not None:
             t_top, q_top = self._onto_pins(child_xyz, t_top, q_top)
         return t_top, q_top
 
@@ -525,10 +573,10 @@ class _SetProposer:
         xs, qs, edges = [], [], []
         singles = [self._children(s) for s in self.slots]
         for s, (cx, cq) in zip(self.slots, singles, strict=True):
-            tx, tq = self.invert(s, cx, cq)
-            xs.append(tx)
-            qs.append(tq)
-            edges += [((s, cx[k], cq[k]),) for k in range(len(cx))]
+            for tx, tq in filter(None, (self.invert(s, cx, cq), self.aimed(s, cx))):
+                xs.append(tx)
+                qs.append(tq)
+                edges += [((s, cx[k], cq[k]),) for k in range(len(cx))]
         px, pq, pe = self._pairs(singles)
         xs.append(px)
         qs.append(pq)
