@@ -82,13 +82,15 @@ class _Checks:
                     (*t.path, "model"),
                     f"type '{t.name}' is not observed, so its `model` is never exported or matched",
                 )
-            keys = [("model", t.model)] if t.model and t.observed else []
-            keys += [("label", label) for label in dict.fromkeys(t.labels)]
-            if len(set(t.labels)) < len(t.labels):
-                self.warn((*t.path, "labels"), f"type '{t.name}' lists a label twice")
-            for key in keys:
+            # each key with where it is: a label's own place in the list, not the `labels` key
+            keys = [(("model", t.model), (*t.path, "model"))] if t.model and t.observed else []
+            first = {label: k for k, label in reversed(list(enumerate(t.labels)))}
+            keys += [(("label", label), (*t.path, "labels", k)) for label, k in first.items()]
+            for k, label in enumerate(t.labels):
+                if first[label] != k:  # at its second place
+                    self.warn((*t.path, "labels", k), f"type '{t.name}' lists a label twice")
+            for key, loc in keys:
                 if key in owners:
-                    loc = (*t.path, "model" if key[0] == "model" else "labels")
                     self.error(loc, f"{key[0]} '{key[1]}' already names type '{owners[key]}'")
                 owners[key] = t.name
 

@@ -45,7 +45,7 @@ def _within_limit(xyz: list[float], what: str) -> list[float]:
     if far > MAX_COORDINATE:
         raise ValueError(
             f"{what} must lie within {MAX_COORDINATE / 1000:,.0f} km of the origin on each "
-            f"axis, got {far:g} m (poses are resolved to 1e-6 m, which floating point cannot "
+            f"axis, got {far!r} m (poses are resolved to 1e-6 m, which floating point cannot "
             "hold there)"
         )
     return xyz

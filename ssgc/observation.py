@@ -167,11 +167,22 @@ def _noise_of_types(spec: dsl.ObservationSpec, g: Observed, report: Report) -> d
         tid = g.ids.get(name)
         if tid is None or not g.types[tid].observed:
             what = "not a type of this grammar" if tid is None else "not an observed type"
-            report.error(loc, f"noise of '{name}': {what} (noise is on observed poses)")
+            hint = _observed_like(name, g) if tid is None else ""
+            report.error(loc, f"noise of '{name}': {what}{hint} (noise is on observed poses)")
             continue
         own[tid] = _noise(n, loc, report)
     base = _noise(default, (*LOC, "noise", "default"), report) if default else Noise()
     return {t.id: own.get(t.id, base) for t in g.types if t.observed}
+
+
+def _observed_like(name: str, g: Observed) -> str:
+    """A "did you mean" for a misspelt noise type, as a misspelt child or constraint type
+    gets one: the closest observed type's name, if any is close."""
+    import difflib
+
+    observed = [t.name for t in g.types if t.observed]
+    close = difflib.get_close_matches(name, observed, n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 def _noise(n: dsl.NoiseSpec, loc: Loc, report: Report) -> Noise:

@@ -874,7 +874,7 @@ CASES = [
             Cup: {observed: true, labels: [cup]}
             Mug: {observed: true, labels: [mug, cup]}
         """),
-        "labels: [mug",
+        "labels: [mug, |cup",  # at the label, not the `labels` key
         "label 'cup' already names type 'Cup'",
         id="label-claimed-twice",
     ),

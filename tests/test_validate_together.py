@@ -269,3 +269,46 @@ def test_geometry_at_the_limit_is_accepted() -> None:
         "  T: {observed: true, geometry: {box: {size: [2000000, 1, 1]}}}\n",
         "case.yaml",
     )
+
+
+# ------------------------------------------------------ small places and hints ---
+
+LABELS = """\
+grammar: lab
+root: R
+types:
+  R: {observed: true, labels: [a, b, a], and: [{child: C}]}
+  C: {observed: true, labels: [c, b]}
+"""
+
+
+def test_a_label_s_mistakes_point_at_the_label() -> None:
+    """Both pointed at the `labels` key, not at the label named twice or taken."""
+    messages = errors(LABELS)
+    assert found(messages, at(LABELS, 5, "b]"), "label 'b' already names type 'R'") == 1
+    with pytest.raises(GrammarError) as caught:
+        compile_text(LABELS, "case.yaml")
+    warnings = [str(d) for d in caught.value.diagnostics if d.severity == "warning"]
+    assert warnings == [f"case.yaml:{at(LABELS, 4, 'a]')}: warning: type 'R' lists a label twice"]
+
+
+def test_a_misspelt_noise_type_gets_a_suggestion() -> None:
+    text = """\
+grammar: typo
+root: Table
+types:
+  Table: {observed: true, and: [{child: Cup, translation: {offset: [0, 0, 1]}}]}
+  Cup: {observed: true}
+observation:
+  noise: {Cupp: {position: 0.01}}
+"""
+    (message,) = errors(text)
+    assert "noise of 'Cupp': not a type of this grammar (did you mean 'Cup'?)" in message
+
+
+def test_a_position_just_beyond_the_limit_says_its_digits() -> None:
+    """`got 1e+06 m` for 1000000.0000001 m read as the limit itself."""
+    from ssgc.dsl import _within_limit
+
+    with pytest.raises(ValueError, match=r"got 1000000\.0000001 m"):
+        _within_limit([1000000.0000001, 0.0, 0.0], "a position")
