@@ -249,3 +249,15 @@ def test_a_long_output_name_is_written(tmp_path, command):
     assert {p.name for p in outs.iterdir()} - {stale.name} == {out.name}  # no lock, no journal
     if command == "parse":  # its journal's start removes a killed run's temporary files
         assert not stale.exists()
+
+
+def test_a_scene_name_of_more_than_1000_characters_is_refused(tmp_path: Path) -> None:
+    """A 100,000-character name was printed whole, twice, in each no-parse line (200 KB)."""
+    from ssgc.io.scene import MAX_NAME
+
+    doc = {"name": "n" * (MAX_NAME + 1), "objects": []}
+    (tmp_path / "long.json").write_text(json.dumps(doc))
+    result = runner.invoke(app, ["parse", str(tmp_path / "long.json"), "-g", str(SINK)])
+    assert result.exit_code == 1
+    assert "a scene name is at most 1,000 characters" in result.output
+    assert len(result.output) < 1000

@@ -82,10 +82,20 @@ class TreeDoc(Strict):
     nodes: list[TreeNode]
 
 
+# A scene's name is in every message about it: one of 100,000 characters printed 200 KB of
+# one line for each scene without a parse.
+MAX_NAME = 1000
+
+
 def name_problem(name: str) -> str | None:
     """Why `name` cannot name a scene: names go into one-line messages and output files."""
     if one_line(name) != name:
         return f"a scene name must be one line of printable text, got '{shown(one_line(name))}'"
+    if len(name) > MAX_NAME:
+        return (
+            f"a scene name is at most {MAX_NAME:,} characters (it is in every message about "
+            f"the scene), got {len(name):,}: '{shown(name)}'"
+        )
     return None
 
 
