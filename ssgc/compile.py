@@ -168,12 +168,18 @@ def _meant(unknown: dict[str, Any]) -> tuple[tuple, str]:
 def _follow_on(e: Any, meant: set[tuple[tuple, str]]) -> bool:
     """Whether error `e` only follows from a misspelt key taken out: the key it meant is
     missing (`lenght` → `length: missing required key`), or a one-of that wants it is unmet
-    (`varience` → "give exactly one of `variance` or `covariance`")."""
+    (`varience` → "give exactly one of `variance` or `covariance`") — and only if the key it
+    meant was not given as well: a mapping with `variance`, `covariance` and `varience` has
+    both mistakes."""
     loc = tuple(e["loc"])
     if e["type"] == "missing":
         return (loc[:-1], str(loc[-1])) in meant
     if e["type"].startswith("value_error"):
-        return any(at == loc and f"`{key}`" in e["msg"] for at, key in meant if key)
+        given = e.get("input")
+        given = given if isinstance(given, dict) else {}
+        return any(
+            at == loc and f"`{key}`" in e["msg"] and key not in given for at, key in meant if key
+        )
     return False
 
 

@@ -107,3 +107,30 @@ def test_the_ray_test_agrees_with_the_revolve_s_exact_inside(x: float, y: float,
     distance = float(solid.signed_distance(point[None])[0])
     if abs(distance) > 2e-4:  # the facets' chord is within 1.8e-4 m of the 8 cm circle
         assert surface.inside(point) == (distance < 0)
+
+
+def test_an_open_mesh_is_not_judged_by_its_origin(tmp_path: Path) -> None:
+    """An open cup (a cylinder without a top) has its origin in its cavity; a ball resting
+    there, touching nothing, was called buried in the cup through that origin."""
+    angle = np.linspace(0, 2 * np.pi, 25)[:-1]
+    ring = np.stack([0.05 * np.cos(angle), 0.05 * np.sin(angle)], axis=1)
+    lines = [f"v {x} {y} -0.05" for x, y in ring] + [f"v {x} {y} 0.05" for x, y in ring]
+    lines.append("v 0 0 -0.05")
+    n = len(ring)
+    for k in range(n):  # the side, and the bottom: no top
+        a, b = k + 1, (k + 1) % n + 1
+        lines += [f"f {a} {b} {b + n}", f"f {a} {b + n} {a + n}", f"f {2 * n + 1} {b} {a}"]
+    (tmp_path / "cup.obj").write_text("\n".join(lines) + "\n")
+    text = """grammar: cup
+root: Ball
+types:
+  Ball:
+    observed: true
+    geometry: {revolve: {profile: [[0, -0.02], [0.02, 0], [0, 0.02]]}}
+    and: [{child: Cup, translation: {offset: [0, 0, 0]}}]
+  Cup: {observed: true, geometry: {mesh: {file: cup.obj}}}
+constraints:
+  np: {non_penetration: {types: [Ball, Cup]}}
+"""
+    (tmp_path / "g.yaml").write_text(text)
+    assert _margin(ssgc.load_grammar(tmp_path / "g.yaml")) > 0.02

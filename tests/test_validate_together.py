@@ -312,3 +312,42 @@ def test_a_position_just_beyond_the_limit_says_its_digits() -> None:
 
     with pytest.raises(ValueError, match=r"got 1000000\.0000001 m"):
         _within_limit([1000000.0000001, 0.0, 0.0], "a position")
+
+
+def test_a_misspelt_key_hides_no_other_mistake_of_its_mapping() -> None:
+    """With `variance`, `covariance` and `varience` all given, "give exactly one" was dropped
+    as a follow-on of the misspelling, though it holds without it."""
+    text = """\
+grammar: f
+root: R
+types:
+  R:
+    observed: true
+    and:
+      - child: A
+        translation:
+          world_normal:
+            {mean: [0, 0, 0], variance: 0.1, covariance: [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+             varience: 1}
+  A: {observed: true}
+"""
+    messages = errors(text)
+    assert sum("unknown key 'varience'" in m for m in messages) == 1
+    assert sum("give exactly one of `variance` or `covariance`" in m for m in messages) == 1
+
+
+def test_a_radius_for_the_type_a_misspelt_name_meant_is_no_second_mistake() -> None:
+    text = """\
+grammar: v
+root: R
+types:
+  R:
+    observed: true
+    geometry: {box: {size: [1, 1, 0.1]}}
+    and: [{child: M, translation: {offset: [0, 0, 0.2]}}]
+  M: {observed: true, geometry: {sphere: {radius: 0.1}}}
+constraints:
+  a: {inside_box: {types: [Mx], min: [0, 0, 0], max: [1, 1, 1], keep_out: true, radius: {M: 1}}}
+"""
+    messages = errors(text)
+    assert messages and all("'Mx' is not a type" in m for m in messages), messages

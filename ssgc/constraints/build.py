@@ -282,14 +282,18 @@ class _Builder:
     ) -> Any:
         r = np.zeros(self.n)
         ok = True
+        # with a misspelt name in `types` (said already), a radius for the type it meant is
+        # not a second mistake
+        all_known = {self.types[i].name for i in ids} >= set(names)
         for key, value in given.items():
             t = self.type_id(key, (*loc, "radius", key))
             if t is None:
                 ok = False
             elif t not in ids:
-                self.c.error(
-                    (*loc, "radius", key), f"'{key}' is not one of this constraint's types"
-                )
+                if all_known:
+                    self.c.error(
+                        (*loc, "radius", key), f"'{key}' is not one of this constraint's types"
+                    )
                 ok = False
             else:
                 r[self.node(t)] = value

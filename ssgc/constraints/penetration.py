@@ -147,22 +147,25 @@ class NonPenetration(Constraint):
             return False
         for inner, outer in ((b, a), (a, b)):
             surface = self.surfaces[int(batch.type[outer])]
-            if surface is not None and surface.inside(self._local(batch, inner, outer)):
+            point = self._point_of(batch, int(inner))
+            if surface is None or point is None:
+                continue
+            rot = quat_to_matrix(np.asarray(batch.quat[outer], float)[None])[0]
+            if surface.inside(rot.T @ (point - self._placed(batch, int(outer)))):
                 return True
         return False
 
-    def _local(self, batch: Any, node: int, frame: int) -> FloatArray:
-        """A point of `node`'s geometry in the frame of `frame`'s geometry (about its origin)."""
-        point = self._point_of(batch, int(node))
-        rot = quat_to_matrix(np.asarray(batch.quat[frame], float)[None])[0]
-        return rot.T @ (point - self._placed(batch, int(frame)))
-
-    def _point_of(self, batch: Any, node: int) -> FloatArray:
-        """A point inside a primitive (its centre) or on a closed surface (a vertex)."""
+    def _point_of(self, batch: Any, node: int) -> FloatArray | None:
+        """A point inside a primitive (its centre) or on a closed surface (a vertex); None
+        for an open mesh, which has neither (its origin may lie anywhere: a cup's open
+        cylinder has it in the cavity, where a ball resting in the cup is)."""
+        t = int(batch.type[node])
         at = self._placed(batch, node)
-        surface = self.surfaces[int(batch.type[node])] if self.surfaces else None
-        if surface is None:
+        if not self.hollow[t]:
             return at
+        surface = self.surfaces[t]
+        if surface is None:
+            return None
         return at + quat_rotate(np.asarray(batch.quat[node], float), surface.v0[0])
 
     def _placed(self, batch: Any, node: int) -> FloatArray:

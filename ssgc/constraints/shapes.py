@@ -151,29 +151,43 @@ def closed_surface(geometry: Any, base_dir: Path | None = None) -> ClosedSurface
 # A ray in no axis plane and along no diagonal: the facets of revolves, trays and meshes are
 # axis-aligned or regular, so it does not graze their edges.
 _RAY = np.array([0.5349, 0.6195, 0.5745]) / np.linalg.norm([0.5349, 0.6195, 0.5745])
+_ACROSS = np.linalg.svd(_RAY[None])[2][1:]  # (2, 3): an orthonormal basis across the ray
 
 
 class ClosedSurface:
     """A closed triangle surface, about its geometry's origin: `inside(point)` by the parity
-    of the surface's crossings along a ray (Möller–Trumbore, all triangles at once).  FCL sees
-    such a surface as triangles only, so an object buried in the solid it bounds, touching no
-    triangle, is apart for FCL; this says it is inside."""
+    of the surface's crossings along a ray (Möller–Trumbore).  FCL sees such a surface as
+    triangles only, so an object buried in the solid it bounds, touching no triangle, is
+    apart for FCL; this says it is inside.  Only the triangles whose shadow along the ray
+    covers the point are intersected (their bounds across the ray are kept): a mesh of 80,000
+    triangles made every close pair of a constrained sample 6 times slower."""
 
     def __init__(self, triangles: NDArray[np.float64]) -> None:
         self.v0 = triangles[:, 0]
         self.e1 = triangles[:, 1] - self.v0
         self.e2 = triangles[:, 2] - self.v0
-        self.p = np.cross(_RAY, self.e2)
-        self.det = np.einsum("ij,ij->i", self.e1, self.p)
+        self.lo, self.hi = (
+            triangles.reshape(-1, 3).min(axis=0),
+            triangles.reshape(-1, 3).max(axis=0),
+        )
+        across = triangles @ _ACROSS.T  # (n, 3 corners, 2): coordinates across the ray
+        self.shadow_lo, self.shadow_hi = across.min(axis=1), across.max(axis=1)
 
     def inside(self, point: NDArray[np.float64]) -> bool:
-        ok = np.abs(self.det) > 1e-30
-        det = np.where(ok, self.det, 1.0)
-        s = point - self.v0
-        u = np.einsum("ij,ij->i", s, self.p) / det
-        q = np.cross(s, self.e1)
+        if np.any(point < self.lo) or np.any(point > self.hi):
+            return False
+        at = _ACROSS @ point
+        k = np.flatnonzero(np.all((self.shadow_lo <= at) & (at <= self.shadow_hi), axis=1))
+        v0, e1, e2 = self.v0[k], self.e1[k], self.e2[k]
+        p = np.cross(_RAY, e2)
+        det = np.einsum("ij,ij->i", e1, p)
+        ok = np.abs(det) > 1e-30
+        det = np.where(ok, det, 1.0)
+        s = point - v0
+        u = np.einsum("ij,ij->i", s, p) / det
+        q = np.cross(s, e1)
         w = (q @ _RAY) / det
-        t = np.einsum("ij,ij->i", self.e2, q) / det
+        t = np.einsum("ij,ij->i", e2, q) / det
         hits = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0)
         return bool(np.count_nonzero(hits) % 2)
 

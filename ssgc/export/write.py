@@ -161,7 +161,8 @@ def _refuse_changed_shared_files(out_dir: Path, shared: dict[str, bytes]) -> Non
     if changed:
         why = (
             "already holds a different version of this file, which the scenes exported here "
-            "before may use (another grammar's, or this grammar's before it changed); export "
-            "into another directory, or remove it first"
+            "before may use (another grammar's, this grammar's before it changed, or, for a "
+            "mesh .obj, one an ssgc before 2026-11-29 wrote with 9 decimals); export into "
+            "another directory, or remove it first"
         )
         raise SsgError([Diagnostic(why, str(out_dir / rel)) for rel in sorted(changed)])

@@ -195,8 +195,9 @@ def scene_to_json(grammar: Grammar, scene: Scene, **header: Any) -> dict[str, An
 
 # A JSON string literal, or a list of numbers (a list that starts with one and holds no string,
 # list or object).  Strings are matched first so that text inside them that looks like a list
-# ("mug[1,   2]") is passed over, never rewritten.
-_STRING_OR_NUMBER_LIST = re.compile(r'"(?:[^"\\]|\\.)*"|\[\s*(-?[0-9][^\[\]{}"]*?)\s*\]')
+# ("mug[1,   2]") is passed over, never rewritten.  The string pattern is unrolled (runs of
+# plain characters, then one escape): one alternative per character took 3.3 s on 20 MB.
+_STRING_OR_NUMBER_LIST = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"|\[\s*(-?[0-9][^\[\]{}"]*?)\s*\]')
 
 
 def tree_to_json(grammar: Grammar, tree: Trees) -> dict[str, Any]:
