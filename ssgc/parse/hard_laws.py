@@ -89,6 +89,20 @@ class Laws:
     # (rule, whether the set is the rule's child, the other end's pose, the member's offset)
     checks: list[tuple[int, bool, FloatArray, FloatArray, FloatArray, FloatArray]]
     relays: list[Relay] = field(default_factory=list)  # arcs held through a revolute child
+    child_pins: list[ChildPin] = field(default_factory=list)  # children's parent-frame pins
+
+
+@dataclass(frozen=True)
+class ChildPin:
+    """A child at `c_xyz` whose parent-frame Normal pins axes: (R_vᵀ (c - x_v))[pinned] =
+    mean[pinned], with x_v = x + R(q) member_xyz and R_v = R(q ⊗ member_quat).  A condition
+    on the set's rotation where its position is held, on its position (planes) where not."""
+
+    c_xyz: FloatArray
+    member_xyz: FloatArray
+    member_quat: FloatArray
+    pinned: NDArray[np.bool_]
+    mean: FloatArray
 
 
 @dataclass(frozen=True)
@@ -179,6 +193,10 @@ def add_child_rule(
     elif isinstance(tl, NormalTranslation):
         if tl.frame == Frame.PARENT:
             laws.soft_xyz.append((c_xyz, member_xyz + quat_rotate(member_quat, tl.offset)))
+            if not np.all(tl.free):
+                pinned = ~np.asarray(tl.free, bool)
+                mean = np.asarray(tl.offset, float)
+                laws.child_pins.append(ChildPin(c_xyz, member_xyz, member_quat, pinned, mean))
         else:
             laws.soft_xyz.append((c_xyz - tl.offset, member_xyz))
             if not np.all(tl.free):  # pinned world-offset axes: a flat box
@@ -444,9 +462,107 @@ def hard_poses(
         return np.zeros((0, 3)), np.zeros((0, 4))
     x, ok = positions(laws, q)
     x, q = x[ok], q[ok]
+    if laws.child_pins and len(x):
+        px, pq = _onto_child_pins(laws, x, q)
+        x, q = np.vstack([px, x]), np.vstack([pq, q])
+    if laws.pins and not laws.arcs and len(x):
+        px, pq = _onto_flat_boxes(laws, q)
+        x, q = np.vstack([x, px]), np.vstack([q, pq])
     if not len(x):
         return x, q
     s = score(grammar, laws, x, q)
     good = np.flatnonzero(np.isfinite(s))
     best = good[np.argsort(-s[good], kind="stable")][:keep]
     return x[best], q[best]
+
+
+CHILD_PIN_ROUNDS = 8  # turns onto every child's pins in turn (several children: alternating)
+
+
+def turn_onto_pins(
+    q_v: FloatArray, u: FloatArray, pinned: NDArray[np.bool_], mean: FloatArray
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Rotations q_v ⊗ S, turned as little as the pins allow, with (R_vᵀ u)[pinned] =
+    mean[pinned] for each row's world vector u (the member's vector to its child); and
+    whether a turn reaches (|u| at least the pinned components' length).
+
+    The local vector w = R_vᵀ u keeps its length; its pinned components become the means,
+    its free ones keep their direction (a free axis where they are zero), and S takes the
+    new local vector onto w: R_v S w′ = R_v w = u.  Why: a child's parent-frame Normal with
+    a `pin` is a point mass on those axes, so a latent parent whose position is held (a
+    `same` link) needs a rotation that puts the child on them; rule inversion and the
+    hard laws gave a rotation that ignored them (`no_parse`)."""
+    w = quat_rotate(quat_conjugate(q_v), u)
+    length2 = np.sum(w * w, axis=1)
+    left2 = length2 - np.sum(np.where(pinned, mean, 0.0) ** 2)
+    free_w = np.where(pinned, 0.0, w)
+    free_norm = np.linalg.norm(free_w, axis=1)
+    axis = np.zeros(3)
+    axis[int(np.argmin(pinned))] = 1.0  # a free axis, for a vector with no free part
+    free_w = np.where(free_norm[:, None] > 1e-12, free_w, axis)
+    free_norm = np.linalg.norm(free_w, axis=1)
+    ok = left2 >= -1e-12 * np.maximum(1.0, length2)
+    scale = np.sqrt(np.maximum(left2, 0.0)) / free_norm
+    new_w = np.where(pinned, mean, free_w * scale[:, None])
+    turned = quat_multiply(q_v, quat_between(new_w, w))
+    return np.where(ok[:, None], turned, q_v), ok
+
+
+def _onto_child_pins(laws: Laws, x: FloatArray, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The poses moved onto every child's parent-frame pins: where a pin holds the position
+    (it moves only with the rotation), the rotation turned (`turn_onto_pins`, the children in
+    turn for CHILD_PIN_ROUNDS rounds); elsewhere, the position projected onto the pins'
+    planes at the pose's rotation.  A pose on an arc keeps its rotation (only the planes)."""
+    if laws.pins and not laws.arcs:
+        for _ in range(CHILD_PIN_ROUNDS):
+            for pin in laws.child_pins:
+                q_v = quat_multiply(q, np.broadcast_to(pin.member_quat, q.shape))
+                u = pin.c_xyz - x - quat_rotate(q, np.broadcast_to(pin.member_xyz, x.shape))
+                q_v, _ = turn_onto_pins(q_v, u, pin.pinned, pin.mean)
+                q = quat_normalize(quat_multiply(q_v, quat_conjugate(pin.member_quat)))
+                x = positions(laws, q)[0]
+        return x, q
+    if laws.pins:
+        return x, q
+    normals, targets = [], []
+    for pin in laws.child_pins:  # n·x = n·(c - R member_xyz) - mean_a, n = R_v e_a
+        q_v = quat_multiply(q, np.broadcast_to(pin.member_quat, q.shape))
+        reach = pin.c_xyz - quat_rotate(q, np.broadcast_to(pin.member_xyz, x.shape))
+        for a in np.flatnonzero(pin.pinned):
+            n = quat_rotate(q_v, np.broadcast_to(np.eye(3)[a], x.shape))
+            normals.append(n)
+            targets.append(np.sum(n * reach, axis=1) - pin.mean[a])
+    big_n = np.stack(normals, axis=1)  # (poses, planes, 3)
+    miss = np.stack(targets, axis=1) - np.einsum("nkj,nj->nk", big_n, x)
+    step = np.einsum("njk,nk->nj", np.linalg.pinv(big_n), miss)
+    return x + step, q
+
+
+def _onto_flat_boxes(laws: Laws, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Where the first pin places the set (x = a - R b, a child at a fixed offset under a
+    free rotation) and a flat box (a pinned world axis of its own rule) fixes coordinates
+    of x: the rotations turned as little as needed to put (R b)_k at a_k - value_k
+    (`turn_onto_pins` on the inverse rotation), and the positions there; none without such
+    a box.  Also from the rotation that aims x at the soft laws' targets: turned onto the
+    plane, that is the point of the circle nearest them.
+
+    Why: the pin holds the set on a sphere about its child and the flat box on a plane; the
+    positions clipped into the box left the sphere, so a recursive chain pinned in z with a
+    child at a fixed offset on each level got no pose below its first (`no_parse`)."""
+    flat = np.zeros(3, bool)
+    value = np.zeros(3)
+    for lo, hi, shift in laws.boxes:
+        fixed = np.isfinite(lo) & (lo == hi) & np.all(shift == 0)
+        value = np.where(fixed & ~flat, lo, value)
+        flat |= fixed
+    if not flat.any():
+        return np.zeros((0, 3)), np.zeros((0, 4))
+    a, b = laws.pins[0]
+    targets = [t for t, m in laws.soft_xyz if not np.any(m)]  # soft targets of x itself
+    if targets:  # also aimed: x as near the targets' mean as the sphere allows
+        aim = quat_between(np.asarray(b, float), a - np.mean(targets, axis=0))
+        q = np.vstack([aim.reshape(1, 4), q])
+    b_rows = np.broadcast_to(b, (len(q), 3))
+    turned, ok = turn_onto_pins(quat_conjugate(q), b_rows, flat, np.where(flat, a - value, 0.0))
+    q_new = quat_normalize(quat_conjugate(turned[ok]))
+    return positions(laws, q_new)[0], q_new

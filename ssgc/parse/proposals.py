@@ -403,7 +403,38 @@ class _SetProposer:
         t_top, q_top = self._translation(slot, child_xyz, q_v, default_xyz)
         if self.pins is not None and self.pinned_quat is None and self.arc is None:
             t_top, q_top = self._onto_pins(child_xyz, t_top, q_top)
+        if self.pinned_xyz is not None and self.pinned_quat is None and self.arc is None:
+            q_top = self._onto_child_pins(((slot, child_xyz),), t_top, q_top)
         return t_top, q_top
+
+    def _onto_child_pins(
+        self,
+        kids: tuple[tuple[tuple[int, int, int, int], FloatArray], ...],
+        t_top: FloatArray,
+        q_top: FloatArray,
+    ) -> FloatArray:
+        """Set-top rotations at a held position turned onto the pinned axes of the children's
+        parent-frame Normals (`hard_laws.turn_onto_pins`), each child in turn, a few rounds
+        where there are several.
+
+        Why: inversion at a held position (a `same` link) kept the default rotation, which
+        puts a child with `pin: [y]` off its pin (density zero): no proposal was feasible and
+        the scene, sampled from the grammar, was `no_parse`."""
+        pinned_kids = []
+        for (v, r, _, _), child_xyz in kids:
+            law = self.g.rules[r].translation
+            free = getattr(law, "free", None)
+            if law.frame == Frame.PARENT and free is not None and not np.all(free):
+                pinned_kids.append((v, ~np.asarray(free, bool), law.offset, child_xyz))
+        rounds = 1 if len(pinned_kids) <= 1 else hard_laws.CHILD_PIN_ROUNDS
+        st = self.st
+        for _ in range(rounds):
+            for v, pinned, mean, child_xyz in pinned_kids:
+                q_v = quat_multiply(q_top, st.offset_quat[v])
+                u = child_xyz - t_top - quat_rotate(q_top, st.offset_xyz[v])
+                q_v, _ = hard_laws.turn_onto_pins(q_v, u, pinned, np.asarray(mean, float))
+                q_top = quat_normalize(quat_multiply(q_v, quat_conjugate(st.offset_quat[v])))
+        return q_top
 
     def _aim_target(self) -> FloatArray | None:
         """Where the rules above expect the set's position: the mode of the first rule up
@@ -627,6 +658,10 @@ class _SetProposer:
         i, j = i[distinct], j[distinct]
         sign = np.where(np.sum(qa[i] * qb[j], axis=1) < 0, -1.0, 1.0)[:, None]
         q = quat_normalize(qa[i] + sign * qb[j])
+        held_a = rotation_mode(self.g, self.slots[a][1]) is not None
+        one_held = held_a != (rotation_mode(self.g, self.slots[b][1]) is not None)
+        if one_held:  # the other slot's rotation is the default, not a guess: not averaged
+            q = qa[i] if held_a else qb[j]
         t = 0.5 * (ta[i] + tb_[j])
         if self.pinned_quat is not None and len(q):  # the own rule fixes the rotation
             q = np.tile(self.pinned_quat, (len(q), 1))
@@ -634,6 +669,11 @@ class _SetProposer:
             q = onto_arc(self.prior[1], self.arc, q)  # type: ignore[index]
         if (self.arc is not None or self.pinned_quat is not None) and len(q):
             t = 0.5 * (self._at(self.slots[a], ax[i], q) + self._at(self.slots[b], bx[j], q))
+        elif self.pinned_xyz is not None and len(q):  # a held position, a free rotation
+            kids = ((self.slots[a], ax[i]), (self.slots[b], bx[j]))
+            q = self._onto_child_pins(kids, t, q)
+        elif one_held and len(q):
+            t = self._held_position((self.slots[a], ax[i]), (self.slots[b], bx[j]), q)
         disagreement = np.linalg.norm(ta[i] - tb_[j], axis=1) + quat_angle(qa[i], qb[j])
         sa, sb = self.slots[a], self.slots[b]
         return [
@@ -645,6 +685,26 @@ class _SetProposer:
             )
             for k in range(len(i))
         ]
+
+    def _held_position(
+        self,
+        kid_a: tuple[tuple[int, int, int, int], FloatArray],
+        kid_b: tuple[tuple[int, int, int, int], FloatArray],
+        q: FloatArray,
+    ) -> FloatArray:
+        """Set-top positions at rotations q for a pair of children: the one a fixed offset
+        gives where exactly one of the two slots is a fixed offset, else the mean of both
+        slots' modes.
+
+        Why: a latent set whose rotation one child holds (`rotation: same`) and whose other
+        child sits at a fixed offset under a free rotation (a chain of `offset` links) is
+        exactly placed by the pair, and the average of the two inversions (one at the
+        default rotation) put no proposal on the chain: `no_parse` three sets deep."""
+        at = [self._at(slot, xyz, q) for slot, xyz in (kid_a, kid_b)]
+        fixed = [self.g.rules[slot[1]].translation.point is not None for slot, _ in (kid_a, kid_b)]
+        if fixed[0] != fixed[1]:
+            return at[0] if fixed[0] else at[1]
+        return 0.5 * (at[0] + at[1])
 
     def _edges(self, assigned: list[tuple]) -> PoseEdges:
         """Edges of each proposal's local problem: its children, and its own rule if the
@@ -717,6 +777,66 @@ def add_proposals(
             cand.xyz[e], cand.quat[e] = memo[key][0].copy(), memo[key][1].copy()
     for e in np.flatnonzero(latent_sets(st)):  # parents first: into their boxes
         _clip_into_box(grammar, st, cand, int(e))
+    for e in np.flatnonzero(latent_sets(st)):  # parents first: onto their parents' pins
+        _onto_parent_pins(grammar, st, cand, int(e))
+
+
+PIN_PARENTS = 16  # parent poses whose pins a latent set's proposals are moved onto
+PIN_OWN = 8  # of the set's own proposals, the first
+
+
+def _onto_parent_pins(grammar: Grammar, st: Supertree, cand: Candidates, e: int) -> None:
+    """Add set e's first proposals moved onto the pinned axes of its own parent-frame Normal
+    at each of its latent parent's first poses that none of them is on: the position with
+    its pinned components (in the parent's frame) replaced by the pins', and the rule's
+    mode; the rotation kept.  Only for a set whose position no child's rule depends on: its
+    proposals came from a default parent alone (elsewhere the extra poses only moved the
+    search to other trees: a recursive pinned chain lost 34 nats).
+
+    Why: proposals are made children first, so a set under a latent parent is proposed
+    before its parent's poses exist, at a default parent; off the pins its density is zero
+    at every real parent pose, and refinement cannot step onto a pin both ends of which
+    move.  A recursive set pinned in its parent's y, whose parent's rotation an observed
+    child holds (`rotation: same`), got only trees that turned the parent off that child."""
+    top = int(st.set_top[e])
+    r = int(st.rule[top])
+    law = grammar.rules[r].translation
+    free = getattr(law, "free", None)
+    p = int(st.parent[top])
+    e_p = int(st.set_of[p])
+    if free is None or np.all(free) or law.frame != Frame.PARENT or not latent_sets(st)[e_p]:
+        return
+    if _children_place(grammar, st, e):  # its proposals already sit where its children say
+        return
+    bx, bq = cand.xyz[e_p][:PIN_PARENTS], cand.quat[e_p][:PIN_PARENTS]
+    own_xyz, own_quat = cand.xyz[e][:PIN_OWN], cand.quat[e][:PIN_OWN]
+    if not len(bx) or not len(own_xyz):
+        return
+    px = bx + quat_rotate(bq, st.offset_xyz[p])  # the parent node's poses
+    pq = quat_multiply(bq, st.offset_quat[p])
+    n_p, n_o = len(px), len(own_xyz)
+    tpx, tpq = np.repeat(px, n_o, axis=0), np.repeat(pq, n_o, axis=0)
+    local = quat_rotate(quat_conjugate(tpq), np.tile(own_xyz, (n_p, 1)) - tpx)
+    off = np.abs(local - np.asarray(law.offset, float))
+    on_pins = np.all(free | (off <= POS_TOL), axis=1).reshape(n_p, n_o)
+    keep = np.repeat(~on_pins.any(axis=1), n_o)  # parents with no proposal on their pins
+    tpx, tpq, local = tpx[keep], tpq[keep], local[keep]
+    local = np.where(free, local, np.asarray(law.offset, float))
+    moved = tpx + quat_rotate(tpq, local)
+    mode = tpx + quat_rotate(tpq, np.broadcast_to(np.asarray(law.offset, float), tpx.shape))
+    rot = np.tile(own_quat, (n_p, 1))[keep]
+    cand.add(e, np.vstack([moved, mode]), np.vstack([rot, rot]))
+
+
+def _children_place(grammar: Grammar, st: Supertree, e: int) -> bool:
+    """Whether a rule from set e to a child outside it depends on e's position (any frame
+    but the world's)."""
+    for v in np.flatnonzero(st.set_of == e):
+        for c in st.children[v]:
+            law = grammar.rules[int(st.rule[c])].translation
+            if st.set_of[c] != e and law.frame != Frame.WORLD:
+                return True
+    return False
 
 
 BOX_PARENTS = 10  # parent poses whose box a latent set's proposals are clipped into
