@@ -45,10 +45,17 @@ def _within_limit(xyz: list[float], what: str) -> list[float]:
     if far > MAX_COORDINATE:
         raise ValueError(
             f"{what} must lie within {MAX_COORDINATE / 1000:,.0f} km of the origin on each "
-            f"axis, got {far!r} m (poses are resolved to 1e-6 m, which floating point cannot "
-            "hold there)"
+            f"axis, got {_digits(far)} m (poses are resolved to 1e-6 m, which floating point "
+            "cannot hold there)"
         )
     return xyz
+
+
+def _digits(x: float) -> str:
+    """`x` short (2e+06), or with every digit where short would round it to the limit
+    (1000000.0000001 read as "got 1e+06 m", the limit itself)."""
+    short = f"{x:g}"
+    return short if float(short) == x else repr(x)
 
 
 def _near_origin(xyz: list[float]) -> list[float]:
