@@ -508,6 +508,24 @@ def turn_onto_pins(
     return np.where(ok[:, None], turned, q_v), ok
 
 
+def turn_set_onto_pin(
+    q: FloatArray,
+    x: FloatArray,
+    member_xyz: FloatArray,
+    member_quat: FloatArray,
+    c_xyz: FloatArray,
+    pinned: NDArray[np.bool_],
+    mean: FloatArray,
+) -> FloatArray:
+    """Set rotations q (at positions x) turned so that the member at (member_xyz,
+    member_quat) in the set's frame sees its child at c_xyz on its pinned axes
+    (`turn_onto_pins` on the member's rotation); the hard laws and the proposals share it."""
+    q_v = quat_multiply(q, np.broadcast_to(member_quat, q.shape))
+    u = c_xyz - x - quat_rotate(q, np.broadcast_to(member_xyz, (*q.shape[:-1], 3)))
+    q_v, _ = turn_onto_pins(q_v, u, pinned, np.asarray(mean, float))
+    return quat_normalize(quat_multiply(q_v, quat_conjugate(member_quat)))
+
+
 def _onto_child_pins(laws: Laws, x: FloatArray, q: FloatArray) -> tuple[FloatArray, FloatArray]:
     """The poses moved onto every child's parent-frame pins: where a pin holds the position
     (it moves only with the rotation), the rotation turned (`turn_onto_pins`, the children in
@@ -516,10 +534,9 @@ def _onto_child_pins(laws: Laws, x: FloatArray, q: FloatArray) -> tuple[FloatArr
     if laws.pins and not laws.arcs:
         for _ in range(CHILD_PIN_ROUNDS):
             for pin in laws.child_pins:
-                q_v = quat_multiply(q, np.broadcast_to(pin.member_quat, q.shape))
-                u = pin.c_xyz - x - quat_rotate(q, np.broadcast_to(pin.member_xyz, x.shape))
-                q_v, _ = turn_onto_pins(q_v, u, pin.pinned, pin.mean)
-                q = quat_normalize(quat_multiply(q_v, quat_conjugate(pin.member_quat)))
+                q = turn_set_onto_pin(
+                    q, x, pin.member_xyz, pin.member_quat, pin.c_xyz, pin.pinned, pin.mean
+                )
                 x = positions(laws, q)[0]
         return x, q
     if laws.pins:

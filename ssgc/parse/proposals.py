@@ -430,10 +430,9 @@ class _SetProposer:
         st = self.st
         for _ in range(rounds):
             for v, pinned, mean, child_xyz in pinned_kids:
-                q_v = quat_multiply(q_top, st.offset_quat[v])
-                u = child_xyz - t_top - quat_rotate(q_top, st.offset_xyz[v])
-                q_v, _ = hard_laws.turn_onto_pins(q_v, u, pinned, np.asarray(mean, float))
-                q_top = quat_normalize(quat_multiply(q_v, quat_conjugate(st.offset_quat[v])))
+                q_top = hard_laws.turn_set_onto_pin(
+                    q_top, t_top, st.offset_xyz[v], st.offset_quat[v], child_xyz, pinned, mean
+                )
         return q_top
 
     def _aim_target(self) -> FloatArray | None:
