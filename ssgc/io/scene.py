@@ -38,7 +38,7 @@ from pydantic import (
 from ssgc.dsl import Finite, Position, Strict, Vec3, Vec4
 from ssgc.errors import Diagnostic, SceneError, SsgError, one_line
 from ssgc.geometry import QUAT_NORM_TOL, quat_canonical, rpy_to_quat
-from ssgc.ir import Grammar
+from ssgc.ir import Grammar, HoldsGrammar, as_ir
 from ssgc.tree import Trees
 from ssgc.yamlio import SourceMap, load_located, read_text, validation_diagnostics
 
@@ -283,8 +283,10 @@ def read_scene_text(path: Path, what: str = "scene file") -> str:
     return read_text(path, MAX_SCENE_BYTES, what)
 
 
-def read_scene_file(path: str | Path, grammar: Grammar) -> Scene:
-    """Read one JSON scene; every mistake becomes a located `SceneError`."""
+def read_scene_file(path: str | Path, grammar: Grammar | HoldsGrammar) -> Scene:
+    """Read one JSON scene; every mistake becomes a located `SceneError`.  `grammar` is either
+    form a user holds (`as_ir`): docs/scenes.md names these readers for notebooks."""
+    grammar = as_ir(grammar)
     path = Path(path)
     text = read_scene_text(path)
     # a file's name is not checked as a scene's "name" is: it gets its odd characters escaped
@@ -689,13 +691,14 @@ class _SinkObject(BaseModel):
     pose: _SinkPose
 
 
-def read_sink_yaml(path: str | Path, grammar: Grammar) -> list[Scene]:
+def read_sink_yaml(path: str | Path, grammar: Grammar | HoldsGrammar) -> list[Scene]:
     """Read the sink dataset format: scene name → {objects, world_description.models}.
 
     Each object's type is found by its `model_file` (a type's `model`), else by its
     `metadata.class` (a type's `labels`).  World-description models (the bin) are scene
     objects too when the grammar has a type for them.
     """
+    grammar = as_ir(grammar)
     path = Path(path)
     text = read_scene_text(path, "dataset file")
     data, source = _located(text, str(path))
@@ -796,8 +799,9 @@ def _dangling(path: Path) -> bool:
     return path.is_symlink() and not path.exists()
 
 
-def load_scenes(path: str | Path, grammar: Grammar) -> list[Scene]:
+def load_scenes(path: str | Path, grammar: Grammar | HoldsGrammar) -> list[Scene]:
     """A JSON scene, a directory of them, or a sink-format YAML dataset."""
+    grammar = as_ir(grammar)
     path = Path(path)
     if path.is_dir():
         files = json_files(path)
