@@ -24,7 +24,8 @@ def explain(
     grammar: Annotated[Path, typer.Option("-g", "--grammar", help="Grammar YAML file.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
     output: Annotated[
-        Path | None, typer.Option("-o", "--output", help="Write the JSON here.")
+        Path | None,
+        typer.Option("-o", "--output", help="Write the JSON here (no text is printed)."),
     ] = None,
     time_limit: Annotated[
         float | None,
@@ -38,6 +39,9 @@ def explain(
     allow_outside_files: AllowOutside = False,
 ) -> None:
     """Each object's and each rule's share of −log p of the best parse, most unusual first.
+
+    The text lists the 10 most unusual objects and the 10 largest rules, and counts the rest;
+    --json lists all.  A best parse not proven best (status feasible) is said to be so.
 
     A scene proven infeasible gets the objects and rules that rule it out (exit code 2); one
     without a parse found, unproven, says which step gave up (exit 3; 4 for the time limit).

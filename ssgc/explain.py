@@ -71,6 +71,10 @@ MC_DRAWS = 4000  # draws per rule for expected log-densities and rotation percen
 # from uniform rotations instead (`_Expectations.percentile`): a handful of hits is no number.
 TAIL_HITS = 10
 UNIFORM_DRAWS = 20000  # uniform rotations for those: about 3% relative error at P = 1e-5
+# The least percentile a text prints, as a bound ("< 2.2e-306%"): a tail too far out for a
+# float (a position 54σ off, a rotation of log p < -745) underflows to 0, which no finite
+# density has; the smallest normal float is above the true value then.
+PERCENTILE_FLOOR = float(np.finfo(np.float64).tiny)
 # Seconds all of one explanation's re-parses may take together when no time limit is given
 # (docs/explain.md "Cost"): enough for every object of the real sink scenes.
 EXPLAIN_BUDGET_S = 30.0
@@ -206,6 +210,7 @@ class Explanation:
     unattributed: float = 0.0  # −log p of a scene without objects (nothing to attribute it to)
     reparse: Reparses | None = None  # the per-object re-parses (None: explained without)
     status: str = ""  # the best parse's: optimal or feasible ("" when explained without one)
+    gap: float | None = None  # a `feasible` parse's relative gap to the bound, when known
 
     def __repr__(self) -> str:  # the dataclass's would print every object and rule
         first = f", most unusual {self.objects[0].label}" if self.objects else ""
@@ -225,6 +230,7 @@ class Explanation:
     def to_json(self) -> dict[str, Any]:
         return (
             ({"status": self.status} if self.status else {})
+            | ({"gap": self.gap} if self.status == "feasible" else {})
             | {
                 "scene": self.scene,
                 "log_prob": self.log_prob,
@@ -238,7 +244,8 @@ class Explanation:
         )
 
     def text(self, limit: int | None = None) -> str:
-        """The explanation in words: the `limit` most unusual objects and rules (all: None)."""
+        """The explanation in words: the `limit` most unusual objects and rules (all: None),
+        a line for those left out, and one for a parse not proven best (`status` feasible)."""
         if limit is not None and (
             isinstance(limit, bool) or not isinstance(limit, int | np.integer) or limit < 0
         ):
@@ -248,6 +255,9 @@ class Explanation:
         lines = [
             f"scene '{self.scene}': −log p = {-self.log_prob:.3f} ({per_text}); most unusual first:"
         ]
+        if self.status == "feasible":  # a tree with its exact score, but maybe not the best
+            gap = "" if self.gap is None else f"; relative gap to the bound {self.gap:.3g}"
+            lines.append(f"  (feasible: the best parse found, not proven best{gap})")
         for o in self.objects[:limit]:
             clutter = " UNEXPLAINED (clutter)," if o.unexplained else ""
             lines.append(f"  {o.label}:{clutter} unusual {o.unusual:.2f}, share {o.share:.3f}")
@@ -257,6 +267,8 @@ class Explanation:
                 )
             for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
                 lines.append(f"    {r.text}")
+        rest = self.objects[len(self.objects) if limit is None else limit :]
+        lines += _more_line(len(rest), sum(o.share for o in rest), "object")
         if self.reparse is not None and self.reparse.status != "complete":
             r = self.reparse
             lines.append(
@@ -267,7 +279,17 @@ class Explanation:
             lines.append("rules by share of −log p:")
             for r in self.rules[:limit]:
                 lines.append(f"  {r['rule']} ({r['kind']}, {r['terms']} term(s)): {r['share']:.3f}")
+            rest_rules = self.rules[len(self.rules) if limit is None else limit :]
+            lines += _more_line(len(rest_rules), sum(r["share"] for r in rest_rules), "rule")
         return "\n".join(lines)
+
+
+def _more_line(n: int, nats: float, what: str) -> list[str]:
+    """The line for the n objects or rules `Explanation.text` leaves out, with their part of
+    −log p: the listed shares then still add up to it, and the reader knows the list goes on."""
+    if n == 0:
+        return []
+    return [f"  … and {n} more {what}(s) ({nats:.3f} nats of −log p; the JSON lists all)"]
 
 
 def explain(grammar: Grammar, scene: Scene, tree: Trees | None = None, **parse: Any) -> Explanation:
@@ -1132,7 +1154,8 @@ class _Expectations:
         estimate = float(np.sum(np.exp(lu[tail] - UNIFORM_SO3_LOG_DENSITY))) / len(lu)
         if estimate > 0:
             return estimate, False
-        return float(min(1.0, np.exp(log_prob - UNIFORM_SO3_LOG_DENSITY))), True
+        bound = np.exp(log_prob - UNIFORM_SO3_LOG_DENSITY)  # 0 below exp(-745): floored
+        return float(np.clip(bound, PERCENTILE_FLOOR, 1.0)), True
 
 
 def _entropy(grammar: Grammar, type_name: str) -> float:
@@ -1213,7 +1236,11 @@ def _position_words(grammar: Grammar, tree: Trees, obj_of: IntArray, term: dict[
         grammar, np.array([r]), tree.xyz[p][None], tree.quat[p][None], tree.xyz[i][None]
     )[0]
     ctx = Context(_name(grammar, tree, obj_of, int(p)), lambda lp: float("nan"))
-    return _worded(grammar.rules[r].translation.describe_deviation(u, term["log_prob"], ctx), term)
+    d = grammar.rules[r].translation.describe_deviation(u, term["log_prob"], ctx)
+    if d.percentile is not None and d.percentile < PERCENTILE_FLOOR:  # 0 after an underflow
+        term["percentile_bound"] = True
+        d = _bounded(replace(d, percentile=PERCENTILE_FLOOR), percent(d.percentile))
+    return _worded(d, term)
 
 
 def _rotation_words(
@@ -1226,10 +1253,15 @@ def _rotation_words(
     d = grammar.rules[r].rotation.describe_deviation(rel, term["log_prob"], ctx)
     if d.percentile is not None and expect.percentile(r, term["log_prob"])[1]:
         term["percentile_bound"] = True  # say so: "< 3.7e-40% likely"
-        mark = percent(d.percentile)
-        text = d.text.replace(mark, f"< {mark}", 1) if mark in d.text else f"{d.text} (< {mark})"
-        d = replace(d, text=text)
+        d = _bounded(d, percent(d.percentile))
     return _worded(d, term)
+
+
+def _bounded(d: Deviation, mark: str) -> Deviation:
+    """The law's words with its percentile, written `mark` there, read as an upper bound."""
+    bound = percent(d.percentile or 0.0)
+    text = d.text.replace(mark, f"< {bound}", 1) if mark in d.text else f"{d.text} (< {bound})"
+    return replace(d, text=text)
 
 
 def _worded(d: Deviation, term: dict[str, Any]) -> str:
@@ -1247,10 +1279,12 @@ def _worded(d: Deviation, term: dict[str, Any]) -> str:
 @dataclass
 class Diagnosis:
     """Why no tree explains a scene: objects whose removal lets the rest parse, and why the
-    rules that could have produced each fail (`objects` empty when none was found in time)."""
+    rules that could have produced each fail.  When no removal helps, `objects` are those the
+    grammar never produces or no rule can place where they are (`_unplaceable`); empty when
+    nothing is found in time."""
 
     scene: str
-    objects: list[int]  # the smallest set found, best first
+    objects: list[int]  # the smallest set found, best first (else the objects to blame)
     reasons: dict[int, list[str]]
     alternatives: list[list[int]]  # other sets of the same size that also work
     message: str
@@ -1264,6 +1298,12 @@ class Diagnosis:
         }
 
 
+# Seconds of a diagnosis's time limit (at most a tenth of it) kept for the per-object reasons
+# when no removal helps: they parse nothing, so a second covers scenes of many objects.
+REASONS_S = 1.0
+SHOWN = 5  # objects a message of the per-object reasons names; the JSON's `reasons` has all
+
+
 def diagnose(
     grammar: Grammar,
     scene: Scene,
@@ -1274,10 +1314,9 @@ def diagnose(
     """Find few objects whose removal makes the scene parseable (the parser as a black box:
     every object alone, then pairs, within `time_limit` seconds), and say for each why the
     rules that could produce it cannot.  Among several single objects that work, the one whose
-    removal leaves the most probable rest comes first."""
-    import itertools
-    import time
-
+    removal leaves the most probable rest comes first.  When none works, name the objects no
+    rule can place where they are: a scene whose every pose is a few mm off is still to blame
+    on its objects, though removing two of them does not help."""
     from ssgc.parse.parser import Parser
 
     parser = parser or Parser(grammar)
@@ -1287,6 +1326,40 @@ def diagnose(
     if need is not None and not np.any(scene.types == need):
         return _without_root(grammar, scene, names)
     never = [o for o in range(len(scene)) if parser.capacity[scene.types[o]] == 0]
+    reserve = min(REASONS_S, 0.1 * time_limit)
+    found = _removals(parser, scene, never, max_removed, t_end - reserve)
+    if not found:
+        deadline = max(t_end, time.perf_counter() + reserve)
+        return _no_removal_helps(grammar, scene, parser, never, max_removed, deadline)
+    found.sort(key=lambda f: -f[0])
+    _, drop, tree = found[0]
+    kept = np.setdiff1d(np.arange(len(scene)), drop)
+    reasons = {o: _why_not(grammar, scene, o, tree, kept, parser, drop) for o in drop}
+    parts = [f"{names[o]} ({'; '.join(reasons[o][:3])})" for o in drop]
+    message = (
+        f"scene '{scene.name}': no tree of the grammar contains all its objects; "
+        + _rest_words(grammar, scene, names, drop)
+        + " it parses. "
+        + " ".join(parts)
+    )
+    if len(found) > 1:
+        message += (
+            " (also parses "
+            + "; ".join(_rest_words(grammar, scene, names, f[1]) for f in found[1:6])
+            + ")"
+        )
+    message += _hint(grammar, [r for o in drop for r in reasons[o]])
+    return Diagnosis(scene.name, drop, reasons, [f[1] for f in found[1:]], message)
+
+
+def _removals(
+    parser: Any, scene: Scene, never: list[int], max_removed: int, t_end: float
+) -> list[tuple[float, list[int], Trees]]:
+    """The smallest sets of objects (with those the grammar never produces) whose removal
+    lets the rest parse, each with the rest's best score and tree: every object alone, then
+    pairs, up to `max_removed`, until `t_end`."""
+    import itertools
+
     found: list[tuple[float, list[int], Trees]] = []
     base = set(never)
     for k in range(0, max_removed + 1):
@@ -1304,49 +1377,163 @@ def diagnose(
                 found.append((result.parses[0].score, drop, result.parses[0].tree))
         if found:
             break
-    if not found:
-        message = (
-            f"scene '{scene.name}': no tree of the grammar contains this scene's objects, and "
-            f"removing up to {max_removed} object(s) does not help"
+    return found
+
+
+def _rest_words(grammar: Grammar, scene: Scene, names: list[str], drop: list[int]) -> str:
+    """What the scene that parses is, set against this one: "without Mug #4".  A required
+    root set aside is not removed (a scene without it is refused) but implied at its pose
+    (`Parser.parse(imply_root=True)`), so it reads "with DishBin #0 at the root's pose (0.50,
+    0.00, 0.00)"."""
+    implied = _implied_root(grammar, scene, drop)
+    parts = []
+    if implied is not None:
+        fixed = _fixed_pose(
+            grammar, int(scene.types[implied]), scene.xyz[implied], scene.quat[implied]
         )
-        if never:
-            message += "; never produced by the grammar: " + ", ".join(names[o] for o in never)
-        off = _off_root(grammar, scene)
-        if off:
-            message += "; off the pose the grammar fixes: " + ", ".join(
-                f"{names[o]} ({why})" for o, why in off.items()
-            )
-        few = _too_few(grammar, scene)
-        if few:
-            message += "; " + "; ".join(f"{names[o]}: {why}" for o, why in few.items())
-        try:  # too many objects (of types it makes): any of them may go, so none is named
-            parser.check_capacity(_without(scene, never))
-        except SsgError as exc:
-            message += "; " + "; ".join(d.message for d in exc.diagnostics)
-        message += _hint(grammar, list(off.values()))
-        reasons = {o: [why] for o, why in off.items()}
-        for o, why in few.items():
-            reasons.setdefault(o, []).append(why)
-        return Diagnosis(scene.name, never, reasons, [], message)
-    found.sort(key=lambda f: -f[0])
-    _, drop, tree = found[0]
-    kept = np.setdiff1d(np.arange(len(scene)), drop)
-    reasons = {o: _why_not(grammar, scene, o, tree, kept, parser, drop) for o in drop}
-    parts = [f"{names[o]} ({'; '.join(reasons[o][:3])})" for o in drop]
+        x, y, z = grammar.root_xyz if fixed is None else fixed[0]
+        parts.append(f"with {names[implied]} at the root's pose ({x:.2f}, {y:.2f}, {z:.2f})")
+    removed = [names[o] for o in drop if o != implied]
+    if removed:
+        parts.append("without " + " and ".join(removed))
+    return " and ".join(parts)
+
+
+def _implied_root(grammar: Grammar, scene: Scene, drop: list[int]) -> int | None:
+    """The object of the required root's type among `drop` that the parse of the rest implies
+    at its pose (none of that type is kept), else None."""
+    need = grammar.required_root
+    if need is None:
+        return None
+    dropped = [o for o in drop if scene.types[o] == need]
+    kept = np.count_nonzero(scene.types == need) - len(dropped)
+    return dropped[0] if dropped and kept == 0 else None
+
+
+def _no_removal_helps(
+    grammar: Grammar,
+    scene: Scene,
+    parser: Any,
+    never: list[int],
+    max_removed: int,
+    deadline: float,
+) -> Diagnosis:
+    """The diagnosis when no removal lets the rest parse: the objects the grammar never
+    produces, those off the pose it fixes, those no rule can place where they are (the first
+    SHOWN in the message), and the count laws the scene has too few objects for."""
+    names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
     message = (
-        f"scene '{scene.name}': no tree of the grammar contains all its objects; without "
-        + " and ".join(names[o] for o in drop)
-        + " it parses. "
-        + " ".join(parts)
+        f"scene '{scene.name}': no tree of the grammar contains this scene's objects, and "
+        f"removing up to {max_removed} object(s) does not help"
     )
-    if len(found) > 1:
-        message += (
-            " (also parses without: "
-            + "; ".join(" and ".join(names[o] for o in f[1]) for f in found[1:6])
-            + ")"
+    if never:
+        message += "; never produced by the grammar: " + ", ".join(names[o] for o in never)
+    off = _off_root(grammar, scene)
+    if off:
+        message += "; off the pose the grammar fixes: " + ", ".join(
+            f"{names[o]} ({why})" for o, why in off.items()
         )
-    message += _hint(grammar, [r for o in drop for r in reasons[o]])
-    return Diagnosis(scene.name, drop, reasons, [f[1] for f in found[1:]], message)
+    others = [o for o in range(len(scene)) if o not in never and o not in off]
+    placed, unexamined = _unplaceable(grammar, scene, others, deadline)
+    message += _unplaceable_words(names, placed, unexamined)
+    few = _too_few(grammar, scene)
+    if few:
+        message += "; " + "; ".join(f"{names[o]}: {why}" for o, why in few.items())
+    try:  # too many objects (of types it makes): any of them may go, so none is named
+        parser.check_capacity(_without(scene, never))
+    except SsgError as exc:
+        message += "; " + "; ".join(d.message for d in exc.diagnostics)
+    message += _hint(grammar, [*off.values(), *(r for rs in placed.values() for r in rs)])
+    reasons = {o: [why] for o, why in off.items()} | placed
+    for o, why in few.items():
+        reasons.setdefault(o, []).append(why)
+    objects = sorted({*never, *off, *placed})
+    return Diagnosis(scene.name, objects, reasons, [], message)
+
+
+# a node that could fire a rule (`_firing_nodes`): type, xyz, quat, name, children it holds
+Node = tuple[int, FloatArray, FloatArray, str, int]
+
+
+def _unplaceable_words(names: list[str], placed: dict[int, list[str]], unexamined: int) -> str:
+    """The message's part for `_unplaceable`: the first SHOWN objects, each with its two
+    closest reasons, then how many more (a scene of many objects keeps a readable line)."""
+    if not placed and not unexamined:
+        return ""
+    shown = [f"{names[o]} ({'; '.join(why[:2])})" for o, why in list(placed.items())[:SHOWN]]
+    words = ""
+    if placed:
+        words = "; no rule can place these where they are: " + ", ".join(shown)
+    if len(placed) > SHOWN:
+        words += f", and {len(placed) - SHOWN} more (the diagnosis's reasons list all)"
+    if unexamined:
+        words += f"; {unexamined} object(s) not examined within the time limit"
+    return words
+
+
+def _unplaceable(
+    grammar: Grammar, scene: Scene, objects: list[int], deadline: float
+) -> tuple[dict[int, list[str]], int]:
+    """Of `objects`, those no rule can place where they are, whatever the rest of the tree:
+    every rule that could produce one (directly or through fixed rules) refuses its pose from
+    every node that could fire it here — the root at its pose and the other objects, with the
+    nodes fixed rules tie to them — each with its reasons, closest first (`_rule_failures`).
+    An object some rule accepts is not named, nor one a latent node could place (its pose is
+    unknown without a tree), nor one whose pose the grammar fixes (`_off_root` names those).
+    Also how many objects `deadline` left unexamined."""
+    blocks = [
+        _node_block(grammar, int(t), x, q, f"{grammar.types[t].name} #{o}")
+        for o, (t, x, q) in enumerate(zip(scene.types, scene.xyz, scene.quat, strict=True))
+    ]
+    root = _node_block(grammar, grammar.root, grammar.root_xyz, grammar.root_quat, "")
+    named: dict[int, list[str]] = {}
+    for k, o in enumerate(objects):
+        if time.perf_counter() > deadline:
+            return named, len(objects) - k
+        if _fixed_pose(grammar, int(scene.types[o]), scene.xyz[o], scene.quat[o]) is not None:
+            continue
+        nodes: dict[tuple[Any, ...], Node] = {}  # one pose of one type is one node
+        for d, block in [*enumerate(blocks), (-1, root)]:
+            for key, node in block.items():
+                if d != o:
+                    nodes.setdefault(key, node)
+        failures, placeable = _rule_failures(grammar, scene, o, list(nodes.values()))
+        if failures and not placeable:
+            named[o] = [why for _, why in failures]
+    return named, 0
+
+
+def _node_block(
+    grammar: Grammar, t: int, x: FloatArray, q: FloatArray, name: str
+) -> dict[tuple[Any, ...], Node]:
+    """A node of type t at (x, q) and the nodes fixed rules tie to it above and below (a
+    latent table top the root holds fixed), as nodes that could fire a rule when no tree is
+    known, keyed by type and position.  Named `name` (its object), else by type and position."""
+    block: dict[tuple[Any, ...], Node] = {}
+    for vt, vx, vq in _fixed_ancestors(grammar, t, x, q):
+        for ct, cx, cq in [(vt, vx, vq), *_fixed_descendants(grammar, vt, vx, vq)]:
+            where = f"{grammar.types[ct].name} at ({cx[0]:.2f}, {cx[1]:.2f}, {cx[2]:.2f})"
+            block.setdefault((int(ct), *np.round(cx, 6)), (int(ct), cx, cq, name or where, 0))
+    return block
+
+
+def _fixed_descendants(
+    grammar: Grammar, t: int, x: FloatArray, q: FloatArray
+) -> list[tuple[int, FloatArray, FloatArray]]:
+    """(type, xyz, quat) of the nodes fixed rules tie below a node of type t at (x, q), as
+    `_fixed_ancestors` goes up: they share its pose, so they are there whenever it is."""
+    tb = grammar.tables
+    todo, out = [(t, x, q)], []
+    while todo and len(out) < 64:
+        vt, vx, vq = todo.pop()
+        for r in np.flatnonzero(tb.rule_parent == vt):
+            if _rigid(grammar, int(r)):
+                rule = grammar.rules[int(r)]
+                cx = vx + quat_rotate(vq, rule.translation.point)
+                child = (int(tb.rule_child[r]), cx, quat_multiply(vq, rule.rotation.point))
+                out.append(child)
+                todo.append(child)
+    return out
 
 
 SMALL_M, SMALL_DEG = 0.05, 10.0  # offsets a sensor's error could explain
@@ -1478,12 +1665,31 @@ def _why_not(
     """Why each rule that could produce object o fails from each node that could have fired
     it, closest candidates first: the nodes of the other objects' best tree, and the other
     removed objects (a plate removed with the spoon it lacks is the spoon's parent to try)."""
-    tb = grammar.tables
     t = int(scene.types[o])
     if parser.capacity[t] == 0:
         return [f"the grammar never produces a {grammar.types[t].name}"]
-    out: list[tuple[float, str]] = []
     nodes = _firing_nodes(grammar, scene, tree, kept, [d for d in drop if d != o])
+    out, _ = _rule_failures(grammar, scene, o, nodes)
+    fixed = _root_offset(grammar, scene, o)
+    if fixed is not None:  # no rule can place it: the grammar fixes its pose at the root's
+        return [fixed, *[s for _, s in out]]
+    return [s for _, s in out] or [f"no rule produces a {grammar.types[t].name}"]
+
+
+def _rule_failures(
+    grammar: Grammar,
+    scene: Scene,
+    o: int,
+    nodes: list[Node],
+) -> tuple[list[tuple[float, str]], bool]:
+    """Why each rule that could produce object o (directly or through fixed rules) fails from
+    the two of `nodes` closest to it that could fire it, closest first, with their distances;
+    and whether o could be placed after all: some rule and node accept its pose, or a rule has
+    no node here to fire it (a latent parent, whose pose only a tree would tell)."""
+    tb = grammar.tables
+    t = int(scene.types[o])
+    out: list[tuple[float, str]] = []
+    placeable = False
     for vt, x, q in _fixed_ancestors(grammar, t, scene.xyz[o], scene.quat[o]):
         for r in np.flatnonzero(tb.rule_child == vt):
             if _rigid(grammar, int(r)):
@@ -1491,6 +1697,7 @@ def _why_not(
             parents = [n for n in nodes if n[0] == tb.rule_parent[r]]
             rule = grammar.rule_name(int(r))
             if len(parents) == 0:
+                placeable = True
                 out.append(
                     (
                         np.inf,
@@ -1505,6 +1712,7 @@ def _why_not(
             xs, qs = np.tile(x, (len(parents), 1)), np.tile(q, (len(parents), 1))
             lt = translation_log_density(grammar, rr, px, pq, xs)
             lr = rotation_log_density(grammar, rr, pq, qs)
+            placeable |= bool(np.any(np.isfinite(lt) & np.isfinite(lr)))
             u = translation_coordinates(grammar, rr, px, pq, xs)
             dist = np.linalg.norm(xs - px, axis=1)
             for k in np.argsort(dist)[:2]:
@@ -1512,10 +1720,7 @@ def _why_not(
                 what = _failure(grammar, int(r), u[k], lt[k], lr[k], pq[k], q, held)
                 out.append((float(dist[k]), f"{rule} from {name}: {what}"))
     out.sort(key=lambda x: x[0])
-    fixed = _root_offset(grammar, scene, o)
-    if fixed is not None:  # no rule can place it: the grammar fixes its pose at the root's
-        return [fixed, *[s for _, s in out]]
-    return [s for _, s in out] or [f"no rule produces a {grammar.types[t].name}"]
+    return out, placeable
 
 
 def _firing_nodes(

@@ -14,6 +14,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ssgc.explain import diagnose, explain_tree, reparse_budget, unexplained_objects
 from ssgc.io.journal import ParseJournal, journal_path, run_header, write_parse_output
 from ssgc.io.outputs import Output, write_output
@@ -22,6 +24,7 @@ from ssgc.ir import Grammar
 from ssgc.parse.parser import Parser, SceneParses, result_to_json
 
 DIAGNOSE_S = 20.0  # seconds (at most) to find the objects that rule out an infeasible scene
+TEXT_LIMIT = 10  # objects and rules `ssg explain`'s text lists (a line counts the rest)
 
 Note = Callable[[str], None]  # a line for the user (stderr), e.g. "only 1 distinct tree exists"
 Step = Callable[[int], None]  # scenes just finished, for a progress bar
@@ -68,9 +71,11 @@ def explain_document(
     result = parser.parse(scene, top=1, time_limit=time_limit)
     if result.parses:
         budget = reparse_budget(time_limit, result.timing["total_s"])
-        e = explain_tree(grammar, scene, result.parses[0].tree, parser, budget)
+        best = result.parses[0]
+        e = explain_tree(grammar, scene, best.tree, parser, budget)
         e.status = result.status
-        return e.to_json(), e.text(10)
+        e.gap = float(best.gap) if np.isfinite(best.gap) else None
+        return e.to_json(), e.text(TEXT_LIMIT)
     if result.status == "infeasible":
         d = diagnose(grammar, scene, parser, time_limit=time_limit or DIAGNOSE_S)
         return {"scene": scene.name, "status": "infeasible", "diagnosis": d.to_json()}, d.message
