@@ -131,10 +131,11 @@ def explain(grammar: Grammar, scene: Scene, time_limit: float | None = None) -> 
     data = _scene_data(_checked(grammar), scene)
     parser = grammar.parser("auto")
     t0 = time.perf_counter()
-    tree, status = best_parse(grammar.ir, data, parser, time_limit=_time_limit(time_limit))
+    limit = _time_limit(time_limit)
+    tree, status, gap = best_parse(grammar.ir, data, parser, time_limit=limit)
     budget = reparse_budget(time_limit, time.perf_counter() - t0)
     explanation = explain_tree(grammar.ir, data, tree, parser, budget)
-    explanation.status = status
+    explanation.status, explanation.gap = status, gap
     return explanation
 
 

@@ -344,15 +344,16 @@ def best_tree(grammar: Grammar, scene: Scene, parser: Any = None, **parse: Any) 
 
 def best_parse(
     grammar: Grammar, scene: Scene, parser: Any = None, **parse: Any
-) -> tuple[Trees, str]:
-    """The scene's best tree and the parse's status (optimal or feasible); `UnexplainedScene`
-    when there is none."""
+) -> tuple[Trees, str, float | None]:
+    """The scene's best tree, the parse's status (optimal or feasible) and its relative gap
+    (None when not computed); `UnexplainedScene` when there is none."""
     from ssgc.parse.parser import Parser
 
     parser = parser or Parser(grammar)
     result = parser.parse(scene, top=1, **parse)
     if result.parses:
-        return result.parses[0].tree, result.status
+        gap = float(result.parses[0].gap)
+        return result.parses[0].tree, result.status, gap if np.isfinite(gap) else None
     if result.status != "infeasible":
         raise UnexplainedScene(result.message, result.status, phase=result.phase)
     d = diagnose(grammar, scene, parser, time_limit=parse.get("time_limit") or 30.0)

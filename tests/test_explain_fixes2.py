@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+import ssgc
 import ssgc.scene_reports as scene_reports
 from ssgc.cli.app import app
 from ssgc.compile import compile_text
@@ -239,3 +240,18 @@ def test_a_rotation_bound_is_floored_too(dinner):
     expect = _Expectations(dinner)
     p, bound = expect.percentile(0, -2000.0)
     assert bound and p == TINY
+
+
+def test_the_api_explains_a_feasible_parse_with_its_gap(dinner, tmp_path: Path, monkeypatch):
+    """`ssgc.explain` set the status but not the gap: its text said "not proven best" without
+    the gap `ssg explain` prints."""
+    path = tmp_path / "dinner.yaml"
+    path.write_text(DINNER)
+    g = ssgc.load_grammar(path)
+    (tmp_path / "s.json").write_text(dumps_scene(g.ir, dinner_scene(g.ir)))
+    scene = ssgc.load_scenes(tmp_path / "s.json", g)[0]
+    parser = g.parser("auto")
+    monkeypatch.setattr(parser, "parse", feasible(parser.parse, 0.137))
+    e = ssgc.explain(g, scene, time_limit=5.0)
+    assert e.status == "feasible" and e.gap == 0.137
+    assert "relative gap to the bound 0.137" in e.text()
