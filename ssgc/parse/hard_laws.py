@@ -530,7 +530,9 @@ def _onto_child_pins(laws: Laws, x: FloatArray, q: FloatArray) -> tuple[FloatArr
     """The poses moved onto every child's parent-frame pins: where a pin holds the position
     (it moves only with the rotation), the rotation turned (`turn_onto_pins`, the children in
     turn for CHILD_PIN_ROUNDS rounds); elsewhere, the position projected onto the pins'
-    planes at the pose's rotation.  A pose on an arc keeps its rotation (only the planes)."""
+    planes at the pose's rotation, and onto the set's own pinned world axes (`_flat_axes`:
+    projected onto the pins' planes alone, a set held to a line by its own rule left it, and
+    every pose was refused).  A pose on an arc keeps its rotation (only the planes)."""
     if laws.pins and not laws.arcs:
         for _ in range(CHILD_PIN_ROUNDS):
             for pin in laws.child_pins:
@@ -541,6 +543,7 @@ def _onto_child_pins(laws: Laws, x: FloatArray, q: FloatArray) -> tuple[FloatArr
         return x, q
     if laws.pins:
         return x, q
+    q = _turn_pin_normals(laws, q)
     normals, targets = [], []
     for pin in laws.child_pins:  # n·x = n·(c - R member_xyz) - mean_a, n = R_v e_a
         q_v = quat_multiply(q, np.broadcast_to(pin.member_quat, q.shape))
@@ -549,10 +552,70 @@ def _onto_child_pins(laws: Laws, x: FloatArray, q: FloatArray) -> tuple[FloatArr
             n = quat_rotate(q_v, np.broadcast_to(np.eye(3)[a], x.shape))
             normals.append(n)
             targets.append(np.sum(n * reach, axis=1) - pin.mean[a])
+    for k, value in _flat_axes(laws):  # the set's own pinned world axes hold as well
+        normals.append(np.broadcast_to(np.eye(3)[k], x.shape))
+        targets.append(np.full(len(x), value))
     big_n = np.stack(normals, axis=1)  # (poses, planes, 3)
     miss = np.stack(targets, axis=1) - np.einsum("nkj,nj->nk", big_n, x)
     step = np.einsum("njk,nk->nj", np.linalg.pinv(big_n), miss)
     return x + step, q
+
+
+def _turn_pin_normals(laws: Laws, q: FloatArray) -> FloatArray:
+    """Rotations turned as little as needed for the pin planes of children that share a
+    member and a pinned axis to be parallel planes that one position meets: each such
+    axis, n = R_v e_a, must have n·(c_i - c_j) = mean_i - mean_j for its children i, j.
+
+    Why: objects pinned on a latent surface (a shelf whose height its own rule pins, boxes
+    pinned on it in its frame) lie on one tilted plane; at the surface's proposed rotation
+    (its soft laws' mode) their planes were parallel but apart, no position met them all,
+    and the scene had no parse.  The nearest unit n solving those rows is their least-norm
+    solution plus the current n's part across them, scaled to unit length."""
+    groups: dict[tuple[bytes, bytes, int], list[tuple[FloatArray, float]]] = {}
+    for pin in laws.child_pins:
+        for a in np.flatnonzero(pin.pinned):
+            key = (pin.member_xyz.tobytes(), pin.member_quat.tobytes(), int(a))
+            groups.setdefault(key, []).append((pin.c_xyz, float(pin.mean[a])))
+    for _ in range(CHILD_PIN_ROUNDS):
+        for (_, m_quat, a), rows in groups.items():
+            if len(rows) < 2:
+                continue
+            member_quat = np.frombuffer(m_quat)
+            q_v = quat_multiply(q, np.broadcast_to(member_quat, q.shape))
+            n = quat_rotate(q_v, np.broadcast_to(np.eye(3)[a], (len(q), 3)))
+            d = np.array([c - rows[0][0] for c, _ in rows[1:]])
+            delta = np.array([m - rows[0][1] for _, m in rows[1:]])
+            wanted = nearest_unit_solution(d, delta, n)
+            turn = quat_between(n, wanted)
+            q = quat_normalize(quat_multiply(quat_multiply(turn, q_v), quat_conjugate(member_quat)))
+    return q
+
+
+def nearest_unit_solution(d: FloatArray, delta: FloatArray, n: FloatArray) -> FloatArray:
+    """Per row of n (k, 3), a unit vector solving d @ v = delta near it: v = pinv(d) delta
+    plus n's part in d's null space, scaled to unit length (n itself where none is unit)."""
+    _, sv, vt = np.linalg.svd(d)
+    rank = int(np.sum(sv > 1e-9 * max(1.0, float(sv.max(initial=0.0)))))
+    base = np.linalg.pinv(d, rcond=1e-9) @ delta
+    left = 1.0 - float(base @ base)
+    null = vt[rank:]  # rows spanning the null space of d
+    if left < 0.0 or len(null) == 0:
+        return n
+    part = (n @ null.T) @ null
+    size = np.linalg.norm(part, axis=1, keepdims=True)
+    other = np.broadcast_to(null[0], n.shape)  # n lies in d's row space: any null direction
+    part = np.where(size > 1e-12, part / np.maximum(size, 1e-300), other)
+    return base + np.sqrt(left) * part
+
+
+def _flat_axes(laws: Laws) -> list[tuple[int, float]]:
+    """(world axis, value) of each coordinate a flat box of the set's own position fixes (a
+    pinned world axis of its rule)."""
+    out: dict[int, float] = {}
+    for lo, hi, shift in laws.boxes:
+        for k in np.flatnonzero(np.isfinite(lo) & (lo == hi) & np.all(shift == 0)):
+            out.setdefault(int(k), float(lo[k]))
+    return sorted(out.items())
 
 
 def _onto_flat_boxes(laws: Laws, q: FloatArray) -> tuple[FloatArray, FloatArray]:

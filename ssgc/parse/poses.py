@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from ssgc.geometry import (
+    quat_between,
     quat_conjugate,
     quat_multiply,
     quat_normalize,
@@ -34,6 +35,7 @@ from ssgc.ir import Grammar
 from ssgc.laws.base import Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
+from ssgc.parse.hard_laws import nearest_unit_solution
 from ssgc.rules import rotation_log_density, translation_log_density
 from ssgc.tree import Trees
 
@@ -192,6 +194,15 @@ def placed(edges: PoseEdges, links: Links, bx: FloatArray, bq: FloatArray) -> Fl
         from_child = child_end - quat_rotate(bq[..., d, :], links.arm[k])
         x[..., d, :] = np.where(links.as_child[k][:, None], from_parent, from_child)
     return x
+
+
+def log_quat(q: FloatArray) -> FloatArray:
+    """The rotation vector of unit quaternions q (`exp_quat`'s inverse, the shorter turn)."""
+    q = np.where(q[..., :1] < 0, -q, q)
+    s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., :1])
+    scale = np.where(s > 1e-12, angle / np.maximum(s, 1e-300), 2.0)
+    return scale * q[..., 1:]
 
 
 def exp_quat(w: FloatArray) -> FloatArray:
@@ -395,17 +406,21 @@ def maximize(
         return x0, q0
 
     tiled = _tiled(edges, n_blocks, N_VARIANTS)
+    turns = turning(grammar, edges, n_blocks)
+    planes = NO_PLANES if len(links.block) else pin_planes(grammar, edges, n_blocks)
 
     def cost(flat: FloatArray) -> tuple[float, FloatArray]:
-        theta = flat.reshape(n_blocks, 6)
+        theta = turns.body(flat.reshape(n_blocks, 6))
         if len(links.block):
             value, grad = _linked_value_and_gradient(grammar, tiled, edges, links, x0, q0, theta)
+        elif len(planes.block):
+            value, grad = _planed_value_and_gradient(grammar, tiled, edges, planes, x0, q0, theta)
         else:
             value, grad = _value_and_gradient(grammar, tiled, edges, x0, q0, theta)
         total = float(value.sum())
         if not np.isfinite(total):
             return PENALTY, np.zeros_like(flat)
-        return -total, -grad.ravel()
+        return -total, -turns.coordinates(grad).ravel()
 
     def stop_at_deadline(intermediate_result: object) -> None:
         if deadline is not None and time.perf_counter() >= deadline:
@@ -417,7 +432,7 @@ def maximize(
         np.zeros(6 * n_blocks),
         jac=True,
         method="L-BFGS-B",
-        bounds=_theta_bounds(grammar, edges, x0, q0, links),
+        bounds=_theta_bounds(grammar, edges, x0, q0, turns, links),
         callback=stop_at_deadline,
         options={"maxiter": max_iter, "ftol": 1e-12, "gtol": 1e-7},
     )
@@ -425,9 +440,166 @@ def maximize(
         if len(links.block) == 0:
             return x0, q0
         res.x = np.zeros(6 * n_blocks)  # the start, with its links closed
-    bx, bq = _moved(x0, q0, res.x.reshape(n_blocks, 6))
+    bx, bq = _moved(x0, q0, turns.body(res.x.reshape(n_blocks, 6)))
     bq = quat_normalize(bq)
-    return placed(edges, links, bx, bq), bq
+    return planes.place(placed(edges, links, bx, bq), bq)
+
+
+@dataclass(frozen=True)
+class PinPlanes:
+    """Planes a block's position must lie on at its rotation, n·x = t, one per row k of
+    block[k]: a pinned axis of a parent-frame Normal from the block to a fixed child (n =
+    axis[k] turned by the block's end rotation q ⊗ end_quat[k], t = n·(child[k] - R(q)
+    end_xyz[k]) - mean[k]), or, where axis[k] is -1, a pinned world axis of a rule from a
+    fixed parent (n = world axis world[k], t = mean[k]).
+
+    Why: a pin in the block's frame couples its rotation to its position.  Any turn of the
+    block alone moved its child off the pin (density 0), so refinement kept the rotation the
+    proposals gave: a latent shelf pinned in height, boxes pinned on it in its frame, parsed
+    below its sampled tree.  A block with planes takes the pinned part of its position from
+    them at every step (the least move onto them), as a linked block does from its link."""
+
+    block: IntArray
+    axis: IntArray
+    world: IntArray
+    end_xyz: FloatArray
+    end_quat: FloatArray
+    child: FloatArray
+    mean: FloatArray
+    # (block, end_quat, axis, child differences (k, 3), mean differences (k,)) of two or more
+    # children pinned on one axis of one end: their planes are parallel only where that
+    # axis, turned, is square to the differences (`hard_laws.nearest_unit_solution`)
+    parallel: tuple[tuple[int, FloatArray, int, FloatArray, FloatArray], ...] = ()
+
+    def place(self, x: FloatArray, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Poses (B, 3), (B, 4) moved the least onto their blocks' planes: each rotation
+        turned so that its children's planes are parallel (two or more children pinned on
+        one axis lie on one plane, a condition on the rotation), then each position moved
+        onto the planes at that rotation."""
+        q = q.copy()
+        for b, end_quat, a, d, delta in self.parallel:
+            q_end = quat_multiply(q[b], end_quat)
+            n = quat_rotate(q_end, np.eye(3)[a])
+            wanted = nearest_unit_solution(d, delta, n.reshape(1, 3))[0]
+            q_end = quat_multiply(quat_between(n, wanted), q_end)
+            q[b] = quat_normalize(quat_multiply(q_end, quat_conjugate(end_quat)))
+        return self.project(x, q), q
+
+    def project(self, x: FloatArray, q: FloatArray) -> FloatArray:
+        """Positions (..., B, 3) moved the least onto their blocks' planes at rotations q."""
+        if len(self.block) == 0:
+            return x
+        b = self.block
+        qb = q[..., b, :]
+        local = np.eye(3)[np.maximum(self.axis, 0)]
+        turned = quat_rotate(quat_multiply(qb, self.end_quat), local)
+        n = np.where((self.axis >= 0)[:, None], turned, np.eye(3)[np.maximum(self.world, 0)])
+        reach = self.child - quat_rotate(qb, self.end_xyz)
+        pinned_t = np.sum(n * reach, axis=-1) - self.mean
+        t = np.where(self.axis >= 0, pinned_t, self.mean)
+        out = x.copy()
+        for block in np.unique(b):
+            k = np.flatnonzero(b == block)
+            nb, xb = n[..., k, :], x[..., block, :]
+            miss = t[..., k] - np.einsum("...kj,...j->...k", nb, xb)
+            out[..., block, :] = xb + np.einsum("...jk,...k->...j", np.linalg.pinv(nb), miss)
+        return out
+
+
+NO_PLANES = PinPlanes(
+    *(np.zeros(0, np.int64),) * 3, np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0)
+)
+
+
+def pin_planes(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> PinPlanes:
+    """`PinPlanes` of the blocks with a child pinned in their frame (none for the others:
+    their pinned world axes are bounds, `_pin_limits`)."""
+    rows: list[tuple[int, int, int, FloatArray, FloatArray, FloatArray, float]] = []
+    for m in range(len(edges.rule)):
+        law = grammar.rules[int(edges.rule[m])].translation
+        free = getattr(law, "free", None)
+        pb, cb = int(edges.p_block[m]), int(edges.c_block[m])
+        if free is None or np.all(free) or law.frame != Frame.PARENT or pb < 0 or cb >= 0:
+            continue
+        for a in np.flatnonzero(~np.asarray(free, bool)):
+            c = edges.c_xyz[m]
+            rows.append((pb, int(a), -1, edges.p_xyz[m], edges.p_quat[m], c, law.offset[a]))
+    if not rows:
+        return NO_PLANES
+    with_planes = {r[0] for r in rows}
+    for m in range(len(edges.rule)):  # their own pinned world axes (from a fixed parent)
+        law = grammar.rules[int(edges.rule[m])].translation
+        free = getattr(law, "free", None)
+        cb = int(edges.c_block[m])
+        if free is None or cb not in with_planes or edges.p_block[m] >= 0:
+            continue
+        if law.frame != Frame.WORLD or np.any(edges.c_xyz[m] != 0):
+            continue  # a world-offset frame moves with the parent: left to the bounds
+        for k in np.flatnonzero(~np.asarray(free, bool)):
+            rows.append((cb, -1, int(k), np.zeros(3), IDENTITY_QUAT, np.zeros(3), law.offset[k]))
+    block, axis, world, end_xyz, end_quat, child, mean = zip(*rows, strict=True)
+    return PinPlanes(
+        np.array(block, np.int64),
+        np.array(axis, np.int64),
+        np.array(world, np.int64),
+        np.array(end_xyz, float),
+        np.array(end_quat, float),
+        np.array(child, float),
+        np.array(mean, float),
+        _parallel_groups(rows),
+    )
+
+
+def _parallel_groups(rows: list) -> tuple:  # type: ignore[type-arg]
+    """`PinPlanes.parallel`: the pinned rows grouped by block, end and axis, two or more."""
+    groups: dict[tuple[int, bytes, bytes, int], list[tuple[FloatArray, float]]] = {}
+    ends: dict[tuple[int, bytes, bytes, int], FloatArray] = {}
+    for b, a, _, e_xyz, e_quat, c, mean in rows:
+        if a < 0:
+            continue
+        key = (b, np.asarray(e_xyz).tobytes(), np.asarray(e_quat).tobytes(), a)
+        groups.setdefault(key, []).append((np.asarray(c, float), float(mean)))
+        ends[key] = np.asarray(e_quat, float)
+    out = []
+    for key, members in groups.items():
+        if len(members) < 2:
+            continue
+        d = np.array([c - members[0][0] for c, _ in members[1:]])
+        delta = np.array([m - members[0][1] for _, m in members[1:]])
+        out.append((key[0], ends[key], key[3], d, delta))
+    return tuple(out)
+
+
+IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def _planed_value_and_gradient(
+    grammar: Grammar,
+    tiled: PoseEdges,
+    edges: PoseEdges,
+    planes: PinPlanes,
+    x0: FloatArray,
+    q0: FloatArray,
+    theta: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """`_value_and_gradient` with the blocks of `planes` projected onto them: the gradient at
+    the projected poses, then, by the chain rule, through the projection (which depends on
+    each block's own pose only), its Jacobian by central differences."""
+    x, q = planes.place(*_moved(x0, q0, theta))
+    value, grad = _value_and_gradient(grammar, tiled, edges, x, q, np.zeros_like(theta))
+    on = np.unique(planes.block)
+    chained = np.zeros((len(on), 6))
+    for j in range(6):
+        step = np.zeros_like(theta)
+        step[on, j] = STEP
+        hi_x, hi_q = planes.place(*_moved(x0, q0, theta + step))
+        lo_x, lo_q = planes.place(*_moved(x0, q0, theta - step))
+        dx = (hi_x[on] - lo_x[on]) / (2 * STEP)  # (blocks, 3)
+        turn = quat_multiply(quat_conjugate(lo_q[on]), hi_q[on])  # in the body frame
+        dw = log_quat(turn) / (2 * STEP)
+        chained[:, j] = np.sum(dx * grad[on, :3], axis=1) + np.sum(dw * grad[on, 3:], axis=1)
+    grad[on] = chained
+    return value, grad
 
 
 def _linked_value_and_gradient(
@@ -482,35 +654,88 @@ def _placed_jacobian(
     return (var_block, np.broadcast_to(coord[:, None], var_block.shape)), dx
 
 
-def rigid_rotation(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> NDArray[np.bool_]:
-    """Blocks with an edge whose rotation law is a fixed offset or revolute: off a point or
-    an arc its density is -inf, so a step in rotation is never taken; holding the rotation
-    lets the position converge to the exact optimum for it."""
-    held = np.array(
-        [
-            r.rotation.point is not None or isinstance(r.rotation, RevoluteRotation)
-            for r in grammar.rules
-        ],
-        bool,
-    )
-    out = np.zeros(n_blocks, bool)
-    on = held[edges.rule]
-    for blocks in (edges.p_block, edges.c_block):
-        hit = on & (blocks >= 0)
-        out[blocks[hit]] = True
-    return out
+@dataclass(frozen=True)
+class Turning:
+    """How each block may turn without leaving its edges' rotation laws: a block's rotation
+    variables are coordinates in its own body-frame basis (`basis[b]`, columns), and only the
+    `free[b]` ones move.
+
+    Why: off a point or an arc a rotation law's density is -inf.  A block with a fixed-rotation
+    edge is held whole; a block whose revolute edges share one axis may still turn about it
+    (each end keeps its angle on the arc), and only that turn is free.  Held whole, a latent
+    table turned by a `revolute` about z stayed at its proposed angle, and the seats around
+    it with it (a sampled scene parsed 30 nats below its own tree)."""
+
+    basis: FloatArray  # (B, 3, 3)
+    free: NDArray[np.bool_]  # (B, 3)
+
+    def body(self, theta: FloatArray) -> FloatArray:
+        """Block moves (B, 6) in body-frame rotation vectors, from basis coordinates."""
+        turn = np.einsum("bij,bj->bi", self.basis, theta[:, 3:])
+        return np.hstack([theta[:, :3], turn])
+
+    def coordinates(self, grad: FloatArray) -> FloatArray:
+        """A gradient (B, 6) w.r.t. body-frame moves, as one w.r.t. basis coordinates."""
+        turn = np.einsum("bij,bi->bj", self.basis, grad[:, 3:])
+        return np.hstack([grad[:, :3], turn])
+
+
+def turning(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> Turning:
+    """`Turning` for the blocks of `edges`: a revolute edge's axis, turned into the block's
+    frame by the end's offset (`end = block * offset`, so the end turns about the axis when
+    the block turns about offset * axis), frees that turn; two axes that differ, or a
+    fixed-rotation edge, hold the block whole."""
+    basis = np.broadcast_to(np.eye(3), (n_blocks, 3, 3)).copy()
+    free = np.ones((n_blocks, 3), bool)
+    axis = np.full((n_blocks, 3), np.nan)
+    for m, r in enumerate(edges.rule):
+        law = grammar.rules[int(r)].rotation
+        revolute = isinstance(law, RevoluteRotation)
+        if law.point is None and not revolute:
+            continue
+        ends = ((edges.p_block[m], edges.p_quat[m]), (edges.c_block[m], edges.c_quat[m]))
+        for block, offset in ends:
+            b = int(block)
+            if b < 0 or not np.any(free[b]):
+                continue
+            if not revolute:
+                free[b] = False
+                continue
+            a = quat_rotate(offset, law.axis)
+            if np.isnan(axis[b, 0]):
+                axis[b] = a
+            elif np.linalg.norm(np.cross(axis[b], a)) > 1e-9:
+                free[b] = False
+    turned = np.flatnonzero(~np.isnan(axis[:, 0]) & free[:, 0])
+    for b in turned:
+        basis[b] = _basis_from(axis[b])
+        free[b] = [True, False, False]
+    return Turning(basis, free)
+
+
+def _basis_from(a: FloatArray) -> FloatArray:
+    """An orthonormal basis (columns) whose first column is the unit vector a."""
+    other = np.eye(3)[int(np.argmin(np.abs(a)))]
+    e2 = np.cross(a, other)
+    e2 /= np.linalg.norm(e2)
+    return np.column_stack([a, e2, np.cross(a, e2)])
 
 
 def _theta_bounds(
-    grammar: Grammar, edges: PoseEdges, x0: FloatArray, q0: FloatArray, links: Links = NO_LINKS
+    grammar: Grammar,
+    edges: PoseEdges,
+    x0: FloatArray,
+    q0: FloatArray,
+    turns: Turning,
+    links: Links = NO_LINKS,
 ) -> list[tuple[float | None, float | None]]:
     """L-BFGS-B's bounds on the blocks' moves: box laws on the positions (`box_limits`, never
-    excluding the start); a rigid block's rotation (`rigid_rotation`) stays, and so does a
-    linked block's position variable (`Links`: its link places it)."""
+    excluding the start); the rotation coordinates a block may not turn (`Turning`) stay, and
+    so does a linked block's position variable (`Links`: its link places it)."""
     lo, hi = box_limits(grammar, edges, x0, q0)
     lo, hi = np.minimum(lo - x0, 0.0), np.maximum(hi - x0, 0.0)
     lo[links.block], hi[links.block] = 0.0, 0.0
-    turn = np.where(rigid_rotation(grammar, edges, len(x0))[:, None], 0.0, np.inf)
+    turn = np.where(turns.free, np.inf, 0.0)
     theta_lo = np.hstack([lo, np.broadcast_to(-turn, (len(x0), 3))]).ravel()
     theta_hi = np.hstack([hi, np.broadcast_to(turn, (len(x0), 3))]).ravel()
     return [
@@ -544,7 +769,7 @@ def maximize_independent(
     active = np.isfinite(current)
     lo, hi = box_limits(grammar, edges, bx, bq)
     limits = np.minimum(lo, bx), np.maximum(hi, bx)  # never excluding the start
-    rigid = rigid_rotation(grammar, edges, n_blocks)
+    turns = turning(grammar, edges, n_blocks)
     for _ in range(max_iter):
         if not np.any(active) or (deadline is not None and time.perf_counter() >= deadline):
             break
@@ -553,7 +778,7 @@ def maximize_independent(
                 break
             idx = np.flatnonzero(active)[start : start + NEWTON_CHUNK]
             _newton_update(
-                grammar, edges, owner, idx, bx, bq, current, damping, active, limits, rigid
+                grammar, edges, owner, idx, bx, bq, current, damping, active, limits, turns
             )
     return snap_fixed_offsets(grammar, edges, bx, bq), bq
 
@@ -572,12 +797,13 @@ def _newton_update(
     damping: FloatArray,
     active: NDArray[np.bool_],
     limits: tuple[FloatArray, FloatArray],
-    rigid: NDArray[np.bool_],
+    turns: Turning,
 ) -> None:
     """One damped Newton step on blocks idx, updating the arrays in place; positions stay
     within `limits` (the box laws', `box_limits`)."""
     sub, sub_owner = _sub_edges(edges, owner, idx)
-    tx, tq, predicted = _newton_step(grammar, sub, bx[idx], bq[idx], damping[idx], rigid[idx])
+    sub_turns = Turning(turns.basis[idx], turns.free[idx])
+    tx, tq, predicted = _newton_step(grammar, sub, bx[idx], bq[idx], damping[idx], sub_turns)
     tx = np.clip(tx, limits[0][idx], limits[1][idx])
     trial = _owned_values(grammar, sub, sub_owner, tx, tq)
     now = current[idx]
@@ -629,10 +855,10 @@ def _newton_step(
     bx: FloatArray,
     bq: FloatArray,
     damping: FloatArray,
-    rigid: NDArray[np.bool_] | None = None,
+    turns: Turning,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """A Levenberg–Marquardt step per block: poses after it, and the first-order gain.
-    `rigid` blocks keep their rotation (`rigid_rotation`)."""
+    Blocks turn only as `turns` lets them: the step is taken in their basis coordinates."""
     n_blocks = len(bx)
     tiled = _tiled(edges, n_blocks, N_VARIANTS)
 
@@ -646,15 +872,20 @@ def _newton_step(
         step[:, j] = 1e-4
         hess[:, :, j] = (gradient(*_moved(bx, bq, step)) - g) / 1e-4
     hess = 0.5 * (hess + np.swapaxes(hess, 1, 2))
-    if rigid is not None:  # these blocks move their positions only
-        g[rigid, 3:] = 0.0
-        hess[rigid, 3:, :] = 0.0
-        hess[rigid, :, 3:] = 0.0
+    to_body = np.zeros((n_blocks, 6, 6))
+    to_body[:, :3, :3] = np.eye(3)
+    to_body[:, 3:, 3:] = turns.basis
+    g = np.einsum("bij,bi->bj", to_body, g)
+    hess = np.einsum("bki,bkl,blj->bij", to_body, hess, to_body)
+    held = np.hstack([np.zeros((n_blocks, 3), bool), ~turns.free])
+    g[held] = 0.0
+    hess[np.broadcast_to(held[:, :, None], hess.shape)] = 0.0
+    hess[np.broadcast_to(held[:, None, :], hess.shape)] = 0.0
     scale = np.maximum(np.abs(np.diagonal(hess, axis1=1, axis2=2)).max(axis=1), 1.0)
     lhs = -hess + (damping * scale)[:, None, None] * np.eye(6)
     delta = np.linalg.solve(lhs, g[:, :, None])[:, :, 0]
     delta = np.where(np.isfinite(delta), delta, 0.0)
-    tx, tq = _moved(bx, bq, delta)
+    tx, tq = _moved(bx, bq, turns.body(delta))
     return tx, tq, np.einsum("ni,ni->n", g, delta)
 
 

@@ -1058,6 +1058,7 @@ def _child_combos(
     own = [s for s in singles if s[0][4] is None]
     combos: list[tuple] = [()]  # the set's own children first, then grandchildren
     combos += [(c[:5],) for s in own + [s for s in singles if s[0][4] is not None] for c in s]
+    combos += [tuple(c[:5] for c in s[: s[0][5]]) for s in own if _many_pinned(grammar, s)]
     for a in range(len(own)):
         for b in range(a, len(own)):
             for i, ca in enumerate(own[a]):
@@ -1068,6 +1069,18 @@ def _child_combos(
                     if len(combos) >= HARD_COMBOS:
                         return combos + _relayed_pairs(singles)
     return combos + _relayed_pairs(singles)
+
+
+def _many_pinned(grammar: Grammar, slot: list[tuple]) -> bool:  # type: ignore[type-arg]
+    """Whether a slot's candidate children, all at once, are a combination of their own: a
+    `repeat` of three or more copies whose rule pins axes in the parent's frame.
+
+    Why: objects pinned on a latent surface lie on one plane, which three of them fix; from
+    one or two children the surface was turned onto their planes only, the others missed
+    theirs, and a shelf of three or four boxes sampled from the grammar had no parse."""
+    tl = grammar.rules[slot[0][1]].translation
+    pinned = tl.frame == Frame.PARENT and hasattr(tl, "free") and not np.all(tl.free)
+    return pinned and min(slot[0][5], len(slot)) >= 3
 
 
 def _relayed_pairs(singles: list[list[tuple]]) -> list[tuple]:  # type: ignore[type-arg]
