@@ -40,13 +40,15 @@ def render(
 ) -> None:
     """Draw scenes in 3-D and from above, with their trees; a parse's edges by rule score."""
     from ssgc.cli.app import _warnings_about  # here: app imports this module at its top
+    from ssgc.io.outputs import lock_outputs
     from ssgc.render.scene import check_output, render_file, require_matplotlib
 
     dest, _ = check_output(output, inputs=(source,))
     require_matplotlib()
-    g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
-    with _warnings_about(source):
-        count = render_file(source, output, n=num, grammar=g, scene=scene)
+    with lock_outputs([dest]):  # one writer per output (docs/robustness.md)
+        g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
+        with _warnings_about(source):
+            count = render_file(source, output, n=num, grammar=g, scene=scene)
     if not quiet:  # on stderr when the picture went to stdout
         typer.echo(f"drew {count} scene(s) of {source} to {output}", err=dest.stdout)
 
@@ -54,11 +56,12 @@ def render(
 def diagram(grammar_path: Path, output: Path, allow_outside: bool) -> None:
     """`ssg inspect --diagram`: the grammar's types and rules as a layered graph."""
     from ssgc.cli.app import _warnings_about
-    from ssgc.render.diagram import render_diagram
+    from ssgc.io.outputs import lock_outputs
+    from ssgc.render.diagram import DIAGRAM_EXAMPLE, render_diagram
     from ssgc.render.scene import check_output, require_matplotlib
 
-    dest, _ = check_output(output, inputs=(grammar_path,))
+    dest, _ = check_output(output, inputs=(grammar_path,), example=DIAGRAM_EXAMPLE)
     require_matplotlib()
-    with _warnings_about(grammar_path):
+    with lock_outputs([dest]), _warnings_about(grammar_path):  # one writer per output
         render_diagram(load_grammar(grammar_path, allow_outside=allow_outside), output)
     typer.echo(f"drew the diagram of {grammar_path} to {output}", err=dest.stdout)

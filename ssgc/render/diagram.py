@@ -14,6 +14,7 @@ other arrows.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ CHAR = 0.062  # inches per character at the name's font size
 LABEL_PAD = 0.03  # inches kept free round a label
 FORWARD_AT = 0.7  # a label's favourite place: this far along its arrow
 BACK_COLOUR = "#a0522d"
+DIAGRAM_EXAMPLE = "diagram.svg"  # the file name a refused directory's message suggests
 
 
 @dataclass(frozen=True)
@@ -51,10 +53,17 @@ class Layout:
 
 
 def render_diagram(grammar: Grammar | HoldsGrammar, output: str | Path) -> None:
+    """Draw `grammar` to `output` (.svg or .png).  Drawing measures the labels' text, when
+    matplotlib warns of a character its font lacks (in the grammar's name): those warnings
+    are caught and said with the saving's, once, in ssgc's words (`save_figure`)."""
     grammar = as_ir(grammar)
-    out, fmt = check_output(Path(output), inputs=(grammar.file,) if grammar.file else ())
+    inputs = (grammar.file,) if grammar.file else ()
+    out, fmt = check_output(Path(output), inputs=inputs, example=DIAGRAM_EXAMPLE)
     require_matplotlib()
-    save_figure(draw_diagram(grammar, layout(grammar)), out, fmt)
+    with warnings.catch_warnings(record=True) as drawn:
+        warnings.simplefilter("always")
+        fig = draw_diagram(grammar, layout(grammar))
+    save_figure(fig, out, fmt, drawn)
 
 
 def layout(grammar: Grammar) -> Layout:
@@ -193,11 +202,18 @@ def _kind_line(grammar: Grammar, t: NodeType) -> str:
         probs = t.count.probs
         mean = float(np.dot(np.arange(len(probs)), probs))
         low, high = count_range(t)
-        kind += f" ×{low}..{high}, mean {mean:.2g}"
+        kind += f" ×{low}..{high}, mean {_mean_text(mean)}"
     observed = "observed" if t.observed else "latent"
     root = ", root" if t.id == grammar.root else ""
     added = f" · added by observation ({t.synthetic})" if t.synthetic else ""
     return f"{kind} · {observed}{root}{added}"
+
+
+def _mean_text(mean: float) -> str:
+    """A repeat's mean count to two significant digits, in plain digits: `190`, not the
+    `1.9e+02` that `:.2g` prints from 100 on."""
+    text = f"{mean:.2g}"
+    return f"{float(text):.0f}" if "e+" in text else text
 
 
 def _rule_label(grammar: Grammar, r: Rule) -> str:

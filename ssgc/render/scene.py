@@ -15,6 +15,7 @@ import colorsys
 import io
 import json
 import math
+import os
 import re
 import sys
 import warnings
@@ -28,7 +29,7 @@ from numpy.typing import NDArray
 
 from ssgc.errors import SceneError, SsgError, SsgWarning, one_line
 from ssgc.geometry import quat_to_matrix
-from ssgc.io.outputs import Output, write_output_bytes
+from ssgc.io.outputs import STDOUT_NAMES, Output, write_output_bytes
 from ssgc.io.outputs import check_output as check_output_path
 from ssgc.io.parsed import ParseDoc, best_tree, read_parse_doc
 from ssgc.io.scene import (
@@ -61,9 +62,13 @@ PANEL_PT = 200.0  # the longer side of a panel's drawing area, at most about thi
 MIN_SHAPE_PT = 4.0  # a shape drawn smaller than this (points) also gets a dot, to be seen
 OFFSET_SHARE = 1000  # a panel counts from a round number near a scene this far off (in sizes)
 DOT_AREA = 30  # the dot of an object without a shape, or with one too small (points²)
+TITLE_PT = 230.0  # a panel's title is at most about this wide (points): it is centred over the
+# 3-D panel, whose centre is at least 1.6 inches (115 points) from the edge of its cell
+MIN_TITLE_CHARS = 12  # a name is never cut shorter than this in a title
+SPREAD = 1e-9  # rule log-probabilities closer than this are one value (no colour scale)
 # The colours of the observed types, `ssg render`'s and `ssg view`'s: matplotlib's "tab20",
 # its ten dark colours first (tab10's, in its order), then the ten light ones, so that up to
-# ten types get ten strong colours and two alphabetical neighbours never share a hue.
+# ten types get ten strong colours and two neighbours in their order never share a hue.
 PALETTE = (
     "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd",
     "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf",
@@ -99,9 +104,18 @@ def require_matplotlib() -> Any:
     return matplotlib
 
 
-def check_output(path: Path, inputs: tuple[str | Path, ...] = ()) -> tuple[Output, str]:
+def check_output(
+    path: Path, inputs: tuple[str | Path, ...] = (), example: str = "scene.png"
+) -> tuple[Output, str]:
     """The picture's output (checked before any work, as every output: docs/robustness.md) and
-    its format from the file name; a device or standard output without a suffix gets PNG."""
+    its format from the file name; a device or standard output without a suffix gets PNG.
+    A directory (`-o .`) is refused with a file name the user can type (`example` in it), as
+    the general check's `NAME` is not one."""
+    if str(path) not in STDOUT_NAMES and os.path.isdir(path):
+        raise SsgError.single(
+            f"the picture is a directory; give a file name (such as {Path(path) / example})",
+            str(path),
+        )
     out = check_output_path(path, "picture", inputs=inputs)
     suffix = Path(path).suffix.lower()
     if out.stream and suffix not in FORMATS:
@@ -135,7 +149,7 @@ def render_file(
         if not views:
             raise _no_scene(Path(source), scene)
         views = views[:n]
-    fig = draw_views(views, geometry_of(grammar))
+    fig = draw_views(views, geometry_of(grammar), grammar)
     save_figure(fig, out, fmt)
     return len(views)
 
@@ -186,7 +200,7 @@ def render_document(data: Any, output: str | Path, grammar: Grammar | None = Non
     out, fmt = check_output(Path(output))
     require_matplotlib()
     views = document_views(data, grammar, Path("<memory>"))[:MAX_GRID]
-    save_figure(draw_views(views, geometry_of(grammar)), out, fmt)
+    save_figure(draw_views(views, geometry_of(grammar), grammar), out, fmt)
     return len(views)
 
 
@@ -272,14 +286,22 @@ def _tree_view(title: str, tree: NodeTable, grammar: Grammar | None) -> View:
 
 def _rule_name(tree: NodeTable, i: int, grammar: Grammar | None) -> str | None:
     """Node i's rule named as a parse names it (`Parent[index]->Child`, `Grammar.rule_name`):
-    the tree records only its index in the parent type's rule list."""
+    the tree records only its index in the parent type's rule list.  A grammar other than
+    the scene's (its rules reordered) may hold there a rule that makes another type, or none:
+    the name then says so, rather than name a rule that could not have made this node."""
     parent, index = int(tree.parent[i]), int(tree.rule[i])
     if parent < 0 or index < 0:
         return None
-    if grammar is not None and tree.types[parent] in grammar.type_ids:
-        rule = grammar.tables.type_rules[grammar.type_ids[tree.types[parent]], index]
-        return grammar.rule_name(int(rule))
-    return f"{tree.types[parent]}[{index}]->{tree.types[i]}"
+    parent_name, child_name = tree.types[parent], tree.types[i]
+    if grammar is None or parent_name not in grammar.type_ids:
+        return f"{parent_name}[{index}]->{child_name}"
+    rules = grammar.types[grammar.type_ids[parent_name]].rules
+    if index >= len(rules):
+        return f"{parent_name}[{index}] (no such rule in the grammar)"
+    made = grammar.types[grammar.rules[rules[index]].child].name
+    if made != child_name:
+        return f"{parent_name}[{index}] (makes {made}, not {child_name})"
+    return grammar.rule_name(int(rules[index]))
 
 
 def _doc_view(doc: SceneDoc, read: SceneRead, grammar: Grammar | None, stem: str) -> View:
@@ -383,10 +405,23 @@ def plain(text: str) -> str:
     return text.encode("utf-8", "replace").decode("utf-8").replace("$", r"\$")
 
 
-def _colours(views: list[View]) -> dict[str, Any]:
-    """A colour per observed type, by name: `type_colours`."""
+def _colours(views: list[View], grammar: Grammar | None) -> dict[str, Any]:
+    """A colour per observed type in the picture, by name, in the legend's (alphabetical)
+    order: `grammar_colours`."""
     names = sorted({t for v in views for t, o in zip(v.types, v.observed, strict=True) if o})
-    return type_colours(names)
+    colours = grammar_colours(names, grammar)
+    return {name: colours[name] for name in names}
+
+
+def grammar_colours(names: list[str], grammar: Grammar | None) -> dict[str, str]:
+    """A colour per type of `names` (the observed types drawn) and, with a grammar, per
+    observed type of the grammar.  With a grammar the colours go to its observed types in its
+    own order, whatever is drawn: a type then has one colour in every picture and page of that
+    grammar (`ssg render`'s and `ssg view`'s), not one that depends on which other types a
+    scene happens to hold.  Without one, `names` take them in alphabetical order."""
+    order = [] if grammar is None else [t.name for t in grammar.types if t.observed]
+    known = set(order)
+    return type_colours(order + sorted(n for n in set(names) if n not in known))
 
 
 def type_colours(names: list[str]) -> dict[str, str]:
@@ -413,10 +448,43 @@ def legend_label(name: str) -> str:
     """A type's name as the legend shows it: at most LEGEND_CHARS characters, a long one cut
     in the middle (the start and the end usually tell two types apart), so that the legend
     leaves the panels their room."""
-    if len(name) <= LEGEND_CHARS:
-        return plain(name)
-    tail = LEGEND_CHARS // 3
-    return plain(name[: LEGEND_CHARS - tail - 1] + "…" + name[-tail:])
+    return plain(_cut(name))
+
+
+def _cut(name: str, limit: int = LEGEND_CHARS) -> str:
+    """`name`, at most `limit` characters: a longer one cut in the middle."""
+    if len(name) <= limit:
+        return name
+    tail = limit // 3
+    return name[: limit - tail - 1] + "…" + name[-tail:]
+
+
+def panel_title(view: View) -> str:
+    """A scene's title over its 3-D panel: its name cut as a legend entry is (`_cut`), and
+    shorter while the title is wider than TITLE_PT, then what the title adds to the name (a
+    parse's `(log p = ...)`), whole.  The title is centred over the panel: an uncut long name
+    ran off the figure's edge (or over the panels beside it), the score at its end unseen."""
+    name, rest = view.name, view.title[len(view.name) :]
+    if not view.title.startswith(view.name):
+        name, rest = view.title, ""
+    keep = LEGEND_CHARS
+    while keep > MIN_TITLE_CHARS and _text_width(_cut(name, keep) + rest, 8) > TITLE_PT:
+        keep -= 1
+    return plain(_cut(name, keep) + rest)
+
+
+def _text_width(text: str, size: float) -> float:
+    """The width (points) of `text` drawn plain (no mathtext) at font size `size`."""
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import TextToPath
+
+    with warnings.catch_warnings():
+        # A character the font lacks: matplotlib warns here, in its words and with our source
+        # line.  The same text is drawn when the figure is saved, where `save_figure` says
+        # it once, in ssgc's words (docs/render.md).
+        warnings.simplefilter("ignore")
+        width = TextToPath().get_text_width_height_descent(text, FontProperties(size=size), False)
+    return float(width[0])
 
 
 def _legend(fig: Any, handles: list[Any]) -> None:
@@ -440,31 +508,29 @@ def _legend_rows(height: float) -> int:
 def _legend_width(labels: list[str], height: float) -> float:
     """Inches the legend takes beside the panels: its columns, each as wide as its longest
     label at font size 7 (measured) plus the colour patch and the gaps."""
-    from matplotlib.font_manager import FontProperties
-    from matplotlib.textpath import TextToPath
-
     columns = math.ceil(len(labels) / _legend_rows(height))
-    font, measure = FontProperties(size=7), TextToPath()
-    with warnings.catch_warnings():
-        # A character the font lacks: matplotlib warns here, in its words and with our source
-        # line.  The same labels are drawn when the figure is saved, where `save_figure` says
-        # it once, in ssgc's words (docs/render.md).
-        warnings.simplefilter("ignore")
-        widths = [measure.get_text_width_height_descent(t, font, ismath=False)[0] for t in labels]
+    widths = [_text_width(label, 7) for label in labels]
     return (columns * (34 + max(widths, default=0)) + 10) / 72
 
 
-def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[int]]]]) -> Any:
+def draw_views(
+    views: list[View],
+    geoms: dict[str, tuple[FloatArray, list[list[int]]]],
+    grammar: Grammar | None = None,
+) -> Any:
     """One figure: a (3-D, top-down) pair of panels per scene, a legend, and for parses a
     colour bar of rule log-probabilities.  The figure is widened by what the legend needs, so
-    that many types or long names never squeeze the panels."""
+    that many types or long names never squeeze the panels.  The grammar, when known, fixes
+    each type's colour (`grammar_colours`)."""
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.figure import Figure
 
     cols = math.ceil(math.sqrt(len(views)))
     rows = math.ceil(len(views) / cols)
-    colours, norm, cmap = _colours(views), _score_norm(views), colormaps["RdYlGn"]
+    scores = score_range(views)
+    norm = None if scores is None else _score_norm(*scores)
+    colours, cmap = _colours(views, grammar), colormaps["RdYlGn"]
     handles = _handles(views, colours, norm)
     legend = _legend_width([h.get_label() for h in handles], 3.6 * rows)
     bar = 0.0 if norm is None else 0.9
@@ -477,26 +543,45 @@ def draw_views(views: list[View], geoms: dict[str, tuple[FloatArray, list[list[i
         _draw_view(ax3, ax2, view, geoms, colours, norm, cmap)
         axes += [ax3, ax2]
     _legend(fig, handles)
-    if norm is not None:
-        colour_bar = fig.colorbar(ScalarMappable(norm, cmap), ax=axes, shrink=0.8, pad=0.02)
-        colour_bar.set_label(
-            "log-probability of the rule making the child (low = unusual)", fontsize=7
-        )
-        colour_bar.ax.tick_params(labelsize=7)
+    if scores is not None:
+        _colour_bar(fig, axes, scores, ScalarMappable(norm, cmap))
     return fig
 
 
-def _score_norm(views: list[View]) -> Any:
-    """The colour scale of a parse's edges: all drawn parses' finite rule log-probabilities
-    (None when no view is a parse)."""
-    from matplotlib.colors import Normalize
+def _colour_bar(fig: Any, axes: list[Any], scores: tuple[float, float], mappable: Any) -> None:
+    """The scale of the edges' colours; for one value, only its tick, not a scale of values
+    no rule has."""
+    colour_bar = fig.colorbar(mappable, ax=axes, shrink=0.8, pad=0.02)
+    colour_bar.set_label("log-probability of the rule making the child (low = unusual)", fontsize=7)
+    colour_bar.ax.tick_params(labelsize=7)
+    if not spread(*scores):
+        colour_bar.set_ticks([scores[1]])
 
+
+def score_range(views: list[View]) -> tuple[float, float] | None:
+    """The lowest and highest of all drawn parses' finite rule log-probabilities (None when no
+    view is a parse; (-1, 0) when every rule is −∞)."""
     scores = [v.score[np.isfinite(v.score)] for v in views if v.score is not None]
     if not scores:
         return None
     finite = np.concatenate(scores)
-    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (-1.0, 0.0)
-    return Normalize(lo, hi if hi > lo else lo + 1.0)
+    return (float(finite.min()), float(finite.max())) if finite.size else (-1.0, 0.0)
+
+
+def spread(lo: float, hi: float) -> bool:
+    """Whether the rule log-probabilities differ (beyond SPREAD, float noise).  When they do
+    not (a grammar of fixed offsets scores every rule 0), no rule is more unusual than another:
+    `ssg render` and `ssg view` then draw every finite one in the top colour, not the lowest,
+    and the viewer marks none of them low."""
+    return hi - lo > SPREAD
+
+
+def _score_norm(lo: float, hi: float) -> Any:
+    """The colour scale of a parse's edges, from `score_range`; for one value, a scale that
+    ends at it, so it takes the top colour (−∞ keeps the lowest: `_draw_marks`)."""
+    from matplotlib.colors import Normalize
+
+    return Normalize(lo, hi) if spread(lo, hi) else Normalize(hi - 1.0, hi)
 
 
 def _handles(views: list[View], colours: dict[str, Any], norm: Any) -> list[Any]:
@@ -547,7 +632,7 @@ def _draw_view(
             ax2.scatter(*view.xyz[i, :2], color=colour, s=DOT_AREA, zorder=3)
     _draw_marks(ax3, ax2, view, norm, cmap)
     _limits(ax3, ax2, centre, half, origin)
-    ax3.set_title(plain(view.title), fontsize=8)
+    ax3.set_title(panel_title(view), fontsize=8)
     ax2.set_title("from above (x, y)", fontsize=8)
 
 
@@ -732,10 +817,14 @@ def _limits(ax3: Any, ax2: Any, centre: FloatArray, half: FloatArray, origin: Fl
     ax2.set_ylabel(y, fontsize=7)
 
 
-def save_figure(fig: Any, output: Output, fmt: str) -> None:
+def save_figure(
+    fig: Any, output: Output, fmt: str, drawn: list[warnings.WarningMessage] | None = None
+) -> None:
     """Rendered in memory, then written atomically: never a half-written image.  SVG text
     stays text (searchable, and the tests can read the names in it), and carries no date, so
-    that the same input makes the same file."""
+    that the same input makes the same file.  `drawn`: matplotlib's warnings caught while the
+    figure was drawn (`ssg inspect --diagram` measures its labels then, which is when a
+    character missing from the font is warned of): said with the saving's, once."""
     import matplotlib
 
     buf, metadata = io.BytesIO(), {"Date": None} if fmt == "svg" else None
@@ -746,7 +835,7 @@ def save_figure(fig: Any, output: Output, fmt: str) -> None:
         warnings.simplefilter("always")
         fig.savefig(buf, format=fmt, dpi=100, metadata=metadata)
     write_output_bytes(output, buf.getvalue())
-    _say_warnings(caught)
+    _say_warnings([*(drawn or []), *caught])
 
 
 _GLYPH = re.compile(r"Glyph (\d+) .* missing from font\(s\) (.+)\.$")

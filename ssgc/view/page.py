@@ -26,7 +26,7 @@ from ssgc.errors import SsgError, SsgWarning
 from ssgc.geometry import quat_to_matrix
 from ssgc.io.outputs import Output, check_output, write_output_text
 from ssgc.ir import Grammar, HoldsGrammar
-from ssgc.render.scene import View, grammar_ir, holders, load_views, type_colours
+from ssgc.render.scene import View, grammar_colours, grammar_ir, holders, load_views, spread
 
 MAX_SCENES = 1000  # one page; more would make a page too heavy to open
 MAX_FACES = 4000  # a mesh with more triangles is shown as its convex hull
@@ -34,6 +34,7 @@ MARKER = 0.03  # m: the side of the cube marking an object without geometry
 LATENT = "#555555"
 # A rule's log-probability as a colour: red (low, unusual), yellow, green (high).
 SCORE_STOPS = np.array([[215, 48, 39], [254, 224, 139], [26, 152, 80]], float)
+LOW_SHARE = 0.25  # a rule in the lowest quarter of the page's range is marked in the panel
 
 
 def view_page(source: str | Path, grammar: Grammar | HoldsGrammar | None = None) -> tuple[str, int]:
@@ -81,10 +82,12 @@ def check_page(output: str | Path, source: str | Path, grammar_file: str | Path 
 
 
 def page_data(views: list[View], grammar: Grammar | None, title: str) -> dict[str, Any]:
-    """What the page draws, as plain JSON: types (colour, shape), scenes (nodes, objects)."""
+    """What the page draws, as plain JSON: types (colour, shape), scenes (nodes, objects).
+    Colours are `ssg render`'s (`grammar_colours`): with the grammar, one per type whatever
+    the page holds."""
     names = sorted({t for v in views for t in v.types})
     seen = {t for v in views for t, o in zip(v.types, v.observed, strict=True) if o}
-    colour = type_colours(sorted(seen))
+    colour = grammar_colours(sorted(seen), grammar)
     shapes = _shapes(grammar, sorted(seen))
     scores = [v.score[np.isfinite(v.score)] for v in views if v.score is not None]
     finite = np.concatenate(scores) if scores else np.zeros(0)
@@ -103,7 +106,7 @@ def page_data(views: list[View], grammar: Grammar | None, title: str) -> dict[st
     return {
         "title": title,
         "types": types,
-        "scores": None if bounds is None else {"low": bounds[0], "high": bounds[1]},
+        "scores": None if bounds is None else _score_scale(*bounds),
         "scenes": [_scene(v, index, shapes, bounds) for v in views],
     }
 
@@ -169,7 +172,10 @@ def grid(radius: float) -> dict[str, Any]:
 
 
 def _length(metres: float) -> str:
-    """A grid step as the page's hint shows it: `10 cm`, `100 m`, `5 mm`."""
+    """A grid step as the page's hint shows it: `10 cm`, `100 m`, `5 mm`, `200 km` (not
+    `200000 m`, whose zeros the reader has to count)."""
+    if metres >= 1000:
+        return f"{metres / 1000:g} km"
     if metres >= 1:
         return f"{metres:g} m"
     return f"{metres * 100:g} cm" if metres >= 0.01 else f"{metres * 1000:g} mm"
@@ -183,14 +189,25 @@ def _number(x: float) -> float | str | None:
     return float(x) if math.isfinite(x) else ("-Infinity" if x < 0 else "Infinity")
 
 
+def _score_scale(lo: float, hi: float) -> dict[str, Any]:
+    """The page's score range and the score at or below which the panel marks a rule low
+    (None: only −∞, as when every finite rule has one log-probability, `spread`)."""
+    mark = lo + LOW_SHARE * (hi - lo) if spread(lo, hi) else None
+    return {"low": lo, "high": hi, "mark": mark}
+
+
 def _score_colours(score: np.ndarray, bounds: tuple[float, float] | None) -> list[str | None]:
     """Each node's edge colour: by its rule's log-probability across the page's range (−∞ in
-    the lowest colour), or None where no score is known (then the page draws a grey edge)."""
+    the lowest colour), or None where no score is known (then the page draws a grey edge).
+    A range of one value (`spread`) is drawn in the top colour: no rule is unusual."""
     if bounds is None:
         return [None] * len(score)
     lo, hi = bounds
     known = np.where(np.isfinite(score), score, lo)  # −∞ (and NaN, dropped below): lowest
-    t = np.clip((known - lo) / max(hi - lo, 1e-12), 0, 1)
+    if spread(lo, hi):
+        t = np.clip((known - lo) / (hi - lo), 0, 1)
+    else:
+        t = np.isfinite(score).astype(float)
     seg = np.minimum((t * 2).astype(int), 1)
     frac = (t * 2 - seg)[:, None]
     rgb = SCORE_STOPS[seg] * (1 - frac) + SCORE_STOPS[seg + 1] * frac

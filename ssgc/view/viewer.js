@@ -10,7 +10,6 @@
   const ctx = canvas.getContext("2d");
   const $ = (id) => document.getElementById(id);
   const FOV = 40 * Math.PI / 180;
-  const LOW_SHARE = 0.25; // a rule in the lowest quarter of the page's range is marked
   const MIN_PX = 8; // an object is never drawn smaller than this (CSS pixels across)
 
   const state = {
@@ -292,7 +291,10 @@
     $("selected-title").textContent =
       data.types[s.nodes[nodeIndex].type].name + ": object " + (state.selected + 1) + " of " + s.objects.length +
       (s.tree ? ", its path in the tree" : " (no tree known)");
-    const low = data.scores ? data.scores.low + LOW_SHARE * (data.scores.high - data.scores.low) : null;
+    // A rule is marked low at or below the page's mark (page.py: the lowest quarter of its
+    // range), or when it is −∞; with no mark (every finite rule alike) only −∞ is.
+    const mark = data.scores ? data.scores.mark : null;
+    const isLow = (v) => Number(v) === -Infinity || (mark !== null && Number(v) <= mark);
     treePath(s, nodeIndex).forEach((j) => {
       const n = s.nodes[j];
       const li = document.createElement("li");
@@ -310,7 +312,7 @@
         if (n.rule) parts.push("rule " + n.rule);
         if (lp !== null) parts.push("log p = " + lp);
         rule.textContent = parts.join(", ");
-        if (lp !== null && low !== null && Number(n.log_prob) <= low) rule.classList.add("low");
+        if (lp !== null && data.scores && isLow(n.log_prob)) rule.classList.add("low");
         if (parts.length) li.appendChild(rule);
       }
       list.appendChild(li);
