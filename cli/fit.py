@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from enum import StrEnum
 from pathlib import Path
@@ -25,9 +26,9 @@ from ssgc.cli.app import (
 )
 from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
-from ssgc.fit.mstep import MAX_MIN_VARIANCE
-from ssgc.io.journal import JournalWriteError
-from ssgc.io.outputs import check_output, lock_outputs, write_output_text
+from ssgc.fit.mstep import MAX_MIN_VARIANCE, MAX_PSEUDOCOUNT
+from ssgc.io.journal import JournalWriteError, journal_path
+from ssgc.io.outputs import Output, check_output, lock_outputs, lock_part, write_output_text
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 
 if TYPE_CHECKING:
@@ -97,8 +98,9 @@ def fit(
     pseudocount: Annotated[
         float,
         typer.Option(
-            callback=finite_from(0.0),
-            help="Added to every possible outcome of a discrete law (0: plain MLE).",
+            callback=finite_from(0.0, MAX_PSEUDOCOUNT),
+            help="Added to every possible outcome of a discrete law (0: plain MLE; at most "
+            f"{MAX_PSEUDOCOUNT:g}).",
         ),
     ] = DEFAULTS["pseudocount"],
     min_variance: Annotated[
@@ -196,6 +198,7 @@ def fit(
 
         require_matplotlib()
         plots = check_plot_outputs(plot, [grammar, scenes], [dest, report_dest])
+    _refuse_side_files(dest, [o for o in (report_dest, *(plots or [])) if o is not None])
     if resume and dest.stream:
         raise SsgError.single("--resume needs -o FILE: the journal is kept next to it", dest.name)
     g = load_grammar(grammar, allow_outside=allow_outside_files)
@@ -232,7 +235,45 @@ def fit(
         if result.status != "time_limit":
             journal.delete()
     if not quiet:
+        _note_noise_kept(result.noise_kept)
         _summary(dest, f"{result.message}; wrote {dest.name}")
+
+
+def _side_files(dest: Output, others: list[Output]) -> list[tuple[str, str]]:
+    """The files the fit writes and removes beside its outputs, as real paths with what they
+    are: the journal next to -o (kept for --resume) and each output's lock `.NAME.lock`."""
+    sides = [] if dest.stream else [(journal_path(dest.target), "the fit's journal")]
+    for out in (dest, *others):
+        if not out.stream:
+            lock = out.target.with_name(f".{lock_part(out.target.name)}.lock")
+            sides.append((lock, f"the lock file of the {out.what}"))
+    return [(os.path.realpath(path), what) for path, what in sides]
+
+
+def _refuse_side_files(dest: Output, others: list[Output]) -> None:
+    """Refuse, before any work, an output that is one of `_side_files`: the fit would write it
+    and then delete or overwrite it (a --report onto the journal was gone after exit 0)."""
+    sides = _side_files(dest, others)
+    for out in (dest, *others):
+        for path, what in sides:
+            if not out.stream and os.path.realpath(out.target) == path:
+                raise SsgError.single(
+                    f"the {out.what} is {what}, which ssg fit writes and removes itself; "
+                    "give another name",
+                    out.name,
+                )
+
+
+def _note_noise_kept(places: list[str]) -> None:
+    """One line when the `observation` noise made laws the fit keeps as written."""
+    if places:
+        err.print(
+            f"note: {len(places)} pose law(s) kept as written because the observation noise "
+            f"made them ({', '.join(places)}): fit the grammar without `observation` to fit "
+            "them (docs/fitting.md)",
+            markup=False,
+            highlight=False,
+        )
 
 
 def _with_bom_of(grammar: Path, text: str) -> str:

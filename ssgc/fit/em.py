@@ -52,6 +52,7 @@ from ssgc.fit.writeback import (
     apply_updates,
     shared_nodes,
     shared_with_kept,
+    without_section,
 )
 from ssgc.io.journal import Journal, journal_path, scenes_digest
 from ssgc.io.scene import Scene
@@ -106,6 +107,7 @@ class FitResult:
     message: str = ""
     mmd: dict[str, dict[str, float]] | None = None  # grammar -> object type -> MMD² to the data
     tails: list[dict[str, Any]] = field(default_factory=list)  # measured (ssgc.fit.tails)
+    noise_kept: list[str] = field(default_factory=list)  # `noise_kept_laws` of the grammar
 
 
 class FitJournal(Journal):
@@ -215,6 +217,43 @@ def fit_grammar(
     """Run EM from `text` (or from where `journal` stopped) and return the fitted grammar.
     `on_tails` is called when the EM is over and the physical tails are measured (seconds
     of work after the last iteration's report: a progress bar would show a next one)."""
+    result = _em(
+        text, source, scenes, options, journal, time_limit, on_scene, on_iteration, on_tails
+    )
+    result.noise_kept = noise_kept_laws(text, source)
+    return result
+
+
+def noise_kept_laws(text: str, source: GrammarSource) -> list[str]:
+    """Where the pose laws are that the fit keeps as written only because the `observation`
+    section's noise made them (docs/grammar.md section 9): those that fit in the grammar
+    without that section and do not in the grammar of observed scenes.  Said once per fit
+    (docs/fitting.md): users read "fitted" and find them unchanged."""
+    grammar = compile_text(text, source.file, source.base_dir, source.allow_outside)
+    if grammar.observation is None:
+        return []
+    plain_text = without_section(text, "observation")
+    try:
+        plain = compile_text(plain_text, source.file, source.base_dir, source.allow_outside)
+    except SsgError:  # the file's types need the section (clutter names): no plain grammar
+        return []
+    fits = {p.path for r in plain.rules for p in (r.translation, r.rotation) if p.fits}
+    kept = {p.path for r in grammar.rules for p in (r.translation, r.rotation) if not p.fits}
+    return [".".join(str(k) for k in path) for path in sorted(fits & kept, key=str)]
+
+
+def _em(
+    text: str,
+    source: GrammarSource,
+    scenes: Sequence[Scene],
+    options: FitOptions,
+    journal: FitJournal,
+    time_limit: float | None,
+    on_scene: Callable[[], None] | None,
+    on_iteration: Callable[[dict[str, Any]], None] | None,
+    on_tails: Callable[[], None] | None,
+) -> FitResult:
+    """`fit_grammar`'s iterations."""
     t0 = time.monotonic()
     deadline = None if time_limit is None else t0 + DEADLINE_SHARE * time_limit
     current = journal.text or text
@@ -564,7 +603,8 @@ def report_json(result: FitResult) -> str:
     """The `--report` file: every iteration's numbers and how the fit ended.  `tails` is
     always there (`[]` when none were written, docs/fitting.md section 11), so that a script
     reads it without first asking whether the grammar has such constraints; `mmd` only with
-    `--mmd`, which the user asked for."""
+    `--mmd`, which the user asked for; `kept_for_noise` only when the `observation` noise made
+    laws the fit keeps (`noise_kept_laws`)."""
     doc: dict[str, Any] = {
         "status": result.status,
         "message": result.message,
@@ -573,4 +613,6 @@ def report_json(result: FitResult) -> str:
     if result.mmd is not None:
         doc["mmd"] = result.mmd
     doc["tails"] = result.tails
+    if result.noise_kept:
+        doc["kept_for_noise"] = result.noise_kept
     return json.dumps(doc, indent=1) + "\n"

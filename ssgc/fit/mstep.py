@@ -29,7 +29,6 @@ The output is a list of `Update`s: document paths and the numbers to put there, 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -55,6 +54,9 @@ MM_ROUNDS = 200  # rule-frequency iterations when max_nesting blocks rules at so
 # m²: the largest variance floor (a 1 km deviation).  A floor near the largest float made the
 # full-covariance fit's eigenvalue products overflow to inf, which no grammar can hold.
 MAX_MIN_VARIANCE = 1e6
+# The largest pseudocount: a million nodes per outcome outweighs any dataset ssg fit takes, and
+# one near the largest float overflowed the geometric count law's fit (an internal error).
+MAX_PSEUDOCOUNT = 1e6
 
 
 @dataclass(frozen=True)
@@ -68,7 +70,12 @@ class FitSettings:
     def __post_init__(self) -> None:
         """Out-of-range settings are the caller's mistake, told before any work."""
         checks = (
-            ("pseudocount", self.pseudocount, 0.0 <= self.pseudocount < math.inf, "≥ 0 and finite"),
+            (
+                "pseudocount",
+                self.pseudocount,
+                0.0 <= self.pseudocount <= MAX_PSEUDOCOUNT,
+                f"≥ 0 and at most {MAX_PSEUDOCOUNT:g}",
+            ),
             (
                 "min_variance",
                 self.min_variance,

@@ -16,9 +16,18 @@ step leaves the posterior invariant (heat-bath: the acceptance probability is 1)
 hold other objects (a plate with dishes on it) are not cut: the step then keeps the tree; the
 dishes move off first, one at a time, so every tree remains reachable.
 
-Exact for dependency-style grammars, where every latent pose is pinned by an object through
-`same` rules (the bundled sink grammar): a derivation whose latent nodes are not pinned that way
-is not proposed.  All proposals of all scenes are scored in one `score_trees` call per round.
+A second kind of step, only where a derivation passes through a latent repeat/independent node
+(a box tied to the root by `same`, holding one cup), cuts the *largest* such unit instead (the
+box with its only cup) and leaves out attachments that would make a larger one (a cup into an
+empty box): every candidate's step then cuts the same tree, so it is a heat-bath step too, and
+the chain can open and close boxes; half the steps are of each kind.  With only the first, a
+box's only cup could never leave it (count 0) and no box was ever proposed: the chain sat on
+its start tree.
+
+Derivations are proposed only where every pose follows from the object's and the slot's: fixed
+rules down from the slot, at most one rule with a density, `same` rules up to the object (the
+bundled sink grammar's latent nodes are all of the last kind); others are not proposed.
+All proposals of all scenes are scored in one `score_trees` call per round.
 Seeds are per (seed, iteration, scene), so results do not depend on `--jobs` or `--resume`.
 """
 
@@ -37,15 +46,13 @@ from scipy.special import gammaln
 
 from ssgc.ir import Grammar, Kind
 from ssgc.parse.poses import free_blocks
+from ssgc.rules import place_rotation, place_translation
 from ssgc.score import score_trees
 from ssgc.tree import Trees
 
 MAX_DEPTH = 8  # longest derivation from a repeat/independent edge down to one object
 SLOT_KINDS = (Kind.REPEAT, Kind.INDEPENDENT)
-
-# A derivation: nodes (type, rule from its parent, local parent index; -1: the slot node),
-# node 0 hangs from the slot; `obj` is the local index of the observed object.
-Template = tuple[tuple[tuple[int, int, int], ...], int]
+_NO_DRAW = np.random.default_rng(0)  # what `place_translation` takes; a fixed rule draws nothing
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,16 @@ class Posterior:
     topn_mass: list[float] = field(default_factory=list)  # per scene: sampled mass on top-N
 
 
+@dataclass(frozen=True)
+class Derivation:
+    """One way to hang one object under a slot edge, and where each node's pose comes from."""
+
+    nodes: NDArray[np.int64]  # (k, 3): type, rule from its parent, local parent (-1: the slot)
+    structure: tuple  # its shape (`_template_structure`), to recognise it in a tree
+    at_object: NDArray[np.bool_]  # (k,) at the object's pose (joined to it by `same` rules)
+    nested: bool  # a repeat/independent node lies between the slot and the object
+
+
 def _is_same(grammar: Grammar, rule: int) -> bool:
     """A rule that puts its child exactly at its parent's pose (`same` in both parts)."""
     r = grammar.rules[rule]
@@ -79,80 +96,123 @@ def _is_same(grammar: Grammar, rule: int) -> bool:
 
 
 class Derivations:
-    """Per (slot rule, observed type): the subtrees that put one object under that edge."""
+    """Per (slot rule, observed type): the subtrees that put one object under that edge.
+
+    A subtree is proposed only where every pose in it follows from the slot's pose and the
+    object's: along the path down to the object, fixed rules (`same`, `offset`) from the slot,
+    then at most one rule with a density, then `same` rules up from the object; nodes off the
+    path hang by fixed rules.  Repeat/independent nodes on the path (a box pinned to the table,
+    holding this one cup) make the derivation `nested`."""
 
     def __init__(self, grammar: Grammar) -> None:
         self.g = grammar
-        self._cache: dict[tuple[int, int], list[Template]] = {}
-        self._same_rules: dict[int, bool] = {}
-        self._arrays: dict[tuple[int, int], list[tuple[NDArray[np.int64], tuple]]] = {}
+        self._cache: dict[tuple[int, int], list[Derivation]] = {}
+        self._same = [_is_same(grammar, r) for r in range(len(grammar.rules))]
+        self._point = [
+            r.translation.point is not None and r.rotation.point is not None for r in grammar.rules
+        ]
+        self.slot = [t.kind in SLOT_KINDS for t in grammar.types]
+        self.can_nest = any(
+            d.nested
+            for t in grammar.types
+            if t.kind in SLOT_KINDS
+            for r in t.rules
+            for o in range(len(grammar.types))
+            if grammar.types[o].observed and grammar.types[o].kind == Kind.TERMINAL
+            for d in self.of(r, o)
+        )
 
-    def of(self, rule: int, obs_type: int) -> list[Template]:
+    def of(self, rule: int, obs_type: int) -> list[Derivation]:
         key = (rule, obs_type)
         if key not in self._cache:
             child = self.g.rules[rule].child
+            free = not self._point[rule]
             self._cache[key] = [
-                (tuple(nodes), obj) for nodes, obj in self._chain(child, rule, obs_type, MAX_DEPTH)
+                self._derivation(nodes, obj)
+                for nodes, obj in self._chain(child, rule, obs_type, MAX_DEPTH, free)
             ]
         return self._cache[key]
 
-    def _same(self, rule: int) -> bool:
-        if rule not in self._same_rules:
-            self._same_rules[rule] = _is_same(self.g, rule)
-        return self._same_rules[rule]
+    def structures(self, rule: int, obs_type: int, nested: bool) -> set[tuple]:
+        """The shapes of the derivations `of(rule, obs_type)` (the nested ones if `nested`)."""
+        return {d.structure for d in self.of(rule, obs_type) if nested or not d.nested}
 
-    def structures(self, rule: int, obs_type: int) -> set[tuple]:
-        """The shapes (`_structure`) of the derivations `of(rule, obs_type)`."""
-        return {structure for _, structure in self.arrays(rule, obs_type)}
+    def placed(
+        self,
+        d: Derivation,
+        slot_xyz: NDArray[np.float64],
+        slot_quat: NDArray[np.float64],
+        xyz: NDArray[np.float64],
+        quat: NDArray[np.float64],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The poses of `d`'s nodes under a slot at (slot_xyz, slot_quat), its object at
+        (xyz, quat): the object's for the nodes tied to it, the others by their fixed rules."""
+        k = len(d.nodes)
+        out_x, out_q = np.repeat(xyz[None], k, 0), np.repeat(quat[None], k, 0)
+        for i in np.flatnonzero(~d.at_object).tolist():
+            up, r = int(d.nodes[i, 2]), int(d.nodes[i, 1])
+            px, pq = (slot_xyz, slot_quat) if up < 0 else (out_x[up], out_q[up])
+            if self._same[r]:
+                out_x[i], out_q[i] = px, pq
+                continue
+            rule = self.g.rules[r]
+            out_x[i] = place_translation(rule.translation, px[None], pq[None], _NO_DRAW)[0][0]
+            out_q[i] = place_rotation(rule.rotation, pq[None], _NO_DRAW)[0][0]
+        return out_x, out_q
 
-    def arrays(self, rule: int, obs_type: int) -> list[tuple[NDArray[np.int64], tuple]]:
-        """The derivations `of(rule, obs_type)` as (k, 3) arrays, with their shapes."""
-        key = (rule, obs_type)
-        if key not in self._arrays:
-            self._arrays[key] = [
-                (np.array(nodes, np.int64).reshape(-1, 3), _template_structure(nodes))
-                for nodes, _ in self.of(rule, obs_type)
-            ]
-        return self._arrays[key]
+    def _derivation(self, nodes: list[tuple[int, int, int]], obj: int) -> Derivation:
+        """The object and the nodes joined to it by `same` rules take its pose; the others
+        follow their parents by fixed rules (`_chain` admits no other)."""
+        at_object = np.zeros(len(nodes), bool)
+        at_object[obj] = True
+        i, tied, nested = obj, True, False
+        while i > 0:  # up the path; node 0 hangs from the slot
+            tied = tied and self._same[nodes[i][1]]
+            i = nodes[i][2]
+            at_object[i] = tied
+            nested |= self.slot[nodes[i][0]]
+        return Derivation(
+            np.array(nodes, np.int64).reshape(-1, 3),
+            _template_structure(tuple(nodes)),
+            at_object,
+            nested,
+        )
 
-    def _chain(self, t: int, rule: int, obs: int, depth: int) -> list[tuple[list, int]]:
-        """Subtrees rooted at type t (reached by `rule`) holding exactly one object, of `obs`."""
+    def _chain(self, t: int, rule: int, obs: int, depth: int, free: bool) -> list[tuple[list, int]]:
+        """Subtrees rooted at type t (reached by `rule`) holding exactly one object, of `obs`.
+        `free`: a rule with a density is already on the path, so only `same` rules follow."""
         nt = self.g.types[t]
         if t == obs:
             return [([(t, rule, -1)], 0)] if nt.kind == Kind.TERMINAL else []
-        if nt.observed or depth == 0 or nt.kind in (*SLOT_KINDS, Kind.TERMINAL):
+        if nt.observed or depth == 0 or nt.kind == Kind.TERMINAL:
             return []
         out: list[tuple[list, int]] = []
         rules = list(nt.rules)
-        if nt.kind == Kind.OR:
-            for r, p in zip(rules, nt.probs, strict=True):
-                if p > 0 and self._same(r):
-                    for sub, obj in self._chain(self.g.rules[r].child, r, obs, depth - 1):
-                        out.append(([(t, rule, -1), *_shift(sub, 1)], obj + 1))
-            return out
-        if not all(self._same(q) for q in rules):
-            return []
-        for r in rules:  # AND: one child holds the object, the others are empty
-            rest = [self._empty(self.g.rules[q].child, q, depth - 1) for q in rules if q != r]
-            for sub, obj in self._chain(self.g.rules[r].child, r, obs, depth - 1):
+        for i, r in enumerate(rules):
+            if free and not self._same[r]:
+                continue
+            if nt.never_fires(i):
+                continue
+            rest: list[list[list[tuple[int, int, int]]]] = []
+            if nt.kind == Kind.AND:  # one child holds the object, the others are empty
+                rest = [self._empty(self.g.rules[q].child, q, depth - 1) for q in rules if q != r]
+            below = free or not self._point[r]
+            for sub, obj in self._chain(self.g.rules[r].child, r, obs, depth - 1, below):
                 for combo in product(*rest):
-                    nodes = [(t, rule, -1)]
-                    nodes += _shift(sub, len(nodes))
-                    at = 1 + obj
+                    nodes = [(t, rule, -1), *_shift(sub, 1)]
                     for part in combo:
                         nodes += _shift(part, len(nodes))
-                    out.append((nodes, at))
+                    out.append((nodes, obj + 1))
         return out
 
     def _empty(self, t: int, rule: int, depth: int) -> list[list[tuple[int, int, int]]]:
-        """Subtrees rooted at type t without any object (repeat/independent: nothing fired)."""
+        """Subtrees rooted at type t without any object (repeat/independent: nothing fired),
+        placed by fixed rules only."""
         nt = self.g.types[t]
-        if nt.observed or depth < 0:
+        if nt.observed or depth < 0 or not self._point[rule]:
             return []
         if nt.kind in (*SLOT_KINDS, Kind.TERMINAL):
             return [[(t, rule, -1)]]
-        if not all(self._same(q) for q in nt.rules):
-            return []
         kids = [(q, self._empty(self.g.rules[q].child, q, depth - 1)) for q in nt.rules]
         if nt.kind == Kind.OR:
             return [[(t, rule, -1), *_shift(s, 1)] for _, subs in kids for s in subs]
@@ -213,9 +273,9 @@ class _Step:
     rest: Trees
     slots: list[int]  # per candidate: the node of `rest` it hangs from
     nodes: list[NDArray[np.int64]]  # per candidate: its derivation, (k, 3) local nodes
-    xyz: NDArray[np.float64]
-    quat: NDArray[np.float64]
-    stay: int  # which candidate is the current tree (-1: none; -2: two look alike)
+    xyz: list[NDArray[np.float64]]  # per candidate: its nodes' positions, (k, 3)
+    quat: list[NDArray[np.float64]]  # per candidate: its nodes' rotations, (k, 4)
+    stay: int = -1  # which candidate is the current tree (-1: none; -2: two look alike)
 
 
 class _Chain:
@@ -227,6 +287,7 @@ class _Chain:
             [t.observed and t.kind == Kind.TERMINAL for t in grammar.types], bool
         )
         self.slot_type = np.isin(grammar.tables.type_kind, [int(k) for k in SLOT_KINDS])
+        self.observed = grammar.tables.type_observed
         self.set_tree(tree)
 
     def set_tree(self, tree: Trees) -> None:
@@ -234,10 +295,7 @@ class _Chain:
         self.tree = tree
         self._key: bytes | None = None
         self.parent = tree.parent.tolist()
-        self.kids: list[list[int]] = [[] for _ in range(len(tree))]
-        for i, p in enumerate(self.parent):
-            if p >= 0:
-                self.kids[p].append(i)
+        self.kids = _children(self.parent)
 
     @property
     def key(self) -> bytes:
@@ -246,40 +304,118 @@ class _Chain:
         return self._key
 
     def propose(self, derivations: Derivations) -> _Step | None:
-        """The candidates of one Gibbs step (the current tree among them), or None to stay."""
-        tree, g = self.tree, self.g
+        """The candidates of one Gibbs step (the current tree among them), or None to stay.
+        Where the grammar has nested derivations, half the steps cut the largest unit (module
+        docstring), the others the smallest."""
+        tree = self.tree
         objects = np.flatnonzero((tree.parent >= 0) & self.movable[tree.type])
         if len(objects) == 0:
             return None
+        largest = derivations.can_nest and bool(self.rng.random() < 0.5)
         o = int(objects[self.rng.integers(len(objects))])
-        types, parent = tree.type.tolist(), self.parent
-        a = o
+        a = self._largest_unit(o, derivations) if largest else self._smallest_unit(o, derivations)
+        if a is None:
+            return None
+        unit, obs_type, home_rule = _structure(tree, a, self.kids), int(tree.type[o]), tree.rule[a]
+        keep = np.ones(len(tree), bool)
+        keep[_subtree(a, self.kids)] = False
+        rest = _subset(tree, keep)
+        home = int(np.count_nonzero(keep[: self.parent[a]]))
+        around = _Rest(rest, self.observed) if largest else None
+        step = _Step(rest, [], [], [], [])
+        for p in np.flatnonzero(self.slot_type[rest.type]).tolist():
+            for r in self.g.types[int(rest.type[p])].rules:
+                for d in derivations.of(r, obs_type):
+                    if d.nested and not largest:
+                        continue
+                    if around is not None and around.grows(p, d, derivations, obs_type):
+                        continue  # that tree's largest unit would be bigger than d
+                    if p == home and r == home_rule and d.structure == unit:
+                        # two look-alike derivations: recompute the key whatever is chosen
+                        step.stay = len(step.slots) if step.stay == -1 else -2
+                    xyz, quat = derivations.placed(
+                        d, rest.xyz[p], rest.quat[p], tree.xyz[o], tree.quat[o]
+                    )
+                    step.slots.append(p)
+                    step.nodes.append(d.nodes)
+                    step.xyz.append(xyz)
+                    step.quat.append(quat)
+        return step
+
+    def _smallest_unit(self, o: int, derivations: Derivations) -> int | None:
+        """The subtree hanging from the nearest repeat/independent node above `o`, if it holds
+        nothing but `o` in a shape `derivations` proposes."""
+        types, parent, a = self.tree.type.tolist(), self.parent, o
         while parent[a] >= 0 and not self.slot_type[types[parent[a]]]:
             a = parent[a]
         if parent[a] < 0:
             return None
-        unit = _structure(tree, a, self.kids)
-        obs_type, home_rule = types[o], int(tree.rule[a])
-        if unit not in derivations.structures(home_rule, obs_type):
-            return None  # the unit holds more than o: keep the tree this step
-        keep = np.ones(len(tree), bool)
-        stack = [a]
-        while stack:
-            i = stack.pop()
-            keep[i] = False
-            stack += self.kids[i]
-        rest = _subset(tree, keep)
-        home = int(np.count_nonzero(keep[: parent[a]]))
-        step = _Step(rest, [], [], tree.xyz[o], tree.quat[o], -1)
-        for p in np.flatnonzero(self.slot_type[rest.type]).tolist():
-            for r in g.types[int(rest.type[p])].rules:
-                for local, structure in derivations.arrays(r, obs_type):
-                    if p == home and r == home_rule and structure == unit:
-                        # two look-alike derivations: recompute the key whatever is chosen
-                        step.stay = len(step.slots) if step.stay == -1 else -2
-                    step.slots.append(p)
-                    step.nodes.append(local)
-        return step
+        shapes = derivations.structures(int(self.tree.rule[a]), types[o], nested=False)
+        return a if _structure(self.tree, a, self.kids) in shapes else None
+
+    def _largest_unit(self, o: int, derivations: Derivations) -> int | None:
+        """The highest subtree above `o` that hangs from a repeat/independent node, holds no
+        other observed node, and has a shape `derivations` proposes (nested ones too)."""
+        tree, x, best = self.tree, o, None
+        types = tree.type.tolist()
+        while self.parent[x] >= 0:
+            p = self.parent[x]
+            shapes = derivations.structures(int(tree.rule[x]), types[o], nested=True)
+            if self.slot_type[types[p]] and _structure(tree, x, self.kids) in shapes:
+                best = x
+            if np.count_nonzero(self.observed[tree.type[_subtree(p, self.kids)]]) > 1:
+                break
+            x = p
+        return best
+
+
+class _Rest:
+    """A cut tree, as the largest-unit step asks about it: which candidates would make a unit
+    larger than their derivation (then that tree's step would cut elsewhere)."""
+
+    def __init__(self, rest: Trees, observed: NDArray[np.bool_]) -> None:
+        self.rest = rest
+        self.parent = rest.parent.tolist()
+        self.kids = _children(self.parent)
+        self.holds = observed[rest.type].copy()  # its subtree holds an observed node
+        for i in np.flatnonzero(self.holds).tolist():
+            j = self.parent[i]
+            while j >= 0 and not self.holds[j]:
+                self.holds[j] = True
+                j = self.parent[j]
+
+    def grows(self, p: int, d: Derivation, derivations: Derivations, obs_type: int) -> bool:
+        """Whether some empty subtree around slot `p`, with `d` added under p, is itself a
+        unit: hanging from a repeat/independent node, of a shape `derivations` proposes."""
+        rest, y = self.rest, p
+        while y >= 0 and not self.holds[y]:
+            up = self.parent[y]
+            if up >= 0 and derivations.slot[int(rest.type[up])]:
+                shape = list(_structure(rest, y, self.kids))
+                own = (int(rest.type[p]), int(rest.rule[p]))
+                shape.remove((*own, len(self.kids[p])))
+                shape = sorted([*shape, (*own, len(self.kids[p]) + 1), *d.structure])
+                if tuple(shape) in derivations.structures(int(rest.rule[y]), obs_type, True):
+                    return True
+            y = up
+        return False
+
+
+def _children(parent: list[int]) -> list[list[int]]:
+    kids: list[list[int]] = [[] for _ in parent]
+    for i, p in enumerate(parent):
+        if p >= 0:
+            kids[p].append(i)
+    return kids
+
+
+def _subtree(root: int, kids: list[list[int]]) -> list[int]:
+    out, stack = [], [root]
+    while stack:
+        i = stack.pop()
+        out.append(i)
+        stack += kids[i]
+    return out
 
 
 def _subset(tree: Trees, keep: NDArray[np.bool_]) -> Trees:
@@ -300,22 +436,21 @@ def _subset(tree: Trees, keep: NDArray[np.bool_]) -> Trees:
 
 def _candidates(steps: list[_Step]) -> Trees:
     """Every candidate tree of every step as one batch (one scene per candidate): the cut
-    tree repeated, each copy with its derivation appended, at the object's pose (the
-    derivation's rules below the slot edge are all `same`)."""
+    tree repeated, each copy with its derivation appended at its poses (`Derivations.placed`)."""
     fields: dict[str, list[NDArray]] = {k: [] for k in ("type", "parent", "rule", "xyz", "quat")}
     sizes = []
     offset = 0
     for st in steps:
         n0 = len(st.rest)
-        for slot, local in zip(st.slots, st.nodes, strict=True):
+        for slot, local, xyz, quat in zip(st.slots, st.nodes, st.xyz, st.quat, strict=True):
             k = len(local)
             fields["type"] += [st.rest.type, local[:, 0]]
             fields["rule"] += [st.rest.rule, local[:, 1]]
             rest_parent = np.where(st.rest.parent >= 0, st.rest.parent + offset, -1)
             new_parent = np.where(local[:, 2] >= 0, local[:, 2] + n0, slot) + offset
             fields["parent"] += [rest_parent, new_parent]
-            fields["xyz"] += [st.rest.xyz, np.repeat(st.xyz[None], k, 0)]
-            fields["quat"] += [st.rest.quat, np.repeat(st.quat[None], k, 0)]
+            fields["xyz"] += [st.rest.xyz, xyz]
+            fields["quat"] += [st.rest.quat, quat]
             sizes.append(n0 + k)
             offset += n0 + k
     return Trees(
@@ -328,15 +463,15 @@ def _candidates(steps: list[_Step]) -> Trees:
 def _attach(step: _Step, j: int) -> Trees:
     """Candidate j of a step as a tree of its own."""
     rest, local = step.rest, step.nodes[j]
-    n0, k = len(rest), len(local)
+    n0 = len(rest)
     parent = np.where(local[:, 2] >= 0, local[:, 2] + n0, step.slots[j])
     return Trees(
-        scene=np.zeros(n0 + k, np.int64),
+        scene=np.zeros(n0 + len(local), np.int64),
         type=np.concatenate([rest.type, local[:, 0]]),
         parent=np.concatenate([rest.parent, parent]),
         rule=np.concatenate([rest.rule, local[:, 1]]),
-        xyz=np.concatenate([rest.xyz, np.repeat(step.xyz[None], k, 0)]),
-        quat=np.concatenate([rest.quat, np.repeat(step.quat[None], k, 0)]),
+        xyz=np.concatenate([rest.xyz, step.xyz[j]]),
+        quat=np.concatenate([rest.quat, step.quat[j]]),
         n_scenes=1,
     )
 

@@ -349,6 +349,20 @@ def _split_document(text: str) -> tuple[str, str, str]:
     return head, text[len(head) : len(text) - len(tail)], tail
 
 
+def without_section(text: str, key: str) -> str:
+    """The grammar `text` without its top-level `key`: `ssg fit` compiles it without its
+    `observation` section to tell which laws that section's noise made (`ssgc.fit.em`)."""
+    head, body, tail = _split_document(text.lstrip("\ufeff").replace("\r\n", "\n"))
+    yaml = _loader(body)
+    tree = load_quietly(yaml, body)
+    if not isinstance(tree, CommentedMap) or key not in tree:
+        return text
+    del tree[key]
+    out = io.StringIO()
+    yaml.dump(tree, out)
+    return head + out.getvalue() + tail
+
+
 def shared_nodes(text: str, paths: list[Loc], file: str = "<grammar>") -> list[list[Loc]]:
     """Groups (two or more, in the order given) of `paths` that reach the same mapping: one
     parameter set written through an anchor and its aliases, so the fitter pools them."""
