@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -63,19 +63,26 @@ def view(
     if port is not None and not serve:
         raise SsgError.single("--port is the port of --serve, which is not given")
     dest = None if output is None else check_page(output, source, grammar)
-    with lock_outputs([dest]):
-        g = None if grammar is None else load_grammar(grammar, allow_outside=allow_outside_files)
-        with _warnings_about(source):
-            html, count = view_page(source, g)
-        if dest is not None:
-            write_output_text(dest, html)
-    if not quiet:
-        where = dest.name if dest is not None else "the page"
-        err.print(f"{count} scene(s) of {source} on {where}", markup=False, highlight=False)
-    if open_it:
-        _open(html, None if dest is None or dest.stream else dest.target, output)
-    if serve:
-        _serve(html.encode("utf-8"), 8000 if port is None else port)
+    # the port is taken before any work: one in use is refused with no page written
+    server = _bind(8000 if port is None else port) if serve else None
+    try:
+        with lock_outputs([dest]):
+            allow = allow_outside_files
+            g = None if grammar is None else load_grammar(grammar, allow_outside=allow)
+            with _warnings_about(source):
+                html, count = view_page(source, g)
+            if dest is not None:
+                write_output_text(dest, html)
+        if not quiet:
+            where = dest.name if dest is not None else "the page"
+            err.print(f"{count} scene(s) of {source} on {where}", markup=False, highlight=False)
+        if open_it:
+            _open(html, None if dest is None or dest.stream else dest.target, output)
+        if server is not None:
+            _serve(server, html.encode("utf-8"))
+    finally:
+        if server is not None:
+            server.server_close()
 
 
 def _open(html: str, page: Path | None, given: Path | None) -> None:
@@ -102,16 +109,18 @@ def _open(html: str, page: Path | None, given: Path | None) -> None:
             )
 
 
-def _serve(body: bytes, port: int) -> None:
-    """The page, from memory, on http://127.0.0.1:PORT/ (for a browser on another machine,
-    through an SSH tunnel), until Ctrl-C."""
+def _bind(port: int) -> Any:
+    """A server bound to 127.0.0.1:PORT that answers GET / with its `body` (set by `_serve`),
+    404 elsewhere; bound before the page is made, so a port in use is the one message of a
+    run that wrote nothing (docs/view.md)."""
     from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
-    class Handler(BaseHTTPRequestHandler):
+    class Page(BaseHTTPRequestHandler):
         def do_GET(self) -> None:
             if self.path not in ("/", "/index.html"):
                 self.send_error(404)
                 return
+            body = getattr(self.server, "body", b"")
             self.send_response(200)
             self.send_header("Content-Type", "text/html; charset=utf-8")
             self.send_header("Content-Length", str(len(body)))
@@ -122,16 +131,21 @@ def _serve(body: bytes, port: int) -> None:
             pass  # no line per request
 
     try:
-        server = ThreadingHTTPServer((SERVE_HOST, port), Handler)
+        return ThreadingHTTPServer((SERVE_HOST, port), Page)
     except OSError as exc:
         raise SsgError.single(f"cannot serve on {SERVE_HOST}:{port}: {exc.strerror}") from None
-    with server:
-        err.print(
-            f"serving on http://{SERVE_HOST}:{server.server_address[1]}/ (Ctrl-C stops)",
-            markup=False,
-            highlight=False,
-        )
-        try:
-            server.serve_forever()
-        except KeyboardInterrupt:
-            err.print("stopped", markup=False, highlight=False)
+
+
+def _serve(server: Any, body: bytes) -> None:
+    """The page, from memory, on http://127.0.0.1:PORT/ (for a browser on another machine,
+    through an SSH tunnel), until Ctrl-C."""
+    server.body = body
+    err.print(
+        f"serving on http://{SERVE_HOST}:{server.server_address[1]}/ (Ctrl-C stops)",
+        markup=False,
+        highlight=False,
+    )
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        err.print("stopped", markup=False, highlight=False)

@@ -177,6 +177,22 @@ def test_serve_gives_the_page_on_this_machine_only(scenes, tmp_path):
         server.wait(timeout=10)
 
 
+def test_a_port_in_use_writes_no_page(scenes, tmp_path):
+    """The port is taken before the page is made: a busy one was refused only after the page
+    was written and its success line printed."""
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        page = tmp_path / "page.html"
+        result = run("view", scenes, "-o", page, "--serve", "--port", port)
+    assert result.exit_code == 1
+    assert f"cannot serve on 127.0.0.1:{port}" in result.stderr
+    assert "scene(s) of" not in result.stderr and not page.exists()
+
+
 # ------------------------------------------------------------------ in Chromium ---
 
 
