@@ -28,7 +28,7 @@ from ssgc.cli.progress import SceneLines
 from ssgc.errors import SsgError
 from ssgc.fit.mstep import MAX_MIN_VARIANCE, MAX_PSEUDOCOUNT
 from ssgc.io.journal import JournalWriteError, journal_path
-from ssgc.io.outputs import Output, check_output, lock_outputs, lock_part, write_output_text
+from ssgc.io.outputs import Output, check_output, lock_outputs, lock_path, write_output_text
 from ssgc.laws.rotation_bingham import MAX_CONCENTRATION
 
 if TYPE_CHECKING:
@@ -245,8 +245,7 @@ def _side_files(dest: Output, others: list[Output]) -> list[tuple[str, str]]:
     sides = [] if dest.stream else [(journal_path(dest.target), "the fit's journal")]
     for out in (dest, *others):
         if not out.stream:
-            lock = out.target.with_name(f".{lock_part(out.target.name)}.lock")
-            sides.append((lock, f"the lock file of the {out.what}"))
+            sides.append((lock_path(out.target), f"the lock file of the {out.what}"))
     return [(os.path.realpath(path), what) for path, what in sides]
 
 

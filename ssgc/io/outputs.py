@@ -351,14 +351,18 @@ def lock_part(name: str) -> str:
     return fitted_name(name, len("..lock"))
 
 
+def lock_path(target: Path) -> Path:
+    """The lock file `.NAME.lock` beside an output file (`lock_outputs` takes it)."""
+    return target.with_name(f".{lock_part(target.name)}.lock")
+
+
 @contextmanager
 def _locks(files: list[Output]) -> Iterator[None]:
     if not files:
         yield
         return
     first = files[0]
-    lock = first.target.with_name(f".{lock_part(first.target.name)}.lock")
-    with output_lock(lock, first.what, str(first.path)), _locks(files[1:]):
+    with output_lock(lock_path(first.target), first.what, str(first.path)), _locks(files[1:]):
         yield
 
 
