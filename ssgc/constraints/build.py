@@ -163,17 +163,28 @@ class _Builder:
         tid = self.type_id(name, loc, "frame type")
         if tid is None:
             return False
-        if self.root is not None:
-            for t in listed:
-                if self.reachable_avoiding(t, tid):
-                    own = " (its frame is a proper ancestor, never itself)" if t == tid else ""
-                    self.c.error(
-                        loc,
-                        f"a '{self.types[t].name}' can occur without a '{name}' above it, so it "
-                        f"has no frame to be checked in{own}",
-                    )
-                    return False
+        for t in listed:
+            why = self.without_frame(t, tid)
+            if why is not None:
+                self.c.error(loc, why)
+                return False
         return self.node(tid)
+
+    def without_frame(self, t: int, frame: int) -> str | None:
+        """Why a node of type `t` can occur with no `frame` node above it, or None.  Clutter
+        objects (the observation's `clutter.rates`) hang under `~clutter`, below no type of
+        the grammar: sampling drops every scene that has one, as it would any node without
+        its frame.  The rules are followed only for a sound grammar (`reachable_avoiding`)."""
+        what, where = self.types[t].name, self.types[frame].name
+        lacks = "so it has no frame to be checked in"
+        if self.clutter_most(what):
+            return (
+                f"a clutter '{what}' (observation.clutter.rates) has no '{where}' above it, {lacks}"
+            )
+        if self.root is None or not self.reachable_avoiding(t, frame):
+            return None
+        own = " (its frame is a proper ancestor, never itself)" if t == frame else ""
+        return f"a '{what}' can occur without a '{where}' above it, {lacks}{own}"
 
     def reachable_avoiding(self, target: int, avoid: int) -> bool:
         """Can a `target` node occur with no `avoid` node among its proper ancestors?  A

@@ -129,8 +129,8 @@ class NonPenetration(Constraint):
                     out[k] = -max(MIN_DEPTH, self.separation(oa, ob))
                     continue
                 profiled = self._profiled_depth(batch, int(a), int(b))
-                depth = [c.penetration_depth for c in cres.contacts]
-                out[k] = -(max(depth, default=0.0) if profiled is None else profiled)
+                depth = contact_depth(cres.contacts) if profiled is None else profiled
+                out[k] = -max(MIN_DEPTH, depth)
             else:
                 apart = fcl.distance(oa, ob, request, fcl.DistanceResult())
                 buried = self._is_hollow(batch, int(a), int(b)) and self._buried(batch, a, b)
@@ -240,3 +240,11 @@ class NonPenetration(Constraint):
         t = int(batch.type[node])
         quat = np.asarray(batch.quat[node], float)
         return fcl.CollisionObject(self.shapes[t], fcl.Transform(quat, self._placed(batch, node)))
+
+
+def contact_depth(contacts: list[Any]) -> float:
+    """The deepest of a colliding pair's FCL contacts, as a positive length.  FCL signs the
+    depth of a sphere against a triangle mesh (a tray, a mesh) negative (python-fcl 0.7: a ball
+    half through a cube's face reads -r), the other pairs positive: taken as it came, such a
+    collision had a positive margin and its scene was kept."""
+    return max((abs(float(c.penetration_depth)) for c in contacts), default=0.0)

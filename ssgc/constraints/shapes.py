@@ -140,12 +140,22 @@ def closed_surface(geometry: Any, base_dir: Path | None = None) -> ClosedSurface
     if not isinstance(geometry, dsl.RevolveG | dsl.TrayG | dsl.MeshG):
         return None
     v, faces = surface_mesh(geometry, base_dir)
-    faces = np.asarray(faces, np.int64)
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    v = np.asarray(v, float)
+    corners = _merged_by_position(v)[np.asarray(faces, np.int64)]
+    edges = np.sort(corners[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     _, uses = np.unique(edges, axis=0, return_counts=True)
     if not np.all(uses == 2):
         return None
-    return ClosedSurface(np.asarray(v, float)[faces])
+    return ClosedSurface(v[np.asarray(faces, np.int64)])
+
+
+def _merged_by_position(v: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Per vertex, the index of the first vertex at the same position.  A mesh file read with
+    texture coordinates or normals (OBJ `f a/t` or `a//n`) keeps one vertex per corner at their
+    seams (a cube with `vt`: 20 vertices, not 8), so the triangles on either side of a seam
+    share no edge and a closed surface read as open (an object buried in it was kept)."""
+    _, first, same = np.unique(v + 0.0, axis=0, return_index=True, return_inverse=True)
+    return first[same.reshape(-1)]  # `+ 0.0`: a -0.0 coordinate is the same position as 0.0
 
 
 # A ray in no axis plane and along no diagonal: the facets of revolves, trays and meshes are

@@ -21,7 +21,7 @@ import contextlib
 import functools
 import multiprocessing
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -226,7 +226,7 @@ def sample_blocks(
     tally: Tally | None = None,
     progress: Callable[[int], None] | None = None,
     jobs: int = 1,
-    blocks: Iterable[int] | None = None,
+    blocks: Sequence[int] | None = None,
     options: dict[str, Any] | None = None,
     spelling: Spelling = FLAGS,
 ) -> Iterator[Block]:
@@ -244,7 +244,7 @@ def sample_blocks(
     check_root(grammar, constraints)
     tally = tally if tally is not None else Tally()
     deadline = None if time_limit is None else time.monotonic() + time_limit
-    todo = list(range((n + BLOCK - 1) // BLOCK) if blocks is None else blocks)
+    todo = range((n + BLOCK - 1) // BLOCK) if blocks is None else blocks  # never a list of all
     shared = _counter(jobs > 1 and len(todo) > 1)
     limits = _Limits(max_tries, time_limit, deadline, shared, spelling)
     batch = largest_batch(grammar)
@@ -257,12 +257,27 @@ def sample_blocks(
                 progress(done.block.trees.n_scenes)
             yield done.block
         if done.limit is not None:
-            # The blocks after it stop at the same (shared) limit: their candidates count in
-            # the report, their scenes are not written (the files stay a prefix of the run).
-            for later in results:
-                tally.merge(later.tally)
-                tally.kept -= later.block.trees.n_scenes if later.block is not None else 0
+            _count_stopped(results, tally, jobs)
             raise _unmet(grammar, tally, n, done.limit, _judged(constraints, method))
+
+
+def _count_stopped(results: Iterator[_Done], tally: Tally, jobs: int) -> None:
+    """Add to `tally` the candidates of the blocks after the one that hit the run's limit:
+    they stop at the same (shared) limit, their candidates count in the report, their scenes
+    are not written (the files stay a prefix of the run).  Blocks start in order, at most
+    `jobs` at a time, so once `jobs` blocks in a row drew nothing (they started after the
+    limit was reached) every later one starts after it too: the rest are not called, where
+    calling each one made `-n 10**12 --max-tries 100` run for hours after its last scene."""
+    idle = 0
+    for later in results:
+        if later.tally.drawn == 0 and later.tally.abandoned == 0:
+            idle += 1
+            if idle >= jobs:
+                return
+            continue
+        idle = 0
+        tally.merge(later.tally)
+        tally.kept -= later.block.trees.n_scenes if later.block is not None else 0
 
 
 @dataclass

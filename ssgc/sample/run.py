@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ssgc.dsl import MAX_COORDINATE
 from ssgc.errors import Diagnostic, SsgError
@@ -177,10 +178,9 @@ def _constrained(
     assert plan.method is not None
     step = progress or (lambda k: None)
     names = [c.name for c in plan.constraints]
-    every = range((n + BLOCK - 1) // BLOCK)
-    todo = [b for b in every if have is None or not have.done[b * BLOCK : (b + 1) * BLOCK].all()]
-    skipped = set(every) - set(todo)  # blocks whose scenes a resumed run all has
-    step(sum(min(n, (b + 1) * BLOCK) - b * BLOCK for b in skipped))
+    every = range((n + BLOCK - 1) // BLOCK)  # lazy: `-n` may be 10**12 with a try limit
+    todo, skipped = (every, 0) if have is None else _blocks_missing(have.done, n)
+    step(skipped)  # the scenes of the blocks a resumed run has whole
     blocks = sample_blocks(
         grammar,
         plan.constraints,
@@ -209,6 +209,18 @@ def _constrained(
                 meta = scene_metadata(plan.method, names, block.margins, k, block.chain)
                 yield Drawn(index, scene, meta)
             step(1)
+
+
+def _blocks_missing(done: NDArray[np.bool_], n: int) -> tuple[Sequence[int], int]:
+    """(the blocks that miss a scene of a resumed run, how many scenes the other blocks hold):
+    one array expression over the run's `done` flags (n of them, read already), where a list
+    and a set of every block made `-n 10**12` run out of memory before any scene was drawn."""
+    count = (n + BLOCK - 1) // BLOCK
+    padded = np.ones(count * BLOCK, bool)  # the last block's missing tail counts as done
+    padded[:n] = done[:n]
+    full = padded.reshape(count, BLOCK).all(axis=1)
+    in_full = np.repeat(full, BLOCK)[:n]
+    return np.flatnonzero(~full).tolist(), int(np.count_nonzero(in_full))
 
 
 class BeyondLimit(SsgError):
