@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from itertools import combinations
 from typing import Any
 
 import numpy as np
@@ -875,6 +876,7 @@ HARD_KEEP = 1  # poses kept per combination (the best)
 HARD_PER_SET = 32  # poses added to a set per pass: the model over them grows like K^depth
 HARD_PARENTS_EACH = 2  # parent poses at which one combination of children is solved
 HARD_RELAYED = 64  # pairs of a child and a grandchild through a latent child (relays)
+HARD_TRIOS = 24  # trios of children pinned in a set's frame, per slot (`_near_trios`)
 
 
 def add_hard_poses(
@@ -1058,7 +1060,9 @@ def _child_combos(
     own = [s for s in singles if s[0][4] is None]
     combos: list[tuple] = [()]  # the set's own children first, then grandchildren
     combos += [(c[:5],) for s in own + [s for s in singles if s[0][4] is not None] for c in s]
-    combos += [tuple(c[:5] for c in s[: s[0][5]]) for s in own if _many_pinned(grammar, s)]
+    for s in own:  # three children pinned on one plane fix it (`_many_pinned`)
+        if _many_pinned(grammar, s):
+            combos += [tuple(c[:5] for c in trio) for trio in _near_trios(s)]
     for a in range(len(own)):
         for b in range(a, len(own)):
             for i, ca in enumerate(own[a]):
@@ -1071,13 +1075,27 @@ def _child_combos(
     return combos + _relayed_pairs(singles)
 
 
+def _near_trios(slot: list[tuple]) -> list[tuple]:  # type: ignore[type-arg]
+    """The HARD_TRIOS trios of a slot's candidate children whose positions lie closest
+    together (least perimeter) first.  Any three points lie on a plane, so a trio of two
+    shelves' boxes gives a pose too (a steep one); the children of one parent lie near it,
+    so the near trios come first, and the cap keeps the number of combinations small."""
+    trios = list(combinations(slot, 3))
+    xyz = np.array([[c[2] for c in trio] for trio in trios]).reshape(-1, 3, 3)
+    sides = np.linalg.norm(xyz - np.roll(xyz, 1, axis=1), axis=2).sum(axis=1)
+    order = np.argsort(sides, kind="stable")[:HARD_TRIOS]
+    return [trios[i] for i in order]
+
+
 def _many_pinned(grammar: Grammar, slot: list[tuple]) -> bool:  # type: ignore[type-arg]
-    """Whether a slot's candidate children, all at once, are a combination of their own: a
+    """Whether a slot's candidate children, three at a time, are combinations of their own: a
     `repeat` of three or more copies whose rule pins axes in the parent's frame.
 
     Why: objects pinned on a latent surface lie on one plane, which three of them fix; from
     one or two children the surface was turned onto their planes only, the others missed
-    theirs, and a shelf of three or four boxes sampled from the grammar had no parse."""
+    theirs, and a shelf of three or four boxes sampled from the grammar had no parse.  Three
+    at a time, not all at once: with two shelves, a trio of one shelf's boxes meets its plane
+    exactly, and a mixed trio meets none (its poses are refused)."""
     tl = grammar.rules[slot[0][1]].translation
     pinned = tl.frame == Frame.PARENT and hasattr(tl, "free") and not np.all(tl.free)
     return pinned and min(slot[0][5], len(slot)) >= 3
