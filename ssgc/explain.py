@@ -1328,10 +1328,10 @@ def diagnose(
         return _without_root(grammar, scene, names)
     never = [o for o in range(len(scene)) if parser.capacity[scene.types[o]] == 0]
     reserve = min(REASONS_S, 0.1 * time_limit)
-    found = _removals(parser, scene, never, max_removed, t_end - reserve)
+    found, cut = _removals(parser, scene, never, max_removed, t_end - reserve)
     if not found:
         deadline = max(t_end, time.perf_counter() + reserve)
-        return _no_removal_helps(grammar, scene, parser, never, max_removed, deadline)
+        return _no_removal_helps(grammar, scene, parser, never, max_removed, deadline, cut)
     found.sort(key=lambda f: -f[0])
     _, drop, tree = found[0]
     kept = np.setdiff1d(np.arange(len(scene)), drop)
@@ -1355,18 +1355,21 @@ def diagnose(
 
 def _removals(
     parser: Any, scene: Scene, never: list[int], max_removed: int, t_end: float
-) -> list[tuple[float, list[int], Trees]]:
+) -> tuple[list[tuple[float, list[int], Trees]], bool]:
     """The smallest sets of objects (with those the grammar never produces) whose removal
     lets the rest parse, each with the rest's best score and tree: every object alone, then
-    pairs, up to `max_removed`, until `t_end`."""
+    pairs, up to `max_removed`, until `t_end`.  Also whether the search was cut short: a
+    set not tried by `t_end`, or a rest whose parse gave up unproven (`no_parse`), so that
+    none found is no proof that no removal helps."""
     import itertools
 
     found: list[tuple[float, list[int], Trees]] = []
-    base = set(never)
+    base, cut = set(never), False
     for k in range(0, max_removed + 1):
         for extra in itertools.combinations([o for o in range(len(scene)) if o not in base], k):
             left = t_end - time.perf_counter()
             if left <= 0:
+                cut = True
                 break
             drop = sorted(base | set(extra))
             if not drop:
@@ -1376,9 +1379,10 @@ def _removals(
             result = parser.parse(rest, top=1, time_limit=limit, imply_root=True)
             if result.parses:
                 found.append((result.parses[0].score, drop, result.parses[0].tree))
+            cut |= not result.parses and result.status != "infeasible"
         if found:
             break
-    return found
+    return found, cut
 
 
 def _rest_words(grammar: Grammar, scene: Scene, names: list[str], drop: list[int]) -> str:
@@ -1418,6 +1422,7 @@ def _no_removal_helps(
     never: list[int],
     max_removed: int,
     deadline: float,
+    cut: bool,
 ) -> Diagnosis:
     """The diagnosis when no removal lets the rest parse: the objects the grammar never
     produces, those off the pose it fixes, those no rule can place where they are (the first
@@ -1425,7 +1430,12 @@ def _no_removal_helps(
     names = [f"{grammar.types[t].name} #{o}" for o, t in enumerate(scene.types)]
     message = (
         f"scene '{scene.name}': no tree of the grammar contains this scene's objects, and "
-        f"removing up to {max_removed} object(s) does not help"
+        + (
+            f"removing up to {max_removed} object(s) was not tried to the end (the time limit, "
+            "or a rest whose parse gave up unproven)"
+            if cut
+            else f"removing up to {max_removed} object(s) does not help"
+        )
     )
     if never:
         message += "; never produced by the grammar: " + ", ".join(names[o] for o in never)

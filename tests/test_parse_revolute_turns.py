@@ -77,8 +77,20 @@ def _grammar(tmp_path, text: str) -> ssgc.Grammar:
     return ssgc.load_grammar(path)
 
 
+# the seats with revolute ranges short of the circle (a turn about the axis may leave them)
+RANGED_SEATS = SEATS.replace(
+    "rotation: {revolute: {axis: [0, 0, 1]}}\n  Table:",
+    "rotation: {revolute: {axis: [0, 0, 1], min: 0, max: 0.5}}\n  Table:",
+).replace(
+    "        rotation: {revolute: {axis: [0, 0, 1]}}\n  Seat:",
+    "        rotation: {revolute: {axis: [0, 0, 1], min: -0.3, max: 0.3}}\n  Seat:",
+)
+
+
 @pytest.mark.parametrize(
-    ("text", "scenes"), [(SEATS, slice(1, 3)), (NOISY_LINK, slice(0, 4))], ids=["seats", "noisy"]
+    ("text", "scenes"),
+    [(SEATS, slice(1, 3)), (NOISY_LINK, slice(0, 4)), (RANGED_SEATS, slice(3, 4))],
+    ids=["seats", "noisy", "ranged"],
 )
 def test_parse_reaches_the_sampled_tree(tmp_path, text, scenes):
     """The seats' scenes 1 and 2 parsed 3.0 and 30.6 nats below their sampled trees; the
@@ -125,7 +137,8 @@ def _edges(rules: list[int], p_block: list[int], c_block: list[int]) -> PoseEdge
 def test_turning_frees_the_shared_axis_only(tmp_path):
     """Block 0: revolute edges about z to a fixed pose and to block 1: it turns about z.
     Block 2: revolute about z and about x: held.  Block 3: a fixed rotation: held.  Block 4:
-    a Bingham only: free in all three."""
+    a Bingham only: free in all three.  Block 5: a revolute range short of the circle: held
+    (a turn would run off its end: a seat was left at its limit, 60 nats below)."""
     text = """\
 grammar: axes
 root: R
@@ -136,23 +149,25 @@ types:
     - {child: A, translation: same, rotation: {revolute: {axis: [1, 0, 0]}}}
     - {child: A, translation: same, rotation: same}
     - {child: A, translation: same, rotation: {parent_bingham: {concentration: [1, 1, 1]}}}
+    - {child: A, translation: same, rotation: {revolute: {axis: [0, 0, 1], min: 0, max: 0.5}}}
   A: {observed: true}
 """
     g = _grammar(tmp_path, text)
-    about_z, about_x, fixed, bingham = range(4)
+    about_z, about_x, fixed, bingham, ranged = range(5)
     edges = _edges(
-        [about_z, about_z, about_z, about_x, fixed, bingham],
-        [-1, 0, 2, 2, -1, -1],
-        [0, 1, -1, -1, 3, 4],
+        [about_z, about_z, about_z, about_x, fixed, bingham, ranged],
+        [-1, 0, 2, 2, -1, -1, -1],
+        [0, 1, -1, -1, 3, 4, 5],
     )
-    turns = turning(g.ir, edges, 5)
+    turns = turning(g.ir, edges, 6)
     assert turns.free.tolist() == [
         [True, False, False],
         [True, False, False],
         [False, False, False],
         [False, False, False],
         [True, True, True],
+        [False, False, False],
     ]
     np.testing.assert_allclose(turns.basis[0][:, 0], [0, 0, 1])
-    for b in range(5):
+    for b in range(6):
         np.testing.assert_allclose(turns.basis[b].T @ turns.basis[b], np.eye(3), atol=1e-12)

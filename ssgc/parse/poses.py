@@ -681,10 +681,12 @@ class Turning:
 
 
 def turning(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> Turning:
-    """`Turning` for the blocks of `edges`: a revolute edge's axis, turned into the block's
-    frame by the end's offset (`end = block * offset`, so the end turns about the axis when
-    the block turns about offset * axis), frees that turn; two axes that differ, or a
-    fixed-rotation edge, hold the block whole."""
+    """`Turning` for the blocks of `edges`: a full-circle revolute edge's axis, turned into the
+    block's frame by the end's offset (`end = block * offset`, so the end turns about the axis
+    when the block turns about offset * axis), frees that turn; two axes that differ, a
+    fixed-rotation edge, or a revolute range short of the circle (a turn would run off its
+    end, where the density is -inf: the review found a seat left at its limit, 60 nats below
+    its sampled tree) hold the block whole."""
     basis = np.broadcast_to(np.eye(3), (n_blocks, 3, 3)).copy()
     free = np.ones((n_blocks, 3), bool)
     axis = np.full((n_blocks, 3), np.nan)
@@ -698,7 +700,7 @@ def turning(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> Turning:
             b = int(block)
             if b < 0 or not np.any(free[b]):
                 continue
-            if not revolute:
+            if not revolute or law.revolute.hi - law.revolute.lo < 2.0 * np.pi - 1e-9:
                 free[b] = False
                 continue
             a = quat_rotate(offset, law.axis)
