@@ -130,7 +130,8 @@ class NonPenetration(Constraint):
                     continue
                 profiled = self._profiled_depth(batch, int(a), int(b))
                 depth = contact_depth(cres.contacts) if profiled is None else profiled
-                out[k] = -max(MIN_DEPTH, depth)
+                # touching (every contact 0 deep: a mug on a tray's floor) is no overlap
+                out[k] = -max(MIN_DEPTH, depth) if depth > 0 else 0.0
             else:
                 apart = fcl.distance(oa, ob, request, fcl.DistanceResult())
                 buried = self._is_hollow(batch, int(a), int(b)) and self._buried(batch, a, b)
