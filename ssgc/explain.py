@@ -265,8 +265,11 @@ class Explanation:
                 lines.append(
                     f"    would fit its place better as a {o.better_type} (+{o.type_gain:.1f} nats)"
                 )
-            for r in sorted(o.reasons, key=lambda r: -r.excess)[:3]:
-                lines.append(f"    {r.text}")
+            shown = sorted(o.reasons, key=lambda r: -r.excess)[:3]
+            texts = [r.text for r in shown]
+            for r in shown:  # two rules' same words (two revolute laws above) name their rules
+                said = f"{r.text} ({r.rule})" if texts.count(r.text) > 1 else r.text
+                lines.append(f"    {said}")
         rest = self.objects[len(self.objects) if limit is None else limit :]
         lines += _more_line(len(rest), sum(o.share for o in rest), "object")
         if self.reparse is not None and self.reparse.status != "complete":

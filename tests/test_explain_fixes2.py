@@ -287,3 +287,35 @@ def test_a_removal_search_cut_short_is_not_said_to_prove_anything():
     found = diagnose(g, scene, time_limit=20.0)
     assert "with Table #0 at the root's pose" in found.message
     assert "without Cup #1 it parses" in found.message
+
+
+def test_two_rules_with_the_same_words_are_told_apart():
+    """Two revolute laws above an object (a table turned about z, a seat about z on it) both
+    read "rotation about its rule's axis, every allowed angle equally likely": the text
+    printed the same line twice under the object; each now names its rule."""
+    g = compile_text(
+        """
+grammar: seats
+root: Room
+types:
+  Room:
+    and:
+    - {child: Table, translation: {offset: [0, 0, 0.4]}, rotation: {revolute: {axis: [0, 0, 1]}}}
+  Table:
+    and:
+    - {child: Seat, translation: {offset: [0.6, 0, 0]}, rotation: {revolute: {axis: [0, 0, 1]}}}
+  Seat:
+    and:
+    - {child: Cup, translation: {offset: [-0.1, 0, 0]}, rotation: same}
+  Cup: {observed: true}
+"""
+    )
+    turns = np.array([[np.cos(0.5), np.sin(0.5)], [np.cos(0.8), np.sin(0.8)]])
+    cup = 0.6 * turns[0] - 0.1 * turns[1]  # the table turned 0.5, the seat 0.3 on it
+    xyz = np.array([[cup[0], cup[1], 0.4]])
+    scene = Scene("one", np.array([g.type_ids["Cup"]]), xyz, yawed([0.8]))
+    text = explain(g, scene, time_limit=10.0).text()
+    lines = [line.strip() for line in text.splitlines()]
+    same = "rotation about its rule's axis, every allowed angle equally likely"
+    assert f"{same} (Room[0]->Table)" in lines and f"{same} (Table[0]->Seat)" in lines
+    assert same not in lines
