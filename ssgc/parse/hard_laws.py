@@ -90,6 +90,8 @@ class Laws:
     checks: list[tuple[int, bool, FloatArray, FloatArray, FloatArray, FloatArray]]
     relays: list[Relay] = field(default_factory=list)  # arcs held through a revolute child
     child_pins: list[ChildPin] = field(default_factory=list)  # children's parent-frame pins
+    # planes n·x = t of the set's own rule's pinned axes in its known parent's frame
+    planes: list[tuple[FloatArray, float]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -152,6 +154,10 @@ def add_parent_rule(
     elif isinstance(tl, NormalTranslation):
         mean = quat_rotate(p_quat, tl.offset) if tl.frame == Frame.PARENT else tl.offset  # type: ignore[arg-type]
         laws.soft_xyz.append((origin + mean, zero))  # type: ignore[operator]
+        if tl.frame == Frame.PARENT and not np.all(tl.free):  # planes in the parent's frame
+            for a in np.flatnonzero(~np.asarray(tl.free, bool)):
+                n = quat_rotate(p_quat, np.eye(3)[a])  # type: ignore[arg-type]
+                laws.planes.append((n, float(n @ origin) + float(tl.offset[a])))  # type: ignore[operator]
         if tl.frame != Frame.PARENT and not np.all(tl.free):  # pinned world axes: a flat box
             lo = np.where(tl.free, -np.inf, origin + tl.offset)  # type: ignore[operator]
             hi = np.where(tl.free, np.inf, origin + tl.offset)  # type: ignore[operator]
@@ -555,6 +561,9 @@ def _onto_child_pins(laws: Laws, x: FloatArray, q: FloatArray) -> tuple[FloatArr
     for k, value in _flat_axes(laws):  # the set's own pinned world axes hold as well
         normals.append(np.broadcast_to(np.eye(3)[k], x.shape))
         targets.append(np.full(len(x), value))
+    for n, t in laws.planes:  # and its own pinned axes in its parent's frame
+        normals.append(np.broadcast_to(n, x.shape))
+        targets.append(np.full(len(x), t))
     big_n = np.stack(normals, axis=1)  # (poses, planes, 3)
     miss = np.stack(targets, axis=1) - np.einsum("nkj,nj->nk", big_n, x)
     step = np.einsum("njk,nk->nj", np.linalg.pinv(big_n), miss)

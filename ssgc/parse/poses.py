@@ -450,8 +450,8 @@ class PinPlanes:
     """Planes a block's position must lie on at its rotation, n·x = t, one per row k of
     block[k]: a pinned axis of a parent-frame Normal from the block to a fixed child (n =
     axis[k] turned by the block's end rotation q ⊗ end_quat[k], t = n·(child[k] - R(q)
-    end_xyz[k]) - mean[k]), or, where axis[k] is -1, a pinned world axis of a rule from a
-    fixed parent (n = world axis world[k], t = mean[k]).
+    end_xyz[k]) - mean[k]), or, where axis[k] is -1, a pinned axis of the block's own rule
+    from a fixed parent (n = normal[k], a world axis or the parent's axis, t = mean[k]).
 
     Why: a pin in the block's frame couples its rotation to its position.  Any turn of the
     block alone moved its child off the pin (density 0), so refinement kept the rotation the
@@ -461,7 +461,7 @@ class PinPlanes:
 
     block: IntArray
     axis: IntArray
-    world: IntArray
+    normal: FloatArray
     end_xyz: FloatArray
     end_quat: FloatArray
     child: FloatArray
@@ -493,7 +493,7 @@ class PinPlanes:
         qb = q[..., b, :]
         local = np.eye(3)[np.maximum(self.axis, 0)]
         turned = quat_rotate(quat_multiply(qb, self.end_quat), local)
-        n = np.where((self.axis >= 0)[:, None], turned, np.eye(3)[np.maximum(self.world, 0)])
+        n = np.where((self.axis >= 0)[:, None], turned, self.normal)
         reach = self.child - quat_rotate(qb, self.end_xyz)
         pinned_t = np.sum(n * reach, axis=-1) - self.mean
         t = np.where(self.axis >= 0, pinned_t, self.mean)
@@ -507,14 +507,20 @@ class PinPlanes:
 
 
 NO_PLANES = PinPlanes(
-    *(np.zeros(0, np.int64),) * 3, np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0)
+    *(np.zeros(0, np.int64),) * 2,
+    *(np.zeros((0, 3)),) * 2,
+    np.zeros((0, 4)),
+    np.zeros((0, 3)),
+    np.zeros(0),
 )
 
 
 def pin_planes(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> PinPlanes:
     """`PinPlanes` of the blocks with a child pinned in their frame (none for the others:
-    their pinned world axes are bounds, `_pin_limits`)."""
-    rows: list[tuple[int, int, int, FloatArray, FloatArray, FloatArray, float]] = []
+    their pinned world axes are bounds, `_pin_limits`), with the pinned axes of their own
+    rules from fixed parents (world, world-offset or the parent's frame)."""
+    rows: list[tuple[int, int, FloatArray, FloatArray, FloatArray, FloatArray, float]] = []
+    none = np.zeros(3)
     for m in range(len(edges.rule)):
         law = grammar.rules[int(edges.rule[m])].translation
         free = getattr(law, "free", None)
@@ -523,25 +529,29 @@ def pin_planes(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> PinPlanes:
             continue
         for a in np.flatnonzero(~np.asarray(free, bool)):
             c = edges.c_xyz[m]
-            rows.append((pb, int(a), -1, edges.p_xyz[m], edges.p_quat[m], c, law.offset[a]))
+            rows.append((pb, int(a), none, edges.p_xyz[m], edges.p_quat[m], c, law.offset[a]))
     if not rows:
         return NO_PLANES
     with_planes = {r[0] for r in rows}
-    for m in range(len(edges.rule)):  # their own pinned world axes (from a fixed parent)
+    for m in range(len(edges.rule)):  # their own pinned axes, from a fixed parent
         law = grammar.rules[int(edges.rule[m])].translation
         free = getattr(law, "free", None)
         cb = int(edges.c_block[m])
         if free is None or cb not in with_planes or edges.p_block[m] >= 0:
             continue
-        if law.frame != Frame.WORLD or np.any(edges.c_xyz[m] != 0):
-            continue  # a world-offset frame moves with the parent: left to the bounds
+        if np.any(edges.c_xyz[m] != 0):
+            continue  # a member below the block's top: left to the bounds
+        turn = quat_to_matrix(edges.p_quat[m]) if law.frame == Frame.PARENT else np.eye(3)
+        origin = np.zeros(3) if law.frame == Frame.WORLD else edges.p_xyz[m]
         for k in np.flatnonzero(~np.asarray(free, bool)):
-            rows.append((cb, -1, int(k), np.zeros(3), IDENTITY_QUAT, np.zeros(3), law.offset[k]))
-    block, axis, world, end_xyz, end_quat, child, mean = zip(*rows, strict=True)
+            n = turn[:, k]  # the law's value u = turnᵀ (x - origin); pinned u_k = offset_k
+            t = float(n @ origin) + float(law.offset[k])
+            rows.append((cb, -1, n, none, IDENTITY_QUAT, none, t))
+    block, axis, normal, end_xyz, end_quat, child, mean = zip(*rows, strict=True)
     return PinPlanes(
         np.array(block, np.int64),
         np.array(axis, np.int64),
-        np.array(world, np.int64),
+        np.array(normal, float),
         np.array(end_xyz, float),
         np.array(end_quat, float),
         np.array(child, float),
