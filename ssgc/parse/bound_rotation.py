@@ -19,7 +19,10 @@ branch-and-bound, with the position eliminated in closed form:
   t, so the excess is O(δ²) near a stationary rotation even with an active box or an
   anisotropic world-frame Normal next to a rotating one; the move paid for either over all
   turns at once or, `_coupled_turn`, along each turn with the turn's own gain, which keeps
-  the O(δ²) constant near the score's own curvature where the position follows the turn),
+  the O(δ²) constant near the score's own curvature where the position follows the turn; a
+  box that pins some axes and leaves the others open, the common `pin: [z]`, holds the move
+  on the pinned axes (`_stiffen_narrow_axes`) and pays for the rounding slope along the open
+  ones with curvature (`_curved_slack`), where a linear slack was infinite),
   and three first-order ones:
   the *world frame* (residuals c - t - R m: world-frame precisions exact, rotating ones
   R P Rᵀ replaced on the cell by a lower bound W, R0 P R0ᵀ - εI with ε = 2 sin(δ/2)
@@ -119,15 +122,17 @@ def _problem(terms, rot: Rotating) -> _Problem:  # type: ignore[no-untyped-def]
         t0 = np.where(fixed[:, None], 0.5 * (terms.lo + terms.hi), 0.0)
     u, w = terms.V[..., 0], terms.V[..., 1]
     axis = quat_multiply(w, quat_conjugate(u))[:, 1:]  # w ⊗ u⁻¹ = (0, R_base·axis)
+    a = np.any(rot.P != 0.0, axis=(0, 2, 3))  # terms no row has add nothing: their columns
+    b = np.any(terms.P != 0.0, axis=(0, 2, 3))  # pad rows to the widest of the set
     return _Problem(
-        rot.c,
-        rot.m,
-        rot.P,
-        _extremes(rot.P),
-        terms.c,
-        terms.m,
-        terms.P,
-        _extremes(terms.P),
+        rot.c[:, a],
+        rot.m[a],
+        rot.P[:, a],
+        _extremes(rot.P[:, a]),
+        terms.c[:, b],
+        terms.m[b],
+        terms.P[:, b],
+        _extremes(terms.P[:, b]),
         coef[:, :9].reshape(n, 3, 3),
         terms.const - rot.lift + coef[:, 9],
         terms.lo,
@@ -143,13 +148,14 @@ def _problem(terms, rot: Rotating) -> _Problem:  # type: ignore[no-untyped-def]
 
 
 def _solve(S: FloatArray, b: FloatArray) -> FloatArray:
-    """S⁻¹ b, with S = 0 (no Normal term at all) read as the identity (any s is best).
+    """S⁻¹ b for S (n, d, d), with S = 0 (no Normal term at all) read as the identity (any s
+    is best).
 
     Precisions of very different scales (variances of 1e-12 and 1e6 in one law) can make S
     singular in floating point; b = Σ Pᵢ μᵢ lies in the range of S, so the pseudo-inverse
     gives the maximiser there (the solve raised LinAlgError: an internal error)."""
     empty = np.trace(S, axis1=1, axis2=2) <= 0.0
-    S = S + empty[:, None, None] * np.eye(3)
+    S = S + empty[:, None, None] * np.eye(S.shape[-1])
     try:
         return np.linalg.solve(S, b[..., None])[..., 0]
     except np.linalg.LinAlgError:
@@ -167,6 +173,14 @@ def _best_position(
     t = _solve(H, b)
     if not np.any(boxed):
         return t
+    narrow = (hi - lo) <= FIXED_WIDTH
+    opened = ~np.isfinite(lo) & ~np.isfinite(hi)
+    split = boxed & np.all(narrow | opened, axis=1) & np.any(opened, axis=1)
+    if np.any(split):
+        t[split] = _pinned_axes_solve(H[split], b[split], lo[split], hi[split], narrow[split])
+        boxed = boxed & ~split
+        if not np.any(boxed):
+            return t
     Hb, bb, lb, hb = H[boxed], b[boxed], lo[boxed], hi[boxed]
     tb = np.clip(t[boxed], lb, hb)
     diag = np.maximum(np.einsum("nii->ni", Hb), 1e-300)
@@ -178,6 +192,34 @@ def _best_position(
     return t
 
 
+def _axis_patterns(mask: NDArray[np.bool_]) -> list[tuple[NDArray[np.bool_], IntArray]]:
+    """(pattern, rows) for each pattern of the three axes in `mask` (n, 3) that occurs
+    (np.unique over rows sorted every cell of the search)."""
+    code = mask @ np.array([1, 2, 4])
+    return [
+        (np.array([c & 1, c & 2, c & 4], bool), np.flatnonzero(code == c))
+        for c in np.flatnonzero(np.bincount(code, minlength=8))
+    ]
+
+
+def _pinned_axes_solve(
+    H: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray, narrow: NDArray[np.bool_]
+) -> FloatArray:
+    """argmax of -½ tᵀ H t + bᵀ t with the `narrow` axes held at their boxes' middles and the
+    others free: the free axes' solve given the held ones (per pattern of held axes).
+
+    Why: a position pinned on some axes and free on the rest (a shelf or a table held at its
+    height) is the common box, and coordinate ascent took 40 sweeps of Python-level steps
+    on every cell of the rotation search to approach what this solve gives exactly."""
+    t = np.where(narrow, 0.5 * (np.where(narrow, lo, 0.0) + np.where(narrow, hi, 0.0)), 0.0)
+    for pattern, rows in _axis_patterns(narrow):
+        u, k = np.flatnonzero(~pattern), np.flatnonzero(pattern)
+        H_r = H[rows]
+        rhs = b[rows][:, u] - np.einsum("nuk,nk->nu", H_r[:, u][:, :, k], t[rows][:, k])
+        t[np.ix_(rows, u)] = _solve(H_r[:, u][:, :, u], rhs)
+    return t
+
+
 def _box_slack(grad: FloatArray, t: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
     """max over s in the box of ∇·(s - t): what a concave function can gain on t (∞ where an
     unbounded axis has a nonzero slope)."""
@@ -186,6 +228,41 @@ def _box_slack(grad: FloatArray, t: FloatArray, lo: FloatArray, hi: FloatArray) 
     keep = {"nan": 0.0, "posinf": np.inf, "neginf": -np.inf}  # 0·∞: a flat unbounded axis
     gain = np.maximum(np.nan_to_num(up, **keep), np.nan_to_num(down, **keep))
     return gain.sum(axis=1)
+
+
+def _curved_slack(  # type: ignore[no-untyped-def]
+    grad: FloatArray, K: FloatArray, t: FloatArray, i: IntArray, p
+) -> FloatArray:
+    """max of ∇·d - ½ dᵀ K d over moves d of t within the box with its half-open axes opened
+    (∞ where K is not positive definite on them).
+
+    Why: at the best position t in a box that pins some axes and leaves the others unbounded
+    (a shelf held at its height), the slope along the unbounded axes is zero up to rounding,
+    but a linear slack counts any slope there as an infinite gain, so the second-order cell
+    bound was infinite and the cells never closed (a latent shelf parsed `feasible`, its
+    search spending the whole cell budget).  With U the axes with an infinite side and B the
+    others, -½ dᵀ K d = -½ yᵀ K_UU y - ½ d_Bᵀ S d_B (y = d_U + K_UU⁻¹ K_UB d_B, S the Schur
+    complement, S ⪰ 0), so the maximum is at most ½ ∇_Uᵀ K_UU⁻¹ ∇_U plus the linear slack of
+    ∇_B - K_BU K_UU⁻¹ ∇_U over B's box."""
+    lo, hi = p.lo[i], p.hi[i]
+    opened = ~(np.isfinite(lo) & np.isfinite(hi))
+    out = np.full(len(grad), np.inf)
+    for pattern, rows in _axis_patterns(opened):
+        u, b = np.flatnonzero(pattern), np.flatnonzero(~pattern)
+        if not len(u):
+            continue
+        k_uu = K[rows][:, u][:, :, u]
+        w = np.linalg.eigvalsh(k_uu)
+        pd = w[:, 0] > 1e-12 * np.maximum(1.0, w[:, -1])
+        k_uu = np.where(pd[:, None, None], k_uu, np.eye(len(u)))
+        g_u = grad[rows][:, u]
+        sol = np.linalg.solve(k_uu, g_u[..., None])[..., 0]
+        value = 0.5 * np.sum(g_u * sol, axis=1)
+        if len(b):
+            g_b = grad[rows][:, b] - np.einsum("nbu,nu->nb", K[rows][:, b][:, :, u], sol)
+            value = value + _box_slack(g_b, t[rows][:, b], lo[rows][:, b], hi[rows][:, b])
+        out[rows] = np.where(pd, value, np.inf)
+    return out
 
 
 def _world_terms(p: _Problem, i: IntArray, R: FloatArray, QA: FloatArray):  # type: ignore[no-untyped-def]
@@ -264,7 +341,24 @@ def _bound_world_frame(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArra
     phi = -0.5 * np.einsum("nki,nki->n", d, Wd)
     slack = np.where(p.boxed[i], _box_slack(Wd.sum(axis=1), t, p.lo[i], p.hi[i]), 0.0)
     m = np.concatenate([p.mA, p.mB], axis=0)
+    curved = np.isinf(slack)
+    if np.any(curved):  # a rounding error's slope along an unbounded axis (_curved_slack)
+        c = curved
+        slack[c] = _curved_world_slack(p, i[c], W[c], Wd[c], t[c], m, delta[c])
     return phi + slack, np.einsum("nki,kj->nij", Wd, m)
+
+
+def _curved_world_slack(  # type: ignore[no-untyped-def]
+    p: _Problem, i: IntArray, W: FloatArray, Wd: FloatArray, t: FloatArray, m: FloatArray, delta
+) -> FloatArray:
+    """The world frame's slack with a quarter of the curvature in t kept: the score is
+    g0 + ∇_t·d + ⟨∇_R, ΔR⟩ - ½ Σ (ΔR m_k + d)ᵀ W_k (ΔR m_k + d), and (a + b)ᵀ W (a + b) ≥
+    ½ bᵀ W b - aᵀ W a, so the last sum is at most -¼ dᵀ ΣW d plus ½ Σ λmax(W_k)|ΔR m_k|²,
+    |ΔR m_k| ≤ 2 sin(δ/2)|m_k| on the cell: `_curved_slack` with ¼ ΣW, plus that."""
+    top = np.linalg.eigvalsh(W)[..., -1]  # (n, K)
+    turn = 2.0 * np.sin(0.5 * np.minimum(delta, np.pi))
+    extra = 0.5 * turn**2 * np.einsum("nk,k->n", top, np.sum(m * m, axis=1))
+    return _curved_slack(Wd.sum(axis=1), 0.25 * W.sum(axis=1), t, i, p) + extra
 
 
 def _bound_pinned(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArray):  # type: ignore[no-untyped-def]
@@ -313,6 +407,10 @@ def _bound_second_order(  # type: ignore[no-untyped-def]
     slack = np.where(p.boxed[i], _box_slack(grad_t, t0, p.lo[i], p.hi[i]), 0.0)
     RPA = np.einsum("nij,nkjl->nkil", R, p.PA[i])  # (n, J, 3, 3): R0 P_A
     H = np.einsum("nkij,nlj->nil", RPA, R) + p.PB[i].sum(axis=1)
+    curved = np.isinf(slack)  # a rounding error's slope along an unbounded axis of the box
+    if np.any(curved):  # half of the curvature pays for it, the other half for the turn
+        slack[curved] = _curved_slack(grad_t[curved], 0.5 * H[curved], t0[curved], i[curved], p)
+        H = np.where(curved[:, None, None], 0.5 * H, H)
     # L[n, a] = the 3×3 change of ∇_R g per unit move of t along axis a
     L = -np.einsum("nkia,kj->naij", p.PB[i], p.mB)
     L += np.einsum("nki,nkaj->naij", w, RPA)
@@ -322,12 +420,13 @@ def _bound_second_order(  # type: ignore[no-untyped-def]
     curv = _extremes(p.PA[i].sum(axis=1, keepdims=True))[:, 0, 1]  # ‖Σ_A P_A‖
     s = 2.0 * np.sqrt(2.0) * np.sin(0.5 * np.minimum(delta, np.pi))
     Hs = H - (2.0 * s * curv)[:, None, None] * eye
+    Hs, pinned_cost = _stiffen_narrow_axes(Hs, t0, p.lo[i], p.hi[i])
     h, U = np.linalg.eigh(Hs)
     pd = h[:, 0] > 1e-12 * np.maximum(1.0, h[:, -1])
     scale = np.where(pd[:, None], 1.0 / np.sqrt(np.where(pd[:, None], h, 1.0)), 0.0)
     root = np.einsum("nij,nj,nkj->nik", U, scale, U)  # H'^(-1/2)
     top = np.maximum(np.linalg.eigvalsh(np.einsum("nij,njk,nkl->nil", root, gram, root))[:, -1], 0)
-    gain = np.where(pd, 0.5 * s**2 * top, np.inf)
+    gain = np.where(pd, 0.5 * s**2 * top + pinned_cost, np.inf)
     with np.errstate(invalid="ignore"):
         reach = np.linalg.norm(np.maximum(p.hi[i] - t0, t0 - p.lo[i]), axis=1)
     reach = np.where(np.isnan(reach), np.inf, reach)
@@ -335,8 +434,30 @@ def _bound_second_order(  # type: ignore[no-untyped-def]
     with np.errstate(invalid="ignore"):
         boxed_gain = s * (norm_L * reach + curv * reach**2)
     gain = np.minimum(gain, np.where(np.isnan(boxed_gain), np.inf, boxed_gain))
-    coupled = _coupled_turn(L, R, delta, root, np.sqrt(top), pd)
-    return phi + slack, grad_R, gain, coupled
+    C, tail = _coupled_turn(L, R, delta, root, np.sqrt(top), pd)
+    return phi + slack, grad_R, gain, (C, tail + pinned_cost)
+
+
+def _stiffen_narrow_axes(
+    H: FloatArray, t0: FloatArray, lo: FloatArray, hi: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """H with a stiff curvature B along the axes a box pins (width ≤ FIXED_WIDTH), and
+    the most that adds: ½ B Σ w², w the farthest the box lets t move from t0 on them.
+
+    Why: the move d of the position is maximised over all of R³, but on a pinned axis the box
+    holds it (d_k within the rounding margin).  Where the score has no curvature along that
+    axis (a shelf pinned at its height, boxes pinned on it: no Normal term in z), H' lost
+    positive definiteness on every cell wider than the curvature, the gain was infinite and
+    no cell closed.  f(d) - ½ B d_k² differs from f(d) by at most ½ B w² where the box holds
+    d, so the maximum over R³ with B added, plus that, bounds the one over the box."""
+    narrow = (hi - lo) <= FIXED_WIDTH
+    if not np.any(narrow):
+        return H, np.zeros(len(H))
+    big = 1e6 * np.maximum(1.0, np.abs(np.trace(H, axis1=1, axis2=2)))
+    H = H + big[:, None, None] * (narrow[:, :, None] * np.eye(3))
+    with np.errstate(invalid="ignore"):
+        width = np.where(narrow, np.maximum(hi - t0, t0 - lo), 0.0)
+    return H, 0.5 * big * np.sum(width**2, axis=1)
 
 
 def _coupled_turn(  # type: ignore[no-untyped-def]
@@ -392,13 +513,21 @@ def _cell_bound(
     coupled = base + phi + tail + _linear_max(M + C, delta, p.axis[i], p.arc_rows[i])
     best = np.minimum(best, coupled)
     fixed = p.fixed[i]
-    for frame in (_bound_world_frame, _bound_top_frame, _bound_pinned):
-        if frame is _bound_pinned and not np.any(fixed):
+    with np.errstate(invalid="ignore"):
+        far = (p.boxed[i] | fixed) & np.any(~np.isfinite(p.lo[i] - p.hi[i]), axis=1)
+    frames = (
+        (_bound_world_frame, np.ones(len(i), bool)),
+        (_bound_top_frame, ~far),  # a box with an open axis widens to all of space there
+        (_bound_pinned, fixed),
+    )
+    for frame, rows in frames:
+        if not np.any(rows):
             continue
-        phi, grad = frame(p, i, R, delta)
-        M = (grad + lin) @ np.swapaxes(R, 1, 2)
-        value = base + phi + _linear_max(M, delta, p.axis[i], p.arc_rows[i])
-        best = np.minimum(best, np.where(fixed | (frame is not _bound_pinned), value, np.inf))
+        k = np.flatnonzero(rows)
+        phi, grad = frame(p, i[k], R[k], delta[k])
+        M = (grad + lin[k]) @ np.swapaxes(R[k], 1, 2)
+        value = base[k] + phi + _linear_max(M, delta[k], p.axis[i[k]], p.arc_rows[i[k]])
+        best[k] = np.minimum(best[k], value)
     return best
 
 
