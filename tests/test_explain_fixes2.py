@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_explain import DINNER
 from typer.testing import CliRunner
 
 import ssgc
@@ -22,31 +23,6 @@ from ssgc.parse.parser import Parser
 
 RUNNER = CliRunner()
 TINY = float(np.finfo(np.float64).tiny)  # the least percentile printed, as a bound
-
-DINNER = """
-grammar: dinner
-root: {type: Table, pose: {xyz: [0, 0, 0]}}
-types:
-  Table:
-    repeat:
-      count: {probs: [0.1, 0.3, 0.3, 0.3]}
-      rule:
-        child: Plate
-        translation:
-          world_normal_offset: {mean: [0, 0, 0.75], variance: [0.25, 0.25, 0], pin: [z]}
-        rotation: {world_bingham: {mode: {rpy_deg: [0, 0, 0]}, concentration: [50, 50, 0]}}
-  Plate:
-    observed: true
-    repeat:
-      count: {probs: [0.3, 0.4, 0.3]}
-      rule:
-        child: Mug
-        translation:
-          parent_normal_offset: {mean: [0, 0, 0.02], variance: [0.0004, 0.0004, 0], pin: [z]}
-        rotation: {world_bingham: {mode: {rpy_deg: [0, 0, 0]}, concentration: [50, 50, 0]}}
-  Mug:
-    observed: true
-"""
 
 BIN = """
 grammar: bin

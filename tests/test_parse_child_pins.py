@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from grammar_text import grammar_from_text
 
 import ssgc
 from ssgc.geometry import quat_conjugate, quat_rotate
@@ -145,18 +146,12 @@ AT_LEAST_SAMPLED = {
 SCENES = 3
 
 
-def _grammar(tmp_path, text: str) -> ssgc.Grammar:
-    path = tmp_path / "g.yaml"
-    path.write_text(text)
-    return ssgc.load_grammar(path)
-
-
 @pytest.mark.parametrize("method", ["ip", "micp"])
 @pytest.mark.parametrize("name", sorted(AT_LEAST_SAMPLED))
 def test_parse_reaches_the_sampled_tree(tmp_path, name, method):
     """The promise: a parse whose best tree scores at least the sampled tree's log_prob, with
     a bound no lower than it (an honest gap)."""
-    g = _grammar(tmp_path, AT_LEAST_SAMPLED[name])
+    g = grammar_from_text(tmp_path, AT_LEAST_SAMPLED[name])
     for scene in g.sample(SCENES, seed=7):
         result = ssgc.parse(g, scene, method=method, time_limit=60)
         assert result.status in ("optimal", "feasible"), (name, result.status)
@@ -169,7 +164,7 @@ def test_parse_reaches_the_sampled_tree(tmp_path, name, method):
 def test_held_rotations_are_certified(tmp_path, name):
     """Each latent rotation is held (softly, by a noisy observation; or exactly) by an
     observed child and the rest follows: the tree reaches the bound."""
-    g = _grammar(tmp_path, OPTIMAL[name])
+    g = grammar_from_text(tmp_path, OPTIMAL[name])
     for scene in g.sample(SCENES, seed=7):
         result = ssgc.parse(g, scene, time_limit=60)
         assert result.status == "optimal", (name, result.status, result.best)

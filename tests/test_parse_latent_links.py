@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from grammar_text import grammar_from_text
 
 import ssgc
 from ssgc.parse.poses import PoseEdges, free_blocks, refine_tree
@@ -124,17 +125,11 @@ AT_LEAST_SAMPLED = {
 SCENES = 4
 
 
-def _grammar(tmp_path, text: str) -> ssgc.Grammar:
-    path = tmp_path / "g.yaml"
-    path.write_text(text)
-    return ssgc.load_grammar(path)
-
-
 @pytest.mark.parametrize("method", ["ip", "micp"])
 @pytest.mark.parametrize("name", sorted(AT_LEAST_SAMPLED))
 def test_parse_reaches_the_sampled_tree(tmp_path, name, method):
     """The promise: a parse whose best tree scores at least the sampled tree's log_prob."""
-    g = _grammar(tmp_path, AT_LEAST_SAMPLED[name])
+    g = grammar_from_text(tmp_path, AT_LEAST_SAMPLED[name])
     for scene in g.sample(SCENES, seed=7):
         result = ssgc.parse(g, scene, method=method, time_limit=60)
         assert result.status in ("optimal", "feasible"), (name, result.status)
@@ -145,7 +140,7 @@ def test_parse_reaches_the_sampled_tree(tmp_path, name, method):
 def test_same_chains_are_certified(tmp_path, name):
     """Sets joined by `same` under free rotations, each with its own child: the refined tree
     reaches the bound (these were `feasible`, below the sampled tree)."""
-    g = _grammar(tmp_path, OPTIMAL[name])
+    g = grammar_from_text(tmp_path, OPTIMAL[name])
     for scene in g.sample(SCENES, seed=7):
         result = ssgc.parse(g, scene, time_limit=60)
         assert result.status == "optimal", (name, result.status, result.best.gap)
@@ -154,7 +149,7 @@ def test_same_chains_are_certified(tmp_path, name):
 def test_refinement_moves_a_linked_chain_as_one(tmp_path):
     """The sampled tree with its latent chain moved to where rule inversion puts it (at
     B - offset, unturned): refinement alone brings it back above the sampled score."""
-    g = _grammar(tmp_path, OFFSET_CHAIN)
+    g = grammar_from_text(tmp_path, OFFSET_CHAIN)
     scene = g.sample(1, seed=7)[0]
     trees = scene.tree.trees
     far = trees.xyz.copy(), trees.quat.copy()
@@ -171,7 +166,7 @@ def test_an_over_determined_group_is_left_as_it_was(tmp_path):
     """A block tied by fixed offsets to two fixed poses is placed by neither: no link."""
     from ssgc.parse.poses import tied_links  # new: the rest of the file runs without it
 
-    g = _grammar(tmp_path, OFFSET_CHAIN)
+    g = grammar_from_text(tmp_path, OFFSET_CHAIN)
     scene = g.sample(1, seed=7)[0]
     _, tops = free_blocks(g.ir, scene.tree.trees)
     assert len(tops) == 2

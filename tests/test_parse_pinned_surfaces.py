@@ -16,6 +16,7 @@ a `repeat` at once (`proposals._many_pinned`), and refinement moves such a set o
 from __future__ import annotations
 
 import numpy as np
+from grammar_text import grammar_from_text
 
 import ssgc
 from ssgc.geometry import quat_rotate
@@ -89,17 +90,11 @@ types:
 """
 
 
-def _grammar(tmp_path, text: str) -> ssgc.Grammar:
-    path = tmp_path / "g.yaml"
-    path.write_text(text)
-    return ssgc.load_grammar(path)
-
-
 def test_a_shelf_of_boxes_parses_to_its_sampled_tree(tmp_path):
     """Seed 7's four scenes hold 4, 1, 3 and 2 boxes, and parsed to no parse, −88, no parse,
     no parse; each now at least as high as the tree it was sampled from (the scenes of 1 and
     3 boxes here, for the default run's time; all four measured in 1e7e71d)."""
-    g = _grammar(tmp_path, SHELF)
+    g = grammar_from_text(tmp_path, SHELF)
     scenes = g.sample(4, seed=7)
     assert [len(s.types) for s in scenes] == [4, 1, 3, 2]
     for scene in scenes[1:3]:  # the planes in refinement (1 box) and the trios (3 boxes)
@@ -118,7 +113,7 @@ def test_a_shelf_of_boxes_parses_to_its_sampled_tree(tmp_path):
 def test_two_shelves_of_three_boxes_parse_to_their_sampled_tree(tmp_path):
     """Before: no parse; with all candidate boxes at once, or in index order, trios mixing
     the shelves: 40–80 nats below."""
-    g = _grammar(tmp_path, SHELVES)
+    g = grammar_from_text(tmp_path, SHELVES)
     for scene in g.sample(1, seed=7):
         assert len(scene.types) == 6
         result = ssgc.parse(g, scene, time_limit=120)
@@ -130,7 +125,7 @@ def test_a_setting_pinned_in_its_seat_s_frame_follows_its_plate(tmp_path):
     """The setting's own pin is a plane in its parent's frame: the hard-law poses moved it
     onto its plate's plane and off its own (no parse in all four scenes), and refinement
     did not keep it there (scenes 1 and 3 below their sampled trees)."""
-    g = _grammar(tmp_path, SETTING)
+    g = grammar_from_text(tmp_path, SETTING)
     for scene in g.sample(4, seed=7)[1::2]:  # 1 and 3: below their sampled trees without
         result = ssgc.parse(g, scene, time_limit=60)
         assert result.status in ("optimal", "feasible"), result.status

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from grammar_text import grammar_from_text
 
 import ssgc
 from ssgc.geometry import axis_angle_to_quat, quat_multiply
@@ -71,12 +72,6 @@ observation:
 """
 
 
-def _grammar(tmp_path, text: str) -> ssgc.Grammar:
-    path = tmp_path / "g.yaml"
-    path.write_text(text)
-    return ssgc.load_grammar(path)
-
-
 # the seats with revolute ranges short of the circle (a turn about the axis may leave them)
 RANGED_SEATS = SEATS.replace(
     "rotation: {revolute: {axis: [0, 0, 1]}}\n  Table:",
@@ -96,7 +91,7 @@ def test_parse_reaches_the_sampled_tree(tmp_path, text, scenes):
     """The seats' scene 2 parsed 30.6 nats below its sampled tree (scene 1: 3.0); the noisy
     link's first scene 1.8 below; the ranged seats' scene 3 60 nats below with a turn
     that ignored the range."""
-    g = _grammar(tmp_path, text)
+    g = grammar_from_text(tmp_path, text)
     for scene in g.sample(4, seed=7)[scenes]:
         result = ssgc.parse(g, scene, time_limit=60)
         assert result.status in ("optimal", "feasible"), result.status
@@ -106,7 +101,7 @@ def test_parse_reaches_the_sampled_tree(tmp_path, text, scenes):
 def test_refinement_turns_a_latent_table_back(tmp_path):
     """The sampled tree with its table turned 0.8 rad about z (the seats keep their
     rotations, so every revolute edge stays on its axis): refinement turns it back."""
-    g = _grammar(tmp_path, SEATS)
+    g = grammar_from_text(tmp_path, SEATS)
     scene = g.sample(1, seed=7)[0]
     trees = scene.tree.trees
     table = int(np.flatnonzero(trees.type == g.ir.type_id("Table"))[0])
@@ -153,7 +148,7 @@ types:
     - {child: A, translation: same, rotation: {revolute: {axis: [0, 0, 1], min: 0, max: 0.5}}}
   A: {observed: true}
 """
-    g = _grammar(tmp_path, text)
+    g = grammar_from_text(tmp_path, text)
     about_z, about_x, fixed, bingham, ranged = range(5)
     edges = _edges(
         [about_z, about_z, about_z, about_x, fixed, bingham, ranged],

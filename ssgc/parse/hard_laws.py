@@ -572,32 +572,67 @@ def _onto_child_pins(laws: Laws, x: FloatArray, q: FloatArray) -> tuple[FloatArr
 
 def _turn_pin_normals(laws: Laws, q: FloatArray) -> FloatArray:
     """Rotations turned as little as needed for the pin planes of children that share a
-    member and a pinned axis to be parallel planes that one position meets: each such
-    axis, n = R_v e_a, must have n·(c_i - c_j) = mean_i - mean_j for its children i, j.
+    member and a pinned axis to be parallel planes that one position meets
+    (`turn_pins_parallel`, every group in turn for CHILD_PIN_ROUNDS rounds).
 
     Why: objects pinned on a latent surface (a shelf whose height its own rule pins, boxes
     pinned on it in its frame) lie on one tilted plane; at the surface's proposed rotation
     (its soft laws' mode) their planes were parallel but apart, no position met them all,
-    and the scene had no parse.  The nearest unit n solving those rows is their least-norm
-    solution plus the current n's part across them, scaled to unit length."""
-    groups: dict[tuple[bytes, bytes, int], list[tuple[FloatArray, float]]] = {}
-    for pin in laws.child_pins:
-        for a in np.flatnonzero(pin.pinned):
-            key = (pin.member_xyz.tobytes(), pin.member_quat.tobytes(), int(a))
-            groups.setdefault(key, []).append((pin.c_xyz, float(pin.mean[a])))
+    and the scene had no parse."""
+    rows = [
+        (0, pin.member_xyz, pin.member_quat, int(a), pin.c_xyz, float(pin.mean[a]))
+        for pin in laws.child_pins
+        for a in np.flatnonzero(pin.pinned)
+    ]
+    groups = parallel_pin_groups(rows)
     for _ in range(CHILD_PIN_ROUNDS):
-        for (_, m_quat, a), rows in groups.items():
-            if len(rows) < 2:
-                continue
-            member_quat = np.frombuffer(m_quat)
-            q_v = quat_multiply(q, np.broadcast_to(member_quat, q.shape))
-            n = quat_rotate(q_v, np.broadcast_to(np.eye(3)[a], (len(q), 3)))
-            d = np.array([c - rows[0][0] for c, _ in rows[1:]])
-            delta = np.array([m - rows[0][1] for _, m in rows[1:]])
-            wanted = nearest_unit_solution(d, delta, n)
-            turn = quat_between(n, wanted)
-            q = quat_normalize(quat_multiply(quat_multiply(turn, q_v), quat_conjugate(member_quat)))
+        for _, end_quat, a, d, delta in groups:
+            q = turn_pins_parallel(q, end_quat, a, d, delta)
     return q
+
+
+# (owner, end rotation, pinned axis, child differences (k, 3), mean differences (k,))
+PinGroup = tuple[int, FloatArray, int, FloatArray, FloatArray]
+
+
+def parallel_pin_groups(
+    rows: list[tuple[int, FloatArray, FloatArray, int, FloatArray, float]],
+) -> list[PinGroup]:
+    """Rows (owner, end_xyz, end_quat, axis, child, mean) of children pinned in a frame
+    (n·(child - x_end) = mean, n = R(q ⊗ end_quat) e_axis), grouped by owner, end and axis,
+    two or more to a group, in the order the groups first appear: their planes are parallel
+    only where that axis, turned, has n·(c_i - c_0) = mean_i - mean_0 (`turn_pins_parallel`).
+    The hard laws (one set, owner 0) and refinement (`poses.PinPlanes`, owner a block)
+    share them."""
+    groups: dict[tuple[int, bytes, bytes, int], list[tuple[FloatArray, float]]] = {}
+    ends: dict[tuple[int, bytes, bytes, int], FloatArray] = {}
+    for owner, end_xyz, end_quat, a, c, mean in rows:
+        key = (owner, np.asarray(end_xyz).tobytes(), np.asarray(end_quat).tobytes(), a)
+        groups.setdefault(key, []).append((np.asarray(c, float), float(mean)))
+        ends[key] = np.asarray(end_quat, float)
+    out: list[PinGroup] = []
+    for key, members in groups.items():
+        if len(members) < 2:
+            continue
+        d = np.array([c - members[0][0] for c, _ in members[1:]])
+        delta = np.array([m - members[0][1] for _, m in members[1:]])
+        out.append((key[0], ends[key], key[3], d, delta))
+    return out
+
+
+def turn_pins_parallel(
+    q: FloatArray, end_quat: FloatArray, axis: int, d: FloatArray, delta: FloatArray
+) -> FloatArray:
+    """Rotations q (..., 4) turned as little as needed for one group of `parallel_pin_groups`
+    to lie on parallel planes that one position meets: n = R(q ⊗ end_quat) e_axis must have
+    d @ n = delta.  The nearest unit n solving those rows is their least-norm solution plus
+    the current n's part across them, scaled to unit length (`nearest_unit_solution`); the
+    end is turned onto it by the shortest turn, and the rotation with it."""
+    q_end = quat_multiply(q, np.broadcast_to(end_quat, q.shape))
+    n = quat_rotate(q_end, np.broadcast_to(np.eye(3)[axis], (*q.shape[:-1], 3)))
+    wanted = nearest_unit_solution(d, delta, n.reshape(-1, 3)).reshape(n.shape)
+    q_end = quat_multiply(quat_between(n, wanted), q_end)
+    return quat_normalize(quat_multiply(q_end, quat_conjugate(end_quat)))
 
 
 def nearest_unit_solution(d: FloatArray, delta: FloatArray, n: FloatArray) -> FloatArray:
@@ -620,11 +655,20 @@ def nearest_unit_solution(d: FloatArray, delta: FloatArray, n: FloatArray) -> Fl
 def _flat_axes(laws: Laws) -> list[tuple[int, float]]:
     """(world axis, value) of each coordinate a flat box of the set's own position fixes (a
     pinned world axis of its rule)."""
-    out: dict[int, float] = {}
+    flat, value = _flat_coordinates(laws)
+    return [(int(k), float(value[k])) for k in np.flatnonzero(flat)]
+
+
+def _flat_coordinates(laws: Laws) -> tuple[NDArray[np.bool_], FloatArray]:
+    """Which world coordinates of the set's own position a flat box fixes, and their values
+    (0 where none; the first box's where two fix one coordinate)."""
+    flat = np.zeros(3, bool)
+    value = np.zeros(3)
     for lo, hi, shift in laws.boxes:
-        for k in np.flatnonzero(np.isfinite(lo) & (lo == hi) & np.all(shift == 0)):
-            out.setdefault(int(k), float(lo[k]))
-    return sorted(out.items())
+        fixed = np.isfinite(lo) & (lo == hi) & np.all(shift == 0)
+        value = np.where(fixed & ~flat, lo, value)
+        flat |= fixed
+    return flat, value
 
 
 def _onto_flat_boxes(laws: Laws, q: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -638,12 +682,7 @@ def _onto_flat_boxes(laws: Laws, q: FloatArray) -> tuple[FloatArray, FloatArray]
     Why: the pin holds the set on a sphere about its child and the flat box on a plane; the
     positions clipped into the box left the sphere, so a recursive chain pinned in z with a
     child at a fixed offset on each level got no pose below its first (`no_parse`)."""
-    flat = np.zeros(3, bool)
-    value = np.zeros(3)
-    for lo, hi, shift in laws.boxes:
-        fixed = np.isfinite(lo) & (lo == hi) & np.all(shift == 0)
-        value = np.where(fixed & ~flat, lo, value)
-        flat |= fixed
+    flat, value = _flat_coordinates(laws)
     if not flat.any():
         return np.zeros((0, 3)), np.zeros((0, 4))
     a, b = laws.pins[0]

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from ssgc.geometry import (
-    quat_between,
     quat_conjugate,
     quat_multiply,
     quat_normalize,
@@ -35,7 +35,7 @@ from ssgc.ir import Grammar
 from ssgc.laws.base import Frame
 from ssgc.laws.position_box import BoxTranslation
 from ssgc.laws.rotation_revolute import RevoluteRotation
-from ssgc.parse.hard_laws import nearest_unit_solution
+from ssgc.parse.hard_laws import PinGroup, parallel_pin_groups, turn_pins_parallel
 from ssgc.rules import rotation_log_density, translation_log_density
 from ssgc.tree import Trees
 
@@ -468,22 +468,30 @@ class PinPlanes:
     mean: FloatArray
     # (block, end_quat, axis, child differences (k, 3), mean differences (k,)) of two or more
     # children pinned on one axis of one end: their planes are parallel only where that
-    # axis, turned, is square to the differences (`hard_laws.nearest_unit_solution`)
-    parallel: tuple[tuple[int, FloatArray, int, FloatArray, FloatArray], ...] = ()
+    # axis, turned, is square to the differences (`hard_laws.turn_pins_parallel`)
+    parallel: tuple[PinGroup, ...] = ()
 
     def place(self, x: FloatArray, q: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Poses (B, 3), (B, 4) moved the least onto their blocks' planes: each rotation
-        turned so that its children's planes are parallel (two or more children pinned on
-        one axis lie on one plane, a condition on the rotation), then each position moved
-        onto the planes at that rotation."""
+        """Poses (..., B, 3), (..., B, 4) moved the least onto their blocks' planes: each
+        rotation turned so that its children's planes are parallel (two or more children
+        pinned on one axis lie on one plane, a condition on the rotation), then each position
+        moved onto the planes at that rotation."""
         q = q.copy()
         for b, end_quat, a, d, delta in self.parallel:
-            q_end = quat_multiply(q[b], end_quat)
-            n = quat_rotate(q_end, np.eye(3)[a])
-            wanted = nearest_unit_solution(d, delta, n.reshape(1, 3))[0]
-            q_end = quat_multiply(quat_between(n, wanted), q_end)
-            q[b] = quat_normalize(quat_multiply(q_end, quat_conjugate(end_quat)))
+            q[..., b, :] = turn_pins_parallel(q[..., b, :], end_quat, a, d, delta)
         return self.project(x, q), q
+
+    @cached_property
+    def by_size(self) -> tuple[tuple[IntArray, IntArray], ...]:
+        """(blocks (G,), their rows (G, k)) for each number k of planes a block has: the
+        blocks with as many planes are projected together."""
+        blocks, counts = np.unique(self.block, return_counts=True)
+        out = []
+        for k in np.unique(counts):
+            same = blocks[counts == k]
+            rows = [np.flatnonzero(self.block == b) for b in same]
+            out.append((same, np.array(rows, np.int64).reshape(len(same), k)))
+        return tuple(out)
 
     def project(self, x: FloatArray, q: FloatArray) -> FloatArray:
         """Positions (..., B, 3) moved the least onto their blocks' planes at rotations q."""
@@ -498,11 +506,10 @@ class PinPlanes:
         pinned_t = np.sum(n * reach, axis=-1) - self.mean
         t = np.where(self.axis >= 0, pinned_t, self.mean)
         out = x.copy()
-        for block in np.unique(b):
-            k = np.flatnonzero(b == block)
-            nb, xb = n[..., k, :], x[..., block, :]
-            miss = t[..., k] - np.einsum("...kj,...j->...k", nb, xb)
-            out[..., block, :] = xb + np.einsum("...jk,...k->...j", np.linalg.pinv(nb), miss)
+        for blocks, rows in self.by_size:  # n: (..., G, k, 3), x: (..., G, 3)
+            nb, xb = n[..., rows, :], x[..., blocks, :]
+            miss = t[..., rows] - np.einsum("...kj,...j->...k", nb, xb)
+            out[..., blocks, :] = xb + np.einsum("...jk,...k->...j", np.linalg.pinv(nb), miss)
         return out
 
 
@@ -547,6 +554,7 @@ def pin_planes(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> PinPlanes:
             n = turn[:, k]  # the law's value u = turnᵀ (x - origin); pinned u_k = offset_k
             t = float(n @ origin) + float(law.offset[k])
             rows.append((cb, -1, n, none, IDENTITY_QUAT, none, t))
+    pinned = [(b, e_xyz, e_quat, a, c, t) for b, a, _, e_xyz, e_quat, c, t in rows if a >= 0]
     block, axis, normal, end_xyz, end_quat, child, mean = zip(*rows, strict=True)
     return PinPlanes(
         np.array(block, np.int64),
@@ -556,28 +564,8 @@ def pin_planes(grammar: Grammar, edges: PoseEdges, n_blocks: int) -> PinPlanes:
         np.array(end_quat, float),
         np.array(child, float),
         np.array(mean, float),
-        _parallel_groups(rows),
+        tuple(parallel_pin_groups(pinned)),
     )
-
-
-def _parallel_groups(rows: list) -> tuple:  # type: ignore[type-arg]
-    """`PinPlanes.parallel`: the pinned rows grouped by block, end and axis, two or more."""
-    groups: dict[tuple[int, bytes, bytes, int], list[tuple[FloatArray, float]]] = {}
-    ends: dict[tuple[int, bytes, bytes, int], FloatArray] = {}
-    for b, a, _, e_xyz, e_quat, c, mean in rows:
-        if a < 0:
-            continue
-        key = (b, np.asarray(e_xyz).tobytes(), np.asarray(e_quat).tobytes(), a)
-        groups.setdefault(key, []).append((np.asarray(c, float), float(mean)))
-        ends[key] = np.asarray(e_quat, float)
-    out = []
-    for key, members in groups.items():
-        if len(members) < 2:
-            continue
-        d = np.array([c - members[0][0] for c, _ in members[1:]])
-        delta = np.array([m - members[0][1] for _, m in members[1:]])
-        out.append((key[0], ends[key], key[3], d, delta))
-    return tuple(out)
 
 
 IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0])
@@ -594,21 +582,22 @@ def _planed_value_and_gradient(
 ) -> tuple[FloatArray, FloatArray]:
     """`_value_and_gradient` with the blocks of `planes` projected onto them: the gradient at
     the projected poses, then, by the chain rule, through the projection (which depends on
-    each block's own pose only), its Jacobian by central differences."""
-    x, q = planes.place(*_moved(x0, q0, theta))
-    value, grad = _value_and_gradient(grammar, tiled, edges, x, q, np.zeros_like(theta))
-    on = np.unique(planes.block)
-    chained = np.zeros((len(on), 6))
-    for j in range(6):
-        step = np.zeros_like(theta)
-        step[on, j] = STEP
-        hi_x, hi_q = planes.place(*_moved(x0, q0, theta + step))
-        lo_x, lo_q = planes.place(*_moved(x0, q0, theta - step))
-        dx = (hi_x[on] - lo_x[on]) / (2 * STEP)  # (blocks, 3)
-        turn = quat_multiply(quat_conjugate(lo_q[on]), hi_q[on])  # in the body frame
-        dw = log_quat(turn) / (2 * STEP)
-        chained[:, j] = np.sum(dx * grad[on, :3], axis=1) + np.sum(dw * grad[on, 3:], axis=1)
-    grad[on] = chained
+    each block's own pose only), its Jacobian by central differences.  The point and its 12
+    neighbours are placed in one call: placed one by one, they took most of refinement's
+    time on a shelf of pinned boxes."""
+    n_blocks, on = len(x0), np.unique(planes.block)
+    j = np.arange(6)[:, None]
+    step = np.zeros((6, n_blocks, 6))
+    step[j, on, j] = STEP  # step j moves coordinate j of every block on planes
+    thetas = np.concatenate([theta[None], theta + step, theta - step])  # (13, B, 6)
+    s = len(thetas)
+    sx, sq = _moved(np.tile(x0, (s, 1)), np.tile(q0, (s, 1)), thetas.reshape(-1, 6))
+    sx, sq = planes.place(sx.reshape(s, n_blocks, 3), sq.reshape(s, n_blocks, 4))
+    value, grad = _value_and_gradient(grammar, tiled, edges, sx[0], sq[0], np.zeros_like(theta))
+    hi_x, hi_q, lo_x, lo_q = sx[1:7, on], sq[1:7, on], sx[7:, on], sq[7:, on]  # (6, blocks, .)
+    dx = (hi_x - lo_x) / (2 * STEP)
+    dw = log_quat(quat_multiply(quat_conjugate(lo_q), hi_q)) / (2 * STEP)  # in the body frame
+    grad[on] = (np.sum(dx * grad[on, :3], axis=-1) + np.sum(dw * grad[on, 3:], axis=-1)).T
     return value, grad
 
 
@@ -872,18 +861,7 @@ def _newton_step(
     """A Levenberg–Marquardt step per block: poses after it, and the first-order gain.
     Blocks turn only as `turns` lets them: the step is taken in their basis coordinates."""
     n_blocks = len(bx)
-    tiled = _tiled(edges, n_blocks, N_VARIANTS)
-
-    def gradient(x: FloatArray, q: FloatArray) -> FloatArray:
-        return _value_and_gradient(grammar, tiled, edges, x, q, np.zeros((n_blocks, 6)))[1]
-
-    g = gradient(bx, bq)
-    hess = np.zeros((n_blocks, 6, 6))
-    for j in range(6):
-        step = np.zeros((n_blocks, 6))
-        step[:, j] = 1e-4
-        hess[:, :, j] = (gradient(*_moved(bx, bq, step)) - g) / 1e-4
-    hess = 0.5 * (hess + np.swapaxes(hess, 1, 2))
+    g, hess = _gradient_and_hessian(grammar, edges, bx, bq)
     to_body = np.zeros((n_blocks, 6, 6))
     to_body[:, :3, :3] = np.eye(3)
     to_body[:, 3:, 3:] = turns.basis
@@ -899,6 +877,28 @@ def _newton_step(
     delta = np.where(np.isfinite(delta), delta, 0.0)
     tx, tq = _moved(bx, bq, turns.body(delta))
     return tx, tq, np.einsum("ni,ni->n", g, delta)
+
+
+HESSIAN_STEP = 1e-4  # the step of the Hessian's forward differences of the gradient
+
+
+def _gradient_and_hessian(
+    grammar: Grammar, edges: PoseEdges, bx: FloatArray, bq: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Per block, the gradient (B, 6) and the symmetrised Hessian (B, 6, 6) by forward
+    differences of the gradient, the point and its six moved copies in one evaluation (as
+    seven calls, the per-call overhead was most of refinement's time on small sets)."""
+    n_blocks = len(bx)
+    steps = np.zeros((7, n_blocks, 6))
+    steps[np.arange(1, 7), :, np.arange(6)] = HESSIAN_STEP
+    px, pq = _moved(np.tile(bx, (7, 1)), np.tile(bq, (7, 1)), steps.reshape(-1, 6))
+    px[:n_blocks], pq[:n_blocks] = bx, bq  # the point itself, unmoved
+    copies = _tiled(edges, n_blocks, 7)  # copy v's edges point at copy v's blocks
+    tiled = _tiled(copies, 7 * n_blocks, N_VARIANTS)
+    zero = np.zeros((7 * n_blocks, 6))
+    grads = _value_and_gradient(grammar, tiled, copies, px, pq, zero)[1].reshape(7, n_blocks, 6)
+    hess = np.moveaxis((grads[1:] - grads[0]) / HESSIAN_STEP, 0, 2)  # [:, :, j] from step j
+    return grads[0], 0.5 * (hess + np.swapaxes(hess, 1, 2))
 
 
 def free_blocks(grammar: Grammar, tree: Trees) -> tuple[IntArray, IntArray]:
