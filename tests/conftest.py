@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
+import typer.testing
 from hypothesis import settings
 
 from ssgc.compile import load_grammar
@@ -26,6 +27,23 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
     if config.getoption("capture") == "no" or config.getoption("hypothesis_show_statistics", False):
         return 0
     return None  # xdist's own count
+
+
+def _built_once(get_command):  # type: ignore[no-untyped-def]
+    """typer's CliRunner builds the click command from the app on every `invoke` (0.1-0.2 s
+    of signature and help building, in every one of the suite's thousands of command runs);
+    `ssg` builds it once per process.  The tests build it once per app, as `ssg` does."""
+    built: dict[int, tuple[object, object]] = {}
+
+    def cached(app):  # type: ignore[no-untyped-def]
+        if id(app) not in built:
+            built[id(app)] = (app, get_command(app))  # the app is kept: its id stays its own
+        return built[id(app)][1]
+
+    return cached
+
+
+typer.testing._get_command = _built_once(typer.testing._get_command)
 
 
 ROOT = Path(__file__).resolve().parent.parent
