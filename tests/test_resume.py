@@ -243,11 +243,24 @@ def without_timing(path: Path) -> dict[str, Any]:
     return doc
 
 
-def test_parse_killed_interrupted_and_resumed(tmp_path: Path) -> None:
+def _first_sink_scenes(count: int, path: Path) -> Path:
+    """The real dataset's first `count` scenes (its top-level keys are the only lines that
+    start in column 0), as a dataset file of its own."""
+    lines = SINK_DATA.read_text().splitlines(keepends=True)
+    starts = [i for i, line in enumerate(lines) if line[:1] not in ("", " ", "#", "\n")]
+    path.write_text("".join(lines[: starts[count]]))
+    return path
+
+
+def test_parse_killed_interrupted_and_resumed(
+    tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
     """SIGKILL, then Ctrl-C of the resumed run, then a resume that finishes: OUT.json stays
-    the previous version until the end, and ends equal to an uninterrupted run's."""
+    the previous version until the end, and ends equal to an uninterrupted run's.  The first
+    40 real scenes: the kill comes after 10, the Ctrl-C 10 later, and 20 are left to finish."""
+    data = _first_sink_scenes(40, tmp_path_factory.mktemp("data") / "scenes.yaml")
     ref = tmp_path / "ref.json"
-    reference = start("parse", SINK_DATA, "-g", SINK, "-o", ref, "-q")  # alongside: 2 cores
+    reference = start("parse", data, "-g", SINK, "-o", ref, "-q")  # alongside: 2 cores
     out = tmp_path / "out.json"
     out.write_text("the previous version\n")
     journal = journal_path(out)
@@ -256,21 +269,21 @@ def test_parse_killed_interrupted_and_resumed(tmp_path: Path) -> None:
         return lambda: journal.exists() and journal.read_bytes().count(b"\n") >= n + 1
 
     code, _ = interrupt_when(
-        start("parse", SINK_DATA, "-g", SINK, "-o", out), journalled(10), signal.SIGKILL
+        start("parse", data, "-g", SINK, "-o", out), journalled(10), signal.SIGKILL
     )
     assert code == -signal.SIGKILL
     assert out.read_text() == "the previous version\n"
     lines = journal.read_bytes().split(b"\n")
     assert [json.loads(x)["index"] for x in lines[1:-1]] == list(range(len(lines) - 2))
 
-    resumed = start("parse", SINK_DATA, "-g", SINK, "-o", out, "--resume")
+    resumed = start("parse", data, "-g", SINK, "-o", out, "--resume")
     code, stderr = interrupt_when(resumed, journalled(len(lines) + 10), signal.SIGINT)
     assert code == 130 and "interrupted" in stderr and "Traceback" not in stderr, (code, stderr)
     assert out.read_text() == "the previous version\n"
     # out.json's own: the reference run may be writing ref.json's at this moment
     assert [p.name for p in tmp_path.iterdir() if temp_target(p.name) == out.name] == []
 
-    finished = start("parse", SINK_DATA, "-g", SINK, "-o", out, "--resume")
+    finished = start("parse", data, "-g", SINK, "-o", out, "--resume")
     _, stderr = finished.communicate(timeout=120)
     assert finished.returncode == 0, stderr
     assert not journal.exists()
