@@ -355,7 +355,7 @@ def _bound_world_frame(p: _Problem, i: IntArray, R: FloatArray, delta: FloatArra
 def _curved_world_slack(  # type: ignore[no-untyped-def]
     p: _Problem, i: IntArray, W: FloatArray, Wd: FloatArray, t: FloatArray, m: FloatArray, delta
 ) -> FloatArray:
-    """The world frame's slack with a quarter of the curvature in t kept: the score is
+    """The world frame's slack with half of the curvature in t kept: the score is
     g0 + ∇_t·d + ⟨∇_R, ΔR⟩ - ½ Σ (ΔR m_k + d)ᵀ W_k (ΔR m_k + d), and (a + b)ᵀ W (a + b) ≥
     ½ bᵀ W b - aᵀ W a, so the last sum is at most -¼ dᵀ ΣW d plus ½ Σ λmax(W_k)|ΔR m_k|²,
     |ΔR m_k| ≤ 2 sin(δ/2)|m_k| on the cell: `_curved_slack` with K = ½ ΣW, plus that."""
@@ -424,10 +424,10 @@ def _bound_second_order(  # type: ignore[no-untyped-def]
     curv = _extremes(p.PA[i].sum(axis=1, keepdims=True))[:, 0, 1]  # ‖Σ_A P_A‖
     s = 2.0 * np.sqrt(2.0) * np.sin(0.5 * np.minimum(delta, np.pi))
     Hs = H - (2.0 * s * curv)[:, None, None] * eye
-    scale = np.maximum(1.0, np.sqrt(np.sum(Hs * Hs, axis=(1, 2))))  # ≥ |λ|max, before stiffening
-    Hs, pinned_cost = _stiffen_narrow_axes(Hs, scale, t0, p.lo[i], p.hi[i])
+    size = np.maximum(1.0, np.sqrt(np.sum(Hs * Hs, axis=(1, 2))))  # ≥ |λ|max, before stiffening
+    Hs, pinned_cost = _stiffen_narrow_axes(Hs, size, t0, p.lo[i], p.hi[i])
     h, U = np.linalg.eigh(Hs)
-    pd = h[:, 0] > 1e-12 * scale  # the stiff axes' own size must not set the threshold
+    pd = h[:, 0] > 1e-12 * size  # the stiff axes' own size must not set the threshold
     scale = np.where(pd[:, None], 1.0 / np.sqrt(np.where(pd[:, None], h, 1.0)), 0.0)
     root = np.einsum("nij,nj,nkj->nik", U, scale, U)  # H'^(-1/2)
     top = np.maximum(np.linalg.eigvalsh(np.einsum("nij,njk,nkl->nil", root, gram, root))[:, -1], 0)
@@ -444,7 +444,7 @@ def _bound_second_order(  # type: ignore[no-untyped-def]
 
 
 def _stiffen_narrow_axes(
-    H: FloatArray, scale: FloatArray, t0: FloatArray, lo: FloatArray, hi: FloatArray
+    H: FloatArray, size: FloatArray, t0: FloatArray, lo: FloatArray, hi: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """H with a stiff curvature B along the axes a box pins (width ≤ FIXED_WIDTH), and
     the most that adds: ½ B Σ w², w the farthest the box lets t move from t0 on them.
@@ -458,8 +458,8 @@ def _stiffen_narrow_axes(
     narrow = (hi - lo) <= FIXED_WIDTH
     if not np.any(narrow):
         return H, np.zeros(len(H))
-    big = 1e3 * scale  # the pinned axes' share of the gain ≲ 1e-3 of the rest, and the
-    # eigenvalues of the rest accurate to ~1e-13 × scale
+    big = 1e3 * size  # (size ≥ H's largest |eigenvalue|) the pinned axes' share of the gain
+    # ≲ 1e-3 of the rest, and the eigenvalues of the rest accurate to ~1e-13 × size
     H = H + big[:, None, None] * (narrow[:, :, None] * np.eye(3))
     with np.errstate(invalid="ignore"):
         width = np.where(narrow, np.maximum(hi - t0, t0 - lo), 0.0)
